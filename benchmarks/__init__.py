@@ -1,0 +1,1 @@
+"""The performance suite: figures, not pass/fail tests (``python -m benchmarks``)."""

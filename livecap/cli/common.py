@@ -1,0 +1,62 @@
+"""What several commands share: finding a rig's markers, calibrating, progress bars, reports."""
+
+from __future__ import annotations
+
+import argparse
+from contextlib import contextmanager
+from pathlib import Path
+
+from livecap.calibration import Profile, calibrate, estimate_neutral
+from livecap.markers import MarkerLayout
+from livecap.rig import Rig
+from livecap.take import Take
+
+
+def markers_path(rig_path: str | Path) -> Path:
+    """A rig's markers.json: inside an OBJ folder, or ``<rig>.markers.json`` beside a .npz."""
+    p = Path(rig_path)
+    return p / "markers.json" if p.is_dir() else p.with_name(p.stem + ".markers.json")
+
+
+def load_rig(args: argparse.Namespace) -> tuple[Rig, MarkerLayout]:
+    rig = Rig.load(args.rig)
+    mpath = Path(args.markers) if getattr(args, "markers", None) else markers_path(args.rig)
+    if not mpath.exists():
+        raise ValueError(f"{mpath}: no markers.json for rig {args.rig} (give --markers)")
+    return rig, MarkerLayout.load(mpath, rig)
+
+
+def add_rig_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--rig", required=True, help="rig: OBJ folder (neutral.obj + one OBJ per shape) or .npz")
+    p.add_argument("--markers", help="markers.json (default: in the rig folder, or <rig>.markers.json)")
+
+
+def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--profile", help="calibrated profile (.npz from 'livecap calibrate'); "
+                   "without it the take's first --neutral-seconds are taken as the neutral face")
+    p.add_argument("--neutral-seconds", type=float, default=1.0,
+                   help="neutral span at the start of the take when no --profile (default 1.0)")
+
+
+def profile_for(args: argparse.Namespace, rig: Rig, layout: MarkerLayout, take: Take) -> Profile:
+    if getattr(args, "profile", None):
+        return Profile.load(args.profile)
+    sel = take.select(layout.labels)
+    neutral = estimate_neutral(sel, layout.stable, max(1, int(args.neutral_seconds * take.rate)))
+    return calibrate(rig, layout, neutral)
+
+
+@contextmanager
+def progress_bar(description: str, total: int):
+    """A rich progress bar; yields ``update(done, total)``."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                  TimeRemainingColumn(), transient=True) as prog:
+        task = prog.add_task(description, total=total)
+
+        def update(done: int, total_: int) -> None:
+            if done % 16 == 0 or done == total_:
+                prog.update(task, completed=done)
+
+        yield update

@@ -1,0 +1,49 @@
+"""``livecap info``: describe a rig or a take."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from livecap.cli.common import markers_path
+from livecap.markers import MarkerLayout
+from livecap.rig import Rig
+from transport.takefile import READERS, read_take
+
+
+def register(sub) -> None:
+    p = sub.add_parser("info", help="describe a rig (OBJ folder / .npz) or a take (.c3d/.trc/.csv)")
+    p.add_argument("path")
+    p.add_argument("--markers", help="markers.json for a rig (default: found beside it)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    path = Path(args.path)
+    if path.suffix.lower() in READERS:
+        take = read_take(path)
+        missing = (~take.valid).mean(0)
+        print(f"take {path}: {take.n_frames} frames at {take.rate:g} Hz ({take.duration:.2f} s), "
+              f"{take.n_markers} markers, first frame {take.first_frame}")
+        print(f"  missing: {(~take.valid).mean() * 100:.2f}% of marker-frames; worst "
+              + ", ".join(f"{take.labels[i]} {missing[i] * 100:.1f}%" for i in np.argsort(-missing)[:3]))
+        lo = take.positions[take.valid].min(0)
+        hi = take.positions[take.valid].max(0)
+        print(f"  extent (mm): {np.round(lo, 1).tolist()} .. {np.round(hi, 1).tolist()}")
+        return 0
+    rig = Rig.load(path)
+    ext = np.ptp(rig.neutral, axis=0)
+    print(f"rig {path}: {rig.n_vertices} vertices, {len(rig.triangles)} triangles, {rig.n_shapes} shapes, "
+          f"{len(rig.inbetweens)} in-betweens, {len(rig.correctives)} correctives")
+    print(f"  extent (mm): {np.round(ext, 1).tolist()}")
+    mags = np.linalg.norm(rig.deltas, axis=2).max(axis=1)
+    for name, lo, hi, mag in zip(rig.names, rig.lower, rig.upper, mags, strict=True):
+        print(f"  {name:24s} [{lo:g}, {hi:g}]  max displacement {mag:6.2f} mm")
+    mpath = Path(args.markers) if args.markers else markers_path(path)
+    if mpath.exists():
+        layout = MarkerLayout.load(mpath, rig)
+        print(f"  markers: {layout.n_markers} ({int(layout.stable.sum())} stable: "
+              f"{', '.join(layout.stable_labels())}) from {mpath}")
+    return 0

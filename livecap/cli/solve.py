@@ -1,0 +1,42 @@
+"""``livecap solve``: a take file and a rig in, weight curves (CSV) out."""
+
+from __future__ import annotations
+
+import argparse
+
+from livecap.cli.common import (
+    add_calibration_arguments,
+    add_rig_arguments,
+    load_rig,
+    profile_for,
+    progress_bar,
+)
+from livecap.modes import MODES, build_solver
+from livecap.solve import solve_take
+from transport.takefile import read_take
+from transport.weights_csv import write_weights_csv
+
+
+def register(sub) -> None:
+    p = sub.add_parser("solve", help="solve a take (C3D/TRC/CSV) for rig weights, write a weights CSV",
+                       description="Solve every frame of a recorded take for the rig's blendshape weights.")
+    p.add_argument("take", help="marker take: .c3d, .trc or .csv")
+    add_rig_arguments(p)
+    add_calibration_arguments(p)
+    p.add_argument("--mode", default="lsq", choices=sorted(MODES), help="solver mode (default lsq)")
+    p.add_argument("--ridge", type=float, default=0.0, help="ridge weight lambda for per-frame modes")
+    p.add_argument("--out", required=True, help="weights CSV: frame,time,<shape>...")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    rig, layout = load_rig(args)
+    take = read_take(args.take)
+    profile = profile_for(args, rig, layout, take)
+    solver = build_solver(args.mode, profile, {"ridge": args.ridge})
+    with progress_bar(f"solving ({args.mode})", take.n_frames) as update:
+        solved = solve_take(take, profile, solver, progress=update)
+    write_weights_csv(args.out, solved.names, solved.weights, solved.rate, solved.first_frame)
+    print(f"{args.out}: {take.n_frames} frames x {len(solved.names)} shapes "
+          f"({solved.solve_seconds * 1e3 / take.n_frames:.3f} ms/frame)")
+    return 0

@@ -1,0 +1,25 @@
+"""Solver modes by name: the one place that builds a solver from a calibrated Profile."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from livecap.calibration import Profile
+from solvers.least_squares import BoundedLeastSquares
+
+
+def _lsq(profile: Profile, options: dict):
+    return BoundedLeastSquares(profile.basis, profile.lower, profile.upper, options.get("ridge", 0.0))
+
+
+MODES: dict[str, Callable] = {
+    "lsq": _lsq,
+}
+
+
+def build_solver(mode: str, profile: Profile, options: dict | None = None):
+    try:
+        factory = MODES[mode]
+    except KeyError:
+        raise ValueError(f"unknown solver mode {mode!r} (choose from {sorted(MODES)})") from None
+    return factory(profile, options or {})

@@ -1,0 +1,37 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared"
+ICT = SHARED / "realdata" / "ict-face"
+VENDORS = SHARED / "realdata" / "c3d-vendors"
+
+
+@pytest.fixture(scope="session")
+def demo():
+    """The procedural demo rig and its marker layout (seed 0)."""
+    from livecap.demo.face import demo_rig
+
+    return demo_rig(0)
+
+
+@pytest.fixture(scope="session")
+def ict():
+    """The real ICT-FaceKit rig from ../shared (skipped when that folder is absent)."""
+    if not (ICT / "neutral.obj").exists():
+        pytest.skip(f"ICT face rig not found at {ICT} (../shared/realdata is not beside this checkout)")
+    from livecap.markers import MarkerLayout
+    from livecap.rig import Rig
+
+    rig = Rig.load(ICT)
+    return rig, MarkerLayout.load(ICT / "markers.json", rig)
+
+
+@pytest.fixture
+def vendors():
+    if not VENDORS.is_dir():
+        pytest.skip(f"vendor C3D files not found at {VENDORS}")
+    return VENDORS

@@ -1,0 +1,1 @@
+"""Sources and sinks: each module speaks one file or wire format. Never imports solvers."""

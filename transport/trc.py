@@ -1,0 +1,82 @@
+"""TRC marker takes (the OpenSim / Motion Analysis tab-separated text format).
+
+Header: PathFileType line, a names line, a values line (DataRate, CameraRate, NumFrames,
+NumMarkers, Units, ...), then ``Frame# Time label ...`` and ``X1 Y1 Z1 ...``; empty cells
+are missing markers.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from livecap.take import Take
+from livecap.units import to_mm
+from transport.errors import TakeFileError
+
+
+def read_trc(path: str | Path) -> Take:
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TakeFileError(f"{path}: cannot read TRC ({exc})") from None
+    if len(lines) < 5 or not lines[0].startswith("PathFileType"):
+        raise TakeFileError(f"{path}: not a TRC file (no PathFileType header)")
+    keys = lines[1].split("\t")
+    vals = lines[2].split("\t")
+    meta = dict(zip([k.strip() for k in keys], [v.strip() for v in vals], strict=False))
+    try:
+        rate = float(meta["DataRate"])
+        n_markers = int(meta["NumMarkers"])
+        units = meta.get("Units", "mm")
+        scale = to_mm(1.0, units)
+    except (KeyError, ValueError) as exc:
+        raise TakeFileError(f"{path}: bad TRC header ({exc})") from None
+    names = [c.strip() for c in lines[3].split("\t")[2:]]
+    labels = [c for c in names if c][:n_markers]
+    if len(labels) != n_markers:
+        raise TakeFileError(f"{path}: header declares {n_markers} markers, names line has {len(labels)}")
+    rows = []
+    frames = []
+    for lineno, line in enumerate(lines[5:], 6):
+        if not line.strip():
+            continue
+        cells = line.split("\t")
+        if len(cells) < 2:
+            raise TakeFileError(f"{path}:{lineno}: short data row")
+        row = np.full(3 * n_markers, np.nan)
+        for j, cell in enumerate(cells[2:2 + 3 * n_markers]):
+            cell = cell.strip()
+            if cell:
+                try:
+                    row[j] = float(cell)
+                except ValueError:
+                    raise TakeFileError(f"{path}:{lineno}: {cell!r} is not a number") from None
+        frames.append(int(float(cells[0])))
+        rows.append(row)
+    if not rows:
+        raise TakeFileError(f"{path}: no data rows")
+    xyz = np.array(rows).reshape(len(rows), n_markers, 3) * scale
+    return Take(labels, xyz, np.isfinite(xyz).all(axis=2), rate, frames[0])
+
+
+def write_trc(take: Take, path: str | Path) -> None:
+    path = Path(path)
+    n, t = take.n_markers, take.n_frames
+    out = [
+        f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
+        f"{take.rate:g}\t{take.rate:g}\t{t}\t{n}\tmm\t{take.rate:g}\t{take.first_frame + 1}\t{t}",
+        "Frame#\tTime\t" + "\t\t\t".join(take.labels) + "\t\t",
+        "\t\t" + "\t".join(f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(n)),
+        "",
+    ]
+    for i in range(t):
+        cells = [
+            "" if not take.valid[i, j] else f"{take.positions[i, j, k]:.5f}"
+            for j in range(n) for k in range(3)
+        ]
+        out.append(f"{take.first_frame + i + 1}\t{i / take.rate:.6f}\t" + "\t".join(cells))
+    path.write_text("\n".join(out) + "\n")

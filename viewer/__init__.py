@@ -1,0 +1,1 @@
+"""moderngl preview of a rig driven by solved weights (draws only)."""
