@@ -1,0 +1,66 @@
+"""Run the benchmark suite: ``python -m benchmarks [--quick] [--only NAME ...]``.
+
+Each suite runs in its own process (so its peak memory is its own), prints its table, and the
+figures are collected with the machine description into benchmarks/results/<date>.json and
+benchmarks/results/latest.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from benchmarks.timing import machine, peak_rss_mb
+
+# suite name -> module under benchmarks/ exposing run(quick) -> dict
+SUITES = ["solve_latency", "movement", "qp_libraries", "live_latency", "concurrency", "viewer_fps", "transfer"]
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def run_one(name: str, quick: bool) -> dict:
+    """Child-process entry: run one suite and print its JSON on the last line."""
+    mod = importlib.import_module(f"benchmarks.{name}")
+    out = mod.run(quick=quick)
+    out["peak_rss_mb"] = peak_rss_mb()
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
+    p.add_argument("--quick", action="store_true", help="fewer repetitions (a smoke run)")
+    p.add_argument("--only", nargs="*", help="suites to run (default: all available)")
+    p.add_argument("--child", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.child:
+        result = run_one(args.child, args.quick)
+        print("\nRESULT " + json.dumps(result, default=float))
+        return 0
+    names = args.only or [s for s in SUITES if (Path(__file__).parent / f"{s}.py").exists()]
+    report = {"machine": machine(), "quick": args.quick, "suites": {}}
+    for name in names:
+        print(f"\n=== {name} ===", flush=True)
+        cmd = [sys.executable, "-m", "benchmarks", "--child", name] + (["--quick"] if args.quick else [])
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        out_lines = proc.stdout.splitlines()
+        print("\n".join(line for line in out_lines if not line.startswith("RESULT ")))
+        result = next((json.loads(line[7:]) for line in reversed(out_lines) if line.startswith("RESULT ")), None)
+        if proc.returncode or result is None:
+            print(proc.stderr[-2000:], file=sys.stderr)
+            result = {"error": (proc.stderr.strip().splitlines() or ["failed"])[-1]}
+        report["suites"][name] = result
+        if "peak_rss_mb" in result:
+            print(f"[{name}] peak memory {result['peak_rss_mb']:.0f} MB")
+    RESULTS.mkdir(exist_ok=True)
+    stamp = report["machine"]["date"].replace(":", "").replace("-", "")[:15]
+    for path in (RESULTS / f"{stamp}.json", RESULTS / "latest.json"):
+        path.write_text(json.dumps(report, indent=1, default=float))
+    print(f"\nwritten {RESULTS / 'latest.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
