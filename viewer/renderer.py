@@ -78,10 +78,11 @@ class Renderer:
         V = rig.n_vertices
         self._V = V
 
-        fields = [rig.deltas] + [np.stack([i.residual for i in rig.inbetweens])] * bool(rig.inbetweens)
-        fields += [np.stack([c.delta for c in rig.correctives])] * bool(rig.correctives)
-        fields_arr = np.concatenate(fields).astype(np.float32) if rig.n_shapes else np.zeros(3, np.float32)
-        self.n_fields = len(fields_arr) if rig.n_shapes else 0
+        fields = [rig.deltas] + [i.residual[None] for i in rig.inbetweens] + [c.delta[None] for c in rig.correctives]
+        fields_arr = np.concatenate(fields).astype(np.float32)
+        self.n_fields = len(fields_arr)
+        if not self.n_fields:
+            fields_arr = np.zeros(3, np.float32)  # a storage buffer cannot be empty
         self._neutral = ctx.buffer(rig.neutral.astype(np.float32).tobytes())
         self._fields = ctx.buffer(fields_arr.tobytes())
         self._active_idx = ctx.buffer(reserve=4 * max(self.n_fields, 1))

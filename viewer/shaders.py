@@ -88,8 +88,8 @@ void main() {
     if (!gl_FrontFacing) n = -n;  // two-sided: open meshes and either winding shade the visible side
     vec3 v = normalize(eye - v_world);
     vec3 c = albedo * mix(vec3(0.10, 0.09, 0.10), vec3(0.22, 0.22, 0.25), 0.5 + 0.5 * n.y);  // hemisphere
-    c += light(n, v, vec3(-0.45, 0.55, 0.70), vec3(0.95, 0.92, 0.86), 24.0);  // key
-    c += light(n, v, vec3(0.70, 0.10, 0.45), vec3(0.30, 0.34, 0.42), 12.0);   // fill
+    c += light(n, v, vec3(-0.65, 0.50, 0.55), vec3(0.92, 0.88, 0.82), 24.0);  // key
+    c += light(n, v, vec3(0.75, 0.05, 0.50), vec3(0.26, 0.30, 0.38), 12.0);   // fill
     c += 0.25 * pow(1.0 - max(dot(n, v), 0.0), 3.0) * vec3(0.6, 0.7, 0.9);     // rim
     f_color = vec4(pow(clamp(c, 0.0, 1.0), vec3(1.0 / 2.2)), 1.0);
 }
