@@ -5,7 +5,7 @@ context (on a machine without a GPU: Mesa llvmpipe). Weights are the demo take's
 curves, so the active-field count is realistic. "frame" = deform + lit draw + marker overlay +
 read-back to a numpy image; "annotated" adds the weight bars and caption (OpenCV).
 
-    python -m benchmarks.viewer_fps [--quick] [--json out/benchmarks/viewer_fps.json]
+    python -m benchmarks.viewer_fps [--quick] [--json benchmarks/results/viewer_fps.json]
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def run(quick: bool = False) -> dict:
     from viewer.preview import Preview
 
     rig, layout = demo_rig(0)
-    n = 40 if quick else 240
+    n = 30 if quick else 120
     W = _weights(rig, n)
     results: dict = {"rig": "demo (seed 0)", "vertices": rig.n_vertices, "triangles": int(len(rig.triangles)),
                      "shapes": rig.n_shapes, "size": "640x480", "frames": n,
@@ -92,7 +92,7 @@ def print_table(res: dict) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--json", default=str(ROOT / "out" / "benchmarks" / "viewer_fps.json"))
+    ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "viewer_fps.json"))
     args = ap.parse_args()
     res = run(args.quick)
     print_table(res)
