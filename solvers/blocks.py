@@ -66,7 +66,8 @@ class MovementBlocks:
         self.g = np.clip(g, 0.0, 1.0)
         self.U = U  # w = U y
         self.UG = U.T @ self.G  # boundary coupling: U^T G w_fixed
-        self.const = U.T @ const  # projected prior constant alpha P w_mean
+        self.const_weights = const  # alpha P w_mean
+        self.const = U.T @ const  # projected
         self.Qm = U.T @ B.T  # movement data projection: q_t = U^T B^T s_t
         self.Qb = (U.T @ B.T) * (self.beta * self.row_weights)[None, :] if self.beta > 0 else None
         self.BU = B @ U  # model fit from modal coordinates: B w = BU y

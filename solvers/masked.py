@@ -11,7 +11,6 @@ visibility pattern (most pairs of frames see every marker). Used by
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg
 
 from solvers.blocks import IllPosedError, MovementBlocks
 
@@ -80,14 +79,15 @@ def solve_masked(blocks: MovementBlocks, targets: np.ndarray, valid: np.ndarray,
             r = r - prevC.T @ z[i - 1]
         nxt = i + 1 < N and free[i + 1] == t + 1
         C = -Gp[gi[t]] if nxt else None
+        rhs = r[:, None] if C is None else np.column_stack([C, r])
         try:
-            cf = scipy.linalg.cho_factor(D)
+            X = np.linalg.solve(D, rhs)
         except np.linalg.LinAlgError:
             raise IllPosedError(f"masked movement matching is singular at frame {t} (too few visible markers "
                                 "and no boundary, prior, beta or ridge)") from None
-        z[i] = scipy.linalg.cho_solve(cf, r)
+        z[i] = X[:, -1]
         if C is not None:
-            Z[i] = scipy.linalg.cho_solve(cf, C)
+            Z[i] = X[:, :-1]
         prevC = C
     x = np.zeros((N, m))
     x[-1] = z[-1]

@@ -53,27 +53,66 @@ class Edit:
     range: tuple[int, int] | None = None
 
 
-def fill_gaps(targets: np.ndarray, valid: np.ndarray, fit: np.ndarray | None = None) -> np.ndarray:
-    """Missing markers replaced by ``fit`` + the marker's offset from the fit, the offset
-    interpolated linearly in time between observed frames (held at the take's ends; 0 for a
-    marker never seen). Without ``fit`` this is linear interpolation of the displacement."""
-    S = np.asarray(targets, dtype=np.float64)
-    valid = np.asarray(valid, dtype=bool)
-    if valid.all():
-        return S
-    F = np.zeros_like(S) if fit is None else fit.reshape(S.shape)
-    off = S - F
-    frames = np.arange(len(S))
-    out = S.copy()
-    for i in np.flatnonzero(~valid.all(0)):
-        seen = valid[:, i]
-        gap = ~seen
-        if not seen.any():
-            out[gap, i] = F[gap, i]
-            continue
-        for c in range(3):
-            out[gap, i, c] = F[gap, i, c] + np.interp(frames[gap], frames[seen], off[seen, i, c])
-    return out
+class GapPlan:
+    """Where markers are missing and which observed frames bracket each gap (computed once per take)."""
+
+    def __init__(self, valid: np.ndarray) -> None:
+        valid = np.asarray(valid, dtype=bool)
+        self.shape = valid.shape
+        self.t, self.i = np.nonzero(~valid)
+        E = len(self.t)
+        self.a = np.zeros(E, dtype=np.intp)  # observed frame before (or the first observed)
+        self.b = np.zeros(E, dtype=np.intp)  # observed frame after (or the last observed)
+        self.lam = np.zeros(E)
+        self.never = np.zeros(E, dtype=bool)  # marker never observed: the fit alone
+        for i in np.unique(self.i):
+            sel = np.flatnonzero(self.i == i)
+            seen = np.flatnonzero(valid[:, i])
+            if len(seen) == 0:
+                self.never[sel] = True
+                continue
+            t = self.t[sel]
+            right = np.clip(np.searchsorted(seen, t), 0, len(seen) - 1)
+            left = np.clip(np.searchsorted(seen, t) - 1, 0, len(seen) - 1)
+            ta, tb = seen[left], seen[right]
+            span = np.where(tb > ta, tb - ta, 1)
+            self.a[sel], self.b[sel] = ta, tb
+            self.lam[sel] = np.where(tb > ta, (t - ta) / span, 0.0)
+        self.frames = np.unique(self.t)  # frames whose targets change when refilled
+
+    @property
+    def empty(self) -> bool:
+        return len(self.t) == 0
+
+    def fill(self, targets: np.ndarray, weights: np.ndarray | None = None, basis: np.ndarray | None = None
+             ) -> np.ndarray:
+        """Targets with each missing marker = fit + offset from the fit interpolated across its gap."""
+        S = np.asarray(targets, dtype=np.float64)
+        if self.empty:
+            return S
+        out = S.copy()
+        if weights is None:
+            def fit(t, i):
+                return np.zeros((len(t), 3))
+        else:
+            Bn = basis.reshape(S.shape[1], 3, -1)
+
+            def fit(t, i):
+                return np.einsum("ecm,em->ec", Bn[i], weights[t])
+        i = self.i
+        lam = self.lam[:, None]
+        off = (1.0 - lam) * (S[self.a, i] - fit(self.a, i)) + lam * (S[self.b, i] - fit(self.b, i))
+        off[self.never] = 0.0
+        out[self.t, i] = fit(self.t, i) + off
+        return out
+
+
+def fill_gaps(targets: np.ndarray, valid: np.ndarray, weights: np.ndarray | None = None,
+              basis: np.ndarray | None = None) -> np.ndarray:
+    """Missing markers replaced by the rig's fit (``weights`` through ``basis``) plus the marker's
+    offset from the fit, the offset interpolated linearly in time between observed frames (held
+    at the take's ends; 0 for a marker never seen). Without weights: linear interpolation."""
+    return GapPlan(valid).fill(targets, weights, basis)
 
 
 class MovementMatching:
@@ -162,21 +201,28 @@ class MovementMatching:
             W[f] = w
             isfree[f] = False
         free = np.flatnonzero(isfree)
+        B = self.blocks.basis
         if self.missing == "exact" and not valid.all():
             from solvers.masked import solve_masked
 
             W = solve_masked(self.blocks, S, valid, W, isfree)
-            filled = fill_gaps(S, valid, W @ self.blocks.basis.T)
+            filled = fill_gaps(S, valid, W, B)
+            q, qb = self.blocks.project(filled)
         else:
-            filled = fill_gaps(S, valid)
+            plan = GapPlan(valid)
+            filled = plan.fill(S)
+            q, qb = self.blocks.project(filled)
             factor = self._factor(free, T)
-            W = self._solve_factored(factor, filled, free, isfree, W)
-            if not valid.all():
-                for _ in range(self.fill_iterations):
-                    filled = fill_gaps(S, valid, W @ self.blocks.basis.T)
-                    W = self._solve_factored(factor, filled, free, isfree, W)
+            W = self._solve_factored(factor, None, free, isfree, W, q, qb)
+            rows = plan.frames
+            for _ in range(0 if plan.empty else self.fill_iterations):
+                filled = plan.fill(S, W, B)
+                q[rows] = filled[rows].reshape(len(rows), -1) @ self.blocks.Qm.T
+                if qb is not None:
+                    qb[rows] = filled[rows].reshape(len(rows), -1) @ self.blocks.Qb.T
+                W = self._solve_factored(factor, None, free, isfree, W, q, qb)
         self._targets = filled
-        self._q, self._qb = self.blocks.project(filled)
+        self._q, self._qb = q, qb
         return self._apply_limits(W, free)
 
     def _apply_limits(self, W: np.ndarray, frames: np.ndarray) -> np.ndarray:
@@ -242,7 +288,7 @@ class MovementMatching:
         if targets is not None:
             S = np.asarray(targets, dtype=np.float64).reshape(T, -1, 3)
             v = np.ones(S.shape[:2], dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
-            q, qb = self.blocks.project(fill_gaps(S, v, W @ self.blocks.basis.T))
+            q, qb = self.blocks.project(fill_gaps(S, v, W, self.blocks.basis))
         elif self._q is not None and len(self._q) == T:
             q, qb = self._q, self._qb
         else:

@@ -65,8 +65,14 @@ class PCAPrior:
         return cls(0.5 * (P + P.T), w_mean, lam, E)
 
     @classmethod
-    def from_shapes(cls, basis: np.ndarray, threshold: float = 1e-6, include_neutral: bool = False) -> PCAPrior:
-        """The rig's shapes as training frames (Seol §5, §7: "all the target blendshapes")."""
+    def from_shapes(cls, basis: np.ndarray, threshold: float = 1e-6, include_neutral: bool = True) -> PCAPrior:
+        """The rig's shapes as training frames (Seol §5, §7: "all the target blendshapes").
+
+        ``include_neutral`` adds the neutral face as one more frame. Without it the centred
+        shapes span only m-1 directions, the prior has no opinion along the last one, and the
+        movement solve accumulates noise along it like a random walk (on the demo take the
+        weight range grew from [-0.6, 0.6] to [-3.9, 5.1] at alpha 0.1).
+        """
         m = np.asarray(basis).shape[1]
         W = np.eye(m)
         if include_neutral:
