@@ -285,13 +285,7 @@ class MovementMatching:
         """
         W = np.array(weights, dtype=np.float64)
         T, m = W.shape
-        if targets is not None:
-            S = np.asarray(targets, dtype=np.float64).reshape(T, -1, 3)
-            v = np.ones(S.shape[:2], dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
-            q, qb = self.blocks.project(fill_gaps(S, v, W, self.blocks.basis))
-        elif self._q is not None and len(self._q) == T:
-            q, qb = self._q, self._qb
-        else:
+        if targets is None and (self._q is None or len(self._q) != T):
             raise ValueError("edit needs the source targets (or a preceding solve of a take of the same length)")
         region = np.zeros(T, dtype=bool)
         poses: dict[int, np.ndarray] = {}
@@ -320,10 +314,18 @@ class MovementMatching:
             return W
         lo, hi = free[0] - 1, free[-1] + 1  # both fixed: a range end or an edit frame
         sub = slice(lo, hi + 1)
+        if targets is not None:  # project only the frames being re-solved
+            S = np.asarray(targets, dtype=np.float64).reshape(T, -1, 3)
+            v = np.ones(S.shape[:2], dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+            if not v.all():
+                S = fill_gaps(S, v, weights, self.blocks.basis)
+            q, qb = self.blocks.project(S[sub])
+        else:
+            q, qb = self._q[sub], None if self._qb is None else self._qb[sub]
         isfree = region[sub]
         f_local = free - lo
         factor = self._factor(f_local, hi - lo + 1)
-        Wsub = self._solve_factored(factor, None, f_local, isfree, W[sub], q[sub], None if qb is None else qb[sub])
+        Wsub = self._solve_factored(factor, None, f_local, isfree, W[sub], q, qb)
         W[sub] = Wsub
         return self._apply_limits(W, free)
 
