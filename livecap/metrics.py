@@ -11,15 +11,28 @@ import numpy as np
 from livecap.rig import Rig
 
 
-def velocity_error(basis: np.ndarray, weights: np.ndarray, targets: np.ndarray) -> float:
-    """|D (B W) - D S|_F^2 over a take: ``weights`` T x m, ``targets`` T x 3n."""
-    fit = weights @ basis.T
-    return float(np.sum((np.diff(fit, axis=0) - np.diff(targets.reshape(len(targets), -1), axis=0)) ** 2))
-
-
-def velocity_error_per_frame(basis: np.ndarray, weights: np.ndarray, targets: np.ndarray) -> np.ndarray:
+def _velocity_residual(basis: np.ndarray, weights: np.ndarray, targets: np.ndarray,
+                       valid: np.ndarray | None) -> np.ndarray:
     fit = weights @ basis.T
     d = np.diff(fit, axis=0) - np.diff(targets.reshape(len(targets), -1), axis=0)
+    if valid is not None:  # a marker's velocity is known only where it is seen in both frames
+        v = np.asarray(valid, dtype=bool)
+        d = np.where(np.repeat(v[1:] & v[:-1], 3, axis=1), d, 0.0)
+    return d
+
+
+def velocity_error(basis: np.ndarray, weights: np.ndarray, targets: np.ndarray,
+                   valid: np.ndarray | None = None) -> float:
+    """|D (B W) - D S|_F^2 over a take: ``weights`` T x m, ``targets`` T x 3n (or T x n x 3).
+
+    With ``valid`` (T x n) only marker velocities seen in both frames count.
+    """
+    return float(np.sum(_velocity_residual(basis, weights, targets, valid) ** 2))
+
+
+def velocity_error_per_frame(basis: np.ndarray, weights: np.ndarray, targets: np.ndarray,
+                             valid: np.ndarray | None = None) -> np.ndarray:
+    d = _velocity_residual(basis, weights, targets, valid)
     return np.concatenate([[0.0], np.sum(d * d, axis=1)])
 
 
@@ -35,6 +48,18 @@ def position_error(basis: np.ndarray, weights: np.ndarray, targets: np.ndarray,
 
 def weight_range(weights: np.ndarray) -> tuple[float, float]:
     return float(weights.min()), float(weights.max())
+
+
+def range_excess(weights: np.ndarray, lower: float | np.ndarray, upper: float | np.ndarray) -> float:
+    """How far the weights go outside [lower, upper] at worst (0 when inside)."""
+    return float(max(np.max(lower - weights), np.max(weights - upper), 0.0))
+
+
+def drift(errors: np.ndarray, rate: float, seconds: float = 60.0) -> tuple[float, float]:
+    """RMS of a per-frame error series over its first and its last ``seconds`` (growth = drift)."""
+    e = np.asarray(errors, dtype=np.float64)
+    n = max(1, min(len(e), int(round(seconds * rate))))
+    return float(np.sqrt(np.mean(e[:n] ** 2))), float(np.sqrt(np.mean(e[-n:] ** 2)))
 
 
 def jitter(weights: np.ndarray) -> float:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from livecap.calibration import Profile
+from livecap.movement_options import build_movement
 from solvers.least_squares import BoundedLeastSquares
 
 
@@ -14,6 +15,8 @@ def _lsq(profile: Profile, options: dict):
 
 MODES: dict[str, Callable] = {
     "lsq": _lsq,
+    "movement": build_movement,  # Seol 2012 movement matching; options {"stream": True, "window", "lookahead"}
+    "movement-stream": lambda profile, options: build_movement(profile, {**options, "stream": True}),
 }
 
 

@@ -8,7 +8,15 @@ import logging
 import sys
 
 # Module names under livecap.cli; each adds its subcommands.
-COMMANDS = ["demo", "solve", "info", "generate", "replay"]
+COMMANDS = [
+    "demo",
+    "solve",
+    "info",
+    "generate",
+    "replay",
+    "edit",
+    "fig11",
+]
 
 
 def build_parser() -> argparse.ArgumentParser:

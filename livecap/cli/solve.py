@@ -11,6 +11,7 @@ from livecap.cli.common import (
     profile_for,
     progress_bar,
 )
+from livecap.cli.movement_args import add_movement_arguments, movement_options
 from livecap.modes import MODES, build_solver
 from livecap.solve import solve_take
 from transport.takefile import read_take
@@ -26,6 +27,7 @@ def register(sub) -> None:
     p.add_argument("--mode", default="lsq", choices=sorted(MODES), help="solver mode (default lsq)")
     p.add_argument("--ridge", type=float, default=0.0, help="ridge weight lambda for per-frame modes")
     p.add_argument("--out", required=True, help="weights CSV: frame,time,<shape>...")
+    add_movement_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -33,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     rig, layout = load_rig(args)
     take = read_take(args.take)
     profile = profile_for(args, rig, layout, take)
-    solver = build_solver(args.mode, profile, {"ridge": args.ridge})
+    solver = build_solver(args.mode, profile, {"ridge": args.ridge, **movement_options(args)})
     with progress_bar(f"solving ({args.mode})", take.n_frames) as update:
         solved = solve_take(take, profile, solver, progress=update)
     write_weights_csv(args.out, solved.names, solved.weights, solved.rate, solved.first_frame)

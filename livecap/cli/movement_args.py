@@ -1,0 +1,52 @@
+"""Command-line options of the movement-matching modes, shared by ``solve``, ``edit`` and ``fig11``."""
+
+from __future__ import annotations
+
+import argparse
+
+from transport.weights_csv import read_weights_csv
+
+
+def add_movement_arguments(p: argparse.ArgumentParser, stream: bool = True) -> None:
+    g = p.add_argument_group("movement matching (--mode movement, Seol et al. 2012)")
+    g.add_argument("--alpha", type=float, help="weight of the PCA prior (default 1.0; 0 disables it)")
+    g.add_argument("--beta", type=float, help="weight of the position (Sobolev) term (default 0.1)")
+    g.add_argument("--prior", help="prior training data: 'shapes' (default: the rig's shapes and the neutral), "
+                   "'none', or a weights CSV of plausible target animation")
+    g.add_argument("--prior-threshold", type=float, help="drop PCA eigenvalues below this fraction of the "
+                   "largest (default 1e-6)")
+    g.add_argument("--start", choices=["neutral", "free", "fit"], help="boundary at the first frame "
+                   "(default neutral)")
+    g.add_argument("--end", choices=["neutral", "free", "fit"], help="boundary at the last frame (default neutral)")
+    g.add_argument("--missing", choices=["fill", "exact"], help="missing markers offline: fill gaps from the "
+                   "rig's fit (default, fast) or drop their rows exactly (slower)")
+    g.add_argument("--limits", choices=["none", "clip"], help="rig weight limits: offline default none (the "
+                   "prior keeps weights plausible), streaming default clip")
+    g.add_argument("--marker-weight", action="append", metavar="LABEL=W", default=[],
+                   help="per-marker weight of the position term (glob patterns allowed; repeatable)")
+    if stream:
+        g.add_argument("--stream", action="store_true", help="run the take through the sliding-window "
+                       "streaming solver instead of the offline solve")
+        g.add_argument("--window", type=int, help="streaming window K in frames (default 24)")
+        g.add_argument("--lookahead", type=int, help="streaming lookahead L < K in frames (default 0)")
+
+
+def movement_options(args: argparse.Namespace) -> dict:
+    """Options for livecap.modes' movement factory; unset flags fall back to its defaults."""
+    opts = {k: getattr(args, k, None) for k in ("alpha", "beta", "prior_threshold", "start", "end", "missing",
+                                                "limits", "window", "lookahead")}
+    if getattr(args, "stream", False):
+        opts["stream"] = True
+    prior = getattr(args, "prior", None)
+    if prior is not None and prior not in ("shapes", "none"):
+        names, weights, _ = read_weights_csv(prior)
+        prior = {"names": names, "weights": weights}
+    opts["prior"] = prior
+    mw = {}
+    for item in getattr(args, "marker_weight", None) or []:
+        label, sep, value = item.rpartition("=")
+        if not sep or not label:
+            raise ValueError(f"--marker-weight {item!r}: expected LABEL=WEIGHT")
+        mw[label] = float(value)
+    opts["marker_weights"] = mw or None
+    return opts

@@ -1,0 +1,71 @@
+"""Movement-matching solvers built from a Profile and plain options (used by modes.py and the CLI).
+
+Defaults (alpha 1, beta 0.1, prior from the rig's shapes plus the neutral) were chosen on the
+demo take (docs/movement.md lists the measurements); every one is an option.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from collections.abc import Mapping
+
+import numpy as np
+
+from livecap.calibration import Profile
+from solvers.movement import MovementMatching
+from solvers.prior import PCAPrior
+from solvers.streaming import StreamingMovement
+
+DEFAULTS = {"alpha": 1.0, "beta": 0.1, "prior": "shapes", "prior_threshold": 1e-6, "ridge": 0.0,
+            "start": "neutral", "end": "neutral", "missing": "fill", "window": 24, "lookahead": 0}
+
+
+def marker_weights(labels: list[str], spec: Mapping[str, float] | None) -> np.ndarray | None:
+    """Per-marker weights of the position term from {label or glob pattern: weight} (others 1)."""
+    if not spec:
+        return None
+    w = np.ones(len(labels))
+    for pattern, value in spec.items():
+        hit = [i for i, lab in enumerate(labels) if fnmatch.fnmatchcase(lab, pattern)]
+        if not hit:
+            raise ValueError(f"marker weight {pattern!r} matches no marker label")
+        w[hit] = float(value)
+    return w
+
+
+def build_prior(profile: Profile, spec, threshold: float) -> PCAPrior | None:
+    """``"shapes"`` (the rig's shapes + neutral as frames), ``"none"``, or a T x m weight animation."""
+    if spec is None or (isinstance(spec, str) and spec == "none"):
+        return None
+    if isinstance(spec, str):
+        if spec != "shapes":
+            raise ValueError(f"unknown prior {spec!r}: use 'shapes', 'none' or a weights CSV")
+        return PCAPrior.from_shapes(profile.basis, threshold)
+    if isinstance(spec, Mapping):  # {"names": [...], "weights": T x k}: matched to the rig by shape name
+        names, W = list(spec["names"]), np.asarray(spec["weights"], dtype=np.float64)
+        unknown = sorted(set(names) - set(profile.names))
+        if unknown:
+            raise ValueError(f"prior animation has shapes the rig lacks: {unknown[:5]}")
+        full = np.zeros((len(W), len(profile.names)))
+        for j, name in enumerate(names):
+            full[:, profile.names.index(name)] = W[:, j]
+        return PCAPrior.from_animation(profile.basis, full, threshold)
+    return PCAPrior.from_animation(profile.basis, np.asarray(spec, dtype=np.float64), threshold)
+
+
+def build_movement(profile: Profile, options: Mapping | None = None):
+    """Offline :class:`MovementMatching` (with ``step`` for live use), or with ``stream`` the
+    :class:`StreamingMovement` sliding-window solver."""
+    o = {**DEFAULTS, **{k: v for k, v in (options or {}).items() if v is not None}}
+    alpha = float(o["alpha"])
+    prior = build_prior(profile, o["prior"], float(o["prior_threshold"])) if alpha > 0 else None
+    if prior is None:
+        alpha = 0.0
+    common = dict(alpha=alpha, prior=prior, beta=float(o["beta"]), ridge=float(o["ridge"]),
+                  marker_weights=marker_weights(profile.labels, o.get("marker_weights")))
+    if o.get("stream"):
+        return StreamingMovement(profile.basis, profile.lower, profile.upper, window=int(o["window"]),
+                                 lookahead=int(o["lookahead"]), limits=o.get("limits") or "clip", **common)
+    return MovementMatching(profile.basis, profile.lower, profile.upper, start=o["start"], end=o["end"],
+                            missing=o["missing"], limits=o.get("limits") or "none", window=int(o["window"]),
+                            lookahead=int(o["lookahead"]), **common)
