@@ -45,7 +45,7 @@ def run(quick: bool = False) -> dict:
             count = SLOW_COUNTS.get(mode, {}).get(m, 200 if quick else 2000)
             if quick:
                 count = min(count, 200)
-            res = time_calls(lambda i, s=solver: s.step(targets[i % n_frames], valid[i % n_frames]),
+            res = time_calls(lambda i, s=solver, x=targets, v=valid: s.step(x[i % n_frames], v[i % n_frames]),
                              n=count, warmup=50)
             rows.append({"mode": mode, "size": f"{n}x{m}", **res, "ratio_p99": res["p99_us"] / base["p99_us"]})
     print(table(rows, ["mode", "size", "median_us", "p99_us", "ratio_p99", "n", "error"],
