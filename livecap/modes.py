@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from livecap.calibration import Profile
+from livecap.per_frame_modes import qp_mode, rbf_mode
 from solvers.least_squares import BoundedLeastSquares
 
 
@@ -14,6 +15,8 @@ def _lsq(profile: Profile, options: dict):
 
 MODES: dict[str, Callable] = {
     "lsq": _lsq,
+    "qp": qp_mode,
+    "rbf": rbf_mode,
 }
 
 
