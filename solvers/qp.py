@@ -65,23 +65,32 @@ class FrameQP:
         self.cache_size = int(cache_size)
         self._models: OrderedDict[bytes, tuple] = OrderedDict()
         self.failures = 0
+        self.iterations = 0  # active-set iterations of the last solve (warm starts keep this small)
         self.reset()
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
         self._prev = np.clip(np.zeros(self.m), self.lower, self.upper)
-        self._sense = np.zeros(self.m, dtype=np.int32)
+        self._lam: np.ndarray | None = None  # multipliers of the last solve: its active set
+        self._last_key: bytes | None = None
+
+    def _active_set(self) -> np.ndarray:
+        """DAQP constraint states from the last multipliers: active, and at which bound."""
+        if self._lam is None:
+            return np.zeros(self.m, dtype=np.int32)
+        lam = self._lam
+        return np.where(lam != 0, _ACTIVE | np.where(lam < 0, _LOWER, 0), 0).astype(np.int32)
 
     @property
     def cached_patterns(self) -> int:
         return len(self._models)
 
-    def _workspace(self, rows: np.ndarray):
-        key = np.packbits(rows).tobytes()
+    def _workspace(self, key: bytes, seen: np.ndarray):
         ws = self._models.get(key)
         if ws is not None:
             self._models.move_to_end(key)
             return ws
+        rows = np.repeat(seen, 3)
         Bv = self.basis[rows]
         H = Bv.T @ (Bv * self._row_w[rows, None]) + self._const
         floor = 0.0
@@ -95,7 +104,7 @@ class FrameQP:
         BtD = self._BtD if rows.all() else self._BtD * rows[None, :]
         model = self._daqp.Model()
         model.setup(H, np.zeros(self.m), np.zeros((0, self.m)), self.upper.copy(), self.lower.copy())
-        ws = (model, BtD, floor, H)
+        ws = (model, BtD, floor, H, None if seen.all() else rows)
         self._models[key] = ws
         if len(self._models) > self.cache_size:
             self._models.popitem(last=False)
@@ -104,31 +113,42 @@ class FrameQP:
     # ------------------------------------------------------------------ per frame
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         s = np.asarray(target, dtype=np.float64).reshape(-1)
-        if s.shape[0] != 3 * self.n:
-            log.warning("frame has %d coordinates, expected %d: holding the last weights", s.shape[0], 3 * self.n)
+        seen = np.asarray(valid, dtype=bool).reshape(-1)
+        if s.shape[0] != 3 * self.n or seen.shape[0] != self.n:
+            log.warning("frame has %d coordinates / %d flags, expected %d markers: holding the last weights",
+                        s.shape[0], seen.shape[0], self.n)
             return self._prev.copy()
-        finite = np.isfinite(s)
-        rows = np.repeat(np.asarray(valid, dtype=bool).reshape(self.n), 3) & finite
-        if not rows.any():
+        if not np.isfinite(s).all():
+            seen = seen & np.isfinite(s.reshape(self.n, 3)).all(axis=1)
+        if not seen.any():
             return self._prev.copy()
-        s = np.where(rows, s, 0.0)
-        model, BtD, floor, H = self._workspace(rows)
-        f = -(BtD @ s) - (self.temporal + floor) * self._prev - self._prior_f
+        key = seen.tobytes()
+        model, BtD, floor, H, rows = self._workspace(key, seen)
+        if rows is not None:
+            s = np.where(rows, s, 0.0)
+        f = -(BtD @ s) - self._prior_f
+        if self.temporal + floor > 0:
+            f -= (self.temporal + floor) * self._prev
         try:
-            model.update(f=f, sense=self._sense)
+            if key == self._last_key:  # the workspace still holds last frame's active set
+                model.update(f=f)
+            else:  # another visibility pattern: hand it the active set we just left
+                model.update(f=f, sense=self._active_set())
             x, _, flag, info = model.solve()
             ok = flag > 0 and np.all(np.isfinite(x))
         except Exception as exc:  # noqa: BLE001 - a stream must survive a solver failure
             log.debug("daqp failed: %s", exc)
             ok = False
         if ok:
-            lam = info["lam"]
-            self._sense = np.where(lam != 0, _ACTIVE | np.where(lam < 0, _LOWER, 0), 0).astype(np.int32)
+            self._last_key = key
+            self._lam = info["lam"]
+            self.iterations = int(info["iterations"])
         else:
             self.failures += 1
+            self._last_key = None
             x = np.clip(np.linalg.lstsq(H, -f, rcond=None)[0], self.lower, self.upper)
             if not np.all(np.isfinite(x)):
                 x = self._prev.copy()
-            self._sense[:] = 0
+            self._lam = None
         self._prev = np.clip(x, self.lower, self.upper)
         return self._prev.copy()

@@ -159,7 +159,8 @@ class KeyBlendSolver:
         if not rows.any():
             return self._last.copy()
         d = np.where(rows, d, 0.0)
-        w = self.blend.evaluate(d, rows)
+        with np.errstate(all="ignore"):
+            w = self.blend.evaluate(d, rows)
         if not np.all(np.isfinite(w)):
             return self._last.copy()
         if self.clip:
