@@ -27,9 +27,9 @@ import numpy as np
 def cubic_bspline(x: np.ndarray) -> np.ndarray:
     """Uniform cubic B-spline, C2, support |x| < 2, B(0) = 2/3 (Pyun Eq. 7's B)."""
     a = np.abs(x)
-    inner = (4.0 - 6.0 * a**2 + 3.0 * a**3) / 6.0
-    outer = np.clip(2.0 - a, 0.0, None) ** 3 / 6.0
-    return np.where(a < 1.0, inner, outer)
+    t2 = np.maximum(2.0 - a, 0.0)
+    t1 = np.maximum(1.0 - a, 0.0)
+    return (t2 * t2 * t2 - 4.0 * (t1 * t1 * t1)) / 6.0  # (4 - 6a^2 + 3|a|^3)/6 inside |a| < 1
 
 
 def feature_matrix(displacements: np.ndarray, threshold: float = 1e-5) -> np.ndarray:
@@ -88,7 +88,9 @@ class RBFBlend:
         self.target = T
         # Fold everything linear in d together: out = c0 + G d + K R(p) with p = F d.
         self._c0 = self.linear[0] @ T  # D
-        self._G = (self.linear[1:] @ T).T @ self.F  # D x N
+        G = (self.linear[1:] @ T).T @ self.F  # D x N
+        self._FG = np.vstack([self.F, G])  # p and the linear part in one product
+        self._nb = len(self.F)
         self._K = (self.radial @ T).T  # D x M
         self._Pn = np.sum(self.P**2, axis=1)
         self._inv_a = 1.0 / self.dilation
@@ -121,10 +123,11 @@ class RBFBlend:
         """Blended target (Eq. 11, relative to the target base) for a displacement vector ``d``."""
         if rows is not None and not rows.all():
             return self.key_weights(self.parameters(d, rows)) @ self.target
-        p = self.F @ d
+        y = self._FG @ d
+        p = y[: self._nb]
         d2 = (p @ p) - 2.0 * (self.P @ p) + self._Pn  # |p - p_j|^2 with one product
         dist = np.sqrt(np.maximum(d2, 0.0)) * self._inv_a
-        return self._c0 + self._G @ d + self._K @ cubic_bspline(dist)
+        return self._c0 + y[self._nb:] + self._K @ cubic_bspline(dist)
 
 
 class KeyBlendSolver:
@@ -153,7 +156,14 @@ class KeyBlendSolver:
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         d = np.asarray(target, dtype=np.float64).reshape(-1)
-        if d.shape[0] != 3 * self.n:
+        seen = np.asarray(valid, dtype=bool).reshape(-1)
+        if d.shape[0] != 3 * self.n or seen.shape[0] != self.n:
+            return self._last.copy()
+        if seen.all() and np.isfinite(d).all():  # the common frame: no masking work at all
+            with np.errstate(all="ignore"):
+                w = self.blend.evaluate(d)
+            if np.isfinite(w).all():
+                self._last = np.clip(w, self.lower, self.upper) if self.clip else w
             return self._last.copy()
         rows = np.repeat(np.asarray(valid, dtype=bool).reshape(self.n), 3) & np.isfinite(d)
         if not rows.any():
