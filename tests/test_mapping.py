@@ -40,3 +40,25 @@ def test_cloning_matrix_recovers_a_linear_map():
     with pytest.raises(MappingError, match="at least"):
         cloning_matrix(W[:3], (W @ E.T)[:3])
     assert cloning_matrix(W[:3], (W @ E.T)[:3], ridge=1e-3).shape == (7, 5)
+
+
+def test_map_command_by_name_and_by_pairs(tmp_path):
+    from livecap.cli import main
+    from transport.weights_csv import read_weights_csv, write_weights_csv
+
+    W = np.array([[0.2, 0.9], [0.6, 0.1], [1.0, 0.5]])
+    write_weights_csv(tmp_path / "w.csv", ["jaw", "smile"], W, 120.0)
+    (tmp_path / "m.json").write_text('{"channels": {"smile": {"gain": 2, "clamp": [0, 1]}}}')
+    assert main(["map", str(tmp_path / "w.csv"), "--config", str(tmp_path / "m.json"),
+                 "--out", str(tmp_path / "o.csv")]) == 0
+    names, V, _ = read_weights_csv(tmp_path / "o.csv")
+    assert names == ["jaw", "smile"]
+    np.testing.assert_allclose(V, [[0.2, 1.0], [0.6, 0.2], [1.0, 1.0]])
+    E = np.array([[1.0, 0.5], [0.0, 2.0], [0.3, 0.3]])
+    write_weights_csv(tmp_path / "src.csv", ["jaw", "smile"], W, 1.0)
+    write_weights_csv(tmp_path / "tgt.csv", ["a", "b", "c"], W @ E.T, 1.0)
+    assert main(["map", str(tmp_path / "w.csv"), "--pairs", str(tmp_path / "src.csv"), str(tmp_path / "tgt.csv"),
+                 "--out", str(tmp_path / "o2.csv")]) == 0
+    names, V, _ = read_weights_csv(tmp_path / "o2.csv")
+    assert names == ["a", "b", "c"]
+    np.testing.assert_allclose(V, W @ E.T, atol=1e-5)
