@@ -26,7 +26,8 @@ from transport.takefile import read_take
 
 RECORDINGS = Path(__file__).resolve().parents[2] / "recordings"
 # Extra rows beyond each mode's defaults: (label, mode, options).
-VARIANTS = [("qp actor-basis", "qp", {"basis": "actor"})]
+VARIANTS = [("qp actor-basis", "qp", {"basis": "actor"}),
+            ("qp ridge1 temp20", "qp", {"ridge": 1.0, "temporal": 20.0})]
 
 
 def register(sub) -> None:
