@@ -135,7 +135,7 @@ class FrameQP:
             else:  # another visibility pattern: hand it the active set we just left
                 model.update(f=f, sense=self._active_set())
             x, _, flag, info = model.solve()
-            ok = flag > 0 and np.all(np.isfinite(x))
+            ok = flag > 0 and np.isfinite(x).all()
         except Exception as exc:  # noqa: BLE001 - a stream must survive a solver failure
             log.debug("daqp failed: %s", exc)
             ok = False
@@ -150,5 +150,5 @@ class FrameQP:
             if not np.all(np.isfinite(x)):
                 x = self._prev.copy()
             self._lam = None
-        self._prev = np.clip(x, self.lower, self.upper)
+        self._prev = np.minimum(np.maximum(x, self.lower), self.upper)  # DAQP's tolerance, not a clip
         return self._prev.copy()
