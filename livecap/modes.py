@@ -6,6 +6,7 @@ from collections.abc import Callable
 
 from livecap.calibration import Profile
 from livecap.movement_options import build_movement
+from livecap.per_frame_modes import qp_mode, rbf_mode
 from solvers.least_squares import BoundedLeastSquares
 
 
@@ -17,6 +18,8 @@ MODES: dict[str, Callable] = {
     "lsq": _lsq,
     "movement": build_movement,  # Seol 2012 movement matching; options {"stream": True, "window", "lookahead"}
     "movement-stream": lambda profile, options: build_movement(profile, {**options, "stream": True}),
+    "qp": qp_mode,
+    "rbf": rbf_mode,
 }
 
 

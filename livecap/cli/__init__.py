@@ -16,6 +16,10 @@ COMMANDS = [
     "replay",
     "edit",
     "fig11",
+    "evaluate",
+    "composite",
+    "rom",
+    "map",
 ]
 
 

@@ -26,6 +26,10 @@ def register(sub) -> None:
     add_calibration_arguments(p)
     p.add_argument("--mode", default="lsq", choices=sorted(MODES), help="solver mode (default lsq)")
     p.add_argument("--ridge", type=float, default=0.0, help="ridge weight lambda for per-frame modes")
+    p.add_argument("--temporal", type=float, default=0.0, help="qp: weight gamma of |w - w_prev|^2")
+    p.add_argument("--keys", help="keys file (labelled ROM take or explicit key pairs): rbf keys, qp actor basis")
+    p.add_argument("--basis", choices=["rig", "actor"], default="rig",
+                   help="qp: calibrated rig basis, or the actor's own from --keys (Curio 2006)")
     p.add_argument("--out", required=True, help="weights CSV: frame,time,<shape>...")
     add_movement_arguments(p)
     p.set_defaults(func=run)
@@ -35,7 +39,8 @@ def run(args: argparse.Namespace) -> int:
     rig, layout = load_rig(args)
     take = read_take(args.take)
     profile = profile_for(args, rig, layout, take)
-    solver = build_solver(args.mode, profile, {"ridge": args.ridge, **movement_options(args)})
+    solver = build_solver(args.mode, profile, {"ridge": args.ridge, "temporal": args.temporal,
+                                               "keys": args.keys, "basis": args.basis, **movement_options(args)})
     with progress_bar(f"solving ({args.mode})", take.n_frames) as update:
         solved = solve_take(take, profile, solver, progress=update)
     write_weights_csv(args.out, solved.names, solved.weights, solved.rate, solved.first_frame)

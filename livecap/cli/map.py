@@ -1,0 +1,51 @@
+"""``livecap map``: weight curves of one rig onto another (Lewis et al. 2014 §5.3)."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from livecap.mapping import by_name, cloning_matrix, load_config
+from transport.weights_csv import read_weights_csv, write_weights_csv
+
+
+def register(sub) -> None:
+    p = sub.add_parser("map", help="map weight curves to another rig: by name (gain/offset/clamp) or by a "
+                       "linear cloning matrix fitted to pose pairs")
+    p.add_argument("weights", help="source weights CSV (frame,time,<shape>...)")
+    p.add_argument("--out", required=True, help="target weights CSV")
+    p.add_argument("--target-rig", help="target rig (OBJ folder or .npz): its shape names are the output channels")
+    p.add_argument("--config", help="mapping config (.toml or .json): per-channel source, gain, offset, clamp")
+    p.add_argument("--pairs", nargs=2, metavar=("SOURCE_POSES", "TARGET_POSES"),
+                   help="two weights CSVs whose rows are corresponding poses: fit E (v = E w) and apply it")
+    p.add_argument("--ridge", type=float, default=0.0, help="ridge for the cloning fit (fewer pairs than shapes)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    names, W, times = read_weights_csv(args.weights)
+    rate = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 and np.all(np.diff(times) > 0) else 1.0
+    if args.pairs:
+        src_names, Ws, _ = read_weights_csv(args.pairs[0])
+        tgt_names, Vt, _ = read_weights_csv(args.pairs[1])
+        if src_names != names:
+            raise ValueError(f"{args.pairs[0]}: source pose channels differ from {args.weights}")
+        E = cloning_matrix(Ws, Vt, args.ridge)
+        out_names, V = tgt_names, W @ E.T
+        print(f"cloning matrix {E.shape[0]} x {E.shape[1]} from {len(Ws)} pose pairs; "
+              f"fit residual RMS {np.sqrt(np.mean((Ws @ E.T - Vt) ** 2)):.4g}")
+    else:
+        if args.target_rig:
+            from livecap.rig import Rig
+
+            out_names = list(Rig.load(args.target_rig).names)
+        else:
+            out_names = list(names)
+        cmap = by_name(names, out_names, load_config(args.config) if args.config else None)
+        V = cmap.apply(W)
+        if cmap.unmapped:
+            print(f"target channels with no source ({len(cmap.unmapped)}): {', '.join(cmap.unmapped)}")
+    write_weights_csv(args.out, out_names, V, rate)
+    print(f"{args.out}: {len(V)} frames x {len(out_names)} channels")
+    return 0

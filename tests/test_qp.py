@@ -1,0 +1,112 @@
+"""Per-frame QP (solvers/qp.py) against scipy's bounded least squares (Curio et al. 2006 §2.3)."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.optimize import lsq_linear
+
+from solvers.qp import FrameQP
+
+
+def _problem(seed: int, n: int, m: int):
+    rng = np.random.default_rng(seed)
+    B = rng.normal(0, 3, (3 * n, m))
+    lo = rng.uniform(-1, 0, m)
+    hi = lo + rng.uniform(0.2, 1.5, m)
+    w = rng.uniform(lo - 0.8, hi + 0.8)  # well outside the box: several bounds active
+    s = B @ w + rng.normal(0, 0.3, 3 * n)
+    return B, lo, hi, s
+
+
+def _reference(B, lo, hi, s, ridge=0.0):
+    m = B.shape[1]
+    A = np.vstack([B, np.sqrt(ridge) * np.eye(m)])
+    return lsq_linear(A, np.concatenate([s, np.zeros(m)]), bounds=(lo, hi), method="bvls", tol=1e-14).x
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(4, 20), m=st.integers(1, 12),
+       ridge=st.sampled_from([0.0, 1e-3, 0.5]))
+def test_agrees_with_lsq_linear_including_active_bounds(seed, n, m, ridge):
+    B, lo, hi, s = _problem(seed, n, m)
+    w = FrameQP(B, lo, hi, ridge=ridge).step(s.reshape(n, 3), np.ones(n, bool))
+    ref = _reference(B, lo, hi, s, ridge)
+    np.testing.assert_allclose(w, ref, atol=1e-6)
+
+
+def test_bounds_really_are_active_in_these_problems():
+    hits = 0
+    for seed in range(20):
+        B, lo, hi, s = _problem(seed, 10, 8)
+        ref = _reference(B, lo, hi, s)
+        hits += int(np.sum(np.isclose(ref, lo) | np.isclose(ref, hi)))
+    assert hits > 20
+
+
+def test_unconstrained_solution_when_no_bound_is_active():
+    rng = np.random.default_rng(3)
+    B = rng.normal(0, 2, (60, 6))
+    w_true = rng.uniform(0.3, 0.7, 6)
+    s = B @ w_true + rng.normal(0, 0.01, 60)
+    w = FrameQP(B, np.full(6, -10.0), np.full(6, 10.0)).step(s.reshape(20, 3), np.ones(20, bool))
+    np.testing.assert_allclose(w, np.linalg.lstsq(B, s, rcond=None)[0], atol=1e-9)
+
+
+def test_missing_markers_drop_rows_and_cache_per_pattern():
+    B, lo, hi, s = _problem(5, 15, 6)
+    qp = FrameQP(B, lo, hi, ridge=1e-3, cache_size=2)
+    for k in range(4):
+        valid = np.ones(15, bool)
+        valid[k : k + 3] = False
+        rows = np.repeat(valid, 3)
+        w = qp.step(np.where(rows, s, np.nan).reshape(15, 3), valid)  # NaN at missing markers is ignored
+        np.testing.assert_allclose(w, _reference(B[rows], lo, hi, s[rows], 1e-3), atol=1e-6)
+    assert qp.cached_patterns == 2  # bounded
+
+
+def test_never_nan_never_raises():
+    B, lo, hi, s = _problem(1, 6, 4)
+    B[:, 0] = 0.0  # a shape no marker sees: H singular without ridge
+    qp = FrameQP(B, lo, hi)
+    w = qp.step(s.reshape(6, 3), np.ones(6, bool))
+    assert np.all(np.isfinite(w)) and np.all((w >= lo) & (w <= hi))
+    assert np.all(np.isfinite(qp.step(np.full((6, 3), np.nan), np.ones(6, bool))))
+    assert np.all(np.isfinite(qp.step(s.reshape(6, 3), np.zeros(6, bool))))
+    assert np.all(np.isfinite(qp.step(np.full((6, 3), 1e300), np.ones(6, bool))))
+    np.testing.assert_array_equal(qp.step(np.zeros(5), np.ones(6, bool)), qp.step(np.zeros(5), np.ones(6, bool)))
+
+
+def test_temporal_term_matches_its_closed_form_and_smooths():
+    B, lo, hi, s = _problem(9, 12, 5)
+    lo, hi = np.full(5, -50.0), np.full(5, 50.0)
+    qp = FrameQP(B, lo, hi, temporal=20.0)
+    w1 = qp.step(s.reshape(12, 3), np.ones(12, bool))
+    expect = np.linalg.solve(B.T @ B + 20 * np.eye(5), B.T @ s)  # previous weights 0 after reset
+    np.testing.assert_allclose(w1, expect, atol=1e-8)
+    w2 = qp.step(s.reshape(12, 3), np.ones(12, bool))
+    np.testing.assert_allclose(w2, np.linalg.solve(B.T @ B + 20 * np.eye(5), B.T @ s + 20 * w1), atol=1e-8)
+    qp.reset()
+    np.testing.assert_allclose(qp.step(s.reshape(12, 3), np.ones(12, bool)), w1, atol=1e-10)
+
+
+def test_marker_weights_scale_rows():
+    B, lo, hi, s = _problem(4, 10, 4)
+    mw = np.linspace(0.2, 2.0, 10)
+    w = FrameQP(B, lo, hi, marker_weights=mw).step(s.reshape(10, 3), np.ones(10, bool))
+    D = np.repeat(mw, 3)[:, None]
+    np.testing.assert_allclose(w, _reference(D * B, lo, hi, D[:, 0] * s), atol=1e-6)
+
+
+def test_qp_mode_on_demo_profile(demo):
+    from livecap.calibration import calibrate
+    from livecap.modes import build_solver
+
+    rig, layout = demo
+    profile = calibrate(rig, layout, layout.marker_rig(rig).neutral)
+    solver = build_solver("qp", profile, {"ridge": 1e-4})
+    w_true = np.zeros(rig.n_shapes)
+    w_true[[1, 5, 9]] = [0.8, 0.3, 0.5]
+    target = (profile.basis @ w_true).reshape(-1, 3)
+    np.testing.assert_allclose(solver.step(target, np.ones(layout.n_markers, bool)), w_true, atol=2e-3)
