@@ -4,7 +4,7 @@ Options (from the CLI or a session config):
 
 * qp: ``ridge`` (lambda), ``temporal`` (gamma), ``basis`` ("rig" | "actor"), ``keys`` (keys file or
   KeySet; with basis="actor" the ROM the actor basis is built from, Curio et al. 2006 §2.3),
-  ``missing`` ("rig" | "drop", for shapes the ROM lacks).
+  ``uncovered`` ("rig" | "drop", for shapes the ROM lacks).
 * rbf: ``keys`` (required: key pairs, Pyun et al. 2003 §3), ``threshold`` (PCA eigenvalue
   threshold, relative), ``clip`` (clip to the rig's limits, default true).
 """
@@ -44,7 +44,7 @@ def qp_mode(profile: Profile, options: dict):
         keys = _keyset(profile, options)
         if keys is None:
             raise ValueError("qp with basis=actor needs keys (a labelled range-of-motion take: --keys)")
-        profile, report = actor_basis(profile, keys, options.get("missing", "rig"))
+        profile, report = actor_basis(profile, keys, options.get("uncovered", "rig"))
         for line in report.lines():
             log.info(line)
     elif options.get("basis", "rig") != "rig":

@@ -49,4 +49,4 @@ def movement_options(args: argparse.Namespace) -> dict:
             raise ValueError(f"--marker-weight {item!r}: expected LABEL=WEIGHT")
         mw[label] = float(value)
     opts["marker_weights"] = mw or None
-    return opts
+    return {k: v for k, v in opts.items() if v is not None}
