@@ -104,7 +104,8 @@ def _unpack_map(payload: bytes, expected_type: str) -> dict:
         msg = msgpack.unpackb(payload, raw=False, strict_map_key=False, max_bin_len=1 << 24, max_str_len=1 << 16,
                               max_array_len=1 << 16, max_map_len=64)
     except (msgpack.exceptions.ExtraData, ValueError, TypeError) as exc:
-        if "insufficient" in str(exc).lower() or isinstance(exc, msgpack.exceptions.OutOfData):
+        text = str(exc).lower()
+        if "insufficient" in text or "incomplete" in text or isinstance(exc, msgpack.exceptions.OutOfData):
             raise ShortPacket(f"truncated msgpack ({exc})") from None
         raise MalformedPacket(f"not msgpack ({exc})") from None
     except Exception as exc:  # msgpack raises a few private exception types on hostile input
