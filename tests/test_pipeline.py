@@ -2,7 +2,6 @@
 bad input and broken parts counted while the session keeps running, session files."""
 
 import threading
-import time
 
 import numpy as np
 import pytest

@@ -18,7 +18,7 @@ from livecap.take import MarkerFrame
 log = logging.getLogger("livecap.input")
 
 KINDS = ("short", "malformed", "version", "nonfinite", "unknown_label", "duplicate_label", "unknown_layout",
-         "duplicate_frame", "stale")
+         "duplicate_frame", "stale", "overrun")
 
 
 class BadInput:

@@ -13,7 +13,9 @@ old frame number are counted in :attr:`bad` and skipped.
 
 from __future__ import annotations
 
+import queue
 import socket
+import threading
 import time
 from collections.abc import Iterator, Sequence
 
@@ -111,13 +113,17 @@ def decode_osc_frame(dgram: bytes, where: dict[str, int]) -> tuple[int, float, n
 
 
 class OscSource:
-    """Listen on ``host:port`` (127.0.0.1 unless told otherwise) for frame bundles."""
+    """Listen on ``host:port`` (127.0.0.1 unless told otherwise) for frame bundles.
+
+    A reader thread drains the socket into a bounded queue at once: the kernel's UDP buffer
+    holds only a few dozen 3 KB bundles, and a solver hiccup must not turn into lost frames.
+    When the queue itself is full, the newest datagram is dropped and counted as ``overrun``.
+    """
 
     def __init__(self, host: str, port: int, labels: list[str], idle_timeout: float | None = None,
-                 poll_s: float = 0.1) -> None:
+                 poll_s: float = 0.1, queue_size: int = 4096) -> None:
         self.labels = list(labels)
         self._where = {lab: i for i, lab in enumerate(self.labels)}
-        self.bad = BadInput(f"osc {host}:{port}")
         self.idle_timeout = idle_timeout
         self.last_decode_seconds = 0.0
         self.received = 0
@@ -128,6 +134,24 @@ class OscSource:
         self.sock.bind((host, port))
         self.sock.settimeout(poll_s)
         self.address = self.sock.getsockname()
+        self.bad = BadInput(f"osc {host}:{self.address[1]}")
+        self.poll_s = poll_s
+        self._queue: queue.Queue[bytes] = queue.Queue(queue_size)
+        self._reader = threading.Thread(target=self._read, name="osc-reader", daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        while self._running:
+            try:
+                dgram = self.sock.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                return  # socket closed
+            try:
+                self._queue.put_nowait(dgram)
+            except queue.Full:
+                self.bad.skip("overrun", "receive queue full: the solver is behind the stream")
 
     @property
     def port(self) -> int:
@@ -138,6 +162,7 @@ class OscSource:
 
     def close(self) -> None:
         self._running = False
+        self._reader.join(timeout=2 * self.poll_s + 1)
         self.sock.close()
 
     def decode(self, dgram: bytes) -> MarkerFrame | None:
@@ -156,15 +181,11 @@ class OscSource:
         last_good = None
         while self._running:
             try:
-                dgram = self.sock.recv(65536)
-            except TimeoutError:
+                dgram = self._queue.get(timeout=self.poll_s)
+            except queue.Empty:
                 if self.idle_timeout and last_good is not None and time.monotonic() - last_good > self.idle_timeout:
                     return
                 continue
-            except OSError:
-                if not self._running:
-                    return
-                raise
             t0 = time.perf_counter()
             self.received += 1
             frame = self.decode(dgram)
