@@ -28,6 +28,7 @@ def register(sub) -> None:
     p.add_argument("--loop", action="store_true")
     p.add_argument("--start", type=int, help="first frame number")
     p.add_argument("--end", type=int, help="frame number to stop before")
+    p.add_argument("--frames", type=int, help="stop after sending this many frames (with --loop: a duration)")
     p.add_argument("--wait-subscriber", type=float, default=10.0,
                    help="ZeroMQ: seconds to wait for a subscriber before sending (0: do not wait)")
     p.add_argument("--labels-every", type=int, default=120,
@@ -55,6 +56,8 @@ def run(args: argparse.Namespace) -> int:
             ts = time.monotonic() if args.clock == "monotonic" else frame.timestamp
             send(frame.frame, ts, frame.positions, frame.valid, n)
             n += 1
+            if args.frames and n >= args.frames:
+                break
     except KeyboardInterrupt:
         pass
     finally:
