@@ -318,3 +318,18 @@ def test_stuck_subscriber_never_blocks_the_solver(take_dir, tmp_path):
     assert s["frames_in"] == s["frames_out"] == take.n_frames
     assert zmq_stats["drops"] > 0 and zmq_stats["sent"] + zmq_stats["drops"] == take.n_frames
     assert len(read_jsonl_recording(tmp_path / "w.jsonl")[1]) == take.n_frames
+
+
+@pytest.mark.parametrize("args, names", [
+    (["--replay", "nope.c3d", "--profile", "x.npz"], "x.npz"),
+    (["--replay", "nope.c3d", "--rig", "{rig}"], "nope.c3d"),
+    (["--session", "bad.toml"], "bad.toml"),
+    (["--zmq-in", "tcp://0.0.0.0:5555", "--rig", "{rig}"], "--interface"),
+])
+def test_bad_files_and_flags_are_one_clear_line(take_dir, tmp_path, args, names):
+    (tmp_path / "bad.toml").write_text("[sinks]\nnot_an_option = 1\n")
+    args = [a.replace("{rig}", str(take_dir / "demo_rig.npz")) for a in args]
+    r = subprocess.run([sys.executable, "-m", "livecap", "run", *args], capture_output=True, text=True, env=ENV,
+                       cwd=tmp_path, timeout=60)
+    assert r.returncode == 1 and names in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr
