@@ -209,6 +209,10 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
 
 
 def run(args: argparse.Namespace) -> int:
+    import signal
+
+    if hasattr(signal, "SIGUSR1"):  # a report request while sockets come up must not kill the session
+        signal.signal(signal.SIGUSR1, signal.SIG_IGN)
     pipeline, described = build(args)
     pipeline.install_signal_handlers()
     print("ready: " + "; ".join(described), flush=True)
