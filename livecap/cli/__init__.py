@@ -20,6 +20,8 @@ COMMANDS = [
     "composite",
     "rom",
     "map",
+    "run",
+    "send",
 ]
 
 

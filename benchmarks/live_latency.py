@@ -1,0 +1,199 @@
+"""End-to-end live latency: a marker packet sent by one process -> weights received by a third.
+
+Three processes per measurement, as in a real session: ``livecap send`` streams a looped
+demo take at 120 Hz over ZeroMQ stamping each packet with the machine's monotonic clock;
+``livecap run`` (the driver) solves and publishes; a subscriber computes ``now - timestamp``
+for every weights message. In the same run, the same marker payloads take the same two hops
+through a bare relay (SUB -> PUB, no decoding, no solve): the floor ZeroMQ itself sets. The
+driver's CPU use comes from the kernel's rusage of its process (user + system time / wall).
+
+    python -m benchmarks.live_latency [--quick] [--modes lsq,...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import socket
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+RATE = 120.0
+
+RECEIVER = """
+import json, sys, time, msgpack, zmq
+addr, out, idle = sys.argv[1], sys.argv[2], float(sys.argv[3])
+s = zmq.Context().socket(zmq.SUB)
+s.connect(addr)
+s.setsockopt(zmq.SUBSCRIBE, b"")
+time.sleep(0.5)
+print("ready", flush=True)
+lat, last = [], None
+while True:
+    if not s.poll(int(idle * 1000)):
+        if last is not None:
+            break
+        continue
+    parts = s.recv_multipart()
+    now = time.monotonic()
+    msg = msgpack.unpackb(parts[-1])
+    last = now
+    if msg.get("type") in ("weights", "markers"):
+        lat.append(now - msg["timestamp"])
+json.dump(lat, open(out, "w"))
+"""
+
+RELAY = """
+import sys, zmq
+ctx = zmq.Context()
+sub, pub = ctx.socket(zmq.SUB), ctx.socket(zmq.PUB)
+sub.connect(sys.argv[1])
+sub.setsockopt(zmq.SUBSCRIBE, b"")
+pub.bind("tcp://127.0.0.1:*")
+print(pub.getsockopt(zmq.LAST_ENDPOINT).decode(), flush=True)
+while True:
+    pub.send_multipart(sub.recv_multipart())
+"""
+
+
+def _env() -> dict:
+    return {**os.environ, "PYTHONPATH": str(ROOT)}
+
+
+def _spawn(args: list, **kw) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=_env(), **kw)
+
+
+def _line(proc: subprocess.Popen) -> str:
+    line = proc.stdout.readline().strip()
+    if not line:
+        raise RuntimeError(f"{proc.args} exited: {proc.stderr.read()}")
+    return line
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _stats(lat: list[float], sent: int) -> dict:
+    a = np.asarray(lat) * 1e3
+    if not len(a):
+        return {"received": 0, "sent": sent}
+    p50, p99 = np.percentile(a, [50, 99])
+    return {"sent": sent, "received": int(len(a)), "p50_ms": float(p50), "p99_ms": float(p99),
+            "max_ms": float(a.max())}
+
+
+def _send(take: Path, port: int, frames: int) -> subprocess.Popen:
+    return _spawn(["-m", "livecap", "send", take, "--zmq", f"tcp://127.0.0.1:{port}", "--loop", "--clock",
+                   "monotonic", "--frames", frames, "--labels-every", 0])
+
+
+def bare(take: Path, frames: int, work: Path) -> dict:
+    """Sender -> bare relay -> receiver: the same payloads and hops without livecap in between."""
+    port = _free_port()
+    relay = _spawn(["-c", textwrap.dedent(RELAY), f"tcp://127.0.0.1:{port}"])
+    relay_out = _line(relay)
+    rx = _spawn(["-c", textwrap.dedent(RECEIVER), relay_out, work / "bare.json", 2.0])
+    _line(rx)
+    sender = _send(take, port, frames)
+    sender.communicate(timeout=frames / RATE + 120)
+    rx.communicate(timeout=60)
+    relay.kill()
+    relay.communicate()
+    return _stats(json.loads((work / "bare.json").read_text()), frames)
+
+
+def driver(take: Path, profile: Path, mode: str, frames: int, work: Path) -> dict:
+    port = _free_port()
+    run = _spawn(["-m", "livecap", "run", "--zmq-in", f"tcp://127.0.0.1:{port}", "--zmq-out", "0", "--profile",
+                  profile, "--mode", mode, "--idle-timeout", 2.0, "--stats-file", work / f"{mode}.stats.json"])
+    out_addr = re.search(r"zmq-out ([^;\s]+)", _line(run)).group(1)
+    rx = _spawn(["-c", textwrap.dedent(RECEIVER), out_addr, work / f"{mode}.json", 3.0])
+    _line(rx)
+    t0 = time.monotonic()
+    sender = _send(take, port, frames)
+    sender.communicate(timeout=frames / RATE + 600)
+    _, status, usage = os.wait4(run.pid, 0)
+    wall = time.monotonic() - t0
+    run.returncode = os.waitstatus_to_exitcode(status)
+    run.communicate()
+    rx.communicate(timeout=60)
+    out = _stats(json.loads((work / f"{mode}.json").read_text()), frames)
+    st = json.loads((work / f"{mode}.stats.json").read_text())
+    out.update(mode=mode, driver_cpu_s=usage.ru_utime + usage.ru_stime, wall_s=wall,
+               driver_cpu_pct=100 * (usage.ru_utime + usage.ru_stime) / wall,
+               solve_p50_ms=st["timing"]["solve"]["p50_ms"], solve_p99_ms=st["timing"]["solve"]["p99_ms"],
+               drops=sum(s.get("drops", 0) for s in st["sinks"].values()))
+    return out
+
+
+def run(quick: bool = False, modes=("lsq",)) -> dict:
+    """Measure; ``quick`` streams 5 s instead of 60 s."""
+    from livecap.calibration import calibrate, estimate_neutral
+    from livecap.demo import DEMO_TAKE, generate
+    from livecap.demo.performance import PerformanceSettings
+    from livecap.markers import MarkerLayout
+    from livecap.rig import Rig
+    from transport.takefile import read_take
+
+    seconds = 5 if quick else 60
+    frames = int(seconds * RATE)
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        generate(work, 0, PerformanceSettings(seconds=10, rate=RATE, seed=1))
+        rig = Rig.load(work / "demo_rig.npz")
+        layout = MarkerLayout.load(work / "demo_rig.markers.json", rig)
+        take = read_take(work / DEMO_TAKE).select(layout.labels)
+        calibrate(rig, layout, estimate_neutral(take, layout.stable, 120)).save(work / "profile.npz")
+        floor = bare(work / DEMO_TAKE, frames, work)
+        results = {m: driver(work / DEMO_TAKE, work / "profile.npz", m, frames, work) for m in modes}
+    out = {"rate_hz": RATE, "seconds": seconds, "bare_zmq": floor, "modes": results,
+           "machine": f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the end",
+           "data": "livecap generate seed 0: 60 markers, 43 shapes, 10 s take looped"}
+    _print(out)
+    return out
+
+
+def _print(out: dict) -> None:
+    b = out["bare_zmq"]
+    print(f"live latency, marker packet sent -> weights received, {out['rate_hz']:g} Hz for {out['seconds']} s "
+          f"({out['machine']})")
+    print(f"{'path':12s} {'recv/sent':>11s} {'p50 ms':>8s} {'p99 ms':>8s} {'p99/bare':>9s} {'solve p99':>10s} "
+          f"{'driver CPU':>10s}")
+    print(f"{'bare zmq':12s} {b['received']:>5d}/{b['sent']:<5d} {b.get('p50_ms', float('nan')):8.3f} "
+          f"{b.get('p99_ms', float('nan')):8.3f} {1.0:9.2f} {'':>10s} {'':>10s}")
+    for m, r in out["modes"].items():
+        ratio = r.get("p99_ms", float("nan")) / b.get("p99_ms", float("nan"))
+        print(f"{m:12s} {r['received']:>5d}/{r['sent']:<5d} {r.get('p50_ms', float('nan')):8.3f} "
+              f"{r.get('p99_ms', float('nan')):8.3f} {ratio:9.2f} {r['solve_p99_ms']:8.3f}ms "
+              f"{r['driver_cpu_pct']:9.1f}%")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--modes", default="lsq")
+    ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "live_latency.json"))
+    args = ap.parse_args(argv)
+    out = run(args.quick, tuple(args.modes.split(",")))
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(out, indent=1))
+    print(f"written {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,223 @@
+"""``livecap run``: a live session. Markers in (ZeroMQ, OSC or a paced take), weights out.
+
+Set-up on the command line or in a TOML session file (``--session``, see livecap/session.py);
+command-line options win. Prints one ``ready`` line when every socket is bound (with the real
+endpoints, so port 0 / ``*`` work), a timing report on SIGUSR1, and the report on exit.
+Ctrl-C or SIGTERM stops cleanly: every recorder is flushed and closed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from livecap.calibration import Profile, calibrate, estimate_neutral
+from livecap.cli.common import load_rig
+from livecap.modes import MODES
+from livecap.pipeline import Pipeline
+from livecap.session import load_session
+
+_PARSER: argparse.ArgumentParser | None = None
+
+
+def register(sub) -> None:
+    global _PARSER
+    p = sub.add_parser("run", help="live session: markers in (ZeroMQ/OSC/take), weights out (ZeroMQ/VMC/Live Link)",
+                       description=__doc__.split("\n\n")[0])
+    p.add_argument("--session", help="TOML session file with any of these options")
+    src = p.add_argument_group("source (one of)")
+    src.add_argument("--zmq-in", help="ZeroMQ address to SUBscribe to (connects; e.g. tcp://127.0.0.1:5555)")
+    src.add_argument("--zmq-in-bind", action="store_true", help="bind the SUB socket instead of connecting")
+    src.add_argument("--osc-in", help="[HOST:]PORT to receive OSC frame bundles on")
+    src.add_argument("--replay", help="take to replay at its own pace (.c3d, .trc, .csv, raw .npz recording)")
+    src.add_argument("--speed", type=float, default=1.0, help="replay speed factor (default 1)")
+    src.add_argument("--fast", action="store_true", help="replay as fast as possible")
+    src.add_argument("--loop", action="store_true", help="replay in a loop")
+    src.add_argument("--start", type=int, help="first frame number to replay")
+    src.add_argument("--end", type=int, help="frame number to stop before")
+    src.add_argument("--rate", type=float, default=120.0, help="stream frame rate for network sources (default 120)")
+    src.add_argument("--idle-timeout", type=float,
+                     help="end the session after this many seconds without a frame (network sources)")
+    src.add_argument("--actor", default="actor", help="actor name in topics (markers.<actor>, weights.<actor>)")
+    src.add_argument("--interface", help="allow binding/connecting this non-loopback interface (default: "
+                     "127.0.0.1 only)")
+    cal = p.add_argument_group("calibration")
+    cal.add_argument("--profile", help="calibrated profile (.npz); without it, calibrate on the stream's start")
+    cal.add_argument("--rig", help="rig (OBJ folder or .npz) to calibrate against when there is no --profile")
+    cal.add_argument("--markers", help="markers.json (default: beside the rig)")
+    cal.add_argument("--neutral-seconds", type=float, default=1.0,
+                     help="seconds at the start of the stream taken as the neutral face (default 1)")
+    sol = p.add_argument_group("solver")
+    sol.add_argument("--mode", default="lsq", choices=sorted(MODES), help="solver mode (default lsq)")
+    sol.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                     help="solver option (repeatable), e.g. --option ridge=0.01")
+    out = p.add_argument_group("sinks")
+    out.add_argument("--zmq-out", help="ZeroMQ address to publish weights.<actor> on (binds; port 0 or * = any)")
+    out.add_argument("--zmq-hwm", type=int, default=100, help="send high-water mark in messages (default 100)")
+    out.add_argument("--zmq-policy", default="count", choices=["count", "fair"],
+                     help="count: drop and count when a subscriber is full; fair: libzmq drops per subscriber")
+    out.add_argument("--header-every", type=float, default=1.0, help="re-send the shape names every S seconds")
+    out.add_argument("--vmc", help="[HOST:]PORT to send VMC (OSC) to (VMC's port is 39539)")
+    out.add_argument("--vmc-arkit", action="store_true", help="send VMC shapes under ARKit names")
+    out.add_argument("--livelink", help="[HOST:]PORT to send Live Link Face UDP to (Unreal's port is 11111)")
+    out.add_argument("--livelink-subject", default="livecap", help="Live Link subject name")
+    out.add_argument("--arkit-map", help="JSON mapping ARKit name -> rig shape name(s), for non-ARKit rigs")
+    rec = p.add_argument_group("recorders")
+    rec.add_argument("--record-csv", help="weights CSV (Live Link Face layout when the names are ARKit)")
+    rec.add_argument("--csv-layout", default="auto", choices=["auto", "livecap", "livelinkface"])
+    rec.add_argument("--record-jsonl", help="weights as JSON lines")
+    rec.add_argument("--record-markers", help="raw incoming markers (.npz or .c3d) for exact replay")
+    rec.add_argument("--flush-every", type=float, default=0.1, help="recorder flush interval in seconds")
+    rec.add_argument("--fsync", action="store_true", help="fsync recorders on every flush (survives power loss)")
+    sec = p.add_argument_group("CurveZMQ (optional)")
+    sec.add_argument("--curve-secret", help="our secret certificate (.key_secret)")
+    sec.add_argument("--curve-clients", help="folder of allowed client public certificates (for bound sockets)")
+    sec.add_argument("--curve-server", help="server public certificate (for connecting sockets)")
+    mon = p.add_argument_group("monitoring")
+    mon.add_argument("--stats-file", help="write the stats as JSON here (periodically, on SIGUSR1, at exit)")
+    mon.add_argument("--stats-every", type=float, help="report every S seconds")
+    mon.add_argument("--max-frames", type=int, help="stop after this many input frames")
+    p.set_defaults(func=run)
+    _PARSER = p
+
+
+def _parse_value(text: str):
+    import tomllib
+
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def _apply_session(args: argparse.Namespace) -> dict:
+    options: dict = {}
+    if args.session:
+        known = {a.dest for a in _PARSER._actions} - {"help", "session", "func"}
+        settings, options = load_session(args.session, known)
+        for dest, value in settings.items():
+            if getattr(args, dest) == _PARSER.get_default(dest):
+                setattr(args, dest, value)
+    for kv in args.option:
+        if "=" not in kv:
+            raise ValueError(f"--option {kv!r}: expected KEY=VALUE")
+        k, v = kv.split("=", 1)
+        options[k.strip()] = _parse_value(v.strip())
+    return options
+
+
+def _curve(args):
+    from transport.security import Curve
+
+    if not args.curve_secret:
+        return None
+    return Curve(args.curve_secret, args.curve_clients, args.curve_server)
+
+
+def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
+    """The pipeline and a description of its endpoints (what the ``ready`` line prints)."""
+    from transport.security import udp_address, zmq_address
+
+    options = _apply_session(args)
+    sources = [x for x in (args.zmq_in, args.osc_in, args.replay) if x]
+    if len(sources) != 1:
+        raise ValueError("give exactly one source: --zmq-in, --osc-in or --replay")
+    profile = rig = layout = None
+    if args.profile:
+        profile = Profile.load(args.profile)
+        labels = profile.labels
+    elif args.rig:
+        rig, layout = load_rig(args)
+        labels = list(layout.labels)
+    else:
+        raise ValueError("give --profile, or --rig to calibrate on the start of the stream")
+    curve = _curve(args)
+    described = []
+    rate = args.rate
+    if args.replay:
+        from transport.replay import ReplaySource
+
+        source = ReplaySource.open(args.replay, labels, speed=args.speed, fast=args.fast, loop=args.loop,
+                                   start=args.start, end=args.end)
+        rate = source.rate
+        described.append(f"replay {args.replay}")
+    elif args.zmq_in:
+        from transport.zmq_source import ZmqSource
+
+        addr = zmq_address(args.zmq_in, args.interface)
+        source = ZmqSource(addr, labels, args.actor, bind=args.zmq_in_bind, curve=curve,
+                           idle_timeout=args.idle_timeout)
+        described.append(f"zmq-in {addr}")
+    else:
+        from transport.osc_source import OscSource
+
+        host, port = udp_address(args.osc_in, 0, args.interface)
+        source = OscSource(host, port, labels, idle_timeout=args.idle_timeout)
+        described.append(f"osc-in {host}:{source.port}")
+
+    mapping = None
+    if args.arkit_map:
+        from transport.arkit import load_mapping
+
+        mapping = load_mapping(args.arkit_map)
+    sinks: list = []
+    if args.zmq_out:
+        from transport.zmq_sink import ZmqSink
+
+        addr = zmq_address(args.zmq_out, args.interface)
+        sink = ZmqSink(addr, args.actor, hwm=args.zmq_hwm, policy=args.zmq_policy, header_every=args.header_every,
+                       curve=curve, rate=rate)
+        sinks.append(sink)
+        described.append(f"zmq-out {sink.address}")
+    if args.vmc:
+        from transport.vmc import DEFAULT_PORT, VmcSink
+
+        host, port = udp_address(args.vmc, DEFAULT_PORT, args.interface)
+        sinks.append(VmcSink(host, port, arkit=args.vmc_arkit, mapping=mapping, where=str(args.arkit_map)))
+        described.append(f"vmc {host}:{port}")
+    if args.livelink:
+        from transport.livelink import DEFAULT_PORT, LiveLinkSink
+
+        host, port = udp_address(args.livelink, DEFAULT_PORT, args.interface)
+        sinks.append(LiveLinkSink(host, port, args.livelink_subject, mapping, fps=rate, where=str(args.arkit_map)))
+        described.append(f"livelink {host}:{port}")
+    from transport.recorders import CsvRecorder, JsonlRecorder, MarkerRecorder
+
+    if args.record_csv:
+        sinks.append(CsvRecorder(args.record_csv, rate, args.csv_layout, mapping, fsync=args.fsync))
+        described.append(f"csv {args.record_csv}")
+    if args.record_jsonl:
+        sinks.append(JsonlRecorder(args.record_jsonl, fsync=args.fsync))
+        described.append(f"jsonl {args.record_jsonl}")
+    marker_recorder = None
+    if args.record_markers:
+        marker_recorder = MarkerRecorder(args.record_markers, labels, rate, fsync=args.fsync)
+        described.append(f"markers {args.record_markers}")
+
+    calibrator = None
+    if profile is None:
+        def calibrator(take, rig=rig, layout=layout):
+            return calibrate(rig, layout, estimate_neutral(take, layout.stable))
+
+    pipeline = Pipeline(source, sinks, profile=profile, calibrator=calibrator,
+                        calibrate_frames=max(1, int(round(args.neutral_seconds * rate))), labels=labels, rate=rate,
+                        mode=args.mode, options=options, marker_recorder=marker_recorder,
+                        flush_every=args.flush_every, max_frames=args.max_frames, stats_file=args.stats_file,
+                        stats_every=args.stats_every)
+    return pipeline, described
+
+
+def run(args: argparse.Namespace) -> int:
+    import signal
+
+    if hasattr(signal, "SIGUSR1"):  # a report request while sockets come up must not kill the session
+        signal.signal(signal.SIGUSR1, signal.SIG_IGN)
+    pipeline, described = build(args)
+    pipeline.install_signal_handlers()
+    print("ready: " + "; ".join(described), flush=True)
+    pipeline.run()
+    print(pipeline.report(), flush=True)
+    if args.record_markers and not Path(args.record_markers).exists():
+        print(f"livecap run: no frames recorded to {args.record_markers}", file=sys.stderr)
+    return 0

@@ -1,0 +1,289 @@
+"""The live pipeline: source -> stabilise -> solver -> sinks, one frame at a time.
+
+Per frame: remove head motion against the actor's neutral (Seol et al. 2012 §3.1), hand the
+stabilised displacement to the chosen solver mode's ``step``, wrap the weights and head pose in
+a :class:`~livecap.result.SolveResult` and give it to every sink. Nothing in the loop waits on
+a consumer: sinks send without blocking (transport/), recorders write to the OS and are
+flushed every ``flush_every`` seconds.
+
+With no profile, the first ``calibrate_frames`` frames of the stream are the neutral face
+(Curio et al. 2006 §2.1): the pipeline calibrates on them, then solves and publishes them
+(late, in order) before carrying on live.
+
+Timing is kept per stage (receive = decoding the packet, solve = stabilise + solver step,
+publish = all sinks and recorders) as running p50/p99 over the last few thousand frames;
+:meth:`report` formats them, on exit, on SIGUSR1, or periodically.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import numpy as np
+
+from livecap.calibration import CalibrationError, Profile
+from livecap.modes import build_solver
+from livecap.result import SolveResult
+from livecap.stabilise import to_quaternion
+from livecap.take import MarkerFrame, Take
+
+log = logging.getLogger("livecap.pipeline")
+
+STAGES = ("receive", "solve", "publish")
+
+
+class StageTiming:
+    """A ring of the last ``window`` durations of one stage; percentiles on request."""
+
+    def __init__(self, window: int = 4096) -> None:
+        self.samples = np.zeros(window)
+        self.count = 0
+
+    def add(self, seconds: float) -> None:
+        self.samples[self.count % len(self.samples)] = seconds
+        self.count += 1
+
+    def percentiles(self) -> dict[str, float]:
+        k = min(self.count, len(self.samples))
+        if k == 0:
+            return {"p50_ms": float("nan"), "p99_ms": float("nan"), "max_ms": float("nan")}
+        s = self.samples[:k] * 1e3
+        p50, p99 = np.percentile(s, [50, 99])
+        return {"p50_ms": float(p50), "p99_ms": float(p99), "max_ms": float(s.max())}
+
+
+class Pipeline:
+    def __init__(self, source: Iterable[MarkerFrame], sinks: list, *, profile: Profile | None = None,
+                 calibrator: Callable[[Take], Profile] | None = None, calibrate_frames: int = 120,
+                 labels: list[str] | None = None, rate: float = 120.0, mode: str = "lsq",
+                 options: dict | None = None, marker_recorder=None, flush_every: float = 0.1,
+                 max_frames: int | None = None, stats_file: str | Path | None = None,
+                 stats_every: float | None = None) -> None:
+        if profile is None and calibrator is None:
+            raise ValueError("the pipeline needs a profile or a way to calibrate from the stream")
+        self.source = source
+        self.sinks = list(sinks)
+        self.profile = profile
+        self.calibrator = calibrator
+        self.calibrate_frames = max(1, int(calibrate_frames))
+        self.labels = list(profile.labels if profile is not None else labels or [])
+        self.rate = rate
+        self.mode = mode
+        self.options = dict(options or {})
+        self.marker_recorder = marker_recorder
+        self.flush_every = flush_every
+        self.max_frames = max_frames
+        self.stats_file = Path(stats_file) if stats_file else None
+        self.stats_every = stats_every
+        self.timing = {s: StageTiming() for s in STAGES}
+        self.frames_in = 0
+        self.frames_out = 0
+        self.errors: Counter[str] = Counter()
+        self._error_log: dict[str, float] = {}
+        self._stop = threading.Event()
+        self._buffer: list[MarkerFrame] = []
+        self._solver = None
+        self._started = 0.0
+        self._cpu0 = 0.0
+        if profile is not None:
+            self._prepare(profile)
+
+    # ------------------------------------------------------------------ setup
+    def _prepare(self, profile: Profile) -> None:
+        self.profile = profile
+        self.labels = list(profile.labels)
+        self._names = list(profile.names)
+        self._stabiliser = profile.stabiliser()
+        self._neutral = np.asarray(profile.source_neutral, dtype=float)
+        self._basis = np.asarray(profile.basis, dtype=float)
+        self._solver = build_solver(self.mode, profile, self.options)
+
+    def _calibrate(self) -> bool:
+        frames = self._buffer
+        take = Take(self.labels, np.stack([f.positions for f in frames]), np.stack([f.valid for f in frames]),
+                    self.rate, frames[0].frame)
+        try:
+            profile = self.calibrator(take)
+        except CalibrationError as exc:
+            self._error("calibration", f"{exc}; collecting more frames")
+            self.calibrate_frames += max(1, len(frames) // 2)
+            return False
+        self._prepare(profile)
+        log.info("calibrated on %d frames from the stream (frames %d..%d)", len(frames), frames[0].frame,
+                 frames[-1].frame)
+        return True
+
+    # ------------------------------------------------------------------ control
+    def stop(self) -> None:
+        """Finish the current frame, then flush and close everything (safe from a signal handler)."""
+        self._stop.set()
+        stop = getattr(self.source, "stop", None)
+        if stop is not None:
+            stop()
+
+    def install_signal_handlers(self) -> None:
+        """SIGINT/SIGTERM: clean shutdown. SIGUSR1: print the timing report to stderr now."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+        signal.signal(signal.SIGINT, lambda *_: self.stop())
+        signal.signal(signal.SIGTERM, lambda *_: self.stop())
+        if hasattr(signal, "SIGUSR1"):
+            signal.signal(signal.SIGUSR1, lambda *_: self._emit_report())
+
+    def _emit_report(self) -> None:
+        # os.write: safe even if the signal interrupted a print on the same stream
+        os.write(2, (self.report() + "\n").encode())
+        self._write_stats()
+
+    def _write_stats(self) -> None:
+        if self.stats_file is None:
+            return
+        tmp = self.stats_file.with_name(self.stats_file.name + ".tmp")
+        tmp.write_text(json.dumps(self.stats()))
+        os.replace(tmp, self.stats_file)
+
+    def _error(self, kind: str, detail: str) -> None:
+        self.errors[kind] += 1
+        now = time.monotonic()
+        if now - self._error_log.get(kind, -1e9) > 2.0:
+            log.warning("%s: %s (%d so far)", kind, detail, self.errors[kind])
+            self._error_log[kind] = now
+
+    # ------------------------------------------------------------------ the loop
+    def solve_frame(self, frame: MarkerFrame) -> SolveResult | None:
+        t0 = time.perf_counter()
+        local, R, t = self._stabiliser.stabilise(frame.positions, frame.valid)
+        valid = frame.valid
+        target = np.where(valid[:, None], local - self._neutral, 0.0)
+        try:
+            w = np.asarray(self._solver.step(target, valid), dtype=float)
+        except Exception as exc:  # a solver bug must not end a live session
+            self._error("solver_error", f"frame {frame.frame}: {type(exc).__name__}: {exc}")
+            return None
+        if not np.isfinite(w).all():
+            self._error("solver_nonfinite", f"frame {frame.frame}: solver returned NaN/inf")
+            return None
+        rows = np.repeat(valid, 3)
+        resid = (self._basis[rows] @ w - target.reshape(-1)[rows]) if rows.any() else np.zeros(1)
+        solve_time = time.perf_counter() - t0
+        self.timing["solve"].add(solve_time)
+        return SolveResult(frame.frame, frame.timestamp, self._names, w, to_quaternion(R), t,
+                           float(np.sqrt(np.mean(resid ** 2))), solve_time, local, valid)
+
+    def publish(self, result: SolveResult) -> None:
+        t0 = time.perf_counter()
+        for sink in self.sinks:
+            try:
+                sink.publish(result)
+            except Exception as exc:  # one broken sink must not stop the others or the solver
+                self._error("sink_error", f"{type(sink).__name__}: {type(exc).__name__}: {exc}")
+        self.timing["publish"].add(time.perf_counter() - t0)
+        self.frames_out += 1
+
+    def flush(self) -> None:
+        for r in self._recorders():
+            try:
+                r.flush()
+            except OSError as exc:
+                self._error("recorder_error", f"{type(r).__name__}: {exc}")
+
+    def _recorders(self) -> list:
+        out = [s for s in self.sinks if hasattr(s, "flush")]
+        if self.marker_recorder is not None:
+            out.append(self.marker_recorder)
+        return out
+
+    def run(self) -> dict:
+        """Run until the source ends, :meth:`stop` is called, or ``max_frames``; then flush and close."""
+        self._started = time.monotonic()
+        self._cpu0 = time.process_time()
+        last_flush = last_stats = time.monotonic()
+        try:
+            for frame in self.source:
+                self.timing["receive"].add(getattr(self.source, "last_decode_seconds", 0.0))
+                self.frames_in += 1
+                if self.marker_recorder is not None:
+                    self.marker_recorder.record(frame)
+                if self._solver is None:
+                    self._buffer.append(frame)
+                    if len(self._buffer) >= self.calibrate_frames and self._calibrate():
+                        pending, self._buffer = self._buffer, []
+                        for f in pending:
+                            res = self.solve_frame(f)
+                            if res is not None:
+                                self.publish(res)
+                else:
+                    res = self.solve_frame(frame)
+                    if res is not None:
+                        self.publish(res)
+                now = time.monotonic()
+                if now - last_flush >= self.flush_every:
+                    self.flush()
+                    last_flush = now
+                if self.stats_every and now - last_stats >= self.stats_every:
+                    if self.stats_file is not None:
+                        self._write_stats()
+                    else:
+                        self._emit_report()
+                    last_stats = now
+                if self._stop.is_set() or (self.max_frames and self.frames_in >= self.max_frames):
+                    break
+        finally:
+            self.close()
+        return self.stats()
+
+    def close(self) -> None:
+        self.flush()
+        for s in [*self.sinks, self.marker_recorder]:
+            if s is None:
+                continue
+            try:
+                s.close()
+            except Exception as exc:
+                self._error("close_error", f"{type(s).__name__}: {exc}")
+        close = getattr(self.source, "close", None)
+        if close is not None:
+            close()
+        self._write_stats()
+
+    # ------------------------------------------------------------------ reporting
+    def stats(self) -> dict:
+        bad = getattr(self.source, "bad", None)
+        elapsed = max(time.monotonic() - self._started, 1e-9) if self._started else 0.0
+        return {
+            "frames_in": self.frames_in,
+            "frames_out": self.frames_out,
+            "pending_calibration": len(self._buffer),
+            "seconds": elapsed,
+            "cpu_seconds": time.process_time() - self._cpu0 if self._started else 0.0,
+            "timing": {s: t.percentiles() for s, t in self.timing.items()},
+            "bad_input": bad.as_dict() if bad is not None else {},
+            "errors": dict(self.errors),
+            "sinks": {f"{type(s).__name__}:{i}": s.stats() for i, s in enumerate(self.sinks) if hasattr(s, "stats")},
+            "marker_recorder": self.marker_recorder.stats() if self.marker_recorder is not None else None,
+        }
+
+    def report(self) -> str:
+        st = self.stats()
+        lines = [f"frames in {st['frames_in']}, out {st['frames_out']}, {st['seconds']:.1f} s, "
+                 f"driver CPU {st['cpu_seconds']:.2f} s"]
+        lines.append(f"{'stage':10s} {'p50 ms':>9s} {'p99 ms':>9s} {'max ms':>9s}")
+        for s, p in st["timing"].items():
+            lines.append(f"{s:10s} {p['p50_ms']:9.3f} {p['p99_ms']:9.3f} {p['max_ms']:9.3f}")
+        bad = st["bad_input"]
+        lines.append("bad input: " + (", ".join(f"{k} {v}" for k, v in sorted(bad.items())) if bad else "none"))
+        if st["errors"]:
+            lines.append("errors: " + ", ".join(f"{k} {v}" for k, v in sorted(st["errors"].items())))
+        for name, s in st["sinks"].items():
+            lines.append(f"sink {name}: " + ", ".join(f"{k} {v}" for k, v in s.items()))
+        if st["marker_recorder"]:
+            lines.append("marker recorder: " + ", ".join(f"{k} {v}" for k, v in st["marker_recorder"].items()))
+        return "\n".join(lines)

@@ -1,0 +1,153 @@
+"""The Pipeline in one process: same weights as the offline solve, calibration from the stream,
+bad input and broken parts counted while the session keeps running, session files."""
+
+import threading
+
+import numpy as np
+import pytest
+import zmq
+
+from livecap.calibration import calibrate, estimate_neutral
+from livecap.demo.performance import PerformanceSettings, perform
+from livecap.modes import build_solver
+from livecap.pipeline import Pipeline, StageTiming
+from livecap.session import SessionError, load_session
+from livecap.solve import solve_take
+from transport.recorders import JsonlRecorder, read_jsonl_recording
+from transport.wire import encode_markers, topic
+from transport.zmq_source import ZmqSource
+
+
+@pytest.fixture(scope="module")
+def setup(demo):
+    rig, layout = demo
+    perf = perform(rig, layout, PerformanceSettings(seconds=1.0, rate=120, seed=5))
+    take = perf.take.select(layout.labels)
+    profile = calibrate(rig, layout, estimate_neutral(take, layout.stable, 60))
+    return rig, layout, take, profile
+
+
+class Capture:
+    def __init__(self):
+        self.results = []
+
+    def publish(self, r):
+        self.results.append(r)
+
+    def close(self):
+        pass
+
+
+def test_pipeline_matches_offline_solve(setup):
+    _, _, take, profile = setup
+    cap = Capture()
+    stats = Pipeline(take.frames(), [cap], profile=profile).run()
+    offline = solve_take(take, profile, build_solver("lsq", profile))
+    assert stats["frames_in"] == stats["frames_out"] == take.n_frames == len(cap.results)
+    W = np.stack([r.weights for r in cap.results])
+    np.testing.assert_allclose(W, offline.weights, atol=1e-9)
+    np.testing.assert_allclose(np.stack([r.head_rotation for r in cap.results]) *
+                               np.sign(offline.head_rotation[:, 3:] * np.stack([r.head_rotation for r in cap.results])
+                                       [:, 3:]), offline.head_rotation, atol=1e-9)
+    assert cap.results[0].names == profile.names and cap.results[5].frame == take.first_frame + 5
+    assert all(r.residual >= 0 and r.solve_time > 0 for r in cap.results)
+    for stage in ("receive", "solve", "publish"):
+        assert np.isfinite(stats["timing"][stage]["p99_ms"])
+
+
+def test_calibrates_on_the_stream_then_solves_every_frame(setup):
+    rig, layout, take, _ = setup
+    cap = Capture()
+
+    def calibrator(t):
+        return calibrate(rig, layout, estimate_neutral(t, layout.stable))
+
+    p = Pipeline(take.frames(), [cap], calibrator=calibrator, calibrate_frames=30, labels=layout.labels)
+    stats = p.run()
+    assert stats["frames_out"] == take.n_frames
+    assert [r.frame for r in cap.results] == list(range(take.first_frame, take.first_frame + take.n_frames))
+
+
+def test_bad_input_is_counted_and_the_session_keeps_running(setup):
+    _, layout, take, profile = setup
+    ctx = zmq.Context()
+    pub = ctx.socket(zmq.XPUB)
+    pub.bind("tcp://127.0.0.1:*")
+    src = ZmqSource(pub.getsockopt(zmq.LAST_ENDPOINT).decode(), profile.labels, context=ctx, idle_timeout=0.3)
+    assert pub.poll(5000) and pub.recv() == b"\x01markers.actor"  # the source has subscribed
+    tp = topic("markers", "actor")
+    labels = profile.labels
+    good = [encode_markers(f.frame, f.timestamp, f.positions, f.valid, labels) for f in take.slice(0, 10).frames()]
+    sent = [good[0], b"junk", good[1], good[1], good[0], encode_markers(99, 0, np.zeros((1, 3)), [True], ["zz"]),
+            good[2][:20], good[3]]
+    for payload in sent:
+        pub.send_multipart([tp, payload])
+    pub.send_multipart([b"only-one-part"])
+    cap = Capture()
+    stats = Pipeline(src, [cap], profile=profile).run()
+    assert [r.frame for r in cap.results] == [0, 1, 3]
+    assert stats["bad_input"] == {"malformed": 1, "duplicate_frame": 1, "stale": 1, "unknown_label": 1, "short": 1}
+    pub.close(0)
+    ctx.term()
+
+
+def test_broken_sink_and_solver_errors_are_counted(setup):
+    _, _, take, profile = setup
+
+    class Broken:
+        def publish(self, r):
+            raise RuntimeError("disk on fire")
+
+        def close(self):
+            pass
+
+    cap = Capture()
+    p = Pipeline(take.slice(0, 5).frames(), [Broken(), cap], profile=profile)
+    calls = []
+    real = p._solver.step
+
+    def flaky(target, valid):
+        calls.append(1)
+        if len(calls) == 2:
+            raise FloatingPointError("boom")
+        return real(target, valid)
+
+    p._solver.step = flaky
+    stats = p.run()
+    assert len(cap.results) == 4 and stats["errors"] == {"sink_error": 4, "solver_error": 1}
+
+
+def test_stop_from_another_thread_flushes_recorders(setup, tmp_path):
+    _, _, take, profile = setup
+    from transport.replay import ReplaySource
+
+    rec = JsonlRecorder(tmp_path / "w.jsonl")
+    p = Pipeline(ReplaySource(take, profile.labels, loop=True), [rec], profile=profile, flush_every=100)
+    threading.Timer(0.4, p.stop).start()
+    stats = p.run()
+    names, frames = read_jsonl_recording(tmp_path / "w.jsonl")
+    assert stats["frames_out"] > 0 and len(frames) == stats["frames_out"] and names == profile.names
+
+
+def test_stage_timing_percentiles():
+    t = StageTiming(window=100)
+    for x in range(1000):
+        t.add(x / 1000)
+    p = t.percentiles()
+    assert p["max_ms"] == 999 and 940 < p["p50_ms"] < 960 and p["p99_ms"] > 995
+
+
+def test_session_file(tmp_path):
+    f = tmp_path / "s.toml"
+    f.write_text('mode = "lsq"\nprofile = "p.npz"\n[source]\nzmq-in = "tcp://127.0.0.1:5"\n'
+                 '[sinks]\nrecord_csv = "out/w.csv"\n[options]\nridge = 0.5\n')
+    known = {"mode", "profile", "zmq_in", "record_csv"}
+    settings, options = load_session(f, known)
+    assert settings["zmq_in"] == "tcp://127.0.0.1:5" and options == {"ridge": 0.5}
+    assert settings["profile"] == str(tmp_path / "p.npz") and settings["record_csv"] == str(tmp_path / "out/w.csv")
+    f.write_text('[sinks]\nvmcc = "1"\n')
+    with pytest.raises(SessionError, match=r"s.toml: unknown setting \[sinks\] 'vmcc'"):
+        load_session(f, known)
+    f.write_text("mode = \n")
+    with pytest.raises(SessionError, match="not valid TOML"):
+        load_session(f, known)

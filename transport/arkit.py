@@ -1,0 +1,114 @@
+"""ARKit blendshape names and the mapping from any rig's shape names onto them.
+
+Unreal's Live Link Face, VTuber "perfect sync" avatars and the Live Link Face CSV all speak
+Apple's 52 ARKit blendshapes (ARFaceAnchor.BlendShapeLocation). A rig with other names (ICT
+FaceKit's ``eyeBlink_L``, a studio's own) is mapped automatically where the names agree up to
+case, separators and the side suffix (``_L``/``_R``/``Left``/``Right``); an ARKit shape that
+exists only per side in the rig (ICT's ``browInnerUp_L`` / ``_R`` for ``browInnerUp``) takes
+the mean of the sides. A JSON mapping file overrides or completes the automatic match.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+# The order of the Live Link Face UDP packet (PyLiveLinkFace's FaceBlendShape enum, 0..51).
+ARKIT_NAMES = [
+    "eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft", "eyeSquintLeft",
+    "eyeWideLeft", "eyeBlinkRight", "eyeLookDownRight", "eyeLookInRight", "eyeLookOutRight", "eyeLookUpRight",
+    "eyeSquintRight", "eyeWideRight", "jawForward", "jawLeft", "jawRight", "jawOpen", "mouthClose", "mouthFunnel",
+    "mouthPucker", "mouthLeft", "mouthRight", "mouthSmileLeft", "mouthSmileRight", "mouthFrownLeft",
+    "mouthFrownRight", "mouthDimpleLeft", "mouthDimpleRight", "mouthStretchLeft", "mouthStretchRight",
+    "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper", "mouthPressLeft", "mouthPressRight",
+    "mouthLowerDownLeft", "mouthLowerDownRight", "mouthUpperUpLeft", "mouthUpperUpRight", "browDownLeft",
+    "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight", "cheekPuff", "cheekSquintLeft",
+    "cheekSquintRight", "noseSneerLeft", "noseSneerRight", "tongueOut",
+]
+# The nine rotations after the 52 shapes in a Live Link Face packet / CSV row.
+POSE_NAMES = ["HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
+              "RightEyeYaw", "RightEyePitch", "RightEyeRoll"]
+
+_SIDE = re.compile(r"[_.\-\s](l|r|left|right)$", re.IGNORECASE)
+
+
+def _key(name: str) -> str:
+    """Normalised name: lower case, no separators, a separated side suffix spelled out
+    (``eyeBlink_L`` -> ``eyeblinkleft``, the same key as ``eyeBlinkLeft``)."""
+    m = _SIDE.search(name)
+    side = ""
+    if m:
+        side = "left" if m.group(1).lower().startswith("l") else "right"
+        name = name[:m.start()]
+    return re.sub(r"[^a-z0-9]", "", name.lower()) + side
+
+
+_ARKIT_KEYS = {_key(n): i for i, n in enumerate(ARKIT_NAMES)}
+
+
+def is_arkit(names: Sequence[str]) -> bool:
+    """True when every shape name is an ARKit name (any case): the rig speaks ARKit natively."""
+    arkit = {n.lower() for n in ARKIT_NAMES}
+    return len(names) > 0 and all(n.lower() in arkit for n in names)
+
+
+def arkit_matrix(names: Sequence[str], mapping: dict | None = None, where: str = "mapping") -> np.ndarray:
+    """52 x m matrix ``M`` with ``arkit = M @ weights`` for a rig with shape ``names``.
+
+    ``mapping`` (ARKit name -> rig name or list of rig names, averaged) overrides the automatic
+    match; an ARKit shape with no match stays 0.
+    """
+    names = list(names)
+    M = np.zeros((len(ARKIT_NAMES), len(names)))
+    by_key: dict[str, list[int]] = {}
+    for j, n in enumerate(names):
+        by_key.setdefault(_key(n), []).append(j)
+    for i, a in enumerate(ARKIT_NAMES):
+        k = _key(a)
+        cols = by_key.get(k) or (by_key.get(k + "left", []) + by_key.get(k + "right", []))
+        for j in cols:
+            M[i, j] = 1.0 / len(cols)
+    if mapping:
+        where_name = {n: j for j, n in enumerate(names)}
+        arkit_where = {a.lower(): i for i, a in enumerate(ARKIT_NAMES)}
+        for a, src in mapping.items():
+            i = arkit_where.get(str(a).lower())
+            if i is None:
+                raise ValueError(f"{where}: {a!r} is not an ARKit blendshape name")
+            srcs = [src] if isinstance(src, str) else list(src)
+            missing = [s for s in srcs if s not in where_name]
+            if missing:
+                raise ValueError(f"{where}: rig has no shape {missing[0]!r} (mapped to {a})")
+            M[i] = 0.0
+            for s in srcs:
+                M[i, where_name[s]] = 1.0 / len(srcs)
+    return M
+
+
+def load_mapping(path: str | Path) -> dict:
+    """A mapping file: JSON object ``{"<ARKit name>": "<rig shape>" | ["<rig shape>", ...]}``."""
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{p}: cannot read ARKit name mapping ({exc})") from None
+    if not isinstance(data, dict) or not all(isinstance(v, str | list) for v in data.values()):
+        raise ValueError(f"{p}: mapping must be a JSON object of ARKit name -> rig shape name(s)")
+    return data
+
+
+def head_angles(quat_xyzw: np.ndarray) -> np.ndarray:
+    """Head yaw, pitch, roll in radians from a head rotation (x, y, z, w).
+
+    Axes of livecap's head frame: +y up (yaw), +x towards the subject's left (pitch), +z out of
+    the face (roll); intrinsic Y-X-Z order.
+    """
+    q = np.asarray(quat_xyzw, dtype=float)
+    if not np.isfinite(q).all() or np.linalg.norm(q) < 1e-9:
+        return np.zeros(3)
+    return Rotation.from_quat(q).as_euler("YXZ")

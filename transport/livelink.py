@@ -1,0 +1,95 @@
+"""Live Link Face UDP sink: Unreal's Apple ARKit face source receives what the iPhone app sends.
+
+Packet layout as published by the PyLiveLinkFace project (JimWest/PyLiveLinkFace,
+``PyLiveLinkFace.encode``/``decode``); all values big-endian except the first:
+
+====================  =========================================================
+uint32 little-endian  packet version, 6
+37 bytes              device id: ``$`` + a 36-character UUID (fixed length)
+int32                 subject name length N
+N bytes               subject name, UTF-8
+int32, float32        frame number, sub-frame
+int32, int32          frame rate numerator, denominator
+uint8                 61 (number of values)
+61 x float32          52 ARKit shapes (ARKit order), head yaw/pitch/roll,
+                      left eye yaw/pitch/roll, right eye yaw/pitch/roll
+====================  =========================================================
+
+(Read as Unreal does: byte 6, then a length-prefixed device id of length 37 — the same bytes.)
+Rotations are radians. UDP, fire-and-forget: a send that would block is dropped and counted.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+import uuid
+from collections.abc import Sequence
+
+import numpy as np
+
+from transport.arkit import ARKIT_NAMES, arkit_matrix, head_angles
+
+VERSION = 6
+N_VALUES = 61
+DEFAULT_PORT = 11111
+
+
+def device_id() -> str:
+    return "$" + str(uuid.uuid4())  # 37 characters, as the app and PyLiveLinkFace send
+
+
+def encode_livelink(values61: np.ndarray, frame: int, subject: str = "livecap", device: str | None = None,
+                    fps: int = 60, denominator: int = 1, sub_frame: float = 0.0) -> bytes:
+    dev = (device or device_id()).encode()
+    if len(dev) != 37:
+        raise ValueError(f"device id must be 37 bytes ('$' + UUID), got {len(dev)}")
+    name = subject.encode()
+    vals = np.asarray(values61, dtype=">f4")
+    if vals.shape != (N_VALUES,):
+        raise ValueError(f"a Live Link Face packet carries {N_VALUES} values, got {vals.shape}")
+    return (struct.pack("<I", VERSION) + dev + struct.pack(">i", len(name)) + name
+            + struct.pack(">ifiiB", int(frame) & 0x7FFFFFFF, float(sub_frame), int(fps), int(denominator), N_VALUES)
+            + vals.tobytes())
+
+
+class LiveLinkSink:
+    """Send each result as one Live Link Face packet to ``host:port`` (default 127.0.0.1:11111)."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, subject: str = "livecap",
+                 mapping: dict | None = None, fps: float = 60.0, where: str = "mapping") -> None:
+        self.target = (host, port)
+        self.subject = subject
+        self.device = device_id()
+        self.mapping = mapping
+        self.where = where
+        self.fps = int(round(fps)) or 60
+        self.sent = 0
+        self.drops = 0
+        self._names: Sequence[str] | None = None
+        self._M = np.zeros((len(ARKIT_NAMES), 0))
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+
+    def values(self, result) -> np.ndarray:
+        if result.names is not self._names:
+            self._M = arkit_matrix(result.names, self.mapping, self.where)
+            self._names = result.names
+        out = np.zeros(N_VALUES)
+        out[:52] = self._M @ np.asarray(result.weights, dtype=float)
+        out[52:55] = head_angles(result.head_rotation)
+        return out
+
+    def publish(self, result) -> None:
+        pkt = encode_livelink(self.values(result), result.frame, self.subject, self.device, self.fps)
+        try:
+            self.sock.sendto(pkt, self.target)
+            self.sent += 1
+        except OSError:  # would block, or ICMP port unreachable from an earlier send
+            self.drops += 1
+
+    def stats(self) -> dict:
+        return {"sent": self.sent, "drops": self.drops}
+
+    def close(self) -> None:
+        self.sock.close()

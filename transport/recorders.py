@@ -1,0 +1,315 @@
+"""Recorders: weights to CSV / JSONL, and the raw incoming markers, so a live session can be
+edited afterwards and replayed exactly.
+
+Durability contract: rows are written as they come and pushed to the operating system by
+:meth:`flush` (the pipeline calls it every few hundred milliseconds and at exit); ``flushed``
+counts the frames pushed so far. Data the OS holds survives ``kill -9`` of the process (and,
+with ``fsync=True``, a power cut), so every frame counted in ``flushed`` is readable. Readers
+ignore a torn last line.
+
+* CSV: ``frame,time,<shape>...`` (what ``livecap solve`` writes), or, when the rig's names are
+  ARKit names, the Live Link Face app's CSV: ``Timecode,BlendShapeCount,EyeBlinkLeft,...,
+  RightEyeRoll`` with ``HH:MM:SS:FF.mmm`` timecodes.
+* JSONL: a header line ``{"type": "header", "names": [...]}`` then one object per frame.
+* Markers: ``.npz`` (labels, frames, timestamps, positions, valid, rate) or ``.c3d``. Both are
+  whole-file formats, so frames go first to an append-only journal ``<path>.partial`` (a JSON
+  header line, then fixed-size binary records) that becomes the final file on close;
+  :func:`read_marker_journal` recovers a session that was killed.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from livecap.take import MarkerFrame, Take
+from transport.arkit import ARKIT_NAMES, POSE_NAMES, arkit_matrix, head_angles, is_arkit
+
+# Column order of the Live Link Face app's CSV (it lists jaw and mouth Right before Left).
+LLF_CSV_SHAPES = [n[0].upper() + n[1:] for n in ARKIT_NAMES]
+for _a, _b in (("JawLeft", "JawRight"), ("MouthLeft", "MouthRight")):
+    _i, _j = LLF_CSV_SHAPES.index(_a), LLF_CSV_SHAPES.index(_b)
+    LLF_CSV_SHAPES[_i], LLF_CSV_SHAPES[_j] = LLF_CSV_SHAPES[_j], LLF_CSV_SHAPES[_i]
+LLF_CSV_HEADER = ["Timecode", "BlendShapeCount", *LLF_CSV_SHAPES, *POSE_NAMES]
+
+
+class _Lines:
+    """An append-only text file with explicit flush accounting."""
+
+    def __init__(self, path: str | Path, fsync: bool = False) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.fh = open(self.path, "w", newline="", buffering=1 << 16)
+        self.fsync = fsync
+        self.written = 0  # frames handed to the file object
+        self.flushed = 0  # frames handed to the operating system
+
+    def flush(self) -> None:
+        if self.fh.closed:
+            return
+        self.fh.flush()
+        if self.fsync:
+            os.fsync(self.fh.fileno())
+        self.flushed = self.written
+
+    def close(self) -> None:
+        if not self.fh.closed:
+            self.flush()
+            self.fh.close()
+
+    def stats(self) -> dict:
+        return {"written": self.written, "flushed": self.flushed}
+
+
+def timecode(seconds: float, rate: float) -> str:
+    """Live Link Face CSV timecode ``HH:MM:SS:FF.mmm`` (FF frames at ``rate``, mmm sub-frame)."""
+    fps = max(1, int(round(rate)))
+    total = seconds * fps
+    whole = math.floor(total + 1e-9)
+    sub = min(int(round((total - whole) * 1000)), 999)
+    ff = whole % fps
+    s = whole // fps
+    return f"{s // 3600:02d}:{s // 60 % 60:02d}:{s % 60:02d}:{ff:02d}.{sub:03d}"
+
+
+def parse_timecode(tc: str, rate: float) -> float:
+    h, m, s, f = tc.split(":")
+    return int(h) * 3600 + int(m) * 60 + int(s) + float(f) / max(1, int(round(rate)))
+
+
+class CsvRecorder(_Lines):
+    """Weights CSV; ``layout`` is ``auto`` (Live Link Face layout when every shape name is an
+    ARKit name), ``livecap`` or ``livelinkface``."""
+
+    def __init__(self, path: str | Path, rate: float = 60.0, layout: str = "auto", mapping: dict | None = None,
+                 fsync: bool = False) -> None:
+        if layout not in ("auto", "livecap", "livelinkface"):
+            raise ValueError(f"unknown CSV layout {layout!r}")
+        super().__init__(path, fsync)
+        self.rate = rate
+        self.layout = layout
+        self.mapping = mapping
+        self._writer = csv.writer(self.fh)
+        self._names = None
+        self._M: np.ndarray | None = None
+
+    def _start(self, names) -> None:
+        if self._names is not None:
+            raise ValueError(f"{self.path}: shape names changed during a recording")
+        self._names = names
+        if self.layout == "livelinkface" or (self.layout == "auto" and is_arkit(names)):
+            self.layout = "livelinkface"
+            M = arkit_matrix(names, self.mapping, str(self.path))
+            order = [ARKIT_NAMES.index(n[0].lower() + n[1:]) for n in LLF_CSV_SHAPES]
+            self._M = M[order]
+            self._writer.writerow(LLF_CSV_HEADER)
+        else:
+            self.layout = "livecap"
+            self._writer.writerow(["frame", "time", *names])
+
+    def publish(self, result) -> None:
+        if result.names is not self._names:
+            self._start(result.names)
+        w = np.asarray(result.weights, dtype=float)
+        if self._M is not None:
+            pose = np.zeros(9)
+            pose[:3] = head_angles(result.head_rotation)
+            row = [timecode(result.timestamp, self.rate), 61, *map(repr, (self._M @ w).tolist()),
+                   *map(repr, pose.tolist())]
+        else:
+            row = [int(result.frame), repr(float(result.timestamp)), *map(repr, w.tolist())]
+        self._writer.writerow(row)
+        self.written += 1
+
+
+@dataclass
+class WeightsRecording:
+    names: list[str]
+    frames: np.ndarray  # T (for the Live Link Face layout: round(time * rate))
+    times: np.ndarray  # T seconds
+    weights: np.ndarray  # T x m
+    layout: str
+
+
+def read_csv_recording(path: str | Path, rate: float = 60.0) -> WeightsRecording:
+    """Read either CSV layout back; a torn last line (a killed writer) is ignored."""
+    path = Path(path)
+    text = path.read_text()
+    if text and not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]
+    rows = [r for r in csv.reader(text.splitlines()) if r]
+    if not rows:
+        raise ValueError(f"{path}: empty recording")
+    header = rows[0]
+    try:
+        data = np.array([[float(c) for c in r[1:]] for r in rows[1:]], dtype=float).reshape(len(rows) - 1, -1)
+        if header[:2] == ["frame", "time"]:
+            frames = np.array([int(r[0]) for r in rows[1:]])
+            return WeightsRecording(header[2:], frames, data[:, 0], data[:, 1:], "livecap")
+        if header[:2] == ["Timecode", "BlendShapeCount"]:
+            times = np.array([parse_timecode(r[0], rate) for r in rows[1:]])
+            return WeightsRecording(header[2:], np.round(times * rate).astype(int), times, data[:, 1:],
+                                    "livelinkface")
+    except ValueError as exc:
+        raise ValueError(f"{path}: bad recording row ({exc})") from None
+    raise ValueError(f"{path}: not a weights recording (header starts {header[:2]})")
+
+
+class JsonlRecorder(_Lines):
+    def __init__(self, path: str | Path, fsync: bool = False) -> None:
+        super().__init__(path, fsync)
+        self._names = None
+
+    def publish(self, result) -> None:
+        if result.names is not self._names:
+            self._names = result.names
+            self.fh.write(json.dumps({"type": "header", "version": 1, "names": list(result.names)}) + "\n")
+        self.fh.write(json.dumps({
+            "type": "weights", "frame": int(result.frame), "timestamp": float(result.timestamp),
+            "weights": np.asarray(result.weights, dtype=float).tolist(),
+            "head_rotation": np.asarray(result.head_rotation, dtype=float).tolist(),
+            "head_translation": np.asarray(result.head_translation, dtype=float).tolist(),
+            "residual": float(result.residual), "solve_time": float(result.solve_time),
+        }) + "\n")
+        self.written += 1
+
+
+def read_jsonl_recording(path: str | Path) -> tuple[list[str], list[dict]]:
+    """Shape names and the per-frame objects; a torn last line is ignored."""
+    names: list[str] = []
+    frames: list[dict] = []
+    with open(path) as fh:
+        for line in fh:
+            if not line.endswith("\n"):
+                break
+            obj = json.loads(line)
+            if obj.get("type") == "header":
+                names = obj["names"]
+            else:
+                frames.append(obj)
+    return names, frames
+
+
+# ------------------------------------------------------------------------------ raw markers
+_JOURNAL_MAGIC = "livecap-markers"
+
+
+class MarkerRecorder:
+    """Record every accepted input frame (session label order) to ``.npz`` or ``.c3d``."""
+
+    def __init__(self, path: str | Path, labels: list[str], rate: float, fsync: bool = False) -> None:
+        self.path = Path(path)
+        if self.path.suffix.lower() not in (".npz", ".c3d"):
+            raise ValueError(f"{self.path}: raw marker recordings are .npz or .c3d")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.labels = list(labels)
+        self.rate = float(rate)
+        self.fsync = fsync
+        self.journal = journal_path(self.path)
+        n = len(self.labels)
+        self._fmt = f"<qd{3 * n}d{n}B"  # float64: a replay reproduces the session bit for bit
+        self.fh = open(self.journal, "wb", buffering=1 << 16)
+        head = json.dumps({"magic": _JOURNAL_MAGIC, "version": 1, "labels": self.labels, "rate": self.rate,
+                           "record": self._fmt}) + "\n"
+        self.fh.write(head.encode())
+        self.written = 0
+        self.flushed = 0
+
+    def record(self, frame: MarkerFrame) -> None:
+        self.fh.write(struct.pack(self._fmt, int(frame.frame), float(frame.timestamp),
+                                  *np.asarray(frame.positions, dtype=np.float64).ravel(),
+                                  *np.asarray(frame.valid, dtype=np.uint8)))
+        self.written += 1
+
+    def flush(self) -> None:
+        if self.fh.closed:
+            return
+        self.fh.flush()
+        if self.fsync:
+            os.fsync(self.fh.fileno())
+        self.flushed = self.written
+
+    def close(self) -> None:
+        if self.fh.closed:
+            return
+        self.flush()
+        self.fh.close()
+        rec = read_marker_journal(self.journal)
+        write_marker_recording(rec, self.path)
+        self.journal.unlink()
+
+    def stats(self) -> dict:
+        return {"written": self.written, "flushed": self.flushed}
+
+
+def journal_path(path: str | Path) -> Path:
+    p = Path(path)
+    return p.with_name(p.name + ".partial")
+
+
+@dataclass
+class MarkerRecording:
+    take: Take  # positions in mm, session label order
+    frames: np.ndarray  # T frame numbers as received
+    timestamps: np.ndarray  # T seconds as received
+
+
+def read_marker_journal(path: str | Path) -> MarkerRecording:
+    """Recover the frames of a journal (complete records only)."""
+    path = Path(path)
+    with open(path, "rb") as fh:
+        head_line = fh.readline()
+        body = fh.read()
+    try:
+        head = json.loads(head_line)
+        if head.get("magic") != _JOURNAL_MAGIC:
+            raise ValueError("wrong magic")
+        fmt = head["record"]
+        labels, rate = head["labels"], float(head["rate"])
+    except (ValueError, KeyError) as exc:
+        raise ValueError(f"{path}: not a livecap marker journal ({exc})") from None
+    size = struct.calcsize(fmt)
+    n = len(labels)
+    count = len(body) // size
+    rec = np.dtype([("frame", "<i8"), ("t", "<f8"), ("pos", "<f8", (n, 3)), ("valid", "u1", (n,))])
+    if rec.itemsize != size:
+        raise ValueError(f"{path}: record format {fmt!r} is not one this build writes")
+    arr = np.frombuffer(body[: count * size], dtype=rec)
+    take = Take(labels, arr["pos"].astype(np.float64), arr["valid"].astype(bool), rate,
+                int(arr["frame"][0]) if count else 0)
+    return MarkerRecording(take, arr["frame"].copy(), arr["t"].copy())
+
+
+def write_marker_recording(rec: MarkerRecording, path: str | Path) -> None:
+    path = Path(path)
+    if path.suffix.lower() == ".c3d":
+        from transport.c3d import write_c3d
+
+        write_c3d(rec.take, path)
+        return
+    with open(path, "wb") as fh:  # np.savez would append .npz to a name without it
+        np.savez_compressed(fh, labels=np.array(rec.take.labels), frames=rec.frames, timestamps=rec.timestamps,
+                            positions=rec.take.positions, valid=rec.take.valid,
+                            rate=np.array(rec.take.rate))
+
+
+def read_marker_recording(path: str | Path) -> MarkerRecording:
+    """A raw ``.npz`` marker recording, or a ``.partial`` journal left by a killed session."""
+    path = Path(path)
+    if path.name.endswith(".partial"):
+        return read_marker_journal(path)
+    try:
+        z = np.load(path, allow_pickle=False)
+        labels = [str(s) for s in z["labels"]]
+        take = Take(labels, z["positions"].astype(np.float64), z["valid"], float(z["rate"]),
+                    int(z["frames"][0]) if len(z["frames"]) else 0)
+        return MarkerRecording(take, z["frames"], z["timestamps"])
+    except (OSError, KeyError, ValueError) as exc:
+        raise ValueError(f"{path}: not a livecap marker recording ({exc})") from None

@@ -1,0 +1,124 @@
+"""VMC protocol over OSC (Virtual Motion Capture, protocol.vmc.info), the VTuber apps' wire.
+
+Per frame, one OSC bundle (split into several when large, ``Apply`` in the last)::
+
+    /VMC/Ext/OK        ,i        1                 (a model is loaded)
+    /VMC/Ext/T         ,f        time (seconds)
+    /VMC/Ext/Bone/Pos  ,sfffffff "Head" px py pz qx qy qz qw
+    /VMC/Ext/Blend/Val ,sf       name value        (one per shape)
+    /VMC/Ext/Blend/Apply                            (apply this frame's values)
+
+VMC is Unity's frame: left-handed, metres, +y up, +z forward, +x to the avatar's right.
+livecap's head frame is right-handed millimetres, +y up, +z out of the face, +x to the
+subject's left; so x flips: ``p_unity = (-x, y, z) / 1000`` and for the rotation (a
+reflection through the x = 0 plane) ``q_unity = (qx, -qy, -qz, qw)``.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+from collections.abc import Sequence
+
+import numpy as np
+
+from transport.arkit import ARKIT_NAMES, arkit_matrix
+
+DEFAULT_PORT = 39539
+MAX_DATAGRAM = 8192  # bundles beyond this are split: stays far below UDP's 64 KB and typical MTU reassembly limits
+
+
+def osc_string(s: str) -> bytes:
+    b = s.encode() + b"\0"
+    return b + b"\0" * (-len(b) % 4)
+
+
+def osc_message(address: str, tags: str, *args) -> bytes:
+    out = [osc_string(address), osc_string("," + tags)]
+    for t, a in zip(tags, args, strict=True):
+        if t == "s":
+            out.append(osc_string(a))
+        elif t == "f":
+            out.append(struct.pack(">f", a))
+        elif t == "i":
+            out.append(struct.pack(">i", a))
+        else:
+            raise ValueError(f"unsupported OSC type tag {t!r}")
+    return b"".join(out)
+
+
+def osc_bundle(messages: Sequence[bytes]) -> bytes:
+    """An OSC bundle with the 'immediately' time tag."""
+    return b"#bundle\0" + struct.pack(">Q", 1) + b"".join(struct.pack(">i", len(m)) + m for m in messages)
+
+
+def to_unity(translation_mm: np.ndarray, quat_xyzw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """livecap head pose (right-handed mm) to Unity's left-handed metres."""
+    t = np.asarray(translation_mm, dtype=float)
+    q = np.asarray(quat_xyzw, dtype=float)
+    return np.array([-t[0], t[1], t[2]]) / 1000.0, np.array([q[0], -q[1], -q[2], q[3]])
+
+
+class VmcSink:
+    """Send VMC bundles to ``host:port`` (default 127.0.0.1:39539). With ``arkit=True`` the
+    shapes go out under ARKit names (for "perfect sync" avatars) through the name mapping."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, arkit: bool = False,
+                 mapping: dict | None = None, where: str = "mapping") -> None:
+        self.target = (host, port)
+        self.arkit = arkit
+        self.mapping = mapping
+        self.where = where
+        self.sent = 0
+        self.drops = 0
+        self._names: Sequence[str] | None = None
+        self._prefixes: list[bytes] = []
+        self._M: np.ndarray | None = None
+        self._ok = osc_message("/VMC/Ext/OK", "i", 1)
+        self._apply = osc_message("/VMC/Ext/Blend/Apply", "")
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+
+    def _prepare(self, names: Sequence[str]) -> None:
+        self._names = names
+        out_names = ARKIT_NAMES if self.arkit else list(names)
+        self._M = arkit_matrix(names, self.mapping, self.where) if self.arkit else None
+        # address, type tags and name are the same every frame: encode them once
+        self._prefixes = [osc_string("/VMC/Ext/Blend/Val") + osc_string(",sf") + osc_string(n) for n in out_names]
+
+    def datagrams(self, result) -> list[bytes]:
+        if result.names is not self._names:
+            self._prepare(result.names)
+        w = np.asarray(result.weights, dtype=float)
+        if self._M is not None:
+            w = self._M @ w
+        p, q = to_unity(result.head_translation, result.head_rotation)
+        msgs = [self._ok, osc_message("/VMC/Ext/T", "f", float(result.timestamp)),
+                osc_message("/VMC/Ext/Bone/Pos", "sfffffff", "Head", *map(float, p), *map(float, q))]
+        vals = np.asarray(w, dtype=">f4").tobytes()
+        msgs += [pre + vals[4 * i:4 * i + 4] for i, pre in enumerate(self._prefixes)]
+        msgs.append(self._apply)
+        out, chunk, size = [], [], 16
+        for m in msgs:
+            if chunk and size + 4 + len(m) > MAX_DATAGRAM:
+                out.append(osc_bundle(chunk))
+                chunk, size = [], 16
+            chunk.append(m)
+            size += 4 + len(m)
+        out.append(osc_bundle(chunk))
+        return out
+
+    def publish(self, result) -> None:
+        for dgram in self.datagrams(result):
+            try:
+                self.sock.sendto(dgram, self.target)
+            except OSError:  # would block, or ICMP port unreachable: UDP is fire-and-forget
+                self.drops += 1
+                return
+        self.sent += 1
+
+    def stats(self) -> dict:
+        return {"sent": self.sent, "drops": self.drops}
+
+    def close(self) -> None:
+        self.sock.close()

@@ -1,0 +1,241 @@
+"""Versioned wire formats for markers in and weights out over ZeroMQ, and their decoders.
+
+ZeroMQ messages are multipart ``[topic, msgpack payload]`` (the style of Pupil Labs' network
+API). Topics: ``markers.<actor>`` in, ``weights.<actor>`` out. Every payload is a msgpack map
+with ``"v"`` (the wire version, :data:`WIRE_VERSION`) and ``"type"``. Arrays travel as raw
+little-endian float32 bytes, so a frame of 60 markers is ~1 KB and decodes without a Python
+loop. docs/protocol.md has the byte-level description with worked examples.
+
+Decoders raise :class:`WireError` subclasses whose ``kind`` names the counter a running session
+bumps (short, malformed, version, nonfinite, unknown_label, duplicate_label, unknown_layout);
+they never raise anything else on bytes from the network.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import msgpack
+import numpy as np
+
+WIRE_VERSION = 1
+MAX_MARKERS = 4096  # a sanity bound: anything bigger is a malformed packet, not a face
+
+
+class WireError(ValueError):
+    """A packet that cannot be used; ``kind`` is the bad-input counter it belongs to."""
+
+    kind = "malformed"
+
+
+class ShortPacket(WireError):
+    kind = "short"
+
+
+class MalformedPacket(WireError):
+    kind = "malformed"
+
+
+class WrongVersion(WireError):
+    kind = "version"
+
+
+class NonFinite(WireError):
+    kind = "nonfinite"
+
+
+class UnknownLabel(WireError):
+    kind = "unknown_label"
+
+
+class DuplicateLabel(WireError):
+    kind = "duplicate_label"
+
+
+class UnknownLayout(WireError):
+    kind = "unknown_layout"
+
+
+def layout_id(labels: Sequence[str]) -> str:
+    """A short id for an ordered label list: both ends can compute it, so after the first
+    frame a sender may omit the labels and the receiver still knows them."""
+    return hashlib.sha1("\n".join(labels).encode()).hexdigest()[:16]
+
+
+def topic(kind: str, actor: str) -> bytes:
+    return f"{kind}.{actor}".encode()
+
+
+# ---------------------------------------------------------------------------------- markers
+@dataclass
+class MarkerPacket:
+    frame: int
+    timestamp: float
+    labels: list[str]
+    positions: np.ndarray  # n x 3 float64, mm; 0 where not valid
+    valid: np.ndarray  # n bool
+
+
+def encode_markers(frame: int, timestamp: float, positions: np.ndarray, valid: np.ndarray,
+                   labels: Sequence[str] | None = None, layout: str | None = None) -> bytes:
+    """Payload of a ``markers.<actor>`` message. Give ``labels`` (and optionally register them
+    under ``layout``) or only ``layout`` for a label list the receiver already knows."""
+    if labels is None and layout is None:
+        raise ValueError("a marker packet needs labels or a layout id")
+    pos = np.asarray(positions, dtype="<f4").reshape(-1, 3)
+    val = np.asarray(valid, dtype=bool).reshape(-1)
+    msg: dict = {"v": WIRE_VERSION, "type": "markers", "frame": int(frame), "timestamp": float(timestamp),
+                 "positions": pos.tobytes(), "valid": val.astype(np.uint8).tobytes()}
+    if labels is not None:
+        msg["labels"] = list(labels)
+    if layout is not None:
+        msg["layout"] = layout
+    return msgpack.packb(msg, use_bin_type=True)
+
+
+def _unpack_map(payload: bytes, expected_type: str) -> dict:
+    if not isinstance(payload, bytes | bytearray | memoryview):
+        raise MalformedPacket("payload is not bytes")
+    if len(payload) == 0:
+        raise ShortPacket("empty payload")
+    try:
+        msg = msgpack.unpackb(payload, raw=False, strict_map_key=False, max_bin_len=1 << 24, max_str_len=1 << 16,
+                              max_array_len=1 << 16, max_map_len=64)
+    except (msgpack.exceptions.ExtraData, ValueError, TypeError) as exc:
+        text = str(exc).lower()
+        if "insufficient" in text or "incomplete" in text or isinstance(exc, msgpack.exceptions.OutOfData):
+            raise ShortPacket(f"truncated msgpack ({exc})") from None
+        raise MalformedPacket(f"not msgpack ({exc})") from None
+    except Exception as exc:  # msgpack raises a few private exception types on hostile input
+        raise MalformedPacket(f"not msgpack ({type(exc).__name__}: {exc})") from None
+    if not isinstance(msg, dict):
+        raise MalformedPacket(f"payload is a msgpack {type(msg).__name__}, not a map")
+    v = msg.get("v")
+    if not isinstance(v, int) or isinstance(v, bool):
+        raise MalformedPacket("no integer version field 'v'")
+    if v != WIRE_VERSION:
+        raise WrongVersion(f"wire version {v}, this build speaks {WIRE_VERSION}")
+    if msg.get("type") != expected_type:
+        raise MalformedPacket(f"type {msg.get('type')!r}, expected {expected_type!r}")
+    return msg
+
+
+def _number(msg: dict, key: str, kind: type) -> float | int:
+    val = msg.get(key)
+    ok = isinstance(val, int) and not isinstance(val, bool) if kind is int else isinstance(val, int | float)
+    if not ok or isinstance(val, bool):
+        raise MalformedPacket(f"field {key!r} missing or not a number")
+    if kind is int and not -(2**62) < val < 2**62:
+        raise MalformedPacket(f"field {key!r} out of range")
+    return val
+
+
+def decode_markers(payload: bytes, layouts: dict[str, list[str]] | None = None) -> MarkerPacket:
+    """Decode and check one marker payload. ``layouts`` (id -> labels) is consulted for packets
+    that carry only a layout id, and learns the labels of packets that carry both."""
+    msg = _unpack_map(payload, "markers")
+    frame = int(_number(msg, "frame", int))
+    timestamp = float(_number(msg, "timestamp", float))
+    if not np.isfinite(timestamp):
+        raise NonFinite("timestamp is not finite")
+    labels = msg.get("labels")
+    lid = msg.get("layout")
+    if lid is not None and not isinstance(lid, str):
+        raise MalformedPacket("layout id is not a string")
+    if labels is None:
+        if lid is None:
+            raise MalformedPacket("neither labels nor a layout id")
+        if layouts is None or lid not in layouts:
+            raise UnknownLayout(f"layout id {lid!r} was never announced with its labels")
+        labels = layouts[lid]
+    else:
+        if not isinstance(labels, list) or not all(isinstance(s, str) for s in labels):
+            raise MalformedPacket("labels is not a list of strings")
+        if len(labels) > MAX_MARKERS:
+            raise MalformedPacket(f"{len(labels)} labels is more than {MAX_MARKERS}")
+        if len(set(labels)) != len(labels):
+            seen: set[str] = set()
+            dup = next(s for s in labels if s in seen or seen.add(s))
+            raise DuplicateLabel(f"label {dup!r} appears twice")
+        if lid is not None and layouts is not None:
+            layouts[lid] = list(labels)
+    n = len(labels)
+    pos = msg.get("positions")
+    val = msg.get("valid", None)
+    if not isinstance(pos, bytes):
+        raise MalformedPacket("positions is not a byte string")
+    if len(pos) < 12 * n:
+        raise ShortPacket(f"positions hold {len(pos)} bytes, {n} markers need {12 * n}")
+    if len(pos) != 12 * n:
+        raise MalformedPacket(f"positions hold {len(pos)} bytes, {n} markers need {12 * n}")
+    positions = np.frombuffer(pos, dtype="<f4").reshape(n, 3).astype(np.float64)
+    if val is None:
+        valid = np.ones(n, dtype=bool)
+    elif not isinstance(val, bytes):
+        raise MalformedPacket("valid is not a byte string")
+    elif len(val) < n:
+        raise ShortPacket(f"valid mask holds {len(val)} bytes for {n} markers")
+    elif len(val) != n:
+        raise MalformedPacket(f"valid mask holds {len(val)} bytes for {n} markers")
+    else:
+        valid = np.frombuffer(val, dtype=np.uint8) != 0
+    if not np.isfinite(positions[valid]).all():
+        raise NonFinite("a marker flagged valid has a NaN or infinite coordinate")
+    positions = np.where(valid[:, None], positions, 0.0)
+    return MarkerPacket(frame, timestamp, list(labels), positions, valid)
+
+
+# ---------------------------------------------------------------------------------- weights
+def encode_header(names: Sequence[str], actor: str, rate: float | None = None) -> bytes:
+    """The shape-name header of a ``weights.<actor>`` stream (re-sent periodically and on join)."""
+    msg = {"v": WIRE_VERSION, "type": "header", "actor": actor, "names": list(names),
+           "names_id": layout_id(names), "rate": float(rate) if rate else 0.0}
+    return msgpack.packb(msg, use_bin_type=True)
+
+
+def encode_weights(result, names_id: str) -> bytes:
+    """Payload of one ``weights.<actor>`` frame from a :class:`livecap.result.SolveResult`."""
+    msg = {
+        "v": WIRE_VERSION, "type": "weights", "frame": int(result.frame), "timestamp": float(result.timestamp),
+        "names_id": names_id, "weights": np.asarray(result.weights, dtype="<f4").tobytes(),
+        "head_rotation": [float(x) for x in result.head_rotation],
+        "head_translation": [float(x) for x in result.head_translation],
+        "residual": float(result.residual), "solve_time": float(result.solve_time),
+    }
+    return msgpack.packb(msg, use_bin_type=True)
+
+
+@dataclass
+class WeightsPacket:
+    frame: int
+    timestamp: float
+    names_id: str
+    weights: np.ndarray  # m float32 -> float64
+    head_rotation: np.ndarray  # 4 (x, y, z, w)
+    head_translation: np.ndarray  # 3 mm
+    residual: float
+    solve_time: float
+
+
+def decode_payload(payload: bytes):
+    """A decoded ``weights.<actor>`` payload: a header dict or a :class:`WeightsPacket`."""
+    try:
+        msg = _unpack_map(payload, "weights")
+    except MalformedPacket:
+        msg = _unpack_map(payload, "header")
+        names = msg.get("names")
+        if not isinstance(names, list) or not all(isinstance(s, str) for s in names):
+            raise MalformedPacket("header names is not a list of strings") from None
+        return msg
+    w = msg.get("weights")
+    if not isinstance(w, bytes) or len(w) % 4:
+        raise MalformedPacket("weights is not float32 bytes")
+    rot, tr = msg.get("head_rotation"), msg.get("head_translation")
+    if not (isinstance(rot, list) and len(rot) == 4 and isinstance(tr, list) and len(tr) == 3):
+        raise MalformedPacket("head pose has the wrong shape")
+    return WeightsPacket(int(_number(msg, "frame", int)), float(_number(msg, "timestamp", float)),
+                         str(msg.get("names_id")), np.frombuffer(w, dtype="<f4").astype(np.float64),
+                         np.asarray(rot, dtype=float), np.asarray(tr, dtype=float),
+                         float(msg.get("residual", 0.0)), float(msg.get("solve_time", 0.0)))

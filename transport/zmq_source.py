@@ -1,0 +1,99 @@
+"""ZeroMQ SUB source: ``[b"markers.<actor>", msgpack payload]`` in, MarkerFrames out.
+
+Connects (default) or binds a SUB socket, subscribes to ``markers.<actor>`` and decodes each
+message with :func:`transport.wire.decode_markers`. Bad packets and out-of-order frames are
+counted in :attr:`bad` and skipped; the iterator only ends on :meth:`stop` or after
+``idle_timeout`` seconds without a good frame.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+
+import zmq
+
+from livecap.take import MarkerFrame
+from transport.badinput import BadInput, FrameOrder, LabelMap
+from transport.security import Curve
+from transport.wire import WireError, decode_markers, layout_id, topic
+
+
+class ZmqSource:
+    def __init__(self, address: str, labels: list[str], actor: str = "actor", bind: bool = False,
+                 curve: Curve | None = None, idle_timeout: float | None = None, poll_ms: int = 100,
+                 context: zmq.Context | None = None) -> None:
+        self.address = address
+        self.labels = list(labels)
+        self.topic = topic("markers", actor)
+        self.bad = BadInput(f"zmq {address}")
+        self.idle_timeout = idle_timeout
+        self.poll_ms = poll_ms
+        self.last_decode_seconds = 0.0
+        self.received = 0
+        self._map = LabelMap(self.labels)
+        self._order = FrameOrder()
+        self._layouts = {layout_id(self.labels): self.labels}
+        self._running = True
+        self._ctx = context or zmq.Context.instance()
+        self.sock = self._ctx.socket(zmq.SUB)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.setsockopt(zmq.RCVHWM, 10000)
+        if curve is not None:
+            curve.apply(self.sock, server=bind)
+        self.sock.setsockopt(zmq.SUBSCRIBE, self.topic)
+        if bind:
+            self.sock.bind(address)
+        else:
+            self.sock.connect(address)
+
+    def stop(self) -> None:
+        self._running = False
+
+    def close(self) -> None:
+        self._running = False
+        self.sock.close(0)
+
+    def decode(self, parts: list[bytes]) -> MarkerFrame | None:
+        """One message to a frame in the session's label order, or None (counted) when bad."""
+        if len(parts) != 2:
+            self.bad.skip("malformed", f"{len(parts)}-part message, expected [topic, payload]")
+            return None
+        if parts[0] != self.topic:
+            return None  # a longer topic that shares our prefix: not for us
+        try:
+            pkt = decode_markers(parts[1], self._layouts)
+            frame = self._map.frame(pkt.frame, pkt.timestamp, pkt.labels, pkt.positions, pkt.valid)
+        except WireError as exc:
+            self.bad.skip(exc.kind, str(exc))
+            return None
+        except KeyError as exc:
+            self.bad.skip("unknown_label", str(exc.args[0]))
+            return None
+        order = self._order.check(frame.frame)
+        if order:
+            self.bad.skip(order, f"frame {frame.frame} after {self._order.last}")
+            return None
+        return frame
+
+    def __iter__(self) -> Iterator[MarkerFrame]:
+        last_good = None
+        poller = zmq.Poller()
+        poller.register(self.sock, zmq.POLLIN)
+        while self._running:
+            if not poller.poll(self.poll_ms):
+                if self.idle_timeout and last_good is not None and time.monotonic() - last_good > self.idle_timeout:
+                    return
+                continue
+            while self._running:
+                try:
+                    parts = self.sock.recv_multipart(zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                t0 = time.perf_counter()
+                self.received += 1
+                frame = self.decode(parts)
+                self.last_decode_seconds = time.perf_counter() - t0
+                if frame is not None:
+                    last_good = time.monotonic()
+                    yield frame
