@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from livecap.calibration import Profile
+from livecap.robust import ROBUST_MODES
 from solvers.least_squares import BoundedLeastSquares
 
 
@@ -15,6 +16,7 @@ def _lsq(profile: Profile, options: dict):
 MODES: dict[str, Callable] = {
     "lsq": _lsq,
 }
+MODES.update(ROBUST_MODES)  # noise-robust modes (livecap/robust.py, docs/robustness.md)
 
 
 def build_solver(mode: str, profile: Profile, options: dict | None = None):
