@@ -25,8 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 
 try:  # daqp is a project dependency; keep a scipy fallback so the solver never fails to build
-    import daqp
     from ctypes import c_int
+
+    import daqp
 except ImportError:  # pragma: no cover
     daqp = None
 
@@ -120,7 +121,8 @@ def holdout_ridge(basis: np.ndarray, targets: np.ndarray, valid: np.ndarray, gri
             W = np.clip(np.linalg.solve(G + lam * np.eye(m), R.T).T, lo, hi)
             scores[g] += np.sum((W @ B[out].T - S[:, out]) ** 2)
     scores /= S.size
-    return Selection(float(grid[int(np.argmin(scores))]), np.asarray(grid, float), scores, f"{folds}-fold held-out markers")
+    best = float(grid[int(np.argmin(scores))])
+    return Selection(best, np.asarray(grid, float), scores, f"{folds}-fold held-out markers")
 
 
 class PriorLeastSquares:

@@ -22,7 +22,7 @@ from livecap.calibration import calibrate, estimate_neutral
 from livecap.cli.common import add_rig_arguments, load_rig, progress_bar
 from livecap.demo.performance import PerformanceSettings, perform
 from livecap.metrics import jitter, vertex_error, weight_rmse
-from livecap.modes import MODES, build_solver
+from livecap.modes import MODES
 from livecap.robust import ROBUST_MODES, filtered, prior_solver, tune_profile
 from livecap.solve import prepare_targets
 
@@ -171,7 +171,8 @@ def run(args: argparse.Namespace) -> int:
     sweep = None
     if not args.no_sweep:
         sweep = ridge_sweep(profile, targets, take.valid, truth, tuned["ridge"])
-        print(f"ridge sweep (prior fit, no filter): selected {tuned['ridge']:.3g} -> RMSE {sweep['selected_rmse']:.4f}; "
+        print(f"ridge sweep (prior fit, no filter): selected {tuned['ridge']:.3g} -> "
+              f"RMSE {sweep['selected_rmse']:.4f}; "
               f"sweep optimum {sweep['best_ridge']:.3g} -> RMSE {sweep['best_rmse']:.4f}")
         print("  " + "  ".join(f"{lam:.3g}:{e:.4f}" for lam, e in zip(sweep["grid"], sweep["rmse"], strict=True)))
     if args.plot:
@@ -199,7 +200,8 @@ def summarise(rows: list[Row]) -> dict:
     smooth = [r for r in rows if r.kind == "streaming" and r.jitter_ratio <= 1.5]
     if smooth:
         r = min(smooth, key=lambda r: r.lag)
-        out["lines"].append(f"least lag with jitter <= 1.5 x truth: {r.mode}: lag {r.lag:.2f} frames, RMSE {r.rmse:.4f}")
+        out["lines"].append(f"least lag with jitter <= 1.5 x truth: {r.mode}: lag {r.lag:.2f} frames, "
+                            f"RMSE {r.rmse:.4f}")
     else:
         out["lines"].append("no streaming mode reaches jitter <= 1.5 x truth")
     return out
