@@ -54,7 +54,8 @@ def lag_frames(solved: np.ndarray, truth: np.ndarray, max_lag: int = 30) -> floa
     T = len(a)
     max_lag = min(max_lag, T - 2)
     lags = np.arange(-max_lag, max_lag + 1)
-    c = np.array([np.sum(a[k:] * b[:T - k]) if k >= 0 else np.sum(a[:T + k] * b[-k:]) for k in lags])
+    # mean (not sum) over the overlap, so the shorter overlaps at large |lag| do not skew the peak
+    c = np.array([np.mean(a[k:] * b[:T - k]) if k >= 0 else np.mean(a[:T + k] * b[-k:]) for k in lags])
     i = int(np.argmax(c))
     off = 0.0
     if 0 < i < len(c) - 1:
