@@ -210,7 +210,8 @@ def summarise(rows: list[Row]) -> dict:
 
 def ridge_sweep(profile, targets, valid, truth, selected: float) -> dict:
     """RMSE of the prior fit (no filter) over a ridge grid, to place the selected value."""
-    grid = sorted(set(np.round(np.logspace(-1, 3, 9), 6).tolist() + [float(selected)]))
+    grid = [float(g) for g in np.logspace(-1, 3, 9) if not np.isclose(g, selected, rtol=1e-3)]
+    grid = sorted(grid + [float(selected)])
     rmse = []
     for lam in grid:
         solver = prior_solver(profile, {"ridge": lam})
