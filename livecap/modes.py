@@ -7,6 +7,7 @@ from collections.abc import Callable
 from livecap.calibration import Profile
 from livecap.movement_options import build_movement
 from livecap.per_frame_modes import qp_mode, rbf_mode
+from livecap.robust import ROBUST_MODES
 from solvers.least_squares import BoundedLeastSquares
 
 
@@ -21,6 +22,7 @@ MODES: dict[str, Callable] = {
     "qp": qp_mode,
     "rbf": rbf_mode,
 }
+MODES.update(ROBUST_MODES)  # noise-robust modes (livecap/robust.py, docs/robustness.md)
 
 
 def build_solver(mode: str, profile: Profile, options: dict | None = None):

@@ -22,6 +22,7 @@ COMMANDS = [
     "map",
     "run",
     "send",
+    "noise_study",
 ]
 
 

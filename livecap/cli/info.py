@@ -17,11 +17,37 @@ def register(sub) -> None:
     p = sub.add_parser("info", help="describe a rig (OBJ folder / .npz) or a take (.c3d/.trc/.csv)")
     p.add_argument("path")
     p.add_argument("--markers", help="markers.json for a rig (default: found beside it)")
+    p.add_argument("--observability", action="store_true",
+                   help="for a rig + markers or a --profile: which shapes the markers can see (docs/robustness.md)")
+    p.add_argument("--profile", help="with --observability: a calibrated profile (.npz) instead of the raw rig basis")
+    p.add_argument("--noise-mm", type=float, default=None,
+                   help="marker noise sigma for the report (default: the profile's estimate, else 0.5)")
     p.set_defaults(func=run)
+
+
+def observability_report(args: argparse.Namespace, rig: Rig | None, layout: MarkerLayout | None) -> None:
+    from livecap.calibration import Profile
+    from solvers.observability import observability
+
+    if args.profile:
+        prof = Profile.load(args.profile)
+        basis, names = prof.basis, prof.names
+        noise = args.noise_mm or prof.settings.get("robust", {}).get("noise_mm", 0.5)
+        source = args.profile
+    else:
+        if layout is None:
+            raise ValueError(f"{args.path}: --observability needs the rig's markers.json (give --markers)")
+        basis, names, noise, source = layout.basis(rig), rig.names, args.noise_mm or 0.5, "rig + markers"
+    print(f"  ({source})")
+    for line in observability(basis, names, noise).lines():
+        print(line)
 
 
 def run(args: argparse.Namespace) -> int:
     path = Path(args.path)
+    if args.observability and args.profile and not path.exists():
+        observability_report(args, None, None)
+        return 0
     if path.suffix.lower() in READERS:
         take = read_take(path)
         missing = (~take.valid).mean(0)
@@ -42,8 +68,11 @@ def run(args: argparse.Namespace) -> int:
     for name, lo, hi, mag in zip(rig.names, rig.lower, rig.upper, mags, strict=True):
         print(f"  {name:24s} [{lo:g}, {hi:g}]  max displacement {mag:6.2f} mm")
     mpath = Path(args.markers) if args.markers else markers_path(path)
+    layout = None
     if mpath.exists():
         layout = MarkerLayout.load(mpath, rig)
         print(f"  markers: {layout.n_markers} ({int(layout.stable.sum())} stable: "
               f"{', '.join(layout.stable_labels())}) from {mpath}")
+    if args.observability:
+        observability_report(args, rig, layout)
     return 0

@@ -1,0 +1,255 @@
+"""``livecap noise-study``: every solver mode on a generated noisy take, against its ground truth.
+
+Generates a take with ``livecap.demo.performance.perform`` (configurable noise and occlusion),
+calibrates from its neutral span, selects the regularisation from the take
+(``livecap.robust.tune_profile``), then solves it with every mode in MODES, plus a 1€-filtered
+variant of each mode that lacks one, and prints weight RMSE, vertex error (mm), jitter ratio
+(solved / ground-truth mean |second difference|), added latency (frames, the cross-correlation
+lag of solved against true curves) and blink peak amplitude. Also a sweep of the ridge against
+the selected value, and a PNG of a few weight curves against the truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from livecap.calibration import calibrate, estimate_neutral
+from livecap.cli.common import add_rig_arguments, load_rig, progress_bar
+from livecap.demo.performance import PerformanceSettings, perform
+from livecap.metrics import jitter, vertex_error, weight_rmse
+from livecap.modes import MODES
+from livecap.robust import ROBUST_MODES, filtered, prior_solver, tune_profile
+from livecap.solve import prepare_targets
+
+
+def register(sub) -> None:
+    p = sub.add_parser("noise-study", help="every solver mode on a generated noisy take: accuracy, jitter, lag",
+                       description=__doc__.split("\n\n")[1])
+    add_rig_arguments(p)
+    p.add_argument("--noise-mm", type=float, default=0.5, help="marker noise sigma in mm (default 0.5)")
+    p.add_argument("--occlusion", type=float, default=0.05, help="fraction of marker-frames missing (default 0.05)")
+    p.add_argument("--seconds", type=float, default=20.0)
+    p.add_argument("--rate", type=float, default=120.0)
+    p.add_argument("--seed", type=int, default=1, help="performance seed (curves, head motion, noise)")
+    p.add_argument("--modes", nargs="*", help="only these modes (default: all registered, + filtered variants)")
+    p.add_argument("--no-sweep", action="store_true", help="skip the ridge sweep")
+    p.add_argument("--plot", default="out/noise_study.png", help="PNG of weight curves ('' for none)")
+    p.add_argument("--json", help="also write the table as JSON")
+    p.set_defaults(func=run)
+
+
+# ----------------------------------------------------------------------------- measures
+def lag_frames(solved: np.ndarray, truth: np.ndarray, max_lag: int = 30) -> float:
+    """Delay (frames) maximising the cross-correlation of the mean-removed curves, summed over shapes.
+
+    Positive: the solve trails the truth. Sub-frame by a parabola through the peak.
+    """
+    a = solved - solved.mean(0)
+    b = truth - truth.mean(0)
+    T = len(a)
+    max_lag = min(max_lag, T - 2)
+    lags = np.arange(-max_lag, max_lag + 1)
+    # mean (not sum) over the overlap, so the shorter overlaps at large |lag| do not skew the peak
+    c = np.array([np.mean(a[k:] * b[:T - k]) if k >= 0 else np.mean(a[:T + k] * b[-k:]) for k in lags])
+    i = int(np.argmax(c))
+    off = 0.0
+    if 0 < i < len(c) - 1:
+        y0, y1, y2 = c[i - 1:i + 2]
+        den = y0 - 2 * y1 + y2
+        off = 0.5 * (y0 - y2) / den if den != 0 else 0.0
+    return float(lags[i] + off)
+
+
+def blink_indices(names: list[str]) -> list[int]:
+    return [i for i, n in enumerate(names) if "blink" in n.lower()]
+
+
+def blink_amplitude(solved: np.ndarray, truth: np.ndarray, names: list[str], window: int = 6) -> float:
+    """Mean ratio of the solved peak (within +-window frames) to the true eyeBlink peak (peaks >= 0.5)."""
+    from scipy.signal import find_peaks
+
+    ratios = []
+    for k in blink_indices(names):
+        peaks, _ = find_peaks(truth[:, k], height=0.5, distance=10)
+        for p in peaks:
+            ratios.append(solved[max(0, p - window):p + window + 1, k].max() / truth[p, k])
+    return float(np.mean(ratios)) if ratios else float("nan")
+
+
+@dataclass
+class Row:
+    mode: str
+    kind: str  # streaming / offline / lookahead
+    rmse: float
+    vertex_mm: float
+    jitter_ratio: float
+    lag: float
+    blink: float
+    ms_per_frame: float
+
+    def line(self) -> str:
+        return (f"{self.mode:22s} {self.kind:10s} {self.rmse:8.4f} {self.vertex_mm:8.3f} {self.jitter_ratio:9.2f} "
+                f"{self.lag:7.2f} {self.blink:6.2f} {self.ms_per_frame:7.3f}")
+
+
+HEADER = (f"{'mode':22s} {'kind':10s} {'RMSE':>8s} {'vert mm':>8s} {'jitter x':>9s} {'lag fr':>7s} "
+          f"{'blink':>6s} {'ms/fr':>7s}")
+
+
+def run_solver(solver, targets: np.ndarray, valid: np.ndarray, stream: bool, update=None) -> tuple[np.ndarray, float]:
+    import time
+
+    start = time.perf_counter()
+    if not stream and hasattr(solver, "solve"):
+        W = solver.solve(targets, valid)
+    else:
+        if hasattr(solver, "reset"):
+            solver.reset()
+        W = np.array([solver.step(targets[t], valid[t]) for t in range(len(targets))])
+    ms = (time.perf_counter() - start) * 1e3 / len(targets)
+    return W, ms
+
+
+def variants(selected: list[str] | None) -> list[tuple[str, object]]:
+    """(name, factory) for every registered mode and a 1€-filtered twin of each non-robust one."""
+    out = []
+    for name in sorted(MODES):
+        out.append((name, MODES[name]))
+        if name not in ROBUST_MODES:
+            out.append((f"{name}+1e", filtered(MODES[name])))
+    if selected:
+        out = [(n, f) for n, f in out if n in selected]
+        if not out:
+            raise ValueError(f"no such modes {selected} (registered: {sorted(MODES)})")
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    rig, layout = load_rig(args)
+    s = PerformanceSettings(seconds=args.seconds, rate=args.rate, noise_mm=args.noise_mm, occlusion=args.occlusion,
+                            seed=args.seed)
+    perf = perform(rig, layout, s)
+    take, truth = perf.take, perf.weights
+    neutral = estimate_neutral(take, layout.stable, max(1, int(s.neutral_start * take.rate)))
+    profile = calibrate(rig, layout, neutral)
+    _, targets, _, _ = prepare_targets(take, profile)
+    tuned = tune_profile(profile, targets, take.valid, take.rate)
+    tj = max(jitter(truth), 1e-12)
+    print(f"take: {take.n_frames} frames at {take.rate:g} Hz, {take.n_markers} markers, {rig.n_shapes} shapes, "
+          f"noise {args.noise_mm:g} mm, {(~take.valid).mean() * 100:.1f}% missing (seed {args.seed})")
+    print(f"selected: noise {tuned['noise_mm']:.3f} mm (estimated), ridge {tuned['ridge']:.3g} "
+          f"({tuned['criterion']}), GCV ridge {tuned['ridge_gcv']:.3g}")
+
+    rows: list[Row] = []
+    curves: dict[str, np.ndarray] = {}
+    todo = []
+    for name, factory in variants(args.modes):
+        solver = factory(profile, {"rate": take.rate})
+        offline = hasattr(solver, "solve")
+        todo.append((name, solver, "offline" if offline else "streaming", False))
+        if offline and hasattr(solver, "latency_frames"):
+            todo.append((f"{name}@stream", factory(profile, {"rate": take.rate}), "lookahead", True))
+    with progress_bar("noise study", len(todo)) as update:
+        for i, (name, solver, kind, stream) in enumerate(todo):
+            W, ms = run_solver(solver, targets, take.valid, stream)
+            mean_mm, _ = vertex_error(rig, W, truth)
+            rows.append(Row(name, kind, weight_rmse(W, truth), mean_mm, jitter(W) / tj, lag_frames(W, truth),
+                            blink_amplitude(W, truth, rig.names), ms))
+            curves[name] = W
+            update(i + 1, len(todo))
+    print(HEADER)
+    for r in rows:
+        print(r.line())
+    summary = summarise(rows)
+    for line in summary["lines"]:
+        print(line)
+
+    sweep = None
+    if not args.no_sweep:
+        sweep = ridge_sweep(profile, targets, take.valid, truth, tuned["ridge"])
+        print(f"ridge sweep (prior fit, no filter): selected {tuned['ridge']:.3g} -> "
+              f"RMSE {sweep['selected_rmse']:.4f}; "
+              f"sweep optimum {sweep['best_ridge']:.3g} -> RMSE {sweep['best_rmse']:.4f}")
+        print("  " + "  ".join(f"{lam:.3g}:{e:.4f}" for lam, e in zip(sweep["grid"], sweep["rmse"], strict=True)))
+    if args.plot:
+        plot(args.plot, rig.names, truth, curves, take.rate)
+        print(f"plot: {args.plot}")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps({"settings": vars(s), "selected": tuned, "rows": [vars(r) for r in rows],
+                                               "summary": {k: v for k, v in summary.items() if k != "lines"},
+                                               "sweep": sweep}, indent=1, default=float))
+    return 0
+
+
+def summarise(rows: list[Row]) -> dict:
+    """Baseline (plain lsq), the best streaming mode by RMSE among those with <= 1 frame lag, and the checks."""
+    base = next((r for r in rows if r.mode == "lsq"), None)
+    fast = [r for r in rows if r.kind == "streaming" and r.lag <= 1.0]
+    best = min(fast, key=lambda r: r.rmse) if fast else None
+    out: dict = {"lines": []}
+    if base and best:
+        out.update(baseline=base.mode, best_streaming=best.mode, rmse_ratio=best.rmse / base.rmse)
+        out["lines"].append(
+            f"best streaming (lag <= 1 frame): {best.mode}: RMSE {best.rmse:.4f} = {best.rmse / base.rmse:.2f} x lsq; "
+            f"jitter {best.jitter_ratio:.2f} x truth; lag {best.lag:.2f} frames; blinks {best.blink * 100:.0f}%")
+    smooth = [r for r in rows if r.kind == "streaming" and r.jitter_ratio <= 1.5]
+    if smooth:
+        r = min(smooth, key=lambda r: r.lag)
+        out["lines"].append(f"least lag with jitter <= 1.5 x truth: {r.mode}: lag {r.lag:.2f} frames, "
+                            f"RMSE {r.rmse:.4f}")
+    else:
+        out["lines"].append("no streaming mode reaches jitter <= 1.5 x truth")
+    return out
+
+
+def ridge_sweep(profile, targets, valid, truth, selected: float) -> dict:
+    """RMSE of the prior fit (no filter) over a ridge grid, to place the selected value."""
+    grid = [float(g) for g in np.logspace(-1, 3, 9) if not np.isclose(g, selected, rtol=1e-3)]
+    grid = sorted(grid + [float(selected)])
+    rmse = []
+    for lam in grid:
+        solver = prior_solver(profile, {"ridge": lam})
+        W = np.array([solver.step(targets[t], valid[t]) for t in range(len(targets))])
+        rmse.append(weight_rmse(W, truth))
+    i = int(np.argmin(rmse))
+    return {"grid": grid, "rmse": rmse, "best_ridge": grid[i], "best_rmse": rmse[i],
+            "selected": float(selected), "selected_rmse": rmse[grid.index(float(selected))]}
+
+
+def plot(path: str, names: list[str], truth: np.ndarray, curves: dict[str, np.ndarray], rate: float) -> None:
+    """A few weight curves (blink, jaw, smile, most active other) against the truth."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    picks = []
+    for key in ("blink", "jawopen", "smile"):
+        k = next((i for i, n in enumerate(names) if key in n.lower()), None)
+        if k is not None and k not in picks:
+            picks.append(k)
+    for k in np.argsort(-truth.std(0)):
+        if len(picks) >= 4:
+            break
+        if int(k) not in picks:
+            picks.append(int(k))
+    shown = [n for n in ("lsq", "robust", "robust-lag") if n in curves] or list(curves)[:3]
+    t = np.arange(len(truth)) / rate
+    fig, axes = plt.subplots(len(picks), 1, figsize=(11, 2.2 * len(picks)), sharex=True)
+    for ax, k in zip(np.atleast_1d(axes), picks, strict=False):
+        ax.plot(t, truth[:, k], "k", lw=2, label="truth")
+        for name in shown:
+            ax.plot(t, curves[name][:, k], lw=0.8, label=name)
+        ax.set_ylabel(names[k], fontsize=8)
+    np.atleast_1d(axes)[0].legend(loc="upper right", fontsize=8, ncol=len(shown) + 1)
+    np.atleast_1d(axes)[-1].set_xlabel("seconds")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

@@ -1,0 +1,129 @@
+"""What a marker layout can see of a rig: the singular structure of the marker basis B.
+
+A shape is observable when moving its weight moves the markers by clearly more than their
+noise, and distinguishable when no other shape (or blend of shapes) moves them the same way.
+Both are properties of B (3n x m) alone (Lewis et al. 2014 §5.2 on non-orthogonal bases;
+Seol et al. 2012 §3 on corresponding points). With marker noise sigma, the per-frame least-
+squares estimate has covariance sigma^2 (B^T B)^-1: its diagonal is each shape's noise floor,
+and right singular vectors with small singular values are the blends noise drives freely.
+
+The report feeds the solvers through ``noise_floor`` (per-shape standard deviation under a
+ridge, used as a rest-pull threshold) and ``tying_prior`` (a penalty on the difference of nearly
+indistinguishable pairs, so noise cannot trade one for the other).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class ObservabilityReport:
+    names: list[str]
+    singular_values: np.ndarray  # r, descending
+    directions: np.ndarray  # m x r right singular vectors (blends of shapes)
+    displacement: np.ndarray  # m: largest marker displacement (mm) per unit weight
+    marker_count: np.ndarray  # m: markers moving more than ``seen_mm`` per unit weight
+    noise_sd: np.ndarray  # m: weight standard deviation per frame at the given noise (lam = 0)
+    pairs: list[tuple[int, int, float]]  # (i, j, cosine) of nearly parallel columns
+    noise_mm: float
+    seen_mm: float
+
+    @property
+    def condition(self) -> float:
+        s = self.singular_values
+        return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+
+    def unobservable(self, threshold: float = 1.0) -> list[int]:
+        """Indices of singular directions whose weight noise sd exceeds ``threshold`` (weight units)."""
+        sd = self.noise_mm / np.maximum(self.singular_values, 1e-300)
+        return [k for k in range(len(sd)) if sd[k] > threshold]
+
+    def describe_direction(self, k: int, top: int = 3) -> str:
+        v = self.directions[:, k]
+        idx = np.argsort(-np.abs(v))[:top]
+        return " ".join(f"{v[i]:+.2f} {self.names[i]}" for i in idx)
+
+    def lines(self, top_pairs: int = 12) -> list[str]:
+        """The human-readable report printed by ``livecap info --observability``."""
+        s = self.singular_values
+        out = [f"observability: {len(self.names)} shapes, rank {int(np.sum(s > s[0] * 1e-9))}, "
+               f"condition {self.condition:.3g}, marker noise {self.noise_mm:g} mm",
+               f"  singular values (mm per unit weight): max {s[0]:.2f}, median {np.median(s):.2f}, min {s[-1]:.3g}",
+               f"  {'shape':24s} {'max disp mm':>11s} {'markers':>7s} {'noise sd':>8s}"]
+        for i in np.argsort(-self.noise_sd):
+            flag = "  << noise-driven" if self.noise_sd[i] > 0.1 else ""
+            out.append(f"  {self.names[i]:24s} {self.displacement[i]:11.2f} {self.marker_count[i]:7d} "
+                       f"{self.noise_sd[i]:8.3f}{flag}")
+        out.append(f"  nearly indistinguishable pairs (column cosine >= {PAIR_COSINE:g}): {len(self.pairs)}")
+        for i, j, c in self.pairs[:top_pairs]:
+            out.append(f"    {self.names[i]} ~ {self.names[j]}  cos {c:.3f}")
+        weak = self.unobservable()
+        out.append(f"  directions with weight noise sd > 1 per frame: {len(weak)}")
+        for k in weak[:6]:
+            out.append(f"    s={s[k]:.3g}: {self.describe_direction(k)}")
+        return out
+
+
+PAIR_COSINE = 0.9
+
+
+def observability(basis: np.ndarray, names: list[str], noise_mm: float = 0.5, seen_mm: float = 1.0,
+                  pair_cosine: float = PAIR_COSINE) -> ObservabilityReport:
+    """Singular structure, per-shape displacement and noise floor, and near-duplicate pairs of B."""
+    B = np.asarray(basis, dtype=np.float64)
+    m = B.shape[1]
+    if len(names) != m:
+        raise ValueError(f"{len(names)} names for a basis with {m} shapes")
+    _, s, Vt = np.linalg.svd(B, full_matrices=False)
+    per_marker = np.linalg.norm(B.reshape(-1, 3, m), axis=1)  # n x m
+    disp = per_marker.max(axis=0)
+    count = (per_marker > seen_mm).sum(axis=0)
+    sd = noise_floor(B, noise_mm, 0.0)
+    norms = np.linalg.norm(B, axis=0)
+    Bn = B / np.maximum(norms, 1e-12)
+    C = Bn.T @ Bn
+    pairs = [(i, j, float(C[i, j])) for i in range(m) for j in range(i + 1, m) if C[i, j] >= pair_cosine]
+    pairs.sort(key=lambda p: -p[2])
+    return ObservabilityReport(list(names), s, Vt.T, disp, count.astype(int), sd, pairs, float(noise_mm),
+                               float(seen_mm))
+
+
+def noise_floor(basis: np.ndarray, noise_mm: float, ridge: float | np.ndarray = 0.0) -> np.ndarray:
+    """Per-shape weight standard deviation of the ridge estimate under white marker noise.
+
+    cov = sigma^2 (B^T B + L)^-1 B^T B (B^T B + L)^-1, L = diag(ridge); a pseudo-inverse when
+    ridge is 0 and B is rank deficient (then the unobservable part is reported as infinite).
+    """
+    B = np.asarray(basis, dtype=np.float64)
+    G = B.T @ B
+    m = G.shape[0]
+    L = np.diag(np.broadcast_to(np.asarray(ridge, dtype=np.float64), (m,)))
+    if np.all(np.diag(L) == 0):
+        w, V = np.linalg.eigh(G)
+        tiny = w <= w.max() * 1e-12
+        inv = np.where(tiny, 0.0, 1.0 / np.where(tiny, 1.0, w))
+        var = (V * V) @ inv
+        var = np.where(np.abs(V[:, tiny]).max(axis=1, initial=0.0) > 1e-6, np.inf, var)
+        return noise_mm * np.sqrt(var)
+    Hi = np.linalg.inv(G + L)
+    cov = Hi @ G @ Hi
+    return noise_mm * np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+
+def tying_prior(report: ObservabilityReport, strength: float) -> np.ndarray:
+    """m x m penalty ``strength * sum_pairs c_ij (w_i - w_j)^2`` over nearly indistinguishable pairs.
+
+    Noise moves such a pair in opposite directions (the difference is what the markers barely
+    see); the penalty ties the difference while leaving the pair's sum free.
+    """
+    m = len(report.names)
+    P = np.zeros((m, m))
+    for i, j, c in report.pairs:
+        P[i, i] += c
+        P[j, j] += c
+        P[i, j] -= c
+        P[j, i] -= c
+    return strength * P
