@@ -15,6 +15,10 @@ def _lsq(profile: Profile, options: dict):
     return BoundedLeastSquares(profile.basis, profile.lower, profile.upper, options.get("ridge", 0.0))
 
 
+# The streaming mode a user gets without choosing: the most accurate one that runs per frame
+# with at most a frame of latency (docs/robustness.md; `livecap evaluate` compares them all).
+DEFAULT_MODE = "robust"
+
 MODES: dict[str, Callable] = {
     "lsq": _lsq,
     "movement": build_movement,  # Seol 2012 movement matching; options {"stream": True, "window", "lookahead"}

@@ -9,7 +9,7 @@ from livecap.cli.common import load_rig, profile_for, progress_bar
 from livecap.demo import DEMO_RIG, DEMO_TAKE, truth_path
 from livecap.demo.performance import GroundTruth
 from livecap.metrics import jitter, vertex_error, weight_rmse
-from livecap.modes import MODES, build_solver
+from livecap.modes import DEFAULT_MODE, MODES, build_solver
 from livecap.solve import solve_take
 from transport.takefile import read_take
 from transport.weights_csv import write_weights_csv
@@ -20,7 +20,8 @@ RECORDINGS = Path(__file__).resolve().parents[2] / "recordings"
 def register(sub) -> None:
     p = sub.add_parser("demo", help="solve the bundled demo take and print accuracy against ground truth")
     p.add_argument("--recordings", default=str(RECORDINGS), help="folder with the demo files")
-    p.add_argument("--mode", default="lsq", choices=sorted(MODES), help="solver mode (default lsq)")
+    p.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES),
+                   help=f"solver mode (default {DEFAULT_MODE})")
     p.add_argument("--out", default="out/demo_weights.csv", help="weights CSV to write")
     p.set_defaults(func=run, neutral_seconds=1.0, profile=None, markers=None)
 

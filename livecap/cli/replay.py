@@ -14,7 +14,7 @@ import numpy as np
 
 from livecap.cli.common import add_calibration_arguments, add_rig_arguments, load_rig, profile_for, progress_bar
 from livecap.demo import truth_path
-from livecap.modes import MODES, build_solver
+from livecap.modes import DEFAULT_MODE, MODES, build_solver
 from livecap.solve import prepare_targets
 from livecap.stabilise import to_quaternion
 from transport.takefile import read_take
@@ -36,7 +36,8 @@ def register(sub) -> None:
     p.add_argument("take", help="marker take: .c3d, .trc or .csv")
     add_rig_arguments(p)
     add_calibration_arguments(p)
-    p.add_argument("--mode", default="lsq", choices=sorted(MODES), help="solver mode (default lsq)")
+    p.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES),
+                   help=f"solver mode (default {DEFAULT_MODE})")
     p.add_argument("--ridge", type=float, default=0.0, help="ridge weight lambda for per-frame modes")
     p.add_argument("--preview", help="MP4 video to write")
     p.add_argument("--frames", help="folder for PNG frames (frame_<number>.png)")

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from livecap.calibration import Profile, calibrate, estimate_neutral
 from livecap.cli.common import load_rig
-from livecap.modes import MODES
+from livecap.modes import DEFAULT_MODE, MODES
 from livecap.pipeline import Pipeline
 from livecap.session import load_session
 
@@ -49,7 +49,8 @@ def register(sub) -> None:
     cal.add_argument("--neutral-seconds", type=float, default=1.0,
                      help="seconds at the start of the stream taken as the neutral face (default 1)")
     sol = p.add_argument_group("solver")
-    sol.add_argument("--mode", default="lsq", choices=sorted(MODES), help="solver mode (default lsq)")
+    sol.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES),
+                   help=f"solver mode (default {DEFAULT_MODE})")
     sol.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                      help="solver option (repeatable), e.g. --option ridge=0.01")
     out = p.add_argument_group("sinks")

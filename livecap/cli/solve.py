@@ -12,7 +12,7 @@ from livecap.cli.common import (
     progress_bar,
 )
 from livecap.cli.movement_args import add_movement_arguments, movement_options
-from livecap.modes import MODES, build_solver
+from livecap.modes import DEFAULT_MODE, MODES, build_solver
 from livecap.solve import solve_take
 from transport.takefile import read_take
 from transport.weights_csv import write_weights_csv
@@ -24,7 +24,8 @@ def register(sub) -> None:
     p.add_argument("take", help="marker take: .c3d, .trc or .csv")
     add_rig_arguments(p)
     add_calibration_arguments(p)
-    p.add_argument("--mode", default="lsq", choices=sorted(MODES), help="solver mode (default lsq)")
+    p.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES),
+                   help=f"solver mode (default {DEFAULT_MODE})")
     p.add_argument("--ridge", type=float, default=0.0, help="ridge weight lambda for per-frame modes")
     p.add_argument("--temporal", type=float, default=0.0, help="qp: weight gamma of |w - w_prev|^2")
     p.add_argument("--keys", help="keys file (labelled ROM take or explicit key pairs): rbf keys, qp actor basis")
