@@ -89,26 +89,32 @@ def _frame_rms(a: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
 def model_error(profile: Profile, targets: np.ndarray, valid: np.ndarray, weights: np.ndarray) -> tuple[float, float]:
     """RMS marker error (mm) of the profile's model at ``weights``, and its systematic part.
 
-    The systematic part is the least-squares projection of each marker coordinate's error onto
-    [weights, 1] over the take: what the true weights predict about the error is the model's
-    (calibration's) fault, the rest is marker noise and stabilisation jitter. With T frames and
-    m shapes the projection keeps about sqrt((m + 1) / T) of the noise (0.1 mm for the demo).
+    The systematic part is what the weights predict about the error: each marker coordinate's
+    error is regressed on [weights, 1] over the take, and the energy of the fit, less what noise
+    alone would put there (p = m + 1 regressors times the residual variance, the unbiased
+    correction), is the model's (calibration's) fault; the rest is marker noise and stabilisation
+    jitter. It can be estimated only when the take has many more frames than shapes.
     """
     if profile.marker_rig is not None:
         model = profile.marker_rig.evaluate(weights) - profile.marker_rig.neutral
     else:
         model = (weights @ profile.basis.T).reshape(targets.shape)
     err = np.where(valid[..., None], targets - model, 0.0)
-    total = float(np.sqrt(np.sum(err ** 2) / max(valid.sum(), 1)))
+    count = max(int(valid.sum()), 1)
+    total = float(np.sqrt(np.sum(err ** 2) / count))
     X = np.hstack([weights, np.ones((len(weights), 1))])
+    p = X.shape[1]
     sys_sq = 0.0
     for j in range(targets.shape[1]):
         rows = valid[:, j]
-        if rows.sum() <= X.shape[1]:
+        if rows.sum() <= 2 * p:
             continue
-        coef, *_ = np.linalg.lstsq(X[rows], err[rows, j], rcond=None)
-        sys_sq += float(np.sum((X[rows] @ coef) ** 2))
-    return total, float(np.sqrt(sys_sq / max(valid.sum(), 1)))
+        Xj, ej = X[rows], err[rows, j]
+        coef, *_ = np.linalg.lstsq(Xj, ej, rcond=None)
+        fit = Xj @ coef
+        noise_var = np.sum((ej - fit) ** 2, axis=0) / (len(ej) - p)
+        sys_sq += float(np.sum(fit ** 2) - p * noise_var.sum())
+    return total, float(np.sqrt(max(sys_sq, 0.0) / count))
 
 
 def compare(take: Take, rig: Rig, layout: MarkerLayout, neutral: np.ndarray,

@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 
 TUKEY_C = 4.685  # 95 % efficiency at the Gaussian
 MAD_TO_SIGMA = 1.4826
+CHECK_SCALES = 3.0  # a residual beyond 3 floors sends the frame through the robust refit
 LEAVE_ONE_OUT_MAX = 12  # leave-one-out starts only for small marker sets (stable markers)
 
 
@@ -124,7 +125,7 @@ def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: i
 
     ``ref`` (k, 3) is shared; ``pts`` (..., k, 3); ``use`` (..., k) marks the markers that may
     take part (at least 3 per frame). ``floor_mm`` is about twice the marker noise. The plain
-    least-squares fit stands when every residual is within 4.685 * ``floor_mm`` (an outlier
+    least-squares fit stands when every residual is within 3 * ``floor_mm`` (an outlier
     inflates the median, so this check uses the floor alone). Other frames are refitted by
     iteratively reweighted least squares with Tukey's biweight (cut-off 4.685 scales, the scale
     1.4826 * the median residual distance, never below ``floor_mm``), started from the best
@@ -136,7 +137,7 @@ def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: i
     if iterations <= 0:
         return R, t, w
     r = _residuals(ref, pts, R, t)
-    bad = (use & (r > TUKEY_C * floor_mm)).any(-1)
+    bad = (use & (r > CHECK_SCALES * floor_mm)).any(-1)
     if pts.ndim == 2:
         return _irls(ref, pts, use, iterations, floor_mm) if bad else (R, t, w)
     if bad.any():
