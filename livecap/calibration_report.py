@@ -93,7 +93,7 @@ def model_error(profile: Profile, targets: np.ndarray, valid: np.ndarray, weight
     error is regressed on [weights, 1] over the take, and the energy of the fit, less what noise
     alone would put there (p = m + 1 regressors times the residual variance, the unbiased
     correction), is the model's (calibration's) fault; the rest is marker noise and stabilisation
-    jitter. It can be estimated only when the take has many more frames than shapes.
+    jitter. It is estimated only when the take has at least 8 frames per shape (else NaN).
     """
     if profile.marker_rig is not None:
         model = profile.marker_rig.evaluate(weights) - profile.marker_rig.neutral
@@ -104,6 +104,8 @@ def model_error(profile: Profile, targets: np.ndarray, valid: np.ndarray, weight
     total = float(np.sqrt(np.sum(err ** 2) / count))
     X = np.hstack([weights, np.ones((len(weights), 1))])
     p = X.shape[1]
+    if len(X) < 8 * p:
+        return total, float("nan")  # too few frames to tell the systematic part from noise
     sys_sq = 0.0
     for j in range(targets.shape[1]):
         rows = valid[:, j]

@@ -133,7 +133,8 @@ def run_report(args: argparse.Namespace) -> int:
         for r in results:
             won = "" if r is base else f"{np.mean(base.frame_weight_error < r.frame_weight_error) * 100:5.0f}%"
             print(f"  {r.variant.name:44s} {_stats(r.frame_weight_error)} {r.weight_rmse:6.4f}  {won:>6s}"
-                  f"  {r.model_error_mm:8.3f} mm  {r.systematic_mm:7.3f} mm")
+                  f"  {r.model_error_mm:8.3f} mm  " + ("    n/a" if np.isnan(r.systematic_mm) else
+                                                      f"{r.systematic_mm:7.3f} mm"))
         print("  (better: frames where the calibrated pipeline's weight error is lower; model@truth: RMS marker error"
               " of the\n   variant's model at the true weights; systematic: its part the true weights predict,"
               " i.e. calibration error)")
