@@ -145,9 +145,9 @@ def test_calibration_on_the_ict_rig(ict):
     from livecap.solve import prepare_targets
 
     rig, layout = ict
-    rng = np.random.default_rng(0)  # 1 s neutral, then 8 s of random combinations of every shape
-    W = np.zeros((270, rig.n_shapes))
-    W[30:] = rng.uniform(0, 0.7, (240, rig.n_shapes)) * (rng.random((240, rig.n_shapes)) < 0.2)
+    rng = np.random.default_rng(0)  # 1 s neutral, then 15 s of random combinations of every shape
+    W = np.zeros((480, rig.n_shapes))
+    W[30:] = rng.uniform(0, 0.7, (450, rig.n_shapes)) * (rng.random((450, rig.n_shapes)) < 0.2)
     perf = perform(rig, layout, PerformanceSettings(rate=30, seed=4), weights=W)
     assert not perf.take.valid[:, layout.stable].all()  # a stable marker drops out
     neutral = estimate_neutral(perf.take, layout.stable, 30)
