@@ -1,10 +1,13 @@
 """Calibration: from a neutral take and a target rig to everything a solver needs (the Profile).
 
-* Neutral: the actor's rest markers, a robust (median) estimate over the first frames after
-  head motion is removed (Curio et al. 2006 §2.1).
-* Proportions: a map from the rig's marker sites to the actor's markers (Seol et al. 2012
-  §3.2), applied to every shape's sites to give the marker-space basis B in the actor's
-  proportions.
+* Neutral: the actor's rest markers, a robust estimate over a neutral take or the first frames of
+  a stream after head motion is removed (Curio et al. 2006 §2.1, §2.3; Seol et al. 2012 §3.1).
+* Frame: the neutral is expressed in the rig's frame (one rigid fit of the actor's neutral onto
+  the rig's marker sites), so stabilised markers and the published head pose are relative to the
+  character's head, whatever the capture volume's axes.
+* Proportions: an RBF warp from the rig's marker sites to the actor's markers (Seol §3.2, see
+  livecap.warp), applied to every sculpt's sites to give the marker-space basis B and a warped
+  marker-site rig (with in-betweens and correctives) in the actor's proportions.
 """
 
 from __future__ import annotations
@@ -16,9 +19,12 @@ from pathlib import Path
 import numpy as np
 
 from livecap.markers import MarkerLayout
-from livecap.rig import Rig
-from livecap.stabilise import HeadStabiliser, kabsch
+from livecap.rig import Corrective, InBetween, Rig
+from livecap.stabilise import MAD_TO_SIGMA, HeadStabiliser, kabsch
 from livecap.take import Take
+from livecap.warp import ProportionWarp, WarpError, warp_rig
+
+WARPS = ("rbf", "similarity", "rigid")
 
 
 class CalibrationError(ValueError):
@@ -27,65 +33,171 @@ class CalibrationError(ValueError):
 
 @dataclass
 class Profile:
-    """Everything calibration produced; saved to one ``.npz`` so a session starts instantly."""
+    """Everything calibration produced; saved to one ``.npz`` so a session starts instantly.
+
+    ``warp`` (the fitted proportion warp) and ``marker_rig`` (the rig at the marker sites warped
+    into the actor's proportions, with in-betweens and correctives, for nonlinear solvers:
+    ``marker_rig.evaluate(w) - marker_rig.neutral`` is the model of a target) are optional:
+    profiles written before they existed load with None.
+    """
 
     labels: list[str]
     names: list[str]
-    source_neutral: np.ndarray  # n x 3, actor rest markers in the stabilised (head) frame, mm
+    source_neutral: np.ndarray  # n x 3, actor rest markers in the stabilised (head = rig) frame, mm
     stable: np.ndarray  # n bool
     basis: np.ndarray  # 3n x m, actor-space marker displacement per unit weight
     lower: np.ndarray
     upper: np.ndarray
     target_sites: np.ndarray  # n x 3 rig marker sites at rest (rig frame)
     settings: dict = field(default_factory=dict)
+    warp: ProportionWarp | None = None
+    marker_rig: Rig | None = None
 
     @property
     def n_markers(self) -> int:
         return len(self.labels)
 
-    def stabiliser(self) -> HeadStabiliser:
-        return HeadStabiliser(self.source_neutral, self.stable)
+    def stabiliser(self, robust: bool | None = None) -> HeadStabiliser:
+        """The head stabiliser against this actor's neutral (robust unless the settings say not)."""
+        robust = self.settings.get("robust_stabilise", True) if robust is None else robust
+        return HeadStabiliser(self.source_neutral, self.stable, robust=robust,
+                              floor_mm=float(self.settings.get("stabilise_floor_mm", 1.0)))
 
     def save(self, path: str | Path) -> None:
+        extra: dict[str, np.ndarray] = {}
+        if self.warp is not None:
+            extra.update(self.warp.to_arrays("warp_"))
+        if self.marker_rig is not None:
+            extra.update(_rig_arrays(self.marker_rig, "mr_"))
         np.savez_compressed(
             path, labels=np.array(self.labels), names=np.array(self.names),
             source_neutral=self.source_neutral, stable=self.stable, basis=self.basis,
             lower=self.lower, upper=self.upper, target_sites=self.target_sites,
-            settings=np.array(json.dumps(self.settings)),
+            settings=np.array(json.dumps(self.settings)), **extra,
         )
 
     @classmethod
     def load(cls, path: str | Path) -> Profile:
         try:
             z = np.load(path, allow_pickle=False)
-            return cls([str(s) for s in z["labels"]], [str(s) for s in z["names"]], z["source_neutral"],
+            names = [str(s) for s in z["names"]]
+            warp = ProportionWarp.from_arrays(z, "warp_") if "warp_centres" in z else None
+            mrig = _rig_from_arrays(z, "mr_", names) if "mr_neutral" in z else None
+            return cls([str(s) for s in z["labels"]], names, z["source_neutral"],
                        z["stable"], z["basis"], z["lower"], z["upper"], z["target_sites"],
-                       json.loads(str(z["settings"])))
+                       json.loads(str(z["settings"])), warp, mrig)
         except (OSError, KeyError, ValueError) as exc:
             raise CalibrationError(f"{path}: not a livecap profile ({exc})") from None
 
 
-def estimate_neutral(take: Take, stable: np.ndarray, frames: int | None = None) -> np.ndarray:
-    """Actor rest markers from the first ``frames`` frames (all when None).
+def _rig_arrays(rig: Rig, p: str) -> dict[str, np.ndarray]:
+    n = rig.n_vertices
+    return {
+        f"{p}neutral": rig.neutral, f"{p}deltas": rig.deltas,
+        f"{p}ib_shape": np.array([i.shape for i in rig.inbetweens], dtype=np.int32),
+        f"{p}ib_knots": np.array([(i.left, i.weight, i.right) for i in rig.inbetweens]).reshape(-1, 3),
+        f"{p}ib_residual": np.array([i.residual for i in rig.inbetweens]).reshape(-1, n, 3),
+        f"{p}co_shapes": np.array([c.shapes + (-1,) * (3 - len(c.shapes)) for c in rig.correctives],
+                                  dtype=np.int32).reshape(-1, 3),
+        f"{p}co_delta": np.array([c.delta for c in rig.correctives]).reshape(-1, n, 3),
+    }
 
-    Each frame is rigidly aligned to a running reference on the stable markers, then the
-    per-marker median is taken, so a blink or a dropout inside the span does not move it.
+
+def _rig_from_arrays(z, p: str, names: list[str]) -> Rig:
+    ibs = [InBetween(int(s), float(k[1]), float(k[0]), float(k[2]), r)
+           for s, k, r in zip(z[f"{p}ib_shape"], z[f"{p}ib_knots"], z[f"{p}ib_residual"], strict=True)]
+    cos = [Corrective(tuple(int(i) for i in s if i >= 0), d)
+           for s, d in zip(z[f"{p}co_shapes"], z[f"{p}co_delta"], strict=True)]
+    return Rig(z[f"{p}neutral"], np.zeros((0, 3), np.int64), names, z[f"{p}deltas"], z["lower"], z["upper"],
+               ibs, cos)
+
+
+# ---------------------------------------------------------------------- neutral
+def _robust_mean(local: np.ndarray, valid: np.ndarray, floor_mm: float) -> np.ndarray:
+    """Per marker: mean of the samples within 3 sigma (sigma from the median distance to the
+    per-marker median, never below ``floor_mm``) of the median; blinks and glitches drop out."""
+    med = np.nanmedian(np.where(valid[..., None], local, np.nan), axis=0)
+    dist = np.linalg.norm(local - med, axis=2)
+    mad = np.nanmedian(np.where(valid, dist, np.nan), axis=0)
+    keep = valid & (dist <= 3.0 * np.maximum(MAD_TO_SIGMA * mad, floor_mm))
+    cnt = keep.sum(0)
+    mean = (np.where(keep[..., None], local, 0.0).sum(0)) / np.maximum(cnt, 1)[:, None]
+    return np.where((cnt > 0)[:, None], mean, med)
+
+
+def neutral_from_frames(positions: np.ndarray, valid: np.ndarray, stable: np.ndarray,
+                        labels: list[str] | None = None, floor_mm: float = 0.5) -> np.ndarray:
+    """Actor rest markers (n, 3) from frames of a neutral face (T, n, 3) with head motion.
+
+    Each frame is rigidly aligned (robustly, Seol §3.1) to a reference frame, the frame with the
+    most stable then most markers visible, using only the markers visible in it; then the
+    reference is replaced by the per-marker robust mean and the alignment repeated, so a blink, a
+    dropout or a jump inside the span does not move the neutral. The result is in the frame of
+    the reference frame (the capture volume's axes).
     """
-    span = take.slice(0, frames) if frames else take
-    pos, val = span.positions, span.valid
+    pos = np.asarray(positions, dtype=np.float64)
+    val = np.asarray(valid, dtype=bool) & np.isfinite(pos).all(-1)
+    stable = np.asarray(stable, dtype=bool)
     counts = val.sum(0)
     if (counts == 0).any():
-        missing = [lab for lab, c in zip(take.labels, counts, strict=True) if c == 0]
+        missing = [labels[i] if labels else str(i) for i in np.flatnonzero(counts == 0)]
         raise CalibrationError(f"markers never seen in the neutral span: {missing[:8]}")
-    first = int(np.argmax(val.sum(1)))
-    ref = np.where(val[first][:, None], pos[first], np.median(np.where(val[..., None], pos, np.nan), 0))
-    ref = np.nan_to_num(ref)
-    for _ in range(2):
-        local, _, _ = HeadStabiliser(ref, stable).stabilise(pos, val)
-        ref = np.nanmedian(np.where(val[..., None], local, np.nan), axis=0)
+    n = pos.shape[1]
+    first = int(np.argmax(val[:, stable].sum(1) * (n + 1) + val.sum(1)))
+    ref, ref_valid = np.where(val[first][:, None], pos[first], 0.0), val[first]
+    for _ in range(3):
+        R, t = HeadStabiliser(ref, stable).pose(pos, val & ref_valid)
+        local = np.einsum("tji,tnj->tni", R, pos - t[:, None, :])
+        ref, ref_valid = _robust_mean(local, val, floor_mm), np.ones(n, bool)
     return ref
 
 
+def estimate_neutral(take: Take, stable: np.ndarray, frames: int | None = None) -> np.ndarray:
+    """Actor rest markers from the first ``frames`` frames of ``take`` (all when None)."""
+    span = take.slice(0, frames) if frames else take
+    return neutral_from_frames(span.positions, span.valid, stable, span.labels)
+
+
+class NeutralCapture:
+    """Neutral capture from the first frames of a stream (Seol §3.1: the actor starts neutral).
+
+    ``add`` frames until it returns True: after ``frames`` frames, once every marker has been
+    seen at least ``min_seen`` times (a dropout extends the capture, up to ``4 * frames``).
+    """
+
+    def __init__(self, stable: np.ndarray, frames: int = 120, min_seen: int = 5,
+                 labels: list[str] | None = None) -> None:
+        self.stable = np.asarray(stable, dtype=bool)
+        self.frames = int(frames)
+        self.min_seen = int(min_seen)
+        self.labels = labels
+        n = len(self.stable)
+        self._pos = np.zeros((4 * self.frames, n, 3))
+        self._val = np.zeros((4 * self.frames, n), dtype=bool)
+        self.count = 0
+
+    @property
+    def done(self) -> bool:
+        if self.count >= len(self._pos):
+            return True
+        return self.count >= self.frames and bool((self._val[:self.count].sum(0) >= self.min_seen).all())
+
+    def add(self, positions: np.ndarray, valid: np.ndarray) -> bool:
+        if not self.done:
+            p = np.asarray(positions, dtype=np.float64)
+            v = np.asarray(valid, dtype=bool) & np.isfinite(p).all(-1)
+            self._pos[self.count] = np.where(v[:, None], p, 0.0)
+            self._val[self.count] = v
+            self.count += 1
+        return self.done
+
+    def neutral(self) -> np.ndarray:
+        if self.count == 0:
+            raise CalibrationError("no frames captured for the neutral")
+        return neutral_from_frames(self._pos[:self.count], self._val[:self.count], self.stable, self.labels)
+
+
+# ---------------------------------------------------------------------- proportions
 def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """Scale, rotation, translation with s R src + t ~ dst (Umeyama 1991)."""
     R, _ = kabsch(src, dst)
@@ -94,13 +206,41 @@ def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.
     return float(s), R, cd - s * R @ cs
 
 
-def calibrate(rig: Rig, layout: MarkerLayout, neutral: np.ndarray, settings: dict | None = None) -> Profile:
-    """Profile for ``rig`` seen through ``layout`` on an actor whose rest markers are ``neutral``."""
+def fit_warp(kind: str, sites: np.ndarray, neutral: np.ndarray, smoothing: float = 0.0) -> ProportionWarp:
+    """Rig marker sites -> actor neutral: ``rbf`` (Seol §3.2), ``similarity`` (uniform scale),
+    or ``rigid`` (no proportion change at all: the uncalibrated baseline)."""
+    if kind == "rbf":
+        try:
+            return ProportionWarp.fit(sites, neutral, smoothing)
+        except WarpError as exc:
+            raise CalibrationError(str(exc)) from None
+    if kind == "similarity":
+        s, R, t = similarity(sites, neutral)
+        return ProportionWarp.from_affine(s * R, t, sites)
+    if kind == "rigid":
+        R, t = kabsch(sites, neutral)
+        return ProportionWarp.from_affine(R, t, sites)
+    raise CalibrationError(f"unknown warp {kind!r} (choose from {', '.join(WARPS)})")
+
+
+def calibrate(rig: Rig, layout: MarkerLayout, neutral: np.ndarray, settings: dict | None = None,
+              warp: str = "rbf", smoothing: float = 0.0) -> Profile:
+    """Profile for ``rig`` seen through ``layout`` on an actor whose rest markers are ``neutral``.
+
+    ``neutral`` may be in any frame (e.g. the capture volume's); it is moved rigidly into the rig's
+    frame first. ``warp`` picks the proportion match (see :func:`fit_warp`).
+    """
+    neutral = np.asarray(neutral, dtype=np.float64)
+    if neutral.shape != (layout.n_markers, 3) or not np.isfinite(neutral).all():
+        raise CalibrationError(f"neutral must be {layout.n_markers} x 3 finite positions, got {neutral.shape}")
     sites_rig = layout.marker_rig(rig)
     sites = sites_rig.neutral
-    s, R, t = similarity(sites, neutral)
-    deltas = sites_rig.deltas  # m x n x 3
-    basis = (s * np.einsum("ij,mnj->nim", R, deltas)).reshape(-1, rig.n_shapes)
-    return Profile(list(layout.labels), list(rig.names), np.asarray(neutral, float), layout.stable.copy(),
-                   basis, rig.lower.copy(), rig.upper.copy(), sites,
-                   {"warp": "similarity", "scale": s, **(settings or {})})
+    Rc, tc = kabsch(neutral, sites)  # actor neutral -> rig frame, rigid only
+    neutral_rig = neutral @ Rc.T + tc
+    d = fit_warp(warp, sites, neutral_rig, smoothing)
+    mrig = warp_rig(sites_rig, d)
+    basis = mrig.deltas.reshape(rig.n_shapes, -1).T.copy()
+    fit_mm = float(np.sqrt(np.mean(np.sum((mrig.neutral - neutral_rig) ** 2, axis=1))))
+    info = {"warp": warp, "scale": d.mean_scale, "warp_fit_rms_mm": fit_mm, "frame": "rig", "smoothing": smoothing}
+    return Profile(list(layout.labels), list(rig.names), neutral_rig, layout.stable.copy(), basis,
+                   rig.lower.copy(), rig.upper.copy(), sites, {**info, **(settings or {})}, d, mrig)

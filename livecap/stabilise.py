@@ -1,9 +1,17 @@
 """Head-motion removal (Seol et al. 2012 §3.1; Curio et al. 2006 §2.3).
 
-Per frame, the rigid transform that best maps the stable markers onto their neutral positions
-(Kabsch / Arun et al. 1987, SVD with the reflection guard). The removed motion is the head
-pose, published with the weights. Convention: ``raw = R @ stabilised + t`` (head-to-world),
-quaternions as (x, y, z, w).
+Per frame, the rigid transform that best maps the stable markers' neutral positions onto the
+observed ones (Procrustes / Arun et al. 1987 SVD, with the reflection guard). The removed motion
+is the head pose, published with the weights. Convention: ``raw = R @ stabilised + t``
+(head-to-world), quaternions as (x, y, z, w).
+
+Robustness (beyond the papers, which align to hand-cleaned data): a stable marker that drops out
+is simply left out; one that jumps (mislabel, reflection, skin slide) is found by iteratively
+reweighted least squares with Tukey's biweight on the stable-marker residuals, started from the
+best leave-one-out fit so one gross outlier cannot drag the start. When fewer than three stable
+markers are visible the fit falls back to every visible facial marker (with the same robust
+weights, which discount the ones the expression moves); with fewer than three visible markers
+in all, the last good pose is held.
 """
 
 from __future__ import annotations
@@ -11,16 +19,24 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+TUKEY_C = 4.685  # 95 % efficiency at the Gaussian
+MAD_TO_SIGMA = 1.4826
+CHECK_SCALES = 3.0  # a residual beyond 3 floors sends the frame through the robust refit
+LEAVE_ONE_OUT_MAX = 12  # leave-one-out starts only for small marker sets (stable markers)
+
 
 def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Rotation R and translation t minimising sum w_i |R src_i + t - dst_i|^2 (never a reflection).
 
-    ``src``/``dst`` may be batched: (..., k, 3); ``weights`` (..., k).
+    ``src``/``dst`` may be batched: (..., k, 3); ``weights`` (..., k). All-zero weights give the
+    identity rotation rather than NaN.
     """
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
     w = np.ones(src.shape[:-1]) if weights is None else np.asarray(weights, dtype=np.float64)
-    wsum = w.sum(-1, keepdims=True)[..., None]
+    if src.ndim == 2 and dst.ndim == 2 and w.ndim == 1:
+        return _kabsch_one(src, dst, w)
+    wsum = np.maximum(w.sum(-1, keepdims=True), 1e-300)[..., None]
     cs = (w[..., None] * src).sum(-2, keepdims=True) / wsum
     cd = (w[..., None] * dst).sum(-2, keepdims=True) / wsum
     H = np.einsum("...ki,...kj->...ij", w[..., None] * (src - cs), dst - cd)
@@ -36,27 +52,259 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     return R, t
 
 
+def _kabsch_one(src: np.ndarray, dst: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Single-frame Kabsch with few numpy calls (the streaming path)."""
+    ws = w.sum()
+    if ws <= 0:
+        return np.eye(3), np.zeros(3)
+    cs = (w @ src) / ws
+    cd = (w @ dst) / ws
+    H = (src - cs).T @ ((dst - cd) * w[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    R = Vt.T @ U.T
+    if np.linalg.det(R) < 0:  # reflection guard: flip the axis of the smallest singular value
+        Vt[2] = -Vt[2]
+        R = Vt.T @ U.T
+    return R, cd - R @ cs
+
+
 def to_quaternion(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) to quaternions (..., 4) as (x, y, z, w)."""
     return Rotation.from_matrix(R).as_quat()
 
 
-class HeadStabiliser:
-    """Remove head motion frame by frame against a neutral reference of the markers."""
+def _residuals(ref: np.ndarray, pts: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    if R.ndim == 2 and ref.ndim == 2:
+        d = ref @ R.T + t - pts
+        return np.sqrt(np.einsum("...i,...i->...", d, d))
+    fit = np.einsum("...ij,...kj->...ki", R, ref) + t[..., None, :]
+    return np.linalg.norm(fit - pts, axis=-1)
 
-    def __init__(self, reference: np.ndarray, stable: np.ndarray) -> None:
+
+def _masked_median(r: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Median of ``r`` over the markers in ``use`` along the last axis (0 where none)."""
+    big = np.where(use, r, np.inf)
+    srt = np.sort(big, axis=-1)
+    cnt = use.sum(-1)
+    lo = np.take_along_axis(srt, np.maximum((cnt - 1) // 2, 0)[..., None], -1)[..., 0]
+    hi = np.take_along_axis(srt, np.maximum(cnt // 2, 0)[..., None], -1)[..., 0]
+    med = 0.5 * (lo + hi)
+    return np.where(cnt > 0, med, 0.0)
+
+
+def _initial(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares fit, or the leave-one-out fit with the smallest median residual.
+
+    For small sets (stable markers) one gross outlier would bias the plain fit; leaving each marker
+    out in turn (k + 1 tiny SVDs per frame) finds a start that ignores it.
+    """
+    R, t = kabsch(ref, pts, use)
+    k = use.shape[-1]
+    if k < 5 or k > LEAVE_ONE_OUT_MAX or not (use.sum(-1) >= 5).any():
+        return R, t
+    drop = ~np.eye(k, dtype=bool)  # row j leaves marker j out
+    cand = use[..., None, :] & drop  # (..., k, k)
+    Rc, tc = kabsch(ref[..., None, :, :], pts[..., None, :, :], cand)
+    Rall = np.concatenate([R[..., None, :, :], Rc], axis=-3)  # (..., k+1, 3, 3)
+    tall = np.concatenate([t[..., None, :], tc], axis=-2)
+    # leave one out only with 4 or more left: a 3-marker fit has no redundancy to judge by
+    ok = np.concatenate([np.ones(use.shape[:-1] + (1,), bool), cand.sum(-1) >= 4], axis=-1)
+    ok[..., 1:] &= use  # leaving out a marker that is missing changes nothing
+    res = _residuals(ref[..., None, :, :], pts[..., None, :, :], Rall, tall)
+    score = np.where(ok, _masked_median(res, use[..., None, :]), np.inf)
+    score[..., 0] *= 0.5  # keep the plain fit unless leaving one out halves the median residual
+    best = np.argmin(score, axis=-1)
+    Rb = np.take_along_axis(Rall, best[..., None, None, None], -3)[..., 0, :, :]
+    tb = np.take_along_axis(tall, best[..., None, None], -2)[..., 0, :]
+    return Rb, tb
+
+
+def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: int = 3,
+                floor_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rigid fit ``R ref + t ~ pts``, robust to outlying markers; batched over ``pts``' leading axes.
+
+    ``ref`` (k, 3) is shared; ``pts`` (..., k, 3); ``use`` (..., k) marks the markers that may
+    take part (at least 3 per frame). ``floor_mm`` is about twice the marker noise. The plain
+    least-squares fit stands when every residual is within 3 * ``floor_mm`` (an outlier
+    inflates the median, so this check uses the floor alone). Other frames are refitted by
+    iteratively reweighted least squares with Tukey's biweight (cut-off 4.685 scales, the scale
+    1.4826 * the median residual distance, never below ``floor_mm``), started from the best
+    leave-one-out fit. Returns R, t and the per-marker weights used.
+    """
+    use = np.asarray(use, dtype=bool)
+    R, t = kabsch(ref, pts, use)
+    w = use.astype(np.float64)
+    if iterations <= 0:
+        return R, t, w
+    r = _residuals(ref, pts, R, t)
+    bad = (use & (r > CHECK_SCALES * floor_mm)).any(-1)
+    if pts.ndim == 2:
+        return _irls(ref, pts, use, iterations, floor_mm) if bad else (R, t, w)
+    if bad.any():
+        f = np.flatnonzero(bad.reshape(-1))
+        lead = pts.shape[:-2]
+        Rf, tf, wf = _irls(ref, pts.reshape(-1, *pts.shape[-2:])[f], use.reshape(-1, use.shape[-1])[f],
+                           iterations, floor_mm)
+        R, t, w = R.reshape(-1, 3, 3), t.reshape(-1, 3), w.reshape(-1, w.shape[-1])
+        R[f], t[f], w[f] = Rf, tf, wf
+        R, t, w = R.reshape(*lead, 3, 3), t.reshape(*lead, 3), w.reshape(*lead, -1)
+    return R, t, w
+
+
+def _irls(ref, pts, use, iterations, floor_mm):
+    """IRLS with Tukey's biweight from the leave-one-out start (Huber where Tukey keeps < 3)."""
+    R, t = _initial(ref, pts, use)
+    w = use.astype(np.float64)
+    for _ in range(iterations):
+        r = _residuals(ref, pts, R, t)
+        scale = np.maximum(MAD_TO_SIGMA * _masked_median(r, use), floor_mm)[..., None]
+        u = r / (TUKEY_C * scale)
+        tukey = np.where(use & (u < 1.0), (1.0 - u * u) ** 2, 0.0)
+        huber = np.where(use, np.minimum(1.0, 1.0 / np.maximum(u, 1e-12)), 0.0)
+        w = np.where(((tukey > 0).sum(-1) >= 3)[..., None], tukey, huber)
+        R, t = kabsch(ref, pts, w)
+    return R, t, w
+
+
+class HeadStabiliser:
+    """Remove head motion against a neutral reference of the markers (Seol §3.1, Curio §2.3).
+
+    ``pose``/``stabilise`` work on one frame (n, 3) or a whole take (T, n, 3) at once; ``step``
+    is the streaming form, which holds the last good pose through frames with too few markers.
+    ``robust=False`` gives the plain Procrustes fit of the papers (for comparison).
+    """
+
+    def __init__(self, reference: np.ndarray, stable: np.ndarray, robust: bool = True, iterations: int = 3,
+                 floor_mm: float = 1.0) -> None:
         self.reference = np.asarray(reference, dtype=np.float64)
         self.stable = np.asarray(stable, dtype=bool)
+        if self.reference.shape != (len(self.stable), 3):
+            raise ValueError(f"reference must be {len(self.stable)} x 3, got {self.reference.shape}")
+        self.robust = bool(robust)
+        self.iterations = int(iterations) if robust else 0
+        self.floor_mm = float(floor_mm)
+        self._stable_idx = np.flatnonzero(self.stable)
+        self._stable_ref = self.reference[self._stable_idx]
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the held pose (stream restarted)."""
+        self._R = np.eye(3)
+        self._t = np.zeros(3)
+        self.weights = np.zeros(len(self.stable))  # last frame's per-marker weights (diagnostics)
+
+    # ------------------------------------------------------------------ whole takes
+    def _fit(self, ref, pts, use):
+        if self.robust:
+            R, t, w = robust_pose(ref, pts, use, self.iterations, self.floor_mm)
+        else:
+            R, t = kabsch(ref, pts, use)
+            w = use.astype(np.float64)
+        return R, t, w
+
+    def pose_batch(self, positions: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Head rotation (T,3,3), translation (T,3) and a per-frame ``ok`` flag for a take.
+
+        Frames with fewer than 3 stable markers use every visible marker; frames with fewer than 3
+        visible markers at all take the pose of the nearest earlier good frame (or later, at the
+        start) and are flagged not ok.
+        """
+        positions = np.asarray(positions, dtype=np.float64)
+        valid = np.asarray(valid, dtype=bool)
+        T = positions.shape[0]
+        R = np.broadcast_to(np.eye(3), (T, 3, 3)).copy()
+        t = np.zeros((T, 3))
+        stable_ok = valid[:, self._stable_idx].sum(1) >= 3
+        any_ok = valid.sum(1) >= 3
+        fallback = ~stable_ok & any_ok
+        if stable_ok.any():
+            f = np.flatnonzero(stable_ok)
+            k = self._stable_idx
+            R[f], t[f], _ = self._fit(self._stable_ref, positions[f][:, k], valid[f][:, k])
+        if fallback.any():
+            f = np.flatnonzero(fallback)
+            R[f], t[f], _ = self._fit(self.reference, positions[f], valid[f])
+        if not any_ok.all() and any_ok.any():
+            good = np.flatnonzero(any_ok)
+            prev = np.maximum.accumulate(np.where(any_ok, np.arange(T), -1))
+            src = np.where(prev >= 0, prev, good[0])
+            R, t = R[src], t[src]
+        return R, t, any_ok
 
     def pose(self, positions: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Head rotation and translation (head-to-world) for one frame or a batch (T, n, 3)."""
-        use = valid & self.stable
-        few = use.sum(-1) < 3
-        use = np.where(few[..., None], valid, use)  # fewer than 3 stable markers: all visible ones
-        ref = np.broadcast_to(self.reference, positions.shape)
-        return kabsch(ref, positions, use.astype(np.float64))
+        """Head rotation and translation (head-to-world) for one frame (n, 3) or a take (T, n, 3)."""
+        positions = np.asarray(positions, dtype=np.float64)
+        if positions.ndim == 2:
+            R, t, _ = self.pose_batch(positions[None], np.asarray(valid, bool)[None])
+            return R[0], t[0]
+        R, t, _ = self.pose_batch(positions, valid)
+        return R, t
 
     def stabilise(self, positions: np.ndarray, valid: np.ndarray):
-        """Stabilised positions (same shape), rotation and translation."""
+        """Stabilised positions (same shape, 0 where missing), rotation and translation."""
         R, t = self.pose(positions, valid)
-        local = np.einsum("...ji,...nj->...ni", R, positions - t[..., None, :])
-        return np.where(valid[..., None], local, 0.0), R, t
+        local = np.einsum("...ji,...nj->...ni", R, np.asarray(positions, np.float64) - t[..., None, :])
+        return np.where(np.asarray(valid, bool)[..., None], local, 0.0), R, t
+
+    # ------------------------------------------------------------------ streams
+    def step(self, positions: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One streamed frame: (stabilised (n, 3), R, t). Works on the stable subset only (k tiny
+        SVDs), holds the last good pose when fewer than 3 markers are visible, never raises."""
+        positions = np.asarray(positions, dtype=np.float64)
+        valid = np.asarray(valid, dtype=bool) & np.isfinite(positions).all(-1)
+        sv = valid[self._stable_idx]
+        if sv.sum() >= 3:
+            R, t, w = self._fit(self._stable_ref, positions[self._stable_idx], sv)
+            self.weights[:] = 0.0
+            self.weights[self._stable_idx] = w
+        elif valid.sum() >= 3:
+            R, t, w = self._fit(self.reference, np.where(valid[:, None], positions, 0.0), valid)
+            self.weights = w
+        else:
+            R, t = self._R, self._t
+            self.weights[:] = 0.0
+        self._R, self._t = R, t
+        local = (np.where(valid[:, None], positions, 0.0) - t) @ R
+        local[~valid] = 0.0
+        return local, R.copy(), t.copy()
+
+
+def smooth_pose(R: np.ndarray, t: np.ndarray, window: int, order: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Offline: Savitzky-Golay smoothing of a take's head pose (T, 3, 3), (T, 3) over ``window`` frames.
+
+    Six stable markers with 0.5 mm noise leave about half a degree of frame-to-frame jitter in the
+    Procrustes pose (Seol §3.1), which swings the chin by a millimetre; real head motion is far
+    smoother than that at capture rates. Quaternions are sign-aligned frame to frame, filtered and
+    renormalised. Streams cannot look ahead and keep the raw pose.
+    """
+    from scipy.signal import savgol_filter
+
+    T = len(R)
+    window = min(int(window), T if T % 2 else T - 1)
+    if window % 2 == 0:
+        window -= 1
+    if window <= order:
+        return R, t
+    q = Rotation.from_matrix(R).as_quat()
+    flip = np.concatenate([[1.0], np.sign(np.sum(q[1:] * q[:-1], axis=1))])
+    q = q * np.cumprod(np.where(flip == 0, 1.0, flip))[:, None]
+    qs = savgol_filter(q, window, order, axis=0)
+    qs /= np.linalg.norm(qs, axis=1, keepdims=True)
+    return Rotation.from_quat(qs).as_matrix(), savgol_filter(t, window, order, axis=0)
+
+
+def head_pose_error(R: np.ndarray, t: np.ndarray, truth_R: np.ndarray, truth_t: np.ndarray,
+                    reference: np.ndarray, truth_reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame rotation (degrees) and translation (mm) error of an estimated head pose.
+
+    The stabilised frame is the frame of ``reference`` (the profile's source neutral), not the
+    ground truth's head frame; both see the same neutral face, so the fixed rigid map A between
+    them (``reference ~ A truth_reference``) is found once by Kabsch and composed in:
+    raw = R (A x + a) + t must equal truth_R x + truth_t.
+    """
+    A, a = kabsch(truth_reference, reference)
+    R_head = R @ A
+    t_head = np.einsum("...ij,j->...i", R, a) + t
+    dR = np.einsum("...ji,...jk->...ik", R_head, truth_R)
+    cos = np.clip((np.trace(dR, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    return np.degrees(np.arccos(cos)), np.linalg.norm(t_head - truth_t, axis=-1)

@@ -1,11 +1,12 @@
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared"
+SHARED = Path(os.environ.get("LIVECAP_SHARED") or ROOT.parent / "shared")  # override for git worktrees
 ICT = SHARED / "realdata" / "ict-face"
 VENDORS = SHARED / "realdata" / "c3d-vendors"
 

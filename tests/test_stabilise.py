@@ -1,9 +1,12 @@
+"""Head stabilisation (Seol 2012 §3.1, Curio 2006 §2.3): Kabsch invariants, robustness, streams."""
+
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from livecap.stabilise import HeadStabiliser, kabsch
+from livecap.stabilise import HeadStabiliser, head_pose_error, kabsch, robust_pose, smooth_pose
 
 
 @settings(max_examples=60, deadline=None)
@@ -20,28 +23,149 @@ def test_kabsch_recovers_rigid_motion(seed, k):
 
 
 @settings(max_examples=30, deadline=None)
-@given(st.integers(0, 2**32 - 1))
-def test_kabsch_never_reflects(seed):
+@given(st.integers(0, 2**32 - 1), st.integers(1, 8))
+def test_batched_kabsch_recovers_every_frame(seed, T):
+    rng = np.random.default_rng(seed)
+    src = rng.normal(0, 50, (6, 3))
+    R = Rotation.random(T, random_state=seed).as_matrix()
+    t = rng.normal(0, 500, (T, 3))
+    dst = np.einsum("tij,kj->tki", R, src) + t[:, None]
+    R_est, t_est = kabsch(src, dst)
+    np.testing.assert_allclose(R_est, R, atol=1e-9)
+    np.testing.assert_allclose(t_est, t, atol=1e-7)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.booleans())
+def test_kabsch_never_reflects(seed, batched):
     rng = np.random.default_rng(seed)
     src = rng.normal(0, 1, (6, 3))
     dst = src * np.array([-1, 1, 1])  # a mirror image: the best rotation, not a reflection
+    if batched:
+        dst = np.stack([dst, rng.normal(0, 1, (6, 3))])
     R, _ = kabsch(src, dst)
-    assert np.linalg.det(R) > 0.999999
+    assert np.all(np.linalg.det(R) > 0.999999)
+    np.testing.assert_allclose(np.einsum("...ji,...jk->...ik", R, R), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
 
 
-def test_batched_stabilise_matches_per_frame():
-    rng = np.random.default_rng(0)
-    ref = rng.normal(0, 50, (10, 3))
-    stable = np.zeros(10, bool)
-    stable[:4] = True
-    Rs = Rotation.random(5, random_state=1).as_matrix()
-    ts = rng.normal(0, 100, (5, 3))
+def test_kabsch_with_no_weight_gives_identity_not_nan():
+    R, t = kabsch(np.ones((4, 3)), np.ones((4, 3)), np.zeros(4))
+    assert np.isfinite(R).all() and np.isfinite(t).all()
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(10, 80), st.integers(0, 5))
+def test_robust_fit_ignores_one_jumping_stable_marker(seed, jump, which):
+    rng = np.random.default_rng(seed)
+    ref = rng.normal(0, 50, (6, 3))
+    R = Rotation.random(random_state=seed).as_matrix()
+    t = rng.normal(0, 300, 3)
+    pts = ref @ R.T + t
+    direction = rng.normal(size=3)
+    pts[which] += jump * direction / np.linalg.norm(direction)
+    R_est, t_est, w = robust_pose(ref, pts, np.ones(6, bool))
+    np.testing.assert_allclose(R_est, R, atol=1e-6)
+    assert w[which] == 0.0
+    R_ls, _ = kabsch(ref, pts)
+    assert np.abs(R_ls - R).max() > 10 * np.abs(R_est - R).max()  # the plain fit is dragged
+
+
+def _rigid_take(T=20, n=12, seed=0):
+    rng = np.random.default_rng(seed)
+    ref = rng.normal(0, 50, (n, 3))
+    stable = np.zeros(n, bool)
+    stable[:5] = True
+    Rs = Rotation.random(T, random_state=seed).as_matrix()
+    ts = rng.normal(0, 100, (T, 3))
     pos = np.einsum("tij,nj->tni", Rs, ref) + ts[:, None]
-    valid = np.ones((5, 10), bool)
+    return ref, stable, Rs, ts, pos
+
+
+def test_batched_stabilise_matches_per_frame_and_step():
+    ref, stable, Rs, ts, pos = _rigid_take(T=6, n=10)
+    valid = np.ones((6, 10), bool)
     valid[2, 0] = False
-    local, R, t = HeadStabiliser(ref, stable).stabilise(pos, valid)
-    np.testing.assert_allclose(R, Rs, atol=1e-9)
-    np.testing.assert_allclose(local[valid], np.broadcast_to(ref, local.shape)[valid], atol=1e-9)
-    for i in range(5):
-        li, Ri, _ = HeadStabiliser(ref, stable).stabilise(pos[i], valid[i])
+    valid[3, :4] = False  # only one stable marker left: falls back to all visible markers
+    pos[4, 1] += 30.0  # a stable marker jumps
+    stab = HeadStabiliser(ref, stable)
+    local, R, t = stab.stabilise(pos, valid)
+    np.testing.assert_allclose(R, Rs, atol=1e-7)
+    ok = valid.copy()
+    ok[4, 1] = False
+    np.testing.assert_allclose(local[ok], np.broadcast_to(ref, local.shape)[ok], atol=1e-6)
+    for i in range(6):
+        li, Ri, _ = stab.stabilise(pos[i], valid[i])
         np.testing.assert_allclose(li, local[i], atol=1e-9)
+        ls, Rstep, _ = stab.step(pos[i], valid[i])
+        np.testing.assert_allclose(Rstep, R[i], atol=1e-9)
+        np.testing.assert_allclose(ls, local[i], atol=1e-9)
+    assert np.all(local[~valid] == 0.0)
+
+
+def test_too_few_markers_hold_the_last_pose():
+    ref, stable, Rs, ts, pos = _rigid_take(T=5)
+    valid = np.ones(pos.shape[:2], bool)
+    valid[2, 2:] = False  # two markers left
+    pos[2, 2:] = np.nan
+    stab = HeadStabiliser(ref, stable)
+    R, t, ok = stab.pose_batch(np.nan_to_num(pos), valid)
+    assert list(ok) == [True, True, False, True, True]
+    np.testing.assert_allclose(R[2], Rs[1], atol=1e-9)
+    for i in range(5):
+        local, Ri, _ = stab.step(pos[i], valid[i])
+        assert np.isfinite(local).all()
+    stab.reset()
+    local, Ri, _ = stab.step(pos[2], np.zeros(len(ref), bool))
+    np.testing.assert_allclose(Ri, np.eye(3))
+    assert np.all(local == 0)
+
+
+def test_pose_convention_raw_is_R_stabilised_plus_t():
+    ref, stable, Rs, ts, pos = _rigid_take(T=3)
+    local, R, t = HeadStabiliser(ref, stable).stabilise(pos, np.ones(pos.shape[:2], bool))
+    np.testing.assert_allclose(np.einsum("tij,tnj->tni", R, local) + t[:, None], pos, atol=1e-9)
+
+
+def test_smooth_pose_keeps_motion_and_removes_jitter():
+    T = 600
+    time = np.arange(T) / 120
+    rot = Rotation.from_euler("xyz", np.stack([10 * np.sin(time), 20 * np.sin(0.7 * time), 0 * time], 1),
+                              degrees=True)
+    t = np.stack([30 * np.sin(time), 0 * time, 5 * time], 1)
+    rng = np.random.default_rng(0)
+    noisy = rot * Rotation.from_rotvec(rng.normal(0, np.radians(0.5), (T, 3)))
+    Rs, ts = smooth_pose(noisy.as_matrix(), t + rng.normal(0, 0.5, (T, 3)), 25)
+    err_raw = (noisy * rot.inv()).magnitude()
+    err_smooth = (Rotation.from_matrix(Rs) * rot.inv()).magnitude()
+    assert err_smooth.mean() < 0.4 * err_raw.mean()
+    assert np.abs(ts - t).mean() < 0.2
+
+
+def test_head_pose_error_is_zero_for_the_truth_in_another_reference_frame():
+    ref, stable, Rs, ts, pos = _rigid_take(T=4)
+    A = Rotation.random(random_state=3).as_matrix()
+    a = np.array([5.0, -20.0, 7.0])
+    moved_ref = ref @ A.T + a  # our neutral lives in another frame than the truth's head frame
+    R, t = HeadStabiliser(moved_ref, stable).pose(pos, np.ones(pos.shape[:2], bool))
+    rot, tr = head_pose_error(R, t, Rs, ts, moved_ref, ref)
+    assert rot.max() < 1e-5 and tr.max() < 1e-6
+
+
+@pytest.mark.parametrize("missing", [1, 4])
+def test_demo_take_with_stable_markers_missing_for_a_second_still_stabilises(demo, missing):
+    from livecap.calibration import calibrate, estimate_neutral
+    from livecap.demo.performance import PerformanceSettings, perform
+
+    rig, layout = demo
+    perf = perform(rig, layout, PerformanceSettings(seconds=5, rate=60, stable_dropout=1.0, seed=3))
+    take = perf.take
+    stable = np.flatnonzero(layout.stable)
+    span = slice(int(0.4 * take.n_frames), int(0.4 * take.n_frames) + 60)
+    assert not take.valid[span, stable[0]].any()  # the generator's dropout is there
+    take.valid[span, stable[:missing]] = False  # 4 missing: fewer than 3 stable, all markers used
+    profile = calibrate(rig, layout, estimate_neutral(take, layout.stable, 60))
+    R, t = profile.stabiliser().pose(take.positions, take.valid)
+    rot, tr = head_pose_error(R, t, Rotation.from_quat(perf.head_rotation).as_matrix(), perf.head_translation,
+                              profile.source_neutral, perf.actor_neutral)
+    assert rot[span].max() < 2.0 and tr[span].max() < 3.0
+    assert rot.mean() < 0.8 and tr.mean() < 1.2

@@ -23,6 +23,7 @@ COMMANDS = [
     "run",
     "send",
     "noise_study",
+    "calibrate",
 ]
 
 

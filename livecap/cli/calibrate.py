@@ -1,0 +1,170 @@
+"""``livecap calibrate`` (neutral take + rig -> profile) and ``livecap calibration-report``."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from livecap.calibration import WARPS, Profile, calibrate, estimate_neutral
+from livecap.cli.common import add_rig_arguments, load_rig, progress_bar
+from livecap.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS
+from transport.takefile import read_take
+
+
+def register(sub) -> None:
+    p = sub.add_parser("calibrate", help="calibrate an actor to a rig from a neutral take, write a profile",
+                       description="Neutral markers (robust over the take, head motion removed), RBF "
+                                   "proportion warp of the rig's marker sites onto them, marker-space basis: "
+                                   "one .npz that every solve command loads with --profile.")
+    p.add_argument("neutral", help="neutral take (.c3d/.trc/.csv): the actor at rest, head may move")
+    add_rig_arguments(p)
+    p.add_argument("--out", required=True, help="profile to write (.npz)")
+    p.add_argument("--warp", default="rbf", choices=WARPS, help="proportion match (default rbf, Seol 2012 §3.2)")
+    p.add_argument("--seconds", type=float, help="use only the first SECONDS of the take (default: all)")
+    p.add_argument("--smoothing", type=float, default=0.0, help="RBF smoothing (0 = exact at the markers)")
+    p.add_argument("--max-gap", type=float, default=DEFAULT_MAX_GAP_SECONDS,
+                   help=f"offline gap fill: longest gap in seconds (default {DEFAULT_MAX_GAP_SECONDS}; 0 = off)")
+    p.add_argument("--pose-smoothing", type=float, default=DEFAULT_POSE_SMOOTHING_SECONDS,
+                   help="offline head-pose smoothing window in seconds (default "
+                        f"{DEFAULT_POSE_SMOOTHING_SECONDS}; 0 = off)")
+    p.add_argument("--plain-stabilise", action="store_true", help="plain Kabsch instead of the robust fit")
+    p.set_defaults(func=run_calibrate)
+
+    r = sub.add_parser("calibration-report", help="solve a take with and without each calibration step",
+                       description="Per-frame solve error of the calibrated pipeline against variants with "
+                                   "stabilisation, proportion warp or gap filling switched off, and the head "
+                                   "pose against ground truth when the take has one (<take>.truth.npz).")
+    r.add_argument("take", help="marker take (.c3d/.trc/.csv)")
+    add_rig_arguments(r)
+    src = r.add_mutually_exclusive_group()
+    src.add_argument("--neutral", help="neutral take to calibrate from (default: the take's first seconds)")
+    src.add_argument("--profile", help="take the actor's neutral from this profile")
+    r.add_argument("--neutral-seconds", type=float, default=1.0,
+                   help="neutral span at the start of the take when neither --neutral nor --profile (default 1)")
+    r.add_argument("--truth", help="ground truth .npz (default: <take>.truth.npz when present)")
+    r.add_argument("--mode", default="lsq", help="solver mode (default lsq)")
+    r.add_argument("--ridge", type=float, default=0.0, help="ridge weight for per-frame modes")
+    r.add_argument("--stride", type=int, default=1, help="solve every STRIDE-th frame only (quicker)")
+    r.add_argument("--per-frame", help="write per-frame errors of every variant to this CSV")
+    r.set_defaults(func=run_report)
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    rig, layout = load_rig(args)
+    take = read_take(args.neutral)
+    sel = take.select(layout.labels)
+    absent = [lab for lab, seen in zip(layout.labels, sel.valid.any(0), strict=True) if not seen]
+    if absent:
+        raise ValueError(f"{args.neutral}: markers of {args.rig} never seen in the neutral take: {absent[:8]}")
+    frames = max(1, int(round(args.seconds * take.rate))) if args.seconds else None
+    neutral = estimate_neutral(sel, layout.stable, frames)
+    settings = {"max_gap_seconds": args.max_gap, "robust_stabilise": not args.plain_stabilise,
+                "pose_smoothing_seconds": args.pose_smoothing,
+                "neutral_take": str(args.neutral), "neutral_frames": frames or take.n_frames}
+    profile = calibrate(rig, layout, neutral, settings, warp=args.warp, smoothing=args.smoothing)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    profile.save(args.out)
+    local, _, _ = profile.stabiliser().stabilise(sel.positions[:frames], sel.valid[:frames])
+    spread = np.linalg.norm(local - profile.source_neutral, axis=2)[sel.valid[:frames]]
+    print(f"neutral   {args.neutral}: {frames or take.n_frames} frames, {layout.n_markers} markers "
+          f"({int(layout.stable.sum())} stable), spread about the neutral {np.sqrt(np.mean(spread ** 2)):.3f} mm RMS")
+    print(f"warp      {args.warp}: overall scale {profile.settings['scale']:.4f}, "
+          f"fit at the markers {profile.settings['warp_fit_rms_mm']:.2e} mm RMS")
+    print(f"basis     {profile.basis.shape[0]} x {profile.basis.shape[1]} "
+          f"({len(profile.marker_rig.inbetweens)} in-betweens, {len(profile.marker_rig.correctives)} correctives "
+          "warped too)")
+    print(f"profile   {args.out}")
+    return 0
+
+
+def _load_truth(args: argparse.Namespace):
+    from livecap.demo import truth_path
+    from livecap.demo.performance import GroundTruth
+
+    path = Path(args.truth) if args.truth else truth_path(args.take)
+    if not path.exists():
+        if args.truth:
+            raise OSError(f"{path}: no such ground-truth file")
+        return None
+    try:
+        return GroundTruth.load(path)
+    except (KeyError, ValueError) as exc:
+        raise ValueError(f"{path}: not a ground-truth file ({exc})") from None
+
+
+def _stats(a: np.ndarray) -> str:
+    return f"{np.mean(a):7.3f} {np.median(a):7.3f} {np.percentile(a, 95):7.3f} {np.max(a):7.3f}"
+
+
+def run_report(args: argparse.Namespace) -> int:
+    from livecap.calibration_report import compare, subsample
+    from livecap.modes import build_solver
+
+    rig, layout = load_rig(args)
+    take = read_take(args.take)
+    truth = _load_truth(args)
+    if args.profile:
+        neutral = Profile.load(args.profile).source_neutral
+        origin = f"profile {args.profile}"
+    elif args.neutral:
+        neutral = estimate_neutral(read_take(args.neutral).select(layout.labels), layout.stable)
+        origin = f"neutral take {args.neutral}"
+    else:
+        frames = max(1, int(args.neutral_seconds * take.rate))
+        neutral = estimate_neutral(take.select(layout.labels), layout.stable, frames)
+        origin = f"first {args.neutral_seconds:g} s of the take"
+    stride = max(1, args.stride)
+    take = subsample(take, stride)
+    if truth is not None and stride > 1:
+        truth = replace(truth, weights=truth.weights[::stride], head_rotation=truth.head_rotation[::stride],
+                        head_translation=truth.head_translation[::stride])
+    results = compare(take, rig, layout, neutral, lambda p: build_solver(args.mode, p, {"ridge": args.ridge}),
+                      truth, progress=progress_bar)
+    print(f"take {args.take}: {take.n_frames} frames{f' (every {stride}th)' if stride > 1 else ''}, "
+          f"{take.n_markers} markers, {(~take.valid).mean() * 100:.1f}% missing; neutral from {origin}; "
+          f"mode {args.mode}" + (f" ridge {args.ridge:g}" if args.ridge else ""))
+    base = results[0]
+    if truth is not None:
+        print("\nper-frame weight error (RMS over shapes)         mean  median     p95     max   RMSE  "
+              "better  model@truth  systematic")
+        for r in results:
+            won = "" if r is base else f"{np.mean(base.frame_weight_error < r.frame_weight_error) * 100:5.0f}%"
+            print(f"  {r.variant.name:44s} {_stats(r.frame_weight_error)} {r.weight_rmse:6.4f}  {won:>6s}"
+                  f"  {r.model_error_mm:8.3f} mm  " + ("    n/a" if np.isnan(r.systematic_mm) else
+                                                      f"{r.systematic_mm:7.3f} mm"))
+        print("  (better: frames where the calibrated pipeline's weight error is lower; model@truth: RMS marker error"
+              " of the\n   variant's model at the true weights; systematic: its part the true weights predict,"
+              " i.e. calibration error)")
+    print("\nper-frame marker fit of the solve (mm RMS)        mean  median     p95     max")
+    for r in results:
+        print(f"  {r.variant.name:44s} {_stats(r.frame_marker_error)}")
+    if truth is not None:
+        print("\nhead pose vs ground truth                        mean  median     p95     max")
+        for r in results:
+            if r.variant.stabilise == "off" or (r is not base and r.variant.stabilise == base.variant.stabilise):
+                continue
+            print(f"  {r.variant.name[:30]:30s} rotation (deg) {_stats(r.rotation_deg)}")
+            print(f"  {'':30s} relative (deg) {_stats(r.relative_rotation_deg)}")
+            print(f"  {'':30s} translation mm {_stats(r.translation_mm)}")
+        dropped = ~take.select(layout.labels).valid[:, layout.stable].all(1)
+        if dropped.any():
+            print(f"  frames with a stable marker missing: {int(dropped.sum())}; calibrated rotation error there "
+                  f"mean {base.rotation_deg[dropped].mean():.3f} max {base.rotation_deg[dropped].max():.3f} deg, "
+                  f"translation mean {base.translation_mm[dropped].mean():.3f} max "
+                  f"{base.translation_mm[dropped].max():.3f} mm")
+    if args.per_frame:
+        cols = ["frame", "time"]
+        data = [take.first_frame + np.arange(take.n_frames), np.arange(take.n_frames) / take.rate]
+        for i, r in enumerate(results):
+            cols.append(f"marker_mm_{i}")
+            data.append(r.frame_marker_error)
+            if r.frame_weight_error is not None:
+                cols.append(f"weight_err_{i}")
+                data.append(r.frame_weight_error)
+        header = ",".join(cols) + "\n# " + "; ".join(f"{i}: {r.variant.name}" for i, r in enumerate(results))
+        np.savetxt(args.per_frame, np.column_stack(data), delimiter=",", header=header, comments="", fmt="%.6g")
+        print(f"\nper-frame errors written to {args.per_frame}")
+    return 0
