@@ -160,7 +160,7 @@ class Pipeline:
     # ------------------------------------------------------------------ the loop
     def solve_frame(self, frame: MarkerFrame) -> SolveResult | None:
         t0 = time.perf_counter()
-        local, R, t = self._stabiliser.stabilise(frame.positions, frame.valid)
+        local, R, t = self._stabiliser.step(frame.positions, frame.valid)
         valid = frame.valid
         target = np.where(valid[:, None], local - self._neutral, 0.0)
         try:

@@ -17,11 +17,14 @@ class Preview:
 
     ``profile`` (a livecap Profile, optional) supplies the actor's neutral markers and the rig's rest
     sites; without it the head pose is applied in rig units and no source markers are drawn.
+    ``follow_head`` (default) drops the head's translation so the camera stays on the face while
+    its rotation still shows; calibration puts the stabilised frame on the rig's, so the raw
+    translation is where the head is in the capture volume (metres away from the camera).
     """
 
     def __init__(self, rig: Rig, layout: MarkerLayout | None = None, profile=None, size=(640, 480), ctx=None,
-                 samples: int = 0, deformation: str = "gpu", bars: int = 8) -> None:
-        self.rig, self.layout, self.bars = rig, layout, bars
+                 samples: int = 0, deformation: str = "gpu", bars: int = 8, follow_head: bool = True) -> None:
+        self.rig, self.layout, self.bars, self.follow_head = rig, layout, bars, follow_head
         self.renderer = Renderer(rig, layout, size, ctx=ctx, samples=samples, deformation=deformation)
         self.head = Similarity()
         self.source_neutral = self.rest_sites = None
@@ -41,7 +44,7 @@ class Preview:
         display frame is always the profile's, so panels drawn with different heads line up.
         ``reference``: weights drawn as ticks on the bars (ground truth).
         """
-        model = model_matrix(rotation, translation, head or self.head, self.head)
+        model = model_matrix(rotation, None if self.follow_head else translation, head or self.head, self.head)
         rig_markers = None
         if markers is not None and self.source_neutral is not None:
             rig_markers = retarget_markers(markers, self.source_neutral, self.rest_sites, self.head)
