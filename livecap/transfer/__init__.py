@@ -39,11 +39,12 @@ class TransferOptions:
     """Settings of the transfer; defaults are the paper's where the paper gives one."""
 
     prealign: str = "similarity"  # "similarity", "rigid" or "none"
-    radius_fraction: float = 0.06  # landmark patch radius r_d as a fraction of the eye width (Xiang §3.1)
+    # landmark patch radius r_d as a fraction of the eye width (Xiang §3.1: 0.06), or several, coarse to fine
+    radius_fraction: float | tuple[float, ...] = 0.06
     eye_width: float | None = None  # mm on the generic; default from its eye-corner markers
     max_angle: float = 60.0  # normal-compatibility test (degrees)
     schedule: Schedule = field(default_factory=Schedule)
-    refine_landmarks: bool = True  # Xiang §4: detect again on the deformed model, deform again
+    refine_landmarks: bool = False  # Xiang §4: detect again on the deformed model, deform again
     falloff: tuple[float, float] = (0.25, 1.0)  # displacement fade on the new face, in eye widths
 
 
@@ -117,7 +118,7 @@ def transfer(generic_rig: Rig, generic_layout: MarkerLayout, target_neutral_vert
     source, first, lm, deformed = aligned, None, None, None
     for _ in range(passes):
         sites = sampling @ source.vertices
-        lm = detect_landmarks(source, sites, centres, target, opt.radius_fraction * w_eye, opt.max_angle,
+        lm = detect_landmarks(source, sites, centres, target, np.asarray(opt.radius_fraction) * w_eye, opt.max_angle,
                               progress=sub(state["done"]))
         tick(n_lm)
         first = first or lm

@@ -13,6 +13,8 @@ temples, eyelid midpoints, cheeks, philtrum and the jaw side have no multi-PIE c
 
 from __future__ import annotations
 
+import numpy as np
+
 DEMO_TO_MULTIPIE: dict[str, str] = {
     "NB": "M27_nose",
     "BRW_IN_L": "M22_brow", "BRW_IN_R": "M21_brow",
@@ -37,3 +39,12 @@ def label_map(source_labels: list[str], reference_labels: list[str]) -> dict[str
     pairs = dict(DEMO_TO_MULTIPIE)
     pairs.update({v: k for k, v in DEMO_TO_MULTIPIE.items()})
     return {lab: pairs[lab] for lab in source_labels if lab in pairs and pairs[lab] in ref}
+
+
+def landmark_distances(labels: list[str], points: np.ndarray, reference_labels: list[str],
+                       reference_points: np.ndarray) -> list[tuple[str, str, float]]:
+    """(label, reference label, distance mm) for every landmark with a counterpart in the reference."""
+    ref = dict(zip(reference_labels, np.asarray(reference_points), strict=True))
+    pairs = label_map(list(labels), list(reference_labels))
+    return [(lab, pairs[lab], float(np.linalg.norm(p - ref[pairs[lab]])))
+            for lab, p in zip(labels, np.asarray(points), strict=True) if lab in pairs]

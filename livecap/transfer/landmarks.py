@@ -97,18 +97,18 @@ def geodesic_patch(surface: Surface, vertex: int, radius: float, max_upsample: i
     return sub_v[inside], vertex_normals(sub_v, sub_f)[inside]
 
 
-def _rigid_icp(points: np.ndarray, normals: np.ndarray, target: Surface, starts: np.ndarray, cos_max: float,
-               iterations: int, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rigid ICP of one patch from several initial translations at once (Besl & McKay; closest
-    points on triangles, normal-compatible pairs only, Kabsch steps).
+def _rigid_icp(points: np.ndarray, normals: np.ndarray, target: Surface, R0: np.ndarray, t0: np.ndarray,
+               cos_max: float, iterations: int, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rigid ICP of one patch from several initial states (R0 (s, 3, 3), t0 (s, 3)) at once
+    (Besl & McKay; closest points on triangles, normal-compatible pairs only, Kabsch steps).
 
     Returns per start (R (s, 3, 3), t (s, 3), RMS point-to-surface distance (s,)), x -> R x + t.
     Points whose closest point fails the normal test count as misses at the patch's size, so a
     registration that slides a patch onto the wrong side of a lip loses.
     """
-    s, k = len(starts), len(points)
-    R = np.tile(np.eye(3), (s, 1, 1))
-    t = np.asarray(starts, dtype=np.float64).copy()
+    s, k = len(t0), len(points)
+    R = np.array(R0, dtype=np.float64)
+    t = np.array(t0, dtype=np.float64)
     miss = float(np.ptp(points, axis=0).max()) + 1e-12
     active = np.ones(s, dtype=bool)
 
@@ -136,40 +136,46 @@ def _rigid_icp(points: np.ndarray, normals: np.ndarray, target: Surface, starts:
 
 
 def detect_landmarks(source: Surface, sites: np.ndarray, site_vertices: np.ndarray, target: Surface,
-                     radius: float, max_angle: float = 60.0, iterations: int = 20, tie: float = 0.05,
-                     max_points: int = 64,
+                     radius: float | Sequence[float], max_angle: float = 60.0, iterations: int = 20,
+                     tie: float = 0.05, max_points: int = 64,
                      progress: Callable[[int, int], None] | None = None) -> LandmarkResult:
     """Algorithm 1 of Xiang et al. 2008 for landmark ``sites`` (n x 3) on ``source``.
 
     ``site_vertices`` (n,) are the source vertices nearest each site (the patch centres).
-    Both surfaces must already be roughly aligned (see :mod:`livecap.transfer.align`).
+    ``radius``: the patch radius r_d (mm), or several, coarse to fine: each level starts its nine
+    states around the previous level's registration (a livecap extension; one radius is the
+    paper). Both surfaces must already be roughly aligned (see :mod:`livecap.transfer.align`).
     """
+    radii = [float(radius)] if np.ndim(radius) == 0 else [float(r) for r in np.ravel(radius)]
     n = len(sites)
     cos_max = np.cos(np.radians(max_angle))
-    dist0, tri0, bary0 = source.closest(sites)
+    _, tri0, bary0 = source.closest(sites)
     site_normals = source.normal_at(tri0, bary0)
     moved_sites = np.zeros((n, 3))
     moved_normals = np.zeros((n, 3))
     errors = np.zeros(n)
     sizes = np.zeros(n, dtype=int)
-    offsets = np.array([(a, b) for a in (0.0, -0.5, 0.5) for b in (0.0, -0.5, 0.5)]) * radius
+    grid = np.array([(a, b) for a in (0.0, -0.5, 0.5) for b in (0.0, -0.5, 0.5)])
     for i in range(n):
-        pts, nrm = geodesic_patch(source, int(site_vertices[i]), radius)
-        sizes[i] = len(pts)
-        if len(pts) > max_points:  # a deterministic thinning: the patch keeps its extent at a fraction of the cost
-            keep = np.linspace(0, len(pts) - 1, max_points).round().astype(int)
-            pts, nrm = pts[keep], nrm[keep]
-        nz = site_normals[i]
-        u = unit(np.cross(nz, [0.0, 1.0, 0.0] if abs(nz[1]) < 0.9 else [1.0, 0.0, 0.0]))
-        v = np.cross(nz, u)
-        R, t, err = _rigid_icp(pts, nrm, target, offsets[:, :1] * u + offsets[:, 1:] * v, cos_max, iterations,
-                               1e-4 * radius)
-        m = np.einsum("sij,j->si", R, sites[i]) + t
-        moved = np.linalg.norm(m - sites[i], axis=1)
-        close = np.where(err <= err.min() * (1 + tie) + 1e-6 * radius)[0]
-        j = close[np.argmin(moved[close])]
-        m, nm, err = m[j], R[j] @ site_normals[i], err[j]
-        moved_sites[i], moved_normals[i], errors[i] = m, nm, err
+        R_best, t_best, m_best = np.eye(3), np.zeros(3), sites[i]
+        for r in radii:
+            pts, nrm = geodesic_patch(source, int(site_vertices[i]), r)
+            sizes[i] = len(pts)
+            if len(pts) > max_points:  # a deterministic thinning: the patch keeps its extent at a fraction of the cost
+                keep = np.linspace(0, len(pts) - 1, max_points).round().astype(int)
+                pts, nrm = pts[keep], nrm[keep]
+            nz = R_best @ site_normals[i]
+            u = unit(np.cross(nz, [0.0, 1.0, 0.0] if abs(nz[1]) < 0.9 else [1.0, 0.0, 0.0]))
+            v = np.cross(nz, u)
+            t0 = t_best + r * (grid[:, :1] * u + grid[:, 1:] * v)
+            R, t, err = _rigid_icp(pts, nrm, target, np.tile(R_best, (len(grid), 1, 1)), t0, cos_max, iterations,
+                                   1e-4 * r)
+            m = np.einsum("sij,j->si", R, sites[i]) + t
+            moved = np.linalg.norm(m - m_best, axis=1)
+            close = np.where(err <= err.min() * (1 + tie) + 1e-6 * r)[0]
+            j = close[np.argmin(moved[close])]
+            R_best, t_best, m_best, errors[i] = R[j], t[j], m[j], err[j]
+        moved_sites[i], moved_normals[i] = m_best, R_best @ site_normals[i]
         if progress is not None:
             progress(i + 1, n)
     _, tri, bary, ok = target.closest_compatible(moved_sites, moved_normals, max_angle)
