@@ -56,10 +56,30 @@ def _umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool) -> Similarity:
     return Similarity(s, R, cd - s * R @ cs)
 
 
+def _rotation(w: np.ndarray) -> np.ndarray:
+    angle = float(np.linalg.norm(w))
+    if angle == 0.0:
+        return np.eye(3)
+    k = w / angle
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def _point_to_plane(p: np.ndarray, q: np.ndarray, n: np.ndarray, with_scale: bool) -> Similarity:
+    """One linearised step minimising sum ((s R p + t - q) . n)^2 (Chen & Medioni; Low 2004)."""
+    J = np.hstack([np.cross(p, n), n] + ([np.einsum("ij,ij->i", p, n)[:, None]] if with_scale else []))
+    r = np.einsum("ij,ij->i", q - p, n)
+    H = J.T @ J
+    H += np.eye(len(H)) * (1e-9 * np.trace(H) / len(H))
+    x = np.linalg.solve(H, J.T @ r)
+    return Similarity(1.0 + (x[6] if with_scale else 0.0), _rotation(x[:3]), x[3:6])
+
+
 def icp(source: Surface, target: Surface, start: Similarity, with_scale: bool = True, trim: float = 0.8,
-        max_angle: float = 60.0, iterations: int = 60, samples: int = 4000,
-        tol: float = 1e-9) -> tuple[Similarity, float]:
-    """Trimmed point-to-surface ICP from ``start``; returns the similarity and the trimmed RMS (mm)."""
+        max_angle: float = 60.0, iterations: int = 80, samples: int = 3000,
+        tol: float = 1e-10, point_to_point: int = 10) -> tuple[Similarity, float]:
+    """Trimmed ICP from ``start``: ``point_to_point`` closed-form steps (robust far from the
+    answer), then point-to-plane steps (fast near it). Returns the similarity and the trimmed RMS (mm)."""
     rng = np.random.default_rng(0)
     idx = np.arange(source.n_vertices)
     if len(idx) > samples:
@@ -67,7 +87,7 @@ def icp(source: Surface, target: Surface, start: Similarity, with_scale: bool = 
     pts, nrm = source.vertices[idx], source.normals[idx]
     cos_max = np.cos(np.radians(max_angle))
     current, rms = start, np.inf
-    for _ in range(iterations):
+    for it in range(iterations):
         p = current.apply(pts)
         dist, tri, bary = target.closest(p)
         n = nrm @ current.rotation.T
@@ -78,7 +98,10 @@ def icp(source: Surface, target: Surface, start: Similarity, with_scale: bool = 
         keep = keep[dist[keep] <= np.quantile(dist[keep], trim)]
         q = target.point(tri[keep], bary[keep])
         rms = float(np.sqrt(np.mean(dist[keep] ** 2)))
-        step = _umeyama(p[keep], q, with_scale)
+        if it < point_to_point:
+            step = _umeyama(p[keep], q, with_scale)
+        else:
+            step = _point_to_plane(p[keep], q, target.normal_at(tri[keep], bary[keep]), with_scale)
         current = current.then(step)
         change = abs(step.scale - 1) + np.linalg.norm(step.rotation - np.eye(3)) + \
             np.linalg.norm(step.translation) / max(np.ptp(p, axis=0).max(), 1e-300)

@@ -172,7 +172,7 @@ def detect_landmarks(source: Surface, sites: np.ndarray, site_vertices: np.ndarr
                                    1e-4 * r)
             m = np.einsum("sij,j->si", R, sites[i]) + t
             moved = np.linalg.norm(m - m_best, axis=1)
-            close = np.where(err <= err.min() * (1 + tie) + 1e-6 * r)[0]
+            close = np.where(err <= err.min() * (1 + tie) + 2e-3 * r)[0]
             j = close[np.argmin(moved[close])]
             R_best, t_best, m_best, errors[i] = R[j], t[j], m[j], err[j]
         moved_sites[i], moved_normals[i] = m_best, R_best @ site_normals[i]
