@@ -8,7 +8,7 @@ import logging
 import sys
 
 # Module names under livecap.cli; each adds its subcommands.
-COMMANDS = ["demo", "solve", "info", "generate"]
+COMMANDS = ["demo", "solve", "info", "generate", "rig"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -31,7 +31,7 @@ from livecap.transfer.deformation_transfer import DeformationTransfer
 from livecap.transfer.landmarks import LandmarkResult, detect_landmarks, eye_width
 from livecap.transfer.surface import Surface
 
-__all__ = ["TransferOptions", "TransferResult", "transfer", "transfer_rig", "Schedule"]
+__all__ = ["TransferOptions", "TransferResult", "transfer", "transfer_rig", "transfer_steps", "Schedule"]
 
 
 @dataclass
@@ -63,6 +63,14 @@ class TransferResult:
     seconds: dict[str, float]
 
 
+def transfer_steps(generic_rig: Rig, generic_layout: MarkerLayout, options: TransferOptions | None = None) -> int:
+    """How many progress steps :func:`transfer` reports (for a progress bar's total)."""
+    opt = options or TransferOptions()
+    passes = 2 if opt.refine_landmarks else 1
+    n_sculpts = generic_rig.n_shapes + len(generic_rig.inbetweens) + len(generic_rig.correctives)
+    return passes * (generic_layout.n_markers + opt.schedule.iterations) + n_sculpts + 2
+
+
 def transfer(generic_rig: Rig, generic_layout: MarkerLayout, target_neutral_vertices: np.ndarray,
              target_triangles: np.ndarray, options: TransferOptions | None = None,
              progress: Callable[[int, int], None] | None = None) -> TransferResult:
@@ -78,7 +86,7 @@ def transfer(generic_rig: Rig, generic_layout: MarkerLayout, target_neutral_vert
     sculpts = generic_rig.whole_face()
     n_lm, its = generic_layout.n_markers, opt.schedule.iterations
     passes = 2 if opt.refine_landmarks else 1
-    total = passes * (n_lm + its) + len(sculpts) + 2
+    total = transfer_steps(generic_rig, generic_layout, opt)
     state = {"done": 0}
 
     def tick(k: int = 1) -> None:
