@@ -199,3 +199,33 @@ def test_correspondence_carries_fields_and_fades(small):
     placed, snap = place_markers(layout, src, src)
     np.testing.assert_array_equal(placed.vertices, layout.vertices)
     assert np.all(snap < 1e-9)
+
+
+def test_cli_writes_a_loadable_rig_folder(small, tmp_path):
+    import subprocess
+    import sys
+
+    from livecap.objfile import write_obj
+    from livecap.rig import Rig
+
+    rig, layout = small
+    rig.save_obj_folder(tmp_path / "generic")
+    layout.save(tmp_path / "generic" / "markers.json")
+    other, other_layout = demo_rig(6, resolution=(34, 30))
+    write_obj(tmp_path / "new.obj", other.neutral / 10.0, other.triangles)  # in cm
+    other_layout.save(tmp_path / "new_markers.json")
+    r = subprocess.run([sys.executable, "-m", "livecap", "rig", "transfer", "--generic", str(tmp_path / "generic"),
+                        "--target", str(tmp_path / "new.obj"), "--target-units", "cm", "--out", str(tmp_path / "out"),
+                        "--landmarks", "--check-against", str(tmp_path / "new_markers.json")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "within 8 % of the eye width" in r.stdout and "NOSE_TIP" in r.stdout
+    new = Rig.load(tmp_path / "out")
+    placed = MarkerLayout.load(tmp_path / "out" / "markers.json", new)
+    assert new.n_vertices == other.n_vertices and placed.labels == layout.labels
+    np.testing.assert_allclose(new.neutral, other.neutral, atol=1e-4)  # back in mm
+    assert set(new.whole_face()) == set(rig.whole_face())
+    bad = subprocess.run([sys.executable, "-m", "livecap", "rig", "transfer", "--generic", str(tmp_path / "generic"),
+                          "--target", str(tmp_path / "missing.obj"), "--out", str(tmp_path / "x")],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 1 and "missing.obj" in bad.stderr and "Traceback" not in bad.stderr
