@@ -24,6 +24,7 @@ COMMANDS = [
     "send",
     "noise_study",
     "calibrate",
+    "rig",
 ]
 
 

@@ -1,0 +1,106 @@
+"""``livecap rig``: rig tools. ``livecap rig transfer`` builds a rig for a new face from its neutral mesh.
+
+Xiang et al. 2008 (landmarks, deformable model, deformation transfer); see docs/transfer.md.
+No PNG contact sheet is written: livecap has no offscreen rig renderer to call yet.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from livecap.cli.common import markers_path, progress_bar
+from livecap.markers import MarkerLayout
+from livecap.objfile import read_obj
+from livecap.rig import Rig
+from livecap.transfer import TransferOptions, transfer, transfer_steps
+from livecap.transfer.labels import landmark_distances
+from livecap.transfer.landmarks import eye_width
+from livecap.units import MM_PER_UNIT, to_mm
+
+
+def register(sub) -> None:
+    p = sub.add_parser("rig", help="rig tools (transfer a rig to a new face)")
+    rsub = p.add_subparsers(dest="rig_command", metavar="RIG_COMMAND")
+    t = rsub.add_parser(
+        "transfer", help="build a full rig + markers for a new face from its neutral OBJ",
+        description="Transfer every shape (in-betweens and correctives too) and the marker sites of a generic "
+                    "rig onto a new face's neutral mesh (Xiang et al. 2008; Sumner & Popovic 2004). The output "
+                    "keeps the new face's topology and frame.")
+    t.add_argument("--generic", required=True, help="generic rig: OBJ folder or .npz")
+    t.add_argument("--generic-markers", help="its markers.json (default: in the folder / <rig>.markers.json)")
+    t.add_argument("--target", required=True, help="the new face's neutral mesh (.obj)")
+    t.add_argument("--target-units", default="mm", choices=sorted(MM_PER_UNIT), help="units of the OBJ (default mm)")
+    t.add_argument("--out", required=True, help="output rig folder (neutral.obj, one OBJ per shape, markers.json)")
+    t.add_argument("--radius-fraction", default="0.06",
+                   help="landmark patch radius in eye widths (paper: 0.06); a comma list runs coarse to fine")
+    t.add_argument("--prealign", default="similarity", choices=["similarity", "rigid", "none"],
+                   help="global alignment of the generic onto the new face (default similarity)")
+    t.add_argument("--refine", action="store_true",
+                   help="detect landmarks again on the deformed model and deform again (Xiang 4)")
+    t.add_argument("--landmarks", action="store_true", help="print every detected landmark")
+    t.add_argument("--check-against", metavar="MARKERS_JSON",
+                   help="markers.json of the new face (its vertex indices): print per-landmark distances to it")
+    t.set_defaults(func=run_transfer)
+    p.set_defaults(func=lambda args: p.print_help() or 2)
+
+
+def _radii(text: str) -> float | tuple[float, ...]:
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--radius-fraction: not a number list: {text!r}") from None
+    if not vals or min(vals) <= 0:
+        raise ValueError("--radius-fraction must be positive")
+    return vals[0] if len(vals) == 1 else vals
+
+
+def run_transfer(args: argparse.Namespace) -> int:
+    generic = Rig.load(args.generic)
+    mpath = Path(args.generic_markers) if args.generic_markers else markers_path(args.generic)
+    if not mpath.exists():
+        raise ValueError(f"{mpath}: no markers.json for generic rig {args.generic} (give --generic-markers)")
+    layout = MarkerLayout.load(mpath, generic)
+    target = Path(args.target)
+    if target.is_dir():
+        target = target / "neutral.obj"
+    verts, tris = read_obj(target)
+    verts = to_mm(verts, args.target_units)
+    options = TransferOptions(prealign=args.prealign, radius_fraction=_radii(args.radius_fraction),
+                              refine_landmarks=args.refine)
+    with progress_bar("transferring rig", transfer_steps(generic, layout, options)) as update:
+        res = transfer(generic, layout, verts, tris, options, progress=update)
+    out = Path(args.out)
+    res.rig.save_obj_folder(out)
+    res.layout.save(out / "markers.json")
+    a = res.alignment
+    print(f"{out}: {res.rig.n_vertices} vertices, {res.rig.n_shapes} shapes, {len(res.rig.inbetweens)} in-betweens, "
+          f"{len(res.rig.correctives)} correctives, {res.layout.n_markers} markers ({int(res.layout.stable.sum())} "
+          f"stable)")
+    print(f"  aligned generic -> target: scale {a.scale:.4f}, {np.degrees(np.arccos(np.clip((np.trace(a.rotation) - 1) / 2, -1, 1))):.1f} deg, "  # noqa: E501
+          f"eye width {res.eye_width:.1f} mm ({res.eye_width_source}); deformed generic to target "
+          f"RMS {res.deformed.rms[-1]:.3f} mm, {res.deformed.matched[-1] * 100:.0f} % matched")
+    print("  seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in res.seconds.items()))
+    lm = res.landmarks
+    if args.landmarks:
+        print(f"  {'label':14s} {'x':>8s} {'y':>8s} {'z':>8s}  moved mm  ICP rms  normal ok")
+        for lab, p, mv, e, ok in zip(layout.labels, lm.points, lm.moved, lm.error, lm.compatible, strict=True):
+            print(f"  {lab:14s} {p[0]:8.2f} {p[1]:8.2f} {p[2]:8.2f}  {mv:8.2f}  {e:7.3f}  {'yes' if ok else 'NO'}")
+    if args.check_against:
+        ref = MarkerLayout.load(args.check_against)  # vertex bindings on the target mesh
+        if ref.vertices.max() >= len(verts):
+            raise ValueError(f"{args.check_against}: markers bound past the target's {len(verts)} vertices")
+        ref_pts = ref.sampling_matrix(len(verts)) @ verts
+        w_ref, how = eye_width(ref, verts)
+        w = w_ref if how.startswith("eye corners") else res.eye_width
+        rows = landmark_distances(layout.labels, lm.points, ref.labels, ref_pts)
+        if not rows:
+            raise ValueError(f"{args.check_against}: no marker label matches the generic's landmarks")
+        pct = np.array([d / w * 100 for _, _, d in rows])
+        print(f"  landmarks vs {args.check_against} (unit: eye width {w:.1f} mm):")
+        for (a_lab, b_lab, d), p in zip(rows, pct, strict=True):
+            print(f"    {a_lab:12s} -> {b_lab:12s} {d:7.2f} mm {p:6.1f} %")
+        print(f"  {int((pct < 8).sum())}/{len(rows)} within 8 % of the eye width, median {np.median(pct):.1f} %")
+    return 0
