@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from livecap.calibration import WARPS, Profile, calibrate, estimate_neutral
-from livecap.cli.common import add_rig_arguments, load_rig, progress_bar
+from livecap.cli.common import add_rig_arguments, load_rig, progress_bar, tune_on_take
 from livecap.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS
 from transport.takefile import read_take
 
@@ -30,6 +30,8 @@ def register(sub) -> None:
     p.add_argument("--pose-smoothing", type=float, default=DEFAULT_POSE_SMOOTHING_SECONDS,
                    help="offline head-pose smoothing window in seconds (default "
                         f"{DEFAULT_POSE_SMOOTHING_SECONDS}; 0 = off)")
+    p.add_argument("--tune", metavar="TAKE", help="a take of the actor performing (e.g. a range-of-motion take): "
+                   "select the noise level and regularisation from it and store them in the profile")
     p.add_argument("--plain-stabilise", action="store_true", help="plain Kabsch instead of the robust fit")
     p.set_defaults(func=run_calibrate)
 
@@ -65,6 +67,10 @@ def run_calibrate(args: argparse.Namespace) -> int:
                 "pose_smoothing_seconds": args.pose_smoothing,
                 "neutral_take": str(args.neutral), "neutral_frames": frames or take.n_frames}
     profile = calibrate(rig, layout, neutral, settings, warp=args.warp, smoothing=args.smoothing)
+    if args.tune:
+        tuned = tune_on_take(profile, read_take(args.tune))
+        print(f"tuned     on {args.tune}: noise {tuned['noise_mm']:.3f} mm, ridge {tuned['ridge']:.3g} "
+              f"({tuned['criterion']})")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     profile.save(args.out)
     local, _, _ = profile.stabiliser().stabilise(sel.positions[:frames], sel.valid[:frames])

@@ -39,11 +39,29 @@ def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def profile_for(args: argparse.Namespace, rig: Rig, layout: MarkerLayout, take: Take) -> Profile:
+    """The given profile, or one calibrated on the take's first seconds with its regularisation
+    selected from the take itself (livecap.robust.tune_profile)."""
     if getattr(args, "profile", None):
         return Profile.load(args.profile)
     sel = take.select(layout.labels)
     neutral = estimate_neutral(sel, layout.stable, max(1, int(args.neutral_seconds * take.rate)))
-    return calibrate(rig, layout, neutral)
+    profile = calibrate(rig, layout, neutral)
+    tune_on_take(profile, take)
+    return profile
+
+
+def tune_on_take(profile: Profile, take: Take) -> dict:
+    from livecap.robust import tune_profile
+    from livecap.solve import prepare_targets
+
+    sel, targets, _, _ = prepare_targets(take, profile)
+    return tune_profile(profile, targets, sel.valid, take.rate)
+
+
+def solver_options(args: argparse.Namespace) -> dict:
+    """Options common to every mode; unset flags are left out so modes keep their defaults."""
+    ridge = getattr(args, "ridge", None)
+    return {} if ridge is None else {"ridge": ridge}
 
 
 @contextmanager

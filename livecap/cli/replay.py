@@ -12,7 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.cli.common import add_calibration_arguments, add_rig_arguments, load_rig, profile_for, progress_bar
+from livecap.cli.common import (
+    add_calibration_arguments,
+    add_rig_arguments,
+    load_rig,
+    profile_for,
+    progress_bar,
+    solver_options,
+)
 from livecap.demo import truth_path
 from livecap.modes import DEFAULT_MODE, MODES, build_solver
 from livecap.solve import prepare_targets
@@ -38,7 +45,8 @@ def register(sub) -> None:
     add_calibration_arguments(p)
     p.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES),
                    help=f"solver mode (default {DEFAULT_MODE})")
-    p.add_argument("--ridge", type=float, default=0.0, help="ridge weight lambda for per-frame modes")
+    p.add_argument("--ridge", type=float,
+                   help="ridge weight lambda (default: the mode's, or the one calibration selected)")
     p.add_argument("--preview", help="MP4 video to write")
     p.add_argument("--frames", help="folder for PNG frames (frame_<number>.png)")
     p.add_argument("--size", type=_size, default=(640, 480), help="panel size WxH (default 640x480)")
@@ -97,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     rig, layout = load_rig(args)
     take = read_take(args.take)
     profile = profile_for(args, rig, layout, take)
-    solver = build_solver(args.mode, profile, {"ridge": args.ridge})
+    solver = build_solver(args.mode, profile, solver_options(args))
     sel, targets, R, t = prepare_targets(take, profile)
     W, latency = _solve(solver, targets, sel.valid)
     quats = to_quaternion(R)

@@ -10,6 +10,7 @@ from livecap.cli.common import (
     load_rig,
     profile_for,
     progress_bar,
+    solver_options,
 )
 from livecap.cli.movement_args import add_movement_arguments, movement_options
 from livecap.modes import DEFAULT_MODE, MODES, build_solver
@@ -26,7 +27,8 @@ def register(sub) -> None:
     add_calibration_arguments(p)
     p.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES),
                    help=f"solver mode (default {DEFAULT_MODE})")
-    p.add_argument("--ridge", type=float, default=0.0, help="ridge weight lambda for per-frame modes")
+    p.add_argument("--ridge", type=float,
+                   help="ridge weight lambda (default: the mode's, or the one calibration selected)")
     p.add_argument("--temporal", type=float, default=0.0, help="qp: weight gamma of |w - w_prev|^2")
     p.add_argument("--keys", help="keys file (labelled ROM take or explicit key pairs): rbf keys, qp actor basis")
     p.add_argument("--basis", choices=["rig", "actor"], default="rig",
@@ -40,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     rig, layout = load_rig(args)
     take = read_take(args.take)
     profile = profile_for(args, rig, layout, take)
-    solver = build_solver(args.mode, profile, {"ridge": args.ridge, "temporal": args.temporal,
+    solver = build_solver(args.mode, profile, {**solver_options(args), "temporal": args.temporal,
                                                "keys": args.keys, "basis": args.basis, **movement_options(args)})
     with progress_bar(f"solving ({args.mode})", take.n_frames) as update:
         solved = solve_take(take, profile, solver, progress=update)
