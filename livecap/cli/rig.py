@@ -41,6 +41,7 @@ def register(sub) -> None:
     t.add_argument("--refine", action="store_true",
                    help="detect landmarks again on the deformed model and deform again (Xiang 4)")
     t.add_argument("--landmarks", action="store_true", help="print every detected landmark")
+    t.add_argument("--sheet", help="contact sheet PNG of the new rig (default: OUT/contact_sheet.png; 'none' to skip)")
     t.add_argument("--check-against", metavar="MARKERS_JSON",
                    help="markers.json of the new face (its vertex indices): print per-landmark distances to it")
     t.set_defaults(func=run_transfer)
@@ -55,6 +56,23 @@ def _radii(text: str) -> float | tuple[float, ...]:
     if not vals or min(vals) <= 0:
         raise ValueError("--radius-fraction must be positive")
     return vals[0] if len(vals) == 1 else vals
+
+
+def _write_sheet(rig: Rig, path) -> None:
+    """Render the neutral and the most pronounced shapes; a machine without OpenGL only loses the sheet."""
+    if str(path) == "none":
+        return
+    import cv2
+
+    from viewer.errors import ViewerUnavailable
+
+    try:
+        from viewer.contact_sheet import contact_sheet
+
+        cv2.imwrite(str(path), contact_sheet(rig))
+        print(f"contact sheet {path}")
+    except ViewerUnavailable as exc:
+        print(f"no contact sheet: {exc}")
 
 
 def run_transfer(args: argparse.Namespace) -> int:
@@ -75,6 +93,7 @@ def run_transfer(args: argparse.Namespace) -> int:
     out = Path(args.out)
     res.rig.save_obj_folder(out)
     res.layout.save(out / "markers.json")
+    _write_sheet(res.rig, out / "contact_sheet.png" if args.sheet is None else args.sheet)
     a = res.alignment
     print(f"{out}: {res.rig.n_vertices} vertices, {res.rig.n_shapes} shapes, {len(res.rig.inbetweens)} in-betweens, "
           f"{len(res.rig.correctives)} correctives, {res.layout.n_markers} markers ({int(res.layout.stable.sum())} "
