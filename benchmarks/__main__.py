@@ -12,13 +12,20 @@ import importlib
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from benchmarks.timing import machine, peak_rss_mb
 
 # suite name -> module under benchmarks/ exposing run(quick) -> dict
-SUITES = ["solve_latency", "movement", "qp_libraries", "live_latency", "concurrency", "viewer_fps", "transfer"]
+SUITES = ["solve_latency", "movement", "qp_libraries", "rbf_blend", "live_latency", "concurrency", "viewer_fps"]
 RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def _load() -> str:
+    """The 1, 5 and 15 minute load averages (the machine is shared: timings depend on them)."""
+    with open("/proc/loadavg") as fh:
+        return " ".join(fh.read().split()[:3])
 
 
 def run_one(name: str, quick: bool) -> dict:
@@ -40,20 +47,33 @@ def main(argv: list[str] | None = None) -> int:
         print("\nRESULT " + json.dumps(result, default=float))
         return 0
     names = args.only or [s for s in SUITES if (Path(__file__).parent / f"{s}.py").exists()]
-    report = {"machine": machine(), "quick": args.quick, "suites": {}}
+    command = "python -m benchmarks " + " ".join(sys.argv[1:] if argv is None else argv)
+    report = {"machine": machine(), "quick": args.quick, "command": command.strip(), "load_start": _load(),
+              "suites": {}}
+    print(f"{report['machine']['cpu']}, {report['machine']['cores']} cores; load average {report['load_start']}")
     for name in names:
-        print(f"\n=== {name} ===", flush=True)
+        print(f"\n=== {name} === (load average {_load()})", flush=True)
+        load = _load()
         cmd = [sys.executable, "-m", "benchmarks", "--child", name] + (["--quick"] if args.quick else [])
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        out_lines = proc.stdout.splitlines()
-        print("\n".join(line for line in out_lines if not line.startswith("RESULT ")))
-        result = next((json.loads(line[7:]) for line in reversed(out_lines) if line.startswith("RESULT ")), None)
+        t0 = time.monotonic()
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        result = None
+        for line in proc.stdout:  # stream the suite's table as it is produced
+            if line.startswith("RESULT "):
+                result = json.loads(line[7:])
+            else:
+                print(line, end="", flush=True)
+        err = proc.stderr.read()
+        proc.wait()
         if proc.returncode or result is None:
-            print(proc.stderr[-2000:], file=sys.stderr)
-            result = {"error": (proc.stderr.strip().splitlines() or ["failed"])[-1]}
+            print(err[-2000:], file=sys.stderr)
+            result = {"error": (err.strip().splitlines() or ["failed"])[-1]}
+        result.update(load_start=load, load_end=_load(), wall_s=time.monotonic() - t0)
         report["suites"][name] = result
         if "peak_rss_mb" in result:
-            print(f"[{name}] peak memory {result['peak_rss_mb']:.0f} MB")
+            print(f"[{name}] peak memory {result['peak_rss_mb']:.0f} MB, {result['wall_s']:.0f} s, "
+                  f"load average {load} -> {result['load_end']}")
+    report["load_end"] = _load()
     RESULTS.mkdir(exist_ok=True)
     stamp = report["machine"]["date"].replace(":", "").replace("-", "")[:15]
     for path in (RESULTS / f"{stamp}.json", RESULTS / "latest.json"):
