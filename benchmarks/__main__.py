@@ -40,6 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
     p.add_argument("--quick", action="store_true", help="fewer repetitions (a smoke run)")
     p.add_argument("--only", nargs="*", help="suites to run (default: all available)")
+    p.add_argument("--merge", action="store_true",
+                   help="keep the other suites of results/latest.json (re-run some suites, e.g. in full)")
     p.add_argument("--child", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child:
@@ -68,12 +70,18 @@ def main(argv: list[str] | None = None) -> int:
         if proc.returncode or result is None:
             print(err[-2000:], file=sys.stderr)
             result = {"error": (err.strip().splitlines() or ["failed"])[-1]}
-        result.update(load_start=load, load_end=_load(), wall_s=time.monotonic() - t0)
+        result.update(load_avg_start=load, load_avg_end=_load(), wall_s=time.monotonic() - t0, quick=args.quick)
         report["suites"][name] = result
         if "peak_rss_mb" in result:
             print(f"[{name}] peak memory {result['peak_rss_mb']:.0f} MB, {result['wall_s']:.0f} s, "
-                  f"load average {load} -> {result['load_end']}")
+                  f"load average {load} -> {result['load_avg_end']}")
     report["load_end"] = _load()
+    if args.merge and (RESULTS / "latest.json").exists():
+        old = json.loads((RESULTS / "latest.json").read_text())
+        report["suites"] = {**old.get("suites", {}), **report["suites"]}
+        report["merged_from"] = [*old.get("merged_from", []), {k: old.get(k) for k in ("command", "quick", "load_start",
+                                                                                      "load_end")}]
+        report["machine"]["first_date"] = old.get("machine", {}).get("first_date", old.get("machine", {}).get("date"))
     RESULTS.mkdir(exist_ok=True)
     stamp = report["machine"]["date"].replace(":", "").replace("-", "")[:15]
     for path in (RESULTS / f"{stamp}.json", RESULTS / "latest.json"):

@@ -23,6 +23,10 @@ def _f(x, digits: int = 3) -> str:
     return str(x)
 
 
+def _load(x) -> str:
+    return f"{x:.2f}" if isinstance(x, float) else str(x)
+
+
 def _table(header: list[str], rows: list[list]) -> str:
     out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     out += ["| " + " | ".join(_f(c) if not isinstance(c, str) else c for c in r) + " |" for r in rows]
@@ -56,7 +60,7 @@ def movement(s: dict) -> str:
     rows = [[r["frames"], r["ours_s"] * 1e3, r["ours_solve_only_s"] * 1e3, r.get("reference_s", NAN),
              r["seol_matlab_s"], r["seol_matlab_s"] / r["ours_s"], r.get("max_abs_diff", NAN)] for r in s["offline"]]
     t = _table(["frames (54×50)", "ours ms (incl. set-up)", "solve only ms", "literal sparse Eq. 5 s",
-                "Seol Table I s (Matlab)", "speed-up vs Seol", "max |ours − literal|"], rows)
+                "Seol Table I s (Matlab)", "speed-up vs Seol", "max abs(ours − literal)"], rows)
     e = s["edit"]
     t += ("\n\nSpacetime edit re-solve, 1000-frame take at 54×50: 12-frame range "
           f"{e['range12_s'] * 1e3:.3f} ms; whole take as the range {e['whole_s'] * 1e3:.2f} ms "
@@ -73,7 +77,7 @@ def qp_libraries(s: dict) -> str:
         rows = [[name, r.get("p50_us", NAN), r.get("p99_us", NAN), r.get("max_err", NAN)]
                 for name, r in block["libraries"].items()]
         out.append(f"{size} ({block['active_bound_fraction'] * 100:.0f}% of weights on a bound):\n\n"
-                   + _table(["library", "p50 µs", "p99 µs", "max |w − BVLS|"], rows))
+                   + _table(["library", "p50 µs", "p99 µs", "max abs(w − BVLS)"], rows))
     return "\n\n".join(out)
 
 
@@ -105,7 +109,7 @@ def concurrency(s: dict) -> str:
         rows.append([r["mode"], names.get(r["layout"], r["layout"]), r["sustained_actors"],
                      ok[-1]["p99_ms"] if ok else NAN, f"{ok[-1]['driver_cpu_pct']:.0f}%" if ok else "-", fail])
     return (f"{s['seconds_per_trial']:g} s per trial; sustained = {s['criterion']}; load average "
-            f"{s['load_start']:.2f} → {s['load_end']:.2f}.\n\n"
+            f"{_load(s['load_start'])} → {_load(s['load_end'])}.\n\n"
             + _table(["mode", "layout", "actors sustained", "p99 ms there", "driver CPU there (of 200%)",
                       "first failing N"], rows))
 
@@ -166,13 +170,16 @@ def render(report: dict) -> str:
         s = report["suites"].get(key)
         if s is None:
             continue
-        out += ["", f"### {title}", ""]
+        run_kind = {True: " (quick run)", False: " (full run)"}.get(s.get("quick", report.get("quick")), "")
+        out += ["", f"### {title}{run_kind}", ""]
         if "error" in s:
             out.append(f"failed: {s['error']}")
             continue
         out.append(fn(s))
+        start = s.get("load_avg_start", s.get("load_start", "?"))
+        end = s.get("load_avg_end", s.get("load_end", "?"))
         out.append(f"\n(peak RSS {s.get('peak_rss_mb', NAN):.0f} MB, {s.get('wall_s', NAN):.0f} s, load average "
-                   f"{s.get('load_start', '?')} → {s.get('load_end', '?')})")
+                   f"{_load(start)} → {_load(end)})")
     return "\n".join(out)
 
 
