@@ -7,7 +7,10 @@ for every weights message. In the same run, the same marker payloads take the sa
 through a bare relay (SUB -> PUB, no decoding, no solve): the floor ZeroMQ itself sets. The
 driver's CPU use comes from the kernel's rusage of its process (user + system time / wall).
 
-    python -m benchmarks.live_latency [--quick] [--modes lsq,...]
+    python -m benchmarks.live_latency [--quick] [--modes qp,movement-stream,...]
+
+The driver runs with the defaults of a live source, so ``--skip-stale`` is on: a mode slower
+than 120 Hz (lsq) skips frames (the ``stale`` column) rather than falling behind without bound.
 """
 
 from __future__ import annotations
@@ -116,10 +119,13 @@ def bare(take: Path, frames: int, work: Path) -> dict:
     return _stats(json.loads((work / "bare.json").read_text()), frames)
 
 
-def driver(take: Path, profile: Path, mode: str, frames: int, work: Path) -> dict:
+def driver(take: Path, profile: Path, mode: str, frames: int, work: Path, extra: tuple = ()) -> dict:
+    """``livecap run`` with its defaults for a live ZeroMQ source (``--skip-stale`` on: a solver
+    slower than the stream skips frames, counted as stale, instead of falling ever further behind)."""
     port = _free_port()
     run = _spawn(["-m", "livecap", "run", "--zmq-in", f"tcp://127.0.0.1:{port}", "--zmq-out", "0", "--profile",
-                  profile, "--mode", mode, "--idle-timeout", 2.0, "--stats-file", work / f"{mode}.stats.json"])
+                  profile, "--mode", mode, "--idle-timeout", 2.0, "--stats-file", work / f"{mode}.stats.json",
+                  *extra])
     out_addr = re.search(r"zmq-out ([^;\s]+)", _line(run)).group(1)
     rx = _spawn(["-c", textwrap.dedent(RECEIVER), out_addr, work / f"{mode}.json", 3.0])
     _line(rx)
@@ -134,22 +140,30 @@ def driver(take: Path, profile: Path, mode: str, frames: int, work: Path) -> dic
     out = _stats(json.loads((work / f"{mode}.json").read_text()), frames)
     st = json.loads((work / f"{mode}.stats.json").read_text())
     out.update(mode=mode, driver_cpu_s=usage.ru_utime + usage.ru_stime, wall_s=wall,
-               driver_cpu_pct=100 * (usage.ru_utime + usage.ru_stime) / wall,
+               # the solve loop's CPU (from the driver's own stats) per second of stream; startup excluded
+               driver_cpu_pct=100 * st["cpu_seconds"] / (frames / RATE),
+               driver_cpu_with_startup_pct=100 * (usage.ru_utime + usage.ru_stime) / wall,
                solve_p50_ms=st["timing"]["solve"]["p50_ms"], solve_p99_ms=st["timing"]["solve"]["p99_ms"],
+               frames_in=st["frames_in"], stale=st.get("stale", 0),
                drops=sum(s.get("drops", 0) for s in st["sinks"].values()))
     return out
 
 
-def run(quick: bool = False, modes=("lsq",)) -> dict:
-    """Measure; ``quick`` streams 5 s instead of 60 s."""
+MODES = ("qp", "movement-stream", "robust", "rbf", "lsq")
+
+
+def run(quick: bool = False, modes=MODES) -> dict:
+    """Measure; ``quick`` streams 10 s instead of 60 s."""
     from livecap.calibration import calibrate, estimate_neutral
     from livecap.demo import DEMO_TAKE, generate
     from livecap.demo.performance import PerformanceSettings
+    from livecap.demo.rom import generate_rom
     from livecap.markers import MarkerLayout
     from livecap.rig import Rig
     from transport.takefile import read_take
 
-    seconds = 5 if quick else 60
+    seconds = 10 if quick else 60
+    load = os.getloadavg()[0]
     frames = int(seconds * RATE)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
@@ -158,11 +172,17 @@ def run(quick: bool = False, modes=("lsq",)) -> dict:
         layout = MarkerLayout.load(work / "demo_rig.markers.json", rig)
         take = read_take(work / DEMO_TAKE).select(layout.labels)
         calibrate(rig, layout, estimate_neutral(take, layout.stable, 120)).save(work / "profile.npz")
+        extra = {}
+        if "rbf" in modes:  # key pairs from the demo range-of-motion take (livecap rom)
+            keys = next(p for p in generate_rom(work / "rom", rig, layout, PerformanceSettings(rate=RATE, seed=50))
+                        if p.name.endswith(".keys.json"))
+            extra["rbf"] = ("--option", f"keys={keys}")
         floor = bare(work / DEMO_TAKE, frames, work)
-        results = {m: driver(work / DEMO_TAKE, work / "profile.npz", m, frames, work) for m in modes}
+        results = {m: driver(work / DEMO_TAKE, work / "profile.npz", m, frames, work, extra.get(m, ())) for m in modes}
     out = {"rate_hz": RATE, "seconds": seconds, "bare_zmq": floor, "modes": results,
-           "machine": f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the end",
-           "data": "livecap generate seed 0: 60 markers, 43 shapes, 10 s take looped"}
+           "machine": f"{os.cpu_count()} CPUs, load average {load:.2f} at start, {os.getloadavg()[0]:.2f} at the end",
+           "load_start": load, "load_end": os.getloadavg()[0],
+           "data": "livecap generate seed 0: 60 markers, 43 shapes, 10 s take looped; rbf keys from livecap rom"}
     _print(out)
     return out
 
@@ -171,27 +191,31 @@ def _print(out: dict) -> None:
     b = out["bare_zmq"]
     print(f"live latency, marker packet sent -> weights received, {out['rate_hz']:g} Hz for {out['seconds']} s "
           f"({out['machine']})")
-    print(f"{'path':12s} {'recv/sent':>11s} {'p50 ms':>8s} {'p99 ms':>8s} {'p99/bare':>9s} {'solve p99':>10s} "
-          f"{'driver CPU':>10s}")
-    print(f"{'bare zmq':12s} {b['received']:>5d}/{b['sent']:<5d} {b.get('p50_ms', float('nan')):8.3f} "
+    print(f"{'path':16s} {'recv/sent':>11s} {'stale':>6s} {'p50 ms':>8s} {'p99 ms':>8s} {'p99/bare':>9s} "
+          f"{'solve p99':>10s} {'driver CPU':>10s}")
+    print(f"{'bare zmq':16s} {b['received']:>5d}/{b['sent']:<5d} {'':>6s} {b.get('p50_ms', float('nan')):8.3f} "
           f"{b.get('p99_ms', float('nan')):8.3f} {1.0:9.2f} {'':>10s} {'':>10s}")
     for m, r in out["modes"].items():
         ratio = r.get("p99_ms", float("nan")) / b.get("p99_ms", float("nan"))
-        print(f"{m:12s} {r['received']:>5d}/{r['sent']:<5d} {r.get('p50_ms', float('nan')):8.3f} "
-              f"{r.get('p99_ms', float('nan')):8.3f} {ratio:9.2f} {r['solve_p99_ms']:8.3f}ms "
+        print(f"{m:16s} {r['received']:>5d}/{r['sent']:<5d} {r.get('stale', 0):6d} "
+              f"{r.get('p50_ms', float('nan')):8.3f} {r.get('p99_ms', float('nan')):8.3f} {ratio:9.2f} "
+              f"{r['solve_p99_ms']:8.3f}ms "
               f"{r['driver_cpu_pct']:9.1f}%")
+    print("driver CPU = the solve loop's CPU time per second of stream (startup excluded); stale = frames the "
+          "driver skipped because a newer one was already waiting")
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--modes", default="lsq")
-    ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "live_latency.json"))
+    ap.add_argument("--modes", default=",".join(MODES))
+    ap.add_argument("--json", help="also write the figures to this JSON file")
     args = ap.parse_args(argv)
     out = run(args.quick, tuple(args.modes.split(",")))
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(out, indent=1))
-    print(f"written {args.json}")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(out, indent=1))
+        print(f"written {args.json}")
     return 0
 
 

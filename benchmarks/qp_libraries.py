@@ -7,7 +7,7 @@ Every frame of the per-frame mode is the same box-constrained QP with a constant
 so the contenders are used the way a stream would use them: whatever can be prepared once is
 (factorisations, workspaces), and the previous frame's solution / active set warm-starts the next
 where the library allows it. Accuracy is the max |w - w_ref| against scipy's BVLS at tight
-tolerance. Problems: synthetic facial bases and takes (benchmarks/problems.py) at 54 markers x 50
+tolerance. Problems: synthetic facial bases and takes (benchmarks/synthetic.py) at 54 markers x 50
 shapes (Seol et al. 2012's size) and 72 x 150.
 
 Run: ``python -m benchmarks.qp_libraries [--quick] [--json out.json]``.
@@ -24,7 +24,7 @@ import time
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from benchmarks.problems import frame_problems
+from benchmarks.synthetic import frame_problems
 
 SIZES = [(54, 50), (72, 150)]
 RIDGE = 1e-2
@@ -205,6 +205,7 @@ def run(quick: bool = False) -> dict:
             rows[solver.name] = {"p50_us": float(np.percentile(times, 50)), "p99_us": float(np.percentile(times, 99)),
                                  "max_err": err, "warm": bool(solver.warm)}
         results["sizes"][f"{n}x{m}"] = {"active_bound_fraction": active, "libraries": rows}
+    print_table(results)
     return results
 
 
@@ -226,7 +227,6 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--json", help="also write the figures to this JSON file")
     args = p.parse_args(argv)
     results = run(args.quick)
-    print_table(results)
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(results, fh, indent=1)

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from benchmarks.problems import frame_problems
+from benchmarks.synthetic import frame_problems
 from solvers.rbf import KeyBlendSolver
 
 SIZES = [(54, 50), (72, 150)]
@@ -45,6 +45,7 @@ def run(quick: bool = False) -> dict:
                 times[i] = (time.perf_counter_ns() - t) / 1e3
             row[label] = {"p50_us": float(np.percentile(times, 50)), "p99_us": float(np.percentile(times, 99))}
         out["sizes"][f"{n}x{m}"] = row
+    print_table(out)
     return out
 
 
@@ -64,7 +65,6 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--json")
     args = p.parse_args(argv)
     r = run(args.quick)
-    print_table(r)
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(r, fh, indent=1)

@@ -1,53 +1,114 @@
 """Per-frame solve latency of every registered mode at film-rig scales (54x50, 72x150, 72x1000).
 
-Each mode is timed on the same synthetic stream; the ratio column compares it with plain
-unconstrained least squares (a prefactored pseudo-inverse product) measured in the same run.
+Each mode is timed on the same synthetic stream (benchmarks/synthetic.py) through its ``step``
+(what the live pipeline calls); the ratio column compares its p99 with plain unconstrained least
+squares (a prefactored pseudo-inverse product) measured in the same run. Every mode in
+livecap.modes.MODES gets a row per size: timed, or the reason it is not.
+
+* ``rbf`` needs key pairs: a synthetic range-of-motion key set (neutral + one key per shape,
+  benchmarks.synthetic.rom_keys) is passed through the factory's ``keys`` option.
+* ``movement`` is the offline whole-take solve (Seol et al. 2012 Eq. 5); its per-frame path is the
+  sliding-window solver, timed as ``movement-stream``; offline timings are in the movement suite.
+* ``lsq`` (scipy BVLS) is skipped at a size where a call takes more than ``SLOW_LIMIT_S``.
+* ``movement-stream`` at 72 x 1000 (more shapes than marker coordinates) cannot be built with its
+  default options (the shape prior leaves the system singular); it is timed with ``ridge=1e-3``
+  and the row says so.
+
+``peak_mb`` is the traced (Python + numpy) memory peak while building the solver and solving the
+first frames, from tracemalloc (off while timing).
 """
 
 from __future__ import annotations
 
+import os
+import time
+import tracemalloc
+
 import numpy as np
 
-from benchmarks.synthetic import synthetic_profile, synthetic_stream
+from benchmarks.synthetic import rom_keys, synthetic_profile, synthetic_stream
 from benchmarks.timing import table, time_calls
 from livecap.modes import MODES, build_solver
 
 SIZES = [(54, 50), (72, 150), (72, 1000)]
-# options some modes need to run on a bare profile (keys for RBF are drawn from the stream)
-MODE_OPTIONS: dict[str, dict] = {}
-# scipy's BVLS behind "lsq" takes milliseconds per frame (and far more when m > 3n): fewer calls
-SLOW_COUNTS = {"lsq": {50: 300, 150: 200, 1000: 10}}
+SLOW_LIMIT_S = 1.0
+NOT_PER_FRAME = {"movement": "offline whole-take mode: per-frame path timed as movement-stream; "
+                             "offline figures in the movement suite"}
 
 
-def _baseline(profile, targets) -> dict:
+def _options(mode: str, profile) -> dict:
+    """Options some modes need to run on a bare synthetic profile."""
+    if mode == "rbf":
+        return {"keys": rom_keys(profile)}
+    return {}
+
+
+def _build(mode: str, profile) -> tuple[object, str]:
+    """The solver, and a note when the default options had to be changed to build it at all."""
+    opts = _options(mode, profile)
+    try:
+        return build_solver(mode, profile, opts), ""
+    except Exception as exc:
+        if mode != "movement-stream" or type(exc).__name__ != "IllPosedError":
+            raise
+    # more shapes than marker coordinates: the shape prior alone leaves G + K singular; a small ridge fixes it
+    return build_solver(mode, profile, {**opts, "ridge": 1e-3}), "ridge=1e-3 (default options ill-posed: m > 3n)"
+
+
+def _baseline(profile, targets, n: int) -> dict:
     pinv = np.linalg.pinv(profile.basis)
     flat = targets.reshape(len(targets), -1)
-    return time_calls(lambda i: pinv @ flat[i % len(flat)], n=2000, warmup=100)
+    return time_calls(lambda i: pinv @ flat[i % len(flat)], n=n, warmup=100)
+
+
+def time_mode(mode: str, profile, targets, valid, count: int, warmup: int = 50) -> dict:
+    """One mode at one size: build time, then median/p99 of ``step`` (or a reason it was skipped)."""
+    if mode in NOT_PER_FRAME:
+        return {"skipped": NOT_PER_FRAME[mode]}
+    tracemalloc.start()  # numpy reports its buffers to tracemalloc: peak memory of build + first frames
+    t0 = time.perf_counter()
+    solver, note = _build(mode, profile)
+    prepare = (time.perf_counter() - t0) * 1e3
+    T = len(targets)
+    probe = []
+    for i in range(3):  # a slow mode is measured on a few calls before committing to thousands
+        t1 = time.perf_counter()
+        solver.step(targets[i], valid[i])
+        probe.append(time.perf_counter() - t1)
+    peak_mb = tracemalloc.get_traced_memory()[1] / 2**20
+    tracemalloc.stop()  # not while timing: it slows every allocation
+    per_call = float(np.median(probe))
+    out = {"prepare_ms": prepare, "peak_mb": peak_mb, **({"note": note} if note else {})}
+    if per_call > SLOW_LIMIT_S:
+        return {**out, "skipped": f"{per_call:.1f} s per call (> {SLOW_LIMIT_S:g} s)"}
+    if per_call > 0.01:  # milliseconds per call: fewer repetitions, same statistics
+        count, warmup = max(30, min(count, int(20.0 / per_call))), 5
+    res = time_calls(lambda i: solver.step(targets[i % T], valid[i % T]), n=count, warmup=warmup)
+    return {**out, **res}
 
 
 def run(quick: bool = False) -> dict:
     rows = []
     n_frames = 300 if quick else 3000
+    count = 300 if quick else 3000
+    load = os.getloadavg()[0]
     for n, m in SIZES:
         profile = synthetic_profile(n, m)
-        targets, valid, W = synthetic_stream(profile, n_frames)
-        base = _baseline(profile, targets)
-        rows.append({"mode": "pinv (baseline)", "size": f"{n}x{m}", **base, "ratio_p99": 1.0})
+        targets, valid, _ = synthetic_stream(profile, n_frames)
+        base = _baseline(profile, targets, 3 * count)
+        size = f"{n}x{m}"
+        rows.append({"mode": "pinv (baseline)", "size": size, **base, "ratio_p99": 1.0})
         for mode in sorted(MODES):
-            opts = dict(MODE_OPTIONS.get(mode, {}))
-            if callable(opts.get("prepare")):
-                opts = opts["prepare"](profile, targets, W)
             try:
-                solver = build_solver(mode, profile, opts)
-            except Exception as exc:  # a mode that cannot be built on a bare profile is reported, not hidden
-                rows.append({"mode": mode, "size": f"{n}x{m}", "error": str(exc)[:60]})
-                continue
-            count = SLOW_COUNTS.get(mode, {}).get(m, 200 if quick else 2000)
-            if quick:
-                count = min(count, 200)
-            res = time_calls(lambda i, s=solver, x=targets, v=valid: s.step(x[i % n_frames], v[i % n_frames]),
-                             n=count, warmup=50)
-            rows.append({"mode": mode, "size": f"{n}x{m}", **res, "ratio_p99": res["p99_us"] / base["p99_us"]})
-    print(table(rows, ["mode", "size", "median_us", "p99_us", "ratio_p99", "n", "error"],
-                "Per-frame solve latency (us); ratio = p99 / p99 of the prefactored pinv product"))
-    return {"rows": rows}
+                res = time_mode(mode, profile, targets, valid, count)
+            except Exception as exc:  # a mode that cannot be built or run is reported, not hidden
+                res = {"skipped": f"error: {type(exc).__name__}: {str(exc)[:80]}"}
+            if "p99_us" in res:
+                res["ratio_p99"] = res["p99_us"] / base["p99_us"]
+            rows.append({"mode": mode, "size": size, **res})
+    print(table(rows, ["mode", "size", "median_us", "p99_us", "ratio_p99", "n", "prepare_ms", "peak_mb",
+                       "skipped", "note"],
+                f"Per-frame solve latency (us), synthetic problems; ratio = p99 / p99 of the prefactored pinv "
+                f"product; load average {load:.2f} at start, {os.getloadavg()[0]:.2f} at end"))
+    return {"rows": rows, "load_start": load, "load_end": os.getloadavg()[0],
+            "data": "benchmarks/synthetic.py: Gaussian-patch bases, 40 moving shapes, 0.3 mm noise"}

@@ -73,6 +73,7 @@ def run(quick: bool = False) -> dict:
                 row[f"{key}_fps"], row[f"{key}_cpu_ms"] = _fps(fn, W)
             results["rows"].append(row)
             r.release()
+    print_table(results)
     return results
 
 
@@ -95,7 +96,6 @@ def main() -> None:
     ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "viewer_fps.json"))
     args = ap.parse_args()
     res = run(args.quick)
-    print_table(res)
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(res, indent=1))
     print(f"written {args.json}")

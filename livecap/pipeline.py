@@ -10,6 +10,14 @@ With no profile, the first ``calibrate_frames`` frames of the stream are the neu
 (Curio et al. 2006 §2.1): the pipeline calibrates on them, then solves and publishes them
 (late, in order) before carrying on live.
 
+Staying current (``skip_stale``): when the solver is slower than the stream, frames would
+queue in the source and the latency would grow without bound. With ``skip_stale`` the loop asks
+the source whether another frame is already waiting (``source.pending()``); if so, the frame in
+hand is counted as *stale* and not solved, so only the newest waiting frame is solved and
+latency stays within about two solve times. Every frame is still recorded by the marker
+recorder. On by default for live network sources in ``livecap run``; off for file replay,
+where every frame must be solved.
+
 Timing is kept per stage (receive = decoding the packet, solve = stabilise + solver step,
 publish = all sinks and recorders) as running p50/p99 over the last few thousand frames;
 :meth:`report` formats them, on exit, on SIGUSR1, or periodically.
@@ -66,7 +74,7 @@ class Pipeline:
                  labels: list[str] | None = None, rate: float = 120.0, mode: str = "lsq",
                  options: dict | None = None, marker_recorder=None, flush_every: float = 0.1,
                  max_frames: int | None = None, stats_file: str | Path | None = None,
-                 stats_every: float | None = None) -> None:
+                 stats_every: float | None = None, skip_stale: bool = False) -> None:
         if profile is None and calibrator is None:
             raise ValueError("the pipeline needs a profile or a way to calibrate from the stream")
         self.source = source
@@ -86,6 +94,10 @@ class Pipeline:
         self.timing = {s: StageTiming() for s in STAGES}
         self.frames_in = 0
         self.frames_out = 0
+        self.stale = 0
+        self.skip_stale = bool(skip_stale)
+        self._pending = getattr(source, "pending", None) if skip_stale else None
+        self._stale_logged = (-1e9, 0)
         self.errors: Counter[str] = Counter()
         self._error_log: dict[str, float] = {}
         self._stop = threading.Event()
@@ -157,6 +169,20 @@ class Pipeline:
             log.warning("%s: %s (%d so far)", kind, detail, self.errors[kind])
             self._error_log[kind] = now
 
+    def _skip_if_stale(self, frame: MarkerFrame) -> bool:
+        """True (and counted) when a newer frame is already waiting: solve that one instead."""
+        if self._pending is None or self._solver is None or not self._pending():
+            return False
+        self.stale += 1
+        now = time.monotonic()
+        last_time, last_count = self._stale_logged
+        if now - last_time > 5.0:
+            log.warning("solver behind the stream: skipped %d stale frames in the last %.0f s (%d so far, "
+                        "last frame %d); solving the newest", self.stale - last_count,
+                        min(now - last_time, now - self._started), self.stale, frame.frame)
+            self._stale_logged = (now, self.stale)
+        return True
+
     # ------------------------------------------------------------------ the loop
     def solve_frame(self, frame: MarkerFrame) -> SolveResult | None:
         t0 = time.perf_counter()
@@ -220,7 +246,7 @@ class Pipeline:
                             res = self.solve_frame(f)
                             if res is not None:
                                 self.publish(res)
-                else:
+                elif not self._skip_if_stale(frame):
                     res = self.solve_frame(frame)
                     if res is not None:
                         self.publish(res)
@@ -261,6 +287,7 @@ class Pipeline:
         return {
             "frames_in": self.frames_in,
             "frames_out": self.frames_out,
+            "stale": self.stale,
             "pending_calibration": len(self._buffer),
             "seconds": elapsed,
             "cpu_seconds": time.process_time() - self._cpu0 if self._started else 0.0,
@@ -275,6 +302,8 @@ class Pipeline:
         st = self.stats()
         lines = [f"frames in {st['frames_in']}, out {st['frames_out']}, {st['seconds']:.1f} s, "
                  f"driver CPU {st['cpu_seconds']:.2f} s"]
+        if self.skip_stale:
+            lines.append(f"stale frames skipped (solver behind the stream): {st['stale']}")
         lines.append(f"{'stage':10s} {'p50 ms':>9s} {'p99 ms':>9s} {'max ms':>9s}")
         for s, p in st["timing"].items():
             lines.append(f"{s:10s} {p['p50_ms']:9.3f} {p['p99_ms']:9.3f} {p['max_ms']:9.3f}")

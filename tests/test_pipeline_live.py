@@ -182,7 +182,7 @@ def test_zmq_session_reaches_every_sink(take_dir, tmp_path):
                   "--profile", d / "profile.npz", "--vmc", f"127.0.0.1:{vmc_port}",
                   "--livelink", f"127.0.0.1:{llf_port}", "--record-csv", tmp_path / "w.csv",
                   "--record-jsonl", tmp_path / "w.jsonl", "--record-markers", tmp_path / "m.npz",
-                  "--idle-timeout", "1.5")
+                  "--idle-timeout", "1.5", "--no-skip-stale")  # every frame must reach every sink
     ready = first_line(run)
     out_addr = re.search(r"zmq-out ([^;\s]+)", ready).group(1)
     sub = spawn(script(tmp_path, "sub", ZMQ_SUBSCRIBER), out_addr, "actor", tmp_path / "sub.json", 3.0)
@@ -242,7 +242,7 @@ def test_osc_session_calibrates_on_the_stream(take_dir, tmp_path):
     d = take_dir
     port = free_port(socket.SOCK_DGRAM)
     run = livecap("run", "--osc-in", f"127.0.0.1:{port}", "--rig", d / "demo_rig.npz", "--neutral-seconds", "0.5",
-                  "--zmq-out", "0", "--idle-timeout", "1.5")
+                  "--zmq-out", "0", "--idle-timeout", "1.5", "--no-skip-stale")
     out_addr = re.search(r"zmq-out ([^;\s]+)", first_line(run)).group(1)
     sub = spawn(script(tmp_path, "sub", ZMQ_SUBSCRIBER), out_addr, "actor", tmp_path / "sub.json", 3.0)
     assert first_line(sub) == "ready"

@@ -153,6 +153,10 @@ class OscSource:
             except queue.Full:
                 self.bad.skip("overrun", "receive queue full: the solver is behind the stream")
 
+    def pending(self) -> bool:
+        """True when another datagram is already waiting (the pipeline then skips a stale frame)."""
+        return not self._queue.empty()
+
     @property
     def port(self) -> int:
         return self.address[1]

@@ -55,12 +55,18 @@ class ReplaySource:
         self.rate = take.rate
         self.speed, self.fast, self.loop = speed, fast, loop
         self.last_decode_seconds = 0.0
+        self._next_due = float("inf")  # perf_counter time the next frame is scheduled for
         self._running = True
 
     @classmethod
     def open(cls, path: str | Path, labels: list[str] | None = None, **kwargs) -> ReplaySource:
         take, frames, timestamps = open_take(path)
         return cls(take, labels, frames=frames, timestamps=timestamps, **kwargs)
+
+    def pending(self) -> bool:
+        """Paced replay only: True when the next frame's time has already come (the consumer is
+        behind the schedule). ``--fast`` replay never reports pending frames: all must be solved."""
+        return not self.fast and time.perf_counter() >= self._next_due
 
     def stop(self) -> None:
         self._running = False
@@ -88,6 +94,8 @@ class ReplaySource:
                     self._wait_until(t0 + k * period)
                     if not self._running:
                         return
+                more = self.loop or i + 1 < n
+                self._next_due = t0 + (k + 1) * period if more else float("inf")
                 yield MarkerFrame(int(self.frames[i]) + lap * span_frames,
                                   float(self.timestamps[i]) + lap * span_time,
                                   self.take.positions[i], self.take.valid[i])

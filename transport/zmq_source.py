@@ -47,6 +47,10 @@ class ZmqSource:
         else:
             self.sock.connect(address)
 
+    def pending(self) -> bool:
+        """True when another message is already waiting (the pipeline then skips a stale frame)."""
+        return bool(self.sock.getsockopt(zmq.EVENTS) & zmq.POLLIN)
+
     def stop(self) -> None:
         self._running = False
 

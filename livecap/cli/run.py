@@ -39,6 +39,10 @@ def register(sub) -> None:
     src.add_argument("--rate", type=float, default=120.0, help="stream frame rate for network sources (default 120)")
     src.add_argument("--idle-timeout", type=float,
                      help="end the session after this many seconds without a frame (network sources)")
+    src.add_argument("--skip-stale", action=argparse.BooleanOptionalAction, default=None,
+                     help="when the solver falls behind, solve only the newest waiting frame and count the skipped "
+                          "ones as stale, so latency stays bounded (default: on for --zmq-in/--osc-in, off for "
+                          "--replay, where every frame is solved)")
     src.add_argument("--actor", default="actor", help="actor name in topics (markers.<actor>, weights.<actor>)")
     src.add_argument("--interface", help="allow binding/connecting this non-loopback interface (default: "
                      "127.0.0.1 only)")
@@ -205,7 +209,8 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
                         calibrate_frames=max(1, int(round(args.neutral_seconds * rate))), labels=labels, rate=rate,
                         mode=args.mode, options=options, marker_recorder=marker_recorder,
                         flush_every=args.flush_every, max_frames=args.max_frames, stats_file=args.stats_file,
-                        stats_every=args.stats_every)
+                        stats_every=args.stats_every,
+                        skip_stale=(not args.replay) if args.skip_stale is None else args.skip_stale)
     return pipeline, described
 
 

@@ -1,0 +1,47 @@
+"""Every benchmark suite imports and its cheapest piece runs at toy sizes (no timing is asserted:
+performance is measured by ``python -m benchmarks``, this only catches a broken suite)."""
+
+import importlib
+import os
+
+import numpy as np
+import pytest
+
+from benchmarks.__main__ import SUITES
+from livecap.modes import MODES
+
+
+@pytest.mark.parametrize("name", [*SUITES, "multi_driver", "synthetic", "timing"])
+def test_suite_imports_with_a_run_entry(name):
+    mod = importlib.import_module(f"benchmarks.{name}")
+    if name in SUITES:
+        assert callable(mod.run)
+
+
+def test_every_mode_is_timed_or_says_why_at_a_toy_size():
+    from benchmarks.solve_latency import time_mode
+    from benchmarks.synthetic import synthetic_profile, synthetic_stream
+
+    profile = synthetic_profile(12, 8)
+    targets, valid, W = synthetic_stream(profile, 20, moving=4)
+    assert targets.shape == (20, 12, 3) and W.shape == (20, 8) and valid.all()
+    for mode in MODES:
+        res = time_mode(mode, profile, targets, valid, count=5, warmup=1)
+        assert ("p99_us" in res and res["n"] == 5) or res["skipped"], mode
+    assert "skipped" in time_mode("movement", profile, targets, valid, count=5)
+
+
+def test_movement_edit_resolve_covers_a_range_and_the_whole_take():
+    from benchmarks.movement import edit_resolve
+
+    e = edit_resolve(quick=True)
+    assert e["take_frames"] == 1000 and {"range12_s", "whole_s", "full_resolve_s"} <= set(e)
+
+
+def test_concurrency_helpers():
+    from benchmarks.concurrency import _cpu_seconds
+    from benchmarks.live_latency import _stats
+
+    assert _cpu_seconds(os.getpid()) > 0
+    s = _stats([0.001, 0.002, 0.003], 4)
+    assert s["received"] == 3 and s["sent"] == 4 and np.isclose(s["p50_ms"], 2.0)
