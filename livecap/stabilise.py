@@ -17,6 +17,7 @@ in all, the last good pose is held.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 TUKEY_C = 4.685  # 95 % efficiency at the Gaussian
 MAD_TO_SIGMA = 1.4826
