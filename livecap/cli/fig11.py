@@ -47,6 +47,8 @@ def register(sub) -> None:
     g.add_argument("--rate", type=float, default=120.0, help="capture rate in Hz (default 120)")
     g.add_argument("--noise-mm", type=float, nargs="+", default=[0.5, 0.0],
                    help="marker noise levels, one variant each (default: 0.5 as the demo take, and 0)")
+    g.add_argument("--occlusion", type=float, default=0.02,
+                   help="fraction of marker-frames missing, in bursts (default 0.02 as the demo take)")
     g.add_argument("--target-shapes", type=int, default=33, help="shapes kept in the target rig (default 33)")
     g.add_argument("--target-seed", type=int, default=3, help="target character demo_rig(seed) (default 3)")
     g.add_argument("--subset-seed", type=int, default=11, help="which shapes the target keeps (default 11)")
@@ -187,7 +189,7 @@ def _variants(args: argparse.Namespace) -> list[tuple[str, str, np.ndarray, np.n
 
     out = []
     for noise in args.noise_mm:
-        sc = retarget_scenario(args.seconds, args.rate, noise, source_seed=args.source_seed,
+        sc = retarget_scenario(args.seconds, args.rate, noise, args.occlusion, source_seed=args.source_seed,
                                target_seed=args.target_seed, target_shapes=args.target_shapes,
                                subset_seed=args.subset_seed, performance_seed=args.performance_seed)
         i = sc.info

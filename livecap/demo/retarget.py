@@ -62,17 +62,18 @@ def reduced_rig(rig: Rig, n_shapes: int, seed: int) -> Rig:
                rig.upper[keep], ibs, cos)
 
 
-def retarget_scenario(seconds: float = 20.0, rate: float = 120.0, noise_mm: float = 0.5, *,
+def retarget_scenario(seconds: float = 20.0, rate: float = 120.0, noise_mm: float = 0.5, occlusion: float = 0.02, *,
                       source_seed: int = 0, target_seed: int = 3, target_shapes: int = 33,
                       subset_seed: int = 11, performance_seed: int = 1,
                       settings: PerformanceSettings | None = None) -> RetargetScenario:
     """Source actor on ``demo_rig(source_seed)`` retargeted to a reduced ``demo_rig(target_seed)``.
 
     ``settings`` overrides the performance (default: the demo take's, with ``seconds``, ``rate``,
-    ``noise_mm`` and ``performance_seed``).
+    ``noise_mm``, ``occlusion`` and ``performance_seed``).
     """
     src_rig, src_layout = demo_rig(source_seed)
-    s = settings or PerformanceSettings(seconds=seconds, rate=rate, noise_mm=noise_mm, seed=performance_seed)
+    s = settings or PerformanceSettings(seconds=seconds, rate=rate, noise_mm=noise_mm, occlusion=occlusion,
+                                         seed=performance_seed)
     perf = perform(src_rig, src_layout, s)
     full, layout = demo_rig(target_seed)
     target = reduced_rig(full, target_shapes, subset_seed)
