@@ -63,7 +63,7 @@ def test_latest_slot_keeps_the_newest_and_counts_drops():
 def test_window_sink_drops_frames_instead_of_slowing_the_solver(demo):
     rig, layout = demo
     OffscreenPresenter.instances.clear()
-    sink = WindowSink(rig, layout, size=(160, 120), presenter=OffscreenPresenter)
+    sink = WindowSink(rig, layout, size=(160, 120), presenter=OffscreenPresenter, isolate=False)
     start = time.perf_counter()
     n = 300
     for i in range(n):
