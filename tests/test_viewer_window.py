@@ -6,14 +6,21 @@ standing in for the glfw window; the thread, mailbox and rendering are the real 
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
 from livecap.result import SolveResult
 from viewer.errors import create_context
 from viewer.window import LatestSlot, WindowSink
+
+REC = Path(__file__).resolve().parents[1] / "recordings"
+HEADLESS = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
 
 
 class OffscreenPresenter:
@@ -76,7 +83,34 @@ def test_window_sink_drops_frames_instead_of_slowing_the_solver(demo):
     # each drawn frame costs >= 50 ms, so drawing them all would take >= 15 s; publishing took far less
     assert publish_seconds < 0.25 * n * out.delay
     assert 1 <= sink.shown < n and sink.dropped >= n - sink.shown - 1
-    assert len(out.frames) == sink.shown
+    assert sink.published == n == sink.shown + sink.dropped  # every result is either drawn or counted
+    assert len(out.frames) == sink.shown + 1  # + the neutral drawn while waiting for the first result
     frame = out.frames[-1]
     assert frame.shape == (120, 160, 3) and frame.std() > 10  # a real render, not a blank surface
     sink.publish(_result(rig, 0, layout))  # after close: ignored, no error
+    assert sink.published == n
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "livecap", "run", "--replay", str(REC / "demo_take.c3d"), "--fast", *args]
+    return subprocess.run(cmd, capture_output=True, text=True, env=HEADLESS, timeout=60)
+
+
+def test_run_window_without_a_display_says_so_and_exits_2():
+    r = _run("--rig", str(REC / "demo_rig.npz"), "--window")
+    assert r.returncode == 2 and "ready" not in r.stdout
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("livecap run: no display")
+    assert "livecap replay" in lines[0] and "--preview" in lines[0] and "xvfb-run" in lines[0]
+
+
+def test_run_window_optional_carries_on_without_a_display():
+    r = _run("--rig", str(REC / "demo_rig.npz"), "--window-optional", "--max-frames", "130")
+    assert r.returncode == 0, r.stderr
+    assert "carrying on without the window" in r.stderr
+    assert "frames in 130, out 130" in r.stdout and "WindowSink" not in r.stdout
+
+
+def test_run_window_needs_the_rig():
+    r = _run("--profile", "whatever.npz", "--window")
+    assert r.returncode == 1 and "--window needs --rig" in r.stderr

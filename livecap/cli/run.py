@@ -130,12 +130,12 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         raise ValueError("give exactly one source: --zmq-in, --osc-in or --replay")
     profile = rig = layout = None
     want_window = args.window or args.window_optional
+    if want_window and not args.rig:
+        raise ValueError("--window needs --rig: the window draws the rig's mesh (a profile holds none)")
     if args.profile:
         profile = Profile.load(args.profile)
         labels = profile.labels
         if want_window:
-            if not args.rig:
-                raise ValueError("--window needs --rig (the profile holds no mesh to draw)")
             rig, layout = load_rig(args)
     elif args.rig:
         rig, layout = load_rig(args)
