@@ -114,3 +114,34 @@ def test_run_window_optional_carries_on_without_a_display():
 def test_run_window_needs_the_rig():
     r = _run("--profile", "whatever.npz", "--window")
     assert r.returncode == 1 and "--window needs --rig" in r.stderr
+
+
+def test_a_profile_adopted_later_draws_like_one_given_up_front():
+    """set_profile's path (summary computed in the solver's process, adopted by the window's Preview)
+    draws exactly what a Preview constructed with the profile draws: markers, residual lines, head."""
+    from livecap.calibration import calibrate, estimate_neutral
+    from livecap.markers import MarkerLayout
+    from livecap.rig import Rig
+    from transport.takefile import read_take
+    from viewer.preview import Preview
+    from viewer.window import adopt_profile, display_profile
+
+    rig = Rig.load(REC / "demo_rig.npz")
+    layout = MarkerLayout.load(REC / "demo_rig.markers.json", rig)
+    take = read_take(REC / "demo_take.c3d").select(layout.labels)
+    profile = calibrate(rig, layout, estimate_neutral(take, layout.stable))
+    ctx = create_context()
+    markers = np.asarray(profile.source_neutral) + np.array([0.0, -3.0, 1.0])
+    valid = np.ones(len(layout.labels), bool)
+    valid[3] = False
+    w = np.zeros(rig.n_shapes)
+    w[rig.index("jawOpen")] = 0.6
+    res = SolveResult(7, 0.05, rig.names, w, np.array([0.05, 0.1, 0.0, 0.99]), np.array([5.0, 0, 0]), 0.4, 1e-3,
+                      markers, valid)
+    direct = Preview(rig, layout, profile, (320, 240), ctx=ctx).draw_result(res, "t")
+    later = Preview(rig, layout, None, (320, 240), ctx=ctx)
+    without = later.draw_result(res, "t")
+    adopt_profile(later, display_profile(profile))
+    adopted = later.draw_result(res, "t")
+    assert np.array_equal(adopted, direct)
+    assert np.abs(without.astype(int) - direct).mean() > 0.5  # without the profile: no source markers, other pose

@@ -19,6 +19,7 @@ import threading
 import time
 from collections.abc import Callable
 from multiprocessing.process import BaseProcess
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -160,7 +161,9 @@ def render_loop(conn, rig, layout, profile, presenter, size, title, samples, nic
 
     try:
         out = presenter(size, title)
-        preview = Preview(rig, layout, profile, size, ctx=out.ctx, samples=samples)
+        preview = Preview(rig, layout, None, size, ctx=out.ctx, samples=samples)
+        if profile is not None:
+            adopt_profile(preview, profile)
         # the rig's neutral on screen at once; also compiles every shader (~0.2 s on llvmpipe) before frames come
         neutral = SolveResult(0, 0.0, list(rig.names), np.zeros(rig.n_shapes), np.array([0.0, 0.0, 0.0, 1.0]),
                               np.zeros(3))
@@ -186,9 +189,8 @@ def render_loop(conn, rig, layout, profile, presenter, size, title, samples, nic
                 conn.send(("bye", (shown, seconds)))
                 return
             start = time.perf_counter()
-            if kind == "profile":  # once per session: rebuild with the actor's calibration
-                preview.renderer.release()
-                preview = Preview(rig, layout, item, size, ctx=out.ctx, samples=samples)
+            if kind == "profile":  # once per session: the actor's calibration arrived
+                adopt_profile(preview, item)
                 continue
             keep = out.show(preview.draw_result(item, title))
             shown, seconds = shown + 1, seconds + time.perf_counter() - start
@@ -206,6 +208,34 @@ def render_loop(conn, rig, layout, profile, presenter, size, title, samples, nic
     finally:
         out.close()
         conn.close()
+
+
+def display_profile(profile):
+    """What the window needs of a calibration Profile: labels, source_neutral, target_sites and the
+    rig-to-actor similarity, computed here in the solver's process.
+
+    The window process gets this instead of the Profile: unpickling a Profile, or fitting the
+    similarity, imports the calibration and solver modules there, which stalled the window's first
+    calibrated second by 1-1.5 s on the loaded development VM (measured).
+    """
+    if profile is None:
+        return None
+    from viewer.scene import Similarity
+
+    neutral = np.asarray(profile.source_neutral, dtype=np.float64)
+    sites = np.asarray(profile.target_sites, dtype=np.float64)
+    return SimpleNamespace(labels=list(profile.labels), source_neutral=neutral, target_sites=sites,
+                           head=Similarity.fit(sites, neutral))
+
+
+def adopt_profile(preview, shown) -> None:
+    """Give a Preview a calibration in place (what ``Preview(rig, layout, profile)`` sets up), from
+    :func:`display_profile`'s summary; no new Renderer (llvmpipe would compile every shader again).
+    tests/test_viewer_window.py checks it draws exactly like a Preview constructed with the profile.
+    """
+    if preview.layout is None or list(shown.labels) != list(preview.layout.labels):
+        raise ValueError("profile and marker layout list different markers")
+    preview.source_neutral, preview.rest_sites, preview.head = shown.source_neutral, shown.target_sites, shown.head
 
 
 class WindowSink:
@@ -242,7 +272,8 @@ class WindowSink:
         self._new_profile = None
         mp = multiprocessing.get_context("spawn")  # never fork a process that has threads and GL state
         self._conn, theirs = mp.Pipe()
-        args = (theirs, rig, layout, profile, presenter, self.size, title, samples, nice if isolate else 0)
+        args = (theirs, rig, layout, display_profile(profile), presenter, self.size, title, samples,
+                nice if isolate else 0)
         if isolate:
             self._worker = mp.Process(target=render_loop, args=args, name="livecap-window", daemon=True)
         else:
@@ -270,7 +301,7 @@ class WindowSink:
     def set_profile(self, profile) -> None:
         """The actor's calibration, once known: later frames show the source markers and residual lines."""
         with self._profile_lock:
-            self._new_profile = profile
+            self._new_profile = display_profile(profile)
 
     def publish(self, result) -> None:
         """Never waits: the result replaces any the window has not taken yet."""
