@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from livecap.result import SolveResult
 from viewer.errors import create_context
@@ -91,13 +92,21 @@ def test_window_sink_drops_frames_instead_of_slowing_the_solver(demo):
     assert sink.published == n
 
 
-def _run(*args: str) -> subprocess.CompletedProcess:
+def _run(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "livecap", "run", "--replay", str(REC / "demo_take.c3d"), "--fast", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, env=HEADLESS, timeout=60)
+    return subprocess.run(cmd, capture_output=True, text=True, env=env or HEADLESS, timeout=60)
 
 
-def test_run_window_without_a_display_says_so_and_exits_2():
-    r = _run("--rig", str(REC / "demo_rig.npz"), "--window")
+def _dead_display() -> str:
+    """A DISPLAY naming no X server: the window process itself finds out and says so."""
+    n = next(n for n in range(97, 200) if not Path(f"/tmp/.X11-unix/X{n}").exists())
+    return f":{n}"
+
+
+@pytest.mark.parametrize("display", [None, "dead"])
+def test_run_window_without_a_display_says_so_and_exits_2(display):
+    env = dict(HEADLESS, DISPLAY=_dead_display()) if display else HEADLESS
+    r = _run("--rig", str(REC / "demo_rig.npz"), "--window", env=env)
     assert r.returncode == 2 and "ready" not in r.stdout
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("livecap run: no display")

@@ -147,7 +147,7 @@ def render_loop(conn, rig, layout, profile, presenter, size, title, samples, nic
     """The window's side of the sink: open the surface, then draw each result it is sent.
 
     Protocol on ``conn`` (a multiprocessing Pipe end). In: ("result", SolveResult), ("profile",
-    Profile), ("stop", None). Out: ("error", exc) if the window cannot open; ("ready", counts)
+    :func:`display_profile` summary), ("stop", None). Out: ("error", exc) if the window cannot open; ("ready", counts)
     after opening and after each drawn frame (the request for the next one); ("closed", counts)
     when the user closed the window; ("failed", (counts, text)); ("bye", counts) after "stop".
     counts = (frames shown, seconds spent drawing).
@@ -159,6 +159,7 @@ def render_loop(conn, rig, layout, profile, presenter, size, title, samples, nic
             pass
     from viewer.preview import Preview
 
+    out = None
     try:
         out = presenter(size, title)
         preview = Preview(rig, layout, None, size, ctx=out.ctx, samples=samples)
@@ -173,6 +174,8 @@ def render_loop(conn, rig, layout, profile, presenter, size, title, samples, nic
             conn.send(("error", exc))
         except Exception:  # an exception that does not pickle: keep its text
             conn.send(("error", ViewerUnavailable(f"{type(exc).__name__}: {exc}")))
+        if out is not None:
+            out.close()
         conn.close()
         return
     shown, seconds = 0, 0.0
