@@ -68,6 +68,10 @@ def register(sub) -> None:
     out.add_argument("--livelink", help="[HOST:]PORT to send Live Link Face UDP to (Unreal's port is 11111)")
     out.add_argument("--livelink-subject", default="livecap", help="Live Link subject name")
     out.add_argument("--arkit-map", help="JSON mapping ARKit name -> rig shape name(s), for non-ARKit rigs")
+    out.add_argument("--window", action="store_true", help="live preview window of the solve (needs a display and "
+                     "--rig; drops frames, never slows the solver)")
+    out.add_argument("--window-optional", action="store_true",
+                     help="like --window, but carry on without it when there is no display")
     rec = p.add_argument_group("recorders")
     rec.add_argument("--record-csv", help="weights CSV (Live Link Face layout when the names are ARKit)")
     rec.add_argument("--csv-layout", default="auto", choices=["auto", "livecap", "livelinkface"])
@@ -129,9 +133,14 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     if len(sources) != 1:
         raise ValueError("give exactly one source: --zmq-in, --osc-in or --replay")
     profile = rig = layout = None
+    want_window = args.window or args.window_optional
+    if want_window and not args.rig:
+        raise ValueError("--window needs --rig: the window draws the rig's mesh (a profile holds none)")
     if args.profile:
         profile = Profile.load(args.profile)
         labels = profile.labels
+        if want_window:
+            rig, layout = load_rig(args)
     elif args.rig:
         rig, layout = load_rig(args)
         labels = list(layout.labels)
@@ -200,10 +209,18 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         marker_recorder = MarkerRecorder(args.record_markers, labels, rate, fsync=args.fsync)
         described.append(f"markers {args.record_markers}")
 
+    window = _window(args, rig, layout, profile) if want_window else None
+    if window is not None:
+        sinks.append(window)
+        described.append(f"window {window.size[0]}x{window.size[1]}")
+
     calibrator = None
     if profile is None:
         def calibrator(take, rig=rig, layout=layout):
-            return calibrate(rig, layout, estimate_neutral(take, layout.stable))
+            calibrated = calibrate(rig, layout, estimate_neutral(take, layout.stable))
+            if window is not None:  # the window shows the actor's markers from now on
+                window.set_profile(calibrated)
+            return calibrated
 
     pipeline = Pipeline(source, sinks, profile=profile, calibrator=calibrator,
                         calibrate_frames=max(1, int(round(args.neutral_seconds * rate))), labels=labels, rate=rate,
@@ -214,12 +231,31 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     return pipeline, described
 
 
+def _window(args: argparse.Namespace, rig, layout, profile):
+    """The live preview sink (viewer/window.py), or None with --window-optional and no display."""
+    from viewer.window import NoDisplay, WindowSink
+
+    try:
+        return WindowSink(rig, layout, profile, title=f"livecap run - {args.mode}")
+    except NoDisplay as exc:
+        if not args.window_optional:
+            raise
+        print(f"livecap run: {exc}; carrying on without the window", file=sys.stderr)
+        return None
+
+
 def run(args: argparse.Namespace) -> int:
     import signal
 
+    from viewer.errors import NoDisplay
+
     if hasattr(signal, "SIGUSR1"):  # a report request while sockets come up must not kill the session
         signal.signal(signal.SIGUSR1, signal.SIG_IGN)
-    pipeline, described = build(args)
+    try:
+        pipeline, described = build(args)
+    except NoDisplay as exc:  # --window without a display: one line, exit 2 (a usage problem, not a bad file)
+        print(f"livecap run: {exc}", file=sys.stderr)
+        return 2
     pipeline.install_signal_handlers()
     print("ready: " + "; ".join(described), flush=True)
     pipeline.run()
