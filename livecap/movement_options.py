@@ -7,14 +7,18 @@ demo take (docs/movement.md lists the measurements); every one is an option.
 from __future__ import annotations
 
 import fnmatch
+import logging
 from collections.abc import Mapping
 
 import numpy as np
 
 from livecap.calibration import Profile
+from solvers.blocks import IllPosedError
 from solvers.movement import MovementMatching
 from solvers.prior import PCAPrior
 from solvers.streaming import StreamingMovement
+
+log = logging.getLogger(__name__)
 
 DEFAULTS = {"alpha": 1.0, "beta": 0.1, "prior": "shapes", "prior_threshold": 1e-6, "ridge": 0.0,
             "start": "neutral", "end": "neutral", "missing": "fill", "window": 24, "lookahead": 0}
@@ -55,8 +59,24 @@ def build_prior(profile: Profile, spec, threshold: float) -> PCAPrior | None:
 
 def build_movement(profile: Profile, options: Mapping | None = None):
     """Offline :class:`MovementMatching` (with ``step`` for live use), or with ``stream`` the
-    :class:`StreamingMovement` sliding-window solver."""
+    :class:`StreamingMovement` sliding-window solver.
+
+    When the system is singular (more shapes than the markers and prior can pin down, as on
+    film-scale rigs) and no ridge was asked for, a ridge of 1e-6 of the basis's mean column
+    energy makes it well posed instead of failing.
+    """
     o = {**DEFAULTS, **{k: v for k, v in (options or {}).items() if v is not None}}
+    try:
+        return _build(profile, o)
+    except IllPosedError:
+        if float(o["ridge"]) > 0:
+            raise
+        ridge = 1e-6 * float(np.mean(np.sum(profile.basis**2, axis=0)))
+        log.info("movement system singular; adding ridge %.3g", ridge)
+        return _build(profile, {**o, "ridge": ridge})
+
+
+def _build(profile: Profile, o: dict):
     alpha = float(o["alpha"])
     prior = build_prior(profile, o["prior"], float(o["prior_threshold"])) if alpha > 0 else None
     if prior is None:
