@@ -46,13 +46,14 @@ def landmark_report(result, generic_layout, reference_rig, reference_layout) -> 
             "within_8pct": int((pct < 8).sum()), "n": len(rows), "median_pct": float(np.median(pct))}
 
 
-def warped_ict_accuracy(radius_fraction) -> dict:
+def warped_remeshed(rig, layout):
+    """A face with a known answer: ``rig`` warped to other proportions, moved, decimated to half
+    its triangles; returns its vertices, triangles and where ``layout``'s markers truly are."""
     import igl
     from scipy.spatial.transform import Rotation
 
     from livecap.demo.performance import actor_warp
 
-    rig, layout = _ict()
     warp = actor_warp(np.random.default_rng(7))
     R = Rotation.from_rotvec([0.1, 0.15, 0.05]).as_matrix()
 
@@ -60,7 +61,12 @@ def warped_ict_accuracy(radius_fraction) -> dict:
         return warp(p) @ R.T + np.array([5.0, -20.0, 12.0])
 
     V, F, _, _ = igl.decimate(move(rig.neutral), rig.triangles, len(rig.triangles) // 2)
-    truth = move(layout.sampling_matrix(rig.n_vertices) @ rig.neutral)
+    return V, F, move(layout.sampling_matrix(rig.n_vertices) @ rig.neutral)
+
+
+def warped_ict_accuracy(radius_fraction) -> dict:
+    rig, layout = _ict()
+    V, F, truth = warped_remeshed(rig, layout)
     res = transfer(rig, layout, V, F, TransferOptions(radius_fraction=radius_fraction))
     err = np.linalg.norm(res.landmarks.points - truth, axis=1) / res.eye_width * 100
     return {"radius_fraction": radius_fraction, "within_8pct": float((err < 8).mean()),

@@ -62,20 +62,10 @@ def test_ict_rig_onto_demo(demo, ict):
 
 def test_landmarks_on_a_warped_remeshed_ict(ict):
     """Ground truth known: ICT warped to other proportions, moved, decimated to half its triangles."""
-    import igl
-    from scipy.spatial.transform import Rotation
-
-    from livecap.demo.performance import actor_warp
+    from benchmarks.transfer import warped_remeshed
 
     rig, layout = ict
-    warp = actor_warp(np.random.default_rng(7))
-    R = Rotation.from_rotvec([0.1, 0.15, 0.05]).as_matrix()
-
-    def move(p):
-        return warp(p) @ R.T + np.array([5.0, -20.0, 12.0])
-
-    V, F, _, _ = igl.decimate(move(rig.neutral), rig.triangles, len(rig.triangles) // 2)
-    truth = move(layout.sampling_matrix(rig.n_vertices) @ rig.neutral)
+    V, F, truth = warped_remeshed(rig, layout)
     src, dst = Surface(rig.neutral, rig.triangles), Surface(V, F)
     sim = prealign(src, dst)
     aligned = Surface(sim.apply(rig.neutral), rig.triangles)

@@ -31,6 +31,19 @@ def add_rig_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--markers", help="markers.json (default: in the rig folder, or <rig>.markers.json)")
 
 
+def add_take_solve_arguments(p: argparse.ArgumentParser) -> None:
+    """A take, its rig, calibration and the solver mode: what every take-solving command takes."""
+    from livecap.modes import DEFAULT_MODE, MODES
+
+    p.add_argument("take", help="marker take: .c3d, .trc or .csv")
+    add_rig_arguments(p)
+    add_calibration_arguments(p)
+    p.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES),
+                   help=f"solver mode (default {DEFAULT_MODE})")
+    p.add_argument("--ridge", type=float,
+                   help="ridge weight lambda (default: the mode's, or the one calibration selected)")
+
+
 def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", help="calibrated profile (.npz from 'livecap calibrate'); "
                    "without it the take's first --neutral-seconds are taken as the neutral face")

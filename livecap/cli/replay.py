@@ -13,15 +13,14 @@ from pathlib import Path
 import numpy as np
 
 from livecap.cli.common import (
-    add_calibration_arguments,
-    add_rig_arguments,
+    add_take_solve_arguments,
     load_rig,
     profile_for,
     progress_bar,
     solver_options,
 )
 from livecap.demo import truth_path
-from livecap.modes import DEFAULT_MODE, MODES, build_solver
+from livecap.modes import build_solver
 from livecap.solve import prepare_targets
 from livecap.stabilise import to_quaternion
 from transport.takefile import read_take
@@ -40,13 +39,7 @@ def _size(text: str) -> tuple[int, int]:
 def register(sub) -> None:
     p = sub.add_parser("replay", help="solve a take and render a preview video / PNG frames (offscreen)",
                        description="Solve a recorded take and render the rig offscreen (EGL) to MP4 and/or PNG.")
-    p.add_argument("take", help="marker take: .c3d, .trc or .csv")
-    add_rig_arguments(p)
-    add_calibration_arguments(p)
-    p.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES),
-                   help=f"solver mode (default {DEFAULT_MODE})")
-    p.add_argument("--ridge", type=float,
-                   help="ridge weight lambda (default: the mode's, or the one calibration selected)")
+    add_take_solve_arguments(p)
     p.add_argument("--preview", help="MP4 video to write")
     p.add_argument("--frames", help="folder for PNG frames (frame_<number>.png)")
     p.add_argument("--size", type=_size, default=(640, 480), help="panel size WxH (default 640x480)")

@@ -5,15 +5,14 @@ from __future__ import annotations
 import argparse
 
 from livecap.cli.common import (
-    add_calibration_arguments,
-    add_rig_arguments,
+    add_take_solve_arguments,
     load_rig,
     profile_for,
     progress_bar,
     solver_options,
 )
 from livecap.cli.movement_args import add_movement_arguments, movement_options
-from livecap.modes import DEFAULT_MODE, MODES, build_solver
+from livecap.modes import build_solver
 from livecap.solve import solve_take
 from transport.takefile import read_take
 from transport.weights_csv import write_weights_csv
@@ -22,13 +21,7 @@ from transport.weights_csv import write_weights_csv
 def register(sub) -> None:
     p = sub.add_parser("solve", help="solve a take (C3D/TRC/CSV) for rig weights, write a weights CSV",
                        description="Solve every frame of a recorded take for the rig's blendshape weights.")
-    p.add_argument("take", help="marker take: .c3d, .trc or .csv")
-    add_rig_arguments(p)
-    add_calibration_arguments(p)
-    p.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES),
-                   help=f"solver mode (default {DEFAULT_MODE})")
-    p.add_argument("--ridge", type=float,
-                   help="ridge weight lambda (default: the mode's, or the one calibration selected)")
+    add_take_solve_arguments(p)
     p.add_argument("--temporal", type=float, default=0.0, help="qp: weight gamma of |w - w_prev|^2")
     p.add_argument("--keys", help="keys file (labelled ROM take or explicit key pairs): rbf keys, qp actor basis")
     p.add_argument("--basis", choices=["rig", "actor"], default="rig",
