@@ -160,7 +160,11 @@ def run(args: argparse.Namespace) -> int:
     curves: dict[str, np.ndarray] = {}
     todo = []
     for name, factory in variants(args.modes):
-        solver = factory(profile, {"rate": take.rate})
+        try:
+            solver = factory(profile, {"rate": take.rate})
+        except ValueError as e:  # a mode needing more than a rig and a neutral (e.g. rbf's key pairs)
+            print(f"skipped {name}: {e}")
+            continue
         offline = hasattr(solver, "solve")
         todo.append((name, solver, "offline" if offline else "streaming", False))
         if offline and hasattr(solver, "latency_frames"):
