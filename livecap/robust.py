@@ -1,38 +1,46 @@
 """Noise-robust solving: regularisation selected from data, observability-aware priors, filters.
 
-This module wires ``solvers.regularisation``, ``solvers.observability`` and ``solvers.filters``
-to Profiles and modes:
+This module wires ``solvers.sparse_fit``, ``solvers.regularisation``, ``solvers.observability``
+and ``solvers.filters`` to Profiles and modes:
 
 * ``tune_profile(profile, targets, valid, rate)`` estimates the marker noise, selects the ridge
-  by held-out-marker cross-validation (GCV alongside) and stores it all in
-  ``profile.settings["robust"]`` (plus ``settings["ridge"]``, ``settings["noise_mm"]``), so a
-  saved profile starts a session with the selected values;
-* ``robust_solver`` is the ``robust`` streaming mode: a bounded prior least-squares fit per frame
-  (selected ridge, a rest-pull at each shape's noise floor, optional tying of indistinguishable
-  pairs) followed by a 1€ filter on the weights;
-* ``smooth_solver`` is ``robust-lag``: the same fit with a fixed-lag smoother (latency stated in
-  frames) for offline solves and lookahead streams;
+  of the plain prior fit by held-out-marker cross-validation (GCV alongside) and the ridge of the
+  sparse fit the same way, and stores it all in ``profile.settings["robust"]``, so a saved
+  profile starts a session with the selected values;
+* ``robust_solver`` is the ``robust`` streaming mode, three stages each set from the noise:
+  a causal quadratic end-point filter on the markers (no lag on motion up to constant
+  acceleration), a sparse bounded fit (L1 at the universal threshold of the filtered noise, with
+  hysteresis; small ridge from held-out markers), and a 1€ filter on the weights;
+* ``smooth_solver`` is ``robust-lag``: the same sparse fit on markers smoothed by a centred
+  quadratic over ``2 lag + 1`` frames, streamed with ``lag`` frames of latency; offline (zero
+  phase) the weight curves are then smoothed by a centred quartic over ``6 lag + 1`` frames;
 * ``filtered(factory)`` wraps any registered mode's factory with the 1€ weight filter, so modes
   that arrive later (QP, movement, RBF) get a filtered variant for free.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
 
 from livecap.calibration import Profile
-from solvers.filters import FilteredSolver, FixedLagSmoother, OneEuroFilter
+from solvers.filters import CausalPolyFilter, FilteredSolver, FixedLagSmoother, OneEuroFilter, savgol_weights
 from solvers.observability import noise_floor, observability, tying_prior
 from solvers.regularisation import PriorLeastSquares, estimate_noise, gcv_ridge, holdout_ridge
+from solvers.sparse_fit import HysteresisSparseFit, holdout_sparse_ridge, l1_weights, universal_threshold
 
 # Defaults, used when a profile was never tuned (documented in docs/robustness.md).
 DEFAULTS = {
     "noise_mm": 0.5,  # marker noise sigma per coordinate, mm
     "prior_sd": 0.3,  # untuned ridge: the MAP ridge (noise / prior_sd)^2 of a N(0, prior_sd^2) weight prior
-    "rest_pull": 1.0,  # shapes stay at rest until their evidence exceeds this many noise-floor sds
+    "rest_pull": 1.0,  # prior fit: shapes stay at rest until their evidence exceeds this many noise-floor sds
     "tie": 0.0,  # strength of the tying prior on nearly indistinguishable pairs (x ridge)
+    "sparse_ridge": 1.0,  # sparse fit's ridge when untuned
+    "z_enter": 0.0,  # sparse fit: a resting shape enters above this many noise sds (0: sqrt(2 ln m))
+    "z_stay": 2.0,  # ... and an active one stays active above this many
+    "marker_window": 0.1,  # causal quadratic marker filter span, seconds (12 frames at 120 Hz)
     "min_cutoff": 1.0,  # 1€ filter on weights, Hz
     "beta": 30.0,  # 1€ speed coefficient, per (weight unit / s)
     "d_cutoff": 1.0,  # 1€ derivative cutoff, Hz
@@ -44,26 +52,54 @@ def robust_settings(profile: Profile, options: dict | None = None) -> dict:
     """Tuned values from the profile, overridden by ``options``, falling back to DEFAULTS."""
     out = dict(DEFAULTS)
     out.update(profile.settings.get("robust", {}))
-    out.update({k: v for k, v in (options or {}).items() if k in DEFAULTS or k == "ridge"})
+    out.update({k: v for k, v in (options or {}).items() if k in DEFAULTS or k in ("ridge", "rate")})
     if "ridge" not in out:
         out["ridge"] = (out["noise_mm"] / out["prior_sd"]) ** 2
     return out
 
 
 def tune_profile(profile: Profile, targets: np.ndarray, valid: np.ndarray, rate: float) -> dict:
-    """Select the noise level and ridge from a take's stabilised displacements; store in the profile.
+    """Select the noise level and the ridges from a take's stabilised displacements; store in the profile.
 
-    Deterministic: the folds, frame thinning and grid are fixed. Returns the stored dict.
+    Deterministic: the folds, frame thinning and grids are fixed. Returns the stored dict.
     """
     noise = estimate_noise(targets, valid)
     held = holdout_ridge(profile.basis, targets, valid, lower=profile.lower, upper=profile.upper)
     gcv = gcv_ridge(profile.basis, targets, valid)
     tuned = {"noise_mm": noise, "ridge": held.value, "ridge_gcv": gcv.value, "rate": float(rate),
              "criterion": held.criterion}
+    # the sparse fit sees markers through the causal filter: select its ridge on what it will see
+    filt = marker_filter(float(rate), DEFAULTS["marker_window"])
+    smoothed = filt.filter(targets, np.broadcast_to(np.asarray(valid, bool)[..., None], np.shape(targets)))
+    z = universal_threshold(profile.basis.shape[1])
+    sparse = holdout_sparse_ridge(profile.basis, smoothed, valid, noise * np.sqrt(filt.noise_gain), z,
+                                  profile.lower, profile.upper)
+    tuned.update(sparse_ridge=sparse.value, sparse_criterion=sparse.criterion)
     profile.settings["robust"] = tuned
     profile.settings.setdefault("noise_mm", noise)
     profile.settings.setdefault("ridge_selected", held.value)
     return tuned
+
+
+def marker_filter(rate: float, seconds: float) -> CausalPolyFilter:
+    """The causal quadratic end-point filter spanning ``seconds`` (at least 4 frames)."""
+    return CausalPolyFilter(max(4, int(round(seconds * rate))), order=2)
+
+
+def _rate(profile: Profile, options: dict | None) -> float:
+    return float((options or {}).get("rate", profile.settings.get("robust", {}).get("rate", 120.0)))
+
+
+def sparse_fit(profile: Profile, options: dict | None, gain: float) -> HysteresisSparseFit:
+    """The sparse fit for markers whose noise variance was scaled by ``gain`` by a filter."""
+    s = robust_settings(profile, options)
+    B = profile.basis
+    sigma = float(s["noise_mm"]) * np.sqrt(gain)
+    z_enter = float(s["z_enter"]) or universal_threshold(B.shape[1])
+    z_stay = min(float(s["z_stay"]), z_enter)
+    ridge = float((options or {}).get("ridge", s["sparse_ridge"]))
+    return HysteresisSparseFit(B, profile.lower, profile.upper, ridge, enter=l1_weights(B, sigma, z_enter),
+                               stay=l1_weights(B, sigma, z_stay))
 
 
 def prior_solver(profile: Profile, options: dict | None = None) -> PriorLeastSquares:
@@ -81,29 +117,58 @@ def prior_solver(profile: Profile, options: dict | None = None) -> PriorLeastSqu
 
 def weight_filter(profile: Profile, options: dict | None = None) -> OneEuroFilter:
     s = robust_settings(profile, options)
-    rate = float((options or {}).get("rate", profile.settings.get("robust", {}).get("rate", 120.0)))
-    return OneEuroFilter(rate, s["min_cutoff"], s["beta"], s["d_cutoff"])
+    return OneEuroFilter(_rate(profile, options), s["min_cutoff"], s["beta"], s["d_cutoff"])
 
 
 def robust_solver(profile: Profile, options: dict | None = None) -> FilteredSolver:
-    """Streaming: prior fit + 1€ filter on the weights (no fixed latency)."""
-    return FilteredSolver(prior_solver(profile, options), weight_filter=weight_filter(profile, options))
+    """Streaming: causal quadratic marker filter -> sparse fit -> 1€ on the weights (no fixed latency)."""
+    s = robust_settings(profile, options)
+    markers = marker_filter(_rate(profile, options), float(s["marker_window"]))
+    return FilteredSolver(sparse_fit(profile, options, markers.noise_gain), marker_filter=markers,
+                          weight_filter=weight_filter(profile, options))
 
 
 def smooth_solver(profile: Profile, options: dict | None = None) -> LookaheadSolver:
-    """Lookahead / offline: prior fit + fixed-lag smoother; ``latency_frames`` = lag when streamed."""
-    s = robust_settings(profile, options)
-    return LookaheadSolver(prior_solver(profile, options), weight_filter=FixedLagSmoother(int(s["lag"])))
+    """Lookahead / offline: centred quadratic marker smoothing over 2 lag + 1 frames -> sparse fit;
+    ``latency_frames`` = lag when streamed, none offline."""
+    lag = int(robust_settings(profile, options)["lag"])
+    gain = float(np.sum(savgol_weights(lag) ** 2))
+    return LookaheadSolver(sparse_fit(profile, options, gain), FixedLagSmoother(lag),
+                           FixedLagSmoother(3 * lag, order=4))
 
 
-class LookaheadSolver(FilteredSolver):
-    """``step``: streamed with ``lag`` frames of lookahead (output is frame t - lag);
-    ``solve``: the whole take, the smoother centred on every frame (no latency offline)."""
+class LookaheadSolver:
+    """``step``: streamed with ``lag`` frames of lookahead (markers smoothed around frame t - lag,
+    whose weights it returns); ``solve``: the whole take, the smoother centred on every frame, then
+    the weight curves smoothed by ``offline`` (zero phase: a centred quartic keeps blink peaks)."""
+
+    def __init__(self, inner, smoother: FixedLagSmoother, offline: FixedLagSmoother | None = None) -> None:
+        self.inner, self.smoother, self.offline = inner, smoother, offline
+        self.lower, self.upper = inner.lower, inner.upper
+        self._valid: deque = deque(maxlen=smoother.lag + 1)
+
+    @property
+    def latency_frames(self) -> int:
+        return self.smoother.lag
+
+    def reset(self) -> None:
+        self.inner.reset()
+        self.smoother.reset()
+        self._valid.clear()
+
+    def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        valid = np.asarray(valid, dtype=bool)
+        if not self._valid:  # the smoother pads its past with the first frame; so does the mask
+            self._valid.extend([valid] * self.smoother.lag)
+        self._valid.append(valid)
+        smoothed = self.smoother.step(target, np.broadcast_to(valid[:, None], np.shape(target)))
+        return self.inner.step(smoothed, self._valid[0])
 
     def solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         self.inner.reset()
-        W = np.array([self.inner.step(targets[t], valid[t]) for t in range(len(targets))])
-        return np.clip(self.weight_filter.filter(W), self.lower, self.upper)
+        smoothed = self.smoother.filter(targets, np.broadcast_to(np.asarray(valid, bool)[..., None], targets.shape))
+        W = np.array([self.inner.step(smoothed[t], valid[t]) for t in range(len(targets))])
+        return W if self.offline is None else np.clip(self.offline.filter(W), self.lower, self.upper)
 
 
 def filtered(factory: Callable) -> Callable:
@@ -113,7 +178,7 @@ def filtered(factory: Callable) -> Callable:
         inner = factory(profile, options or {})
         filt = weight_filter(profile, options)
         if hasattr(inner, "solve"):
-            return _OfflineFiltered(inner, filt, profile.lower, profile.upper)
+            return _OfflineFiltered(inner, weight_filter=filt, lower=profile.lower, upper=profile.upper)
         return FilteredSolver(inner, weight_filter=filt, lower=profile.lower, upper=profile.upper)
 
     return build

@@ -15,6 +15,9 @@
   Vectorised over channels (markers x 3 or shapes); ``min_cutoff``, ``beta`` and ``d_cutoff``
   are scalars or one value per channel. Causal: the added lag is the exponential smoother's
   time constant tau, shrinking as the channel speeds up.
+* ``CausalPolyFilter``: the causal end of a Savitzky–Golay fit (a quadratic through the last N
+  samples, evaluated at the newest): no lag on motion up to constant acceleration, noise variance
+  cut by ``noise_gain`` (0.55 for N = 12). Used on the markers before the robust solve.
 * ``FixedLagSmoother``: a local quadratic (Savitzky–Golay) fit over a centred window of
   ``2 lag + 1`` frames; output frame t - lag, so its latency is exactly ``lag`` frames. For
   offline solves and streaming modes that may look ahead (Seol et al. 2012 §6 "lookahead").
@@ -178,6 +181,81 @@ class FixedLagSmoother:
             est = self._centre(win, m)
             out[t] = np.where(np.isnan(est), flat[t], est)
         return out.reshape(X.shape)
+
+
+def endpoint_weights(window: int, order: int = 2) -> np.ndarray:
+    """Weights over samples t - window + 1 .. t of a least-squares polynomial fit evaluated at t.
+
+    The causal end of a Savitzky–Golay fit: exact (no lag, no bias) on polynomials of degree
+    <= ``order``; ``sum(h**2)`` is the white-noise variance gain.
+    """
+    k = np.arange(-(window - 1), 1, dtype=np.float64)
+    return np.linalg.pinv(np.vander(k, order + 1, increasing=True))[0]
+
+
+class CausalPolyFilter:
+    """Per channel, a least-squares polynomial through the last ``window`` samples, evaluated at the
+    newest one: a causal smoother with no lag on motions up to degree ``order`` (a quadratic follows a
+    constant acceleration), so noise is cut without the exponential smoother's delay.
+
+    Missing samples are left out of the fit (weighted least squares); a channel with fewer than
+    ``order + 1`` samples in the window passes its newest valid value through.
+    """
+
+    def __init__(self, window: int, order: int = 2) -> None:
+        if window < order + 2:
+            raise ValueError(f"causal polynomial filter needs window >= order + 2 ({order + 2}), got {window}")
+        self.window = int(window)
+        self.order = int(order)
+        k = np.arange(-(self.window - 1), 1, dtype=np.float64)
+        self._V = np.vander(k, self.order + 1, increasing=True)  # window x (order + 1)
+        self._h = endpoint_weights(self.window, self.order)
+        self.reset()
+
+    @property
+    def noise_gain(self) -> float:
+        """Output / input variance of white noise (every sample valid)."""
+        return float(np.sum(self._h**2))
+
+    latency_frames = 0  # exact on polynomials of degree <= order
+
+    def reset(self) -> None:
+        self._buf: np.ndarray | None = None  # window x channels
+        self._ok: np.ndarray | None = None
+        self._last: np.ndarray | None = None
+
+    def step(self, x: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        ok = np.ones(x.shape, bool) if valid is None else np.broadcast_to(np.asarray(valid, bool), x.shape)
+        flat, okf = x.reshape(-1), ok.reshape(-1)
+        if self._buf is None:
+            self._buf = np.zeros((self.window, flat.size))
+            self._ok = np.zeros((self.window, flat.size), bool)
+            self._last = np.where(okf, flat, 0.0)
+        self._buf = np.roll(self._buf, -1, axis=0)
+        self._ok = np.roll(self._ok, -1, axis=0)
+        self._buf[-1], self._ok[-1] = flat, okf
+        full = self._ok.all(axis=0)
+        out = np.where(okf, flat, self._last)
+        if full.all():
+            out = self._h @ self._buf
+        else:
+            out[full] = self._h @ self._buf[:, full]
+            part = ~full & (self._ok.sum(axis=0) > self.order)
+            if part.any():
+                w = self._ok[:, part].astype(np.float64)
+                G = np.einsum("wc,wi,wj->cij", w, self._V, self._V)
+                r = np.einsum("wc,wi,wc->ci", w, self._V, self._buf[:, part])
+                coef = np.linalg.solve(G, r[..., None])[..., 0]
+                out[part] = coef @ self._V[-1]
+        self._last = np.where(okf, out, self._last)
+        return out.reshape(x.shape)
+
+    def filter(self, X: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+        """Run over a sequence (T, ...) from a fresh state; the same numbers as calling ``step``."""
+        self.reset()
+        X = np.asarray(X, dtype=np.float64)
+        return np.stack([self.step(X[t], None if valid is None else valid[t]) for t in range(len(X))])
 
 
 class FilteredSolver:

@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from solvers.filters import FilteredSolver, FixedLagSmoother, OneEuroFilter
+from solvers.filters import CausalPolyFilter, FilteredSolver, FixedLagSmoother, OneEuroFilter, endpoint_weights
 
 
 class PaperOneEuro:
@@ -135,3 +135,30 @@ def test_filtered_solver_filters_weights_clips_and_resets():
     fm = FilteredSolver(_Echo(), marker_filter=OneEuroFilter(120.0, 0.5))
     fm.step(np.zeros((3, 3)), np.ones(3, bool))
     assert fm.step(np.ones((3, 3)), np.ones(3, bool))[0] < 0.2
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(4, 20), st.floats(-3, 3), st.floats(-0.2, 0.2), st.floats(-0.01, 0.01))
+def test_causal_poly_filter_has_no_lag_on_quadratics(window, a, b, c):
+    t = np.arange(60, dtype=float)
+    x = (a + b * t + c * t * t)[:, None] * np.ones((1, 2))
+    y = CausalPolyFilter(window).filter(x)
+    np.testing.assert_allclose(y[window:], x[window:], atol=1e-7)  # exact once the window is full
+
+
+def test_causal_poly_filter_noise_gain_and_missing_samples():
+    f = CausalPolyFilter(12)
+    assert math.isclose(f.noise_gain, float(np.sum(endpoint_weights(12) ** 2)))
+    for n in (4, 12, 20):  # closed form of the quadratic end-point variance gain
+        assert math.isclose(CausalPolyFilter(n).noise_gain, 3 * (3 * n * n - 3 * n + 2) / (n * (n + 1) * (n + 2)))
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0, 1, (20000, 3))
+    assert abs(np.var(f.filter(noise)[20:]) / f.noise_gain - 1) < 0.05
+    ok = rng.random((400, 3)) > 0.2
+    ok[100:140, 0] = False  # a long gap in one channel
+    x = np.sin(np.arange(400) / 20.0)[:, None] * np.ones((1, 3))
+    y = f.filter(np.where(ok, x, 1e6), ok)  # missing samples carry garbage that must not leak out
+    assert np.isfinite(y).all() and np.abs(y).max() < 2
+    np.testing.assert_allclose(y[ok][50:], x[ok][50:], atol=0.02)
+    g = CausalPolyFilter(12)
+    np.testing.assert_array_equal(np.stack([g.step(x[t], ok[t]) for t in range(400)]), y)  # filter == steps

@@ -56,3 +56,4 @@ def test_noise_study_command_on_demo_rig(tmp_path, demo, capsys):
     assert robust["rmse"] <= 0.5 * lsq["rmse"]  # the RMSE check, on a short take
     assert robust["jitter_ratio"] < 0.2 * lsq["jitter_ratio"]
     assert robust["lag"] <= 1.0 and robust["vertex_mm"] < lsq["vertex_mm"]
+    assert robust["blink"] >= 0.9  # the sparse fit with hysteresis keeps blink amplitude

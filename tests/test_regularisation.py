@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -100,3 +102,58 @@ def test_tune_profile_stores_selection_in_settings(demo):
     assert robust_settings(profile)["ridge"] == tuned["ridge"]
     assert robust_settings(profile, {"ridge": 3.0})["ridge"] == 3.0
     assert robust_settings(Profile(**{**vars(profile), "settings": {}}))["ridge"] > 0  # untuned: MAP ridge
+
+
+def sparse_problem(seed=0, frames=300, sigma=0.5):
+    """A rig-like linear problem whose weights are mostly exactly zero (shapes at rest)."""
+    B, W, _, V = linear_problem(seed=seed, frames=frames, sigma=sigma)
+    rng = np.random.default_rng(seed + 100)
+    W = W * (rng.random(W.shape) < 0.2)
+    S = (W @ B.T + rng.normal(0, sigma, (frames, B.shape[0]))).reshape(frames, -1, 3)
+    return B, W, S, V
+
+
+def test_universal_threshold_and_l1_weights():
+    from solvers.sparse_fit import l1_weights, universal_threshold
+
+    assert math.isclose(universal_threshold(53), math.sqrt(2 * math.log(53)))
+    B = np.diag([1.0, 2.0, 4.0])
+    np.testing.assert_allclose(l1_weights(B, 0.5, 2.0), 2 * 2.0 * 0.5 * np.array([1.0, 2.0, 4.0]))
+
+
+def test_sparse_fit_keeps_resting_shapes_at_rest_and_hysteresis_keeps_amplitude():
+    from solvers.sparse_fit import HysteresisSparseFit, l1_weights, universal_threshold
+
+    B, W, S, V = sparse_problem(seed=3)
+    m = B.shape[1]
+    z = universal_threshold(m)
+    plain = PriorLeastSquares(B, np.zeros(m), np.full(m, 5.0), ridge=0.1)
+    hard = HysteresisSparseFit(B, np.zeros(m), np.full(m, 5.0), 0.1, l1_weights(B, 0.5, z), l1_weights(B, 0.5, z))
+    hyst = HysteresisSparseFit(B, np.zeros(m), np.full(m, 5.0), 0.1, l1_weights(B, 0.5, z), l1_weights(B, 0.5, 1.0))
+    run = {k: np.array([f.step(s, v) for s, v in zip(S, V, strict=True)]) for k, f in
+           (("plain", plain), ("hard", hard), ("hyst", hyst))}
+    rest = W == 0
+    zero = {k: (np.abs(v[rest]) < 1e-9).mean() for k, v in run.items()}
+    assert zero["hard"] > 0.85 and zero["hard"] > zero["plain"] + 0.3
+    big = W > 0.4
+    assert np.mean(run["hyst"][big] / W[big]) > np.mean(run["hard"][big] / W[big])  # less shrinkage once active
+    hyst.reset()
+    np.testing.assert_array_equal(np.array([hyst.step(s, v) for s, v in zip(S, V, strict=True)]), run["hyst"])
+
+
+def test_sparse_ridge_selection_is_deterministic_and_near_optimum():
+    from solvers.sparse_fit import SPARSE_GRID, holdout_sparse_ridge, l1_weights, universal_threshold
+
+    B, W, S, V = sparse_problem(seed=5)
+    m = B.shape[1]
+    z = universal_threshold(m)
+    lo, hi = np.zeros(m), np.full(m, 5.0)
+    a, b = holdout_sparse_ridge(B, S, V, 0.5, z, lo, hi), holdout_sparse_ridge(B, S, V, 0.5, z, lo, hi)
+    assert a.value == b.value and np.array_equal(a.scores, b.scores) and a.value in SPARSE_GRID
+
+    def rmse(lam):
+        fit = PriorLeastSquares(B, lo, hi, lam, rest_pull=l1_weights(B, 0.5, z))
+        return np.sqrt(np.mean((np.array([fit.step(s, v) for s, v in zip(S, V, strict=True)]) - W) ** 2))
+
+    errs = [rmse(lam) for lam in SPARSE_GRID]
+    assert rmse(a.value) < 1.15 * min(errs)

@@ -23,8 +23,18 @@ from livecap.cli.common import add_rig_arguments, load_rig, progress_bar
 from livecap.demo.performance import PerformanceSettings, perform
 from livecap.metrics import jitter, vertex_error, weight_rmse
 from livecap.modes import MODES
-from livecap.robust import ROBUST_MODES, filtered, prior_solver, tune_profile
+from livecap.robust import (
+    ROBUST_MODES,
+    filtered,
+    marker_filter,
+    robust_settings,
+    robust_solver,
+    sparse_fit,
+    tune_profile,
+)
 from livecap.solve import prepare_targets
+from solvers.filters import FilteredSolver, OneEuroFilter
+from solvers.sparse_fit import SPARSE_GRID
 
 
 def register(sub) -> None:
@@ -37,7 +47,7 @@ def register(sub) -> None:
     p.add_argument("--rate", type=float, default=120.0)
     p.add_argument("--seed", type=int, default=1, help="performance seed (curves, head motion, noise)")
     p.add_argument("--modes", nargs="*", help="only these modes (default: all registered, + filtered variants)")
-    p.add_argument("--no-sweep", action="store_true", help="skip the ridge sweep")
+    p.add_argument("--no-sweep", action="store_true", help="skip the ridge sweep and the jitter/lag/blink trade-off")
     p.add_argument("--plot", default="out/noise_study.png", help="PNG of weight curves ('' for none)")
     p.add_argument("--json", help="also write the table as JSON")
     p.set_defaults(func=run)
@@ -142,14 +152,19 @@ def run(args: argparse.Namespace) -> int:
     tj = max(jitter(truth), 1e-12)
     print(f"take: {take.n_frames} frames at {take.rate:g} Hz, {take.n_markers} markers, {rig.n_shapes} shapes, "
           f"noise {args.noise_mm:g} mm, {(~take.valid).mean() * 100:.1f}% missing (seed {args.seed})")
-    print(f"selected: noise {tuned['noise_mm']:.3f} mm (estimated), ridge {tuned['ridge']:.3g} "
-          f"({tuned['criterion']}), GCV ridge {tuned['ridge_gcv']:.3g}")
+    print(f"selected: noise {tuned['noise_mm']:.3f} mm (estimated); sparse-fit ridge {tuned['sparse_ridge']:.3g} "
+          f"({tuned['sparse_criterion']}); plain prior-fit ridge {tuned['ridge']:.3g} ({tuned['criterion']}), "
+          f"GCV {tuned['ridge_gcv']:.3g}")
 
     rows: list[Row] = []
     curves: dict[str, np.ndarray] = {}
     todo = []
     for name, factory in variants(args.modes):
-        solver = factory(profile, {"rate": take.rate})
+        try:
+            solver = factory(profile, {"rate": take.rate})
+        except ValueError as e:  # a mode needing more than a rig and a neutral (e.g. rbf's key pairs)
+            print(f"skipped {name}: {e}")
+            continue
         offline = hasattr(solver, "solve")
         todo.append((name, solver, "offline" if offline else "streaming", False))
         if offline and hasattr(solver, "latency_frames"):
@@ -169,13 +184,18 @@ def run(args: argparse.Namespace) -> int:
     for line in summary["lines"]:
         print(line)
 
-    sweep = None
+    sweep = trade = None
     if not args.no_sweep:
-        sweep = ridge_sweep(profile, targets, take.valid, truth, tuned["ridge"])
-        print(f"ridge sweep (prior fit, no filter): selected {tuned['ridge']:.3g} -> "
-              f"RMSE {sweep['selected_rmse']:.4f}; "
-              f"sweep optimum {sweep['best_ridge']:.3g} -> RMSE {sweep['best_rmse']:.4f}")
+        sweep = ridge_sweep(profile, targets, take.valid, truth, tuned["sparse_ridge"], take.rate)
+        print(f"ridge sweep (robust mode): selected {tuned['sparse_ridge']:.3g} ({tuned['sparse_criterion']}) -> "
+              f"RMSE {sweep['selected_rmse']:.4f}; sweep optimum {sweep['best_ridge']:.3g} -> "
+              f"RMSE {sweep['best_rmse']:.4f}")
         print("  " + "  ".join(f"{lam:.3g}:{e:.4f}" for lam, e in zip(sweep["grid"], sweep["rmse"], strict=True)))
+        trade = tradeoff(profile, targets, take.valid, truth, rig.names, take.rate, tj)
+        print("jitter / lag / blink trade-off of the robust mode's weight filter (1€ min_cutoff Hz, beta):")
+        for r in trade:
+            print(f"  {r['filter']:18s} jitter {r['jitter_ratio']:7.2f} x  lag {r['lag']:5.2f} fr  "
+                  f"blink {r['blink'] * 100:4.0f}%  RMSE {r['rmse']:.4f}")
     if args.plot:
         plot(args.plot, rig.names, truth, curves, take.rate)
         print(f"plot: {args.plot}")
@@ -183,7 +203,7 @@ def run(args: argparse.Namespace) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"settings": vars(s), "selected": tuned, "rows": [vars(r) for r in rows],
                                                "summary": {k: v for k, v in summary.items() if k != "lines"},
-                                               "sweep": sweep}, indent=1, default=float))
+                                               "sweep": sweep, "tradeoff": trade}, indent=1, default=float))
     return 0
 
 
@@ -208,18 +228,36 @@ def summarise(rows: list[Row]) -> dict:
     return out
 
 
-def ridge_sweep(profile, targets, valid, truth, selected: float) -> dict:
-    """RMSE of the prior fit (no filter) over a ridge grid, to place the selected value."""
-    grid = [float(g) for g in np.logspace(-1, 3, 9) if not np.isclose(g, selected, rtol=1e-3)]
-    grid = sorted(grid + [float(selected)])
+def ridge_sweep(profile, targets, valid, truth, selected: float, rate: float) -> dict:
+    """RMSE of the robust mode over a grid of its sparse fit's ridge, to place the selected value."""
+    grid = sorted({float(g) for g in SPARSE_GRID} | {float(selected)})
     rmse = []
     for lam in grid:
-        solver = prior_solver(profile, {"ridge": lam})
-        W = np.array([solver.step(targets[t], valid[t]) for t in range(len(targets))])
+        W, _ = run_solver(robust_solver(profile, {"ridge": lam, "rate": rate}), targets, valid, True)
         rmse.append(weight_rmse(W, truth))
     i = int(np.argmin(rmse))
     return {"grid": grid, "rmse": rmse, "best_ridge": grid[i], "best_rmse": rmse[i],
             "selected": float(selected), "selected_rmse": rmse[grid.index(float(selected))]}
+
+
+TRADE_FILTERS = [None, (1.0, 100.0), (1.0, 30.0), (1.0, 10.0), (0.5, 10.0), (0.25, 3.0), (0.1, 1.0), (0.05, 0.0)]
+
+
+def tradeoff(profile, targets, valid, truth, names, rate: float, truth_jitter: float) -> list[dict]:
+    """The robust mode with weaker to stronger 1€ weight filters: how far jitter falls for how much
+    lag and blink amplitude (the causal marker filter and sparse fit run once; the filters after)."""
+    s = robust_settings(profile, {"rate": rate})
+    markers = marker_filter(rate, float(s["marker_window"]))
+    fit = FilteredSolver(sparse_fit(profile, {"rate": rate}, markers.noise_gain), marker_filter=markers)
+    W0, _ = run_solver(fit, targets, valid, True)
+    out = []
+    for f in TRADE_FILTERS:
+        W = W0 if f is None else np.clip(OneEuroFilter(rate, f[0], f[1], 1.0).filter(W0), profile.lower,
+                                         profile.upper)
+        out.append({"filter": "none" if f is None else f"1e {f[0]:g} Hz, {f[1]:g}",
+                    "jitter_ratio": jitter(W) / truth_jitter, "lag": lag_frames(W, truth),
+                    "blink": blink_amplitude(W, truth, names), "rmse": weight_rmse(W, truth)})
+    return out
 
 
 def plot(path: str, names: list[str], truth: np.ndarray, curves: dict[str, np.ndarray], rate: float) -> None:
