@@ -26,6 +26,7 @@ import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
@@ -40,16 +41,13 @@ for _a, _b in (("JawLeft", "JawRight"), ("MouthLeft", "MouthRight")):
 LLF_CSV_HEADER = ["Timecode", "BlendShapeCount", *LLF_CSV_SHAPES, *POSE_NAMES]
 
 
-class _Lines:
-    """An append-only text file with explicit flush accounting."""
+class _Appending:
+    """An append-only file with explicit flush accounting: ``flushed`` frames survive kill -9."""
 
-    def __init__(self, path: str | Path, fsync: bool = False) -> None:
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.fh = open(self.path, "w", newline="", buffering=1 << 16)
-        self.fsync = fsync
-        self.written = 0  # frames handed to the file object
-        self.flushed = 0  # frames handed to the operating system
+    fh: IO
+    fsync: bool = False
+    written = 0  # frames handed to the file object
+    flushed = 0  # frames handed to the operating system
 
     def flush(self) -> None:
         if self.fh.closed:
@@ -58,6 +56,16 @@ class _Lines:
         if self.fsync:
             os.fsync(self.fh.fileno())
         self.flushed = self.written
+
+
+class _Lines(_Appending):
+    """An append-only text file."""
+
+    def __init__(self, path: str | Path, fsync: bool = False) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.fh = open(self.path, "w", newline="", buffering=1 << 16)
+        self.fsync = fsync
 
     def close(self) -> None:
         if not self.fh.closed:
@@ -201,7 +209,7 @@ def read_jsonl_recording(path: str | Path) -> tuple[list[str], list[dict]]:
 _JOURNAL_MAGIC = "livecap-markers"
 
 
-class MarkerRecorder:
+class MarkerRecorder(_Appending):
     """Record every accepted input frame (session label order) to ``.npz`` or ``.c3d``."""
 
     def __init__(self, path: str | Path, labels: list[str], rate: float, fsync: bool = False) -> None:
@@ -219,22 +227,12 @@ class MarkerRecorder:
         head = json.dumps({"magic": _JOURNAL_MAGIC, "version": 1, "labels": self.labels, "rate": self.rate,
                            "record": self._fmt}) + "\n"
         self.fh.write(head.encode())
-        self.written = 0
-        self.flushed = 0
 
     def record(self, frame: MarkerFrame) -> None:
         self.fh.write(struct.pack(self._fmt, int(frame.frame), float(frame.timestamp),
                                   *np.asarray(frame.positions, dtype=np.float64).ravel(),
                                   *np.asarray(frame.valid, dtype=np.uint8)))
         self.written += 1
-
-    def flush(self) -> None:
-        if self.fh.closed:
-            return
-        self.fh.flush()
-        if self.fsync:
-            os.fsync(self.fh.fileno())
-        self.flushed = self.written
 
     def close(self) -> None:
         if self.fh.closed:
