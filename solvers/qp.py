@@ -62,6 +62,7 @@ class FrameQP:
         # previous weights keeps it positive definite and holds those shapes where they were.
         scale = float(np.mean(np.einsum("ij,ij->j", self.basis, self.basis))) or 1.0
         self._floor = 1e-9 * scale
+        self.linear = np.zeros(self.m)  # a linear term callers may change per frame (e.g. an L1 penalty)
         self.cache_size = int(cache_size)
         self._models: OrderedDict[bytes, tuple] = OrderedDict()
         self.failures = 0
@@ -126,7 +127,7 @@ class FrameQP:
         model, BtD, floor, H, rows = self._workspace(key, seen)
         if rows is not None:
             s = np.where(rows, s, 0.0)
-        f = -(BtD @ s) - self._prior_f
+        f = -(BtD @ s) - self._prior_f + self.linear
         if self.temporal + floor > 0:
             f -= (self.temporal + floor) * self._prev
         try:

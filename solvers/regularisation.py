@@ -24,12 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-try:  # daqp is a project dependency; keep a scipy fallback so the solver never fails to build
-    from ctypes import c_int
-
-    import daqp
-except ImportError:  # pragma: no cover
-    daqp = None
+from solvers.qp import FrameQP
 
 DEFAULT_GRID = np.logspace(-2, 4, 25)
 
@@ -125,7 +120,7 @@ def holdout_ridge(basis: np.ndarray, targets: np.ndarray, valid: np.ndarray, gri
     return Selection(best, np.asarray(grid, float), scores, f"{folds}-fold held-out markers")
 
 
-class PriorLeastSquares:
+class PriorLeastSquares(FrameQP):
     """Bounded per-frame fit with a Gaussian prior and a rest-pull (Tikhonov, generalised).
 
     minimise  |B_v w - s_v|^2 + (w - p)^T R (w - p) + mu^T w    subject to lower <= w <= upper
@@ -134,57 +129,30 @@ class PriorLeastSquares:
     matrix from ``solvers.observability``), p the prior mean and mu >= 0 a per-shape pull toward
     rest: with w >= 0 it is an L1 penalty, so a shape whose evidence is below its noise floor
     stays exactly at rest instead of jittering (the sparse fits discussed in Lewis et al. 2014
-    §5.2). The constant Hessian is formed once; missing markers subtract their rows (a rank-3
-    update), and the bounded QP is solved by DAQP (Arnström et al. 2022) per frame.
+    §5.2). It is the per-frame QP of ``solvers.qp.FrameQP`` (prefactored DAQP workspace per marker-
+    visibility pattern, warm-started active set) with R as its prior and mu/2 as its linear term.
     """
 
     def __init__(self, basis: np.ndarray, lower: np.ndarray, upper: np.ndarray,
                  ridge: float | np.ndarray = 0.0, prior: np.ndarray | None = None,
                  mean: np.ndarray | None = None, rest_pull: np.ndarray | float = 0.0) -> None:
-        self.basis = np.asarray(basis, dtype=np.float64)
-        m = self.basis.shape[1]
-        self.lower = np.asarray(lower, dtype=np.float64).copy()
-        self.upper = np.asarray(upper, dtype=np.float64).copy()
+        basis = np.asarray(basis, dtype=np.float64)
+        m = basis.shape[1]
         R = np.diag(np.broadcast_to(np.asarray(ridge, dtype=np.float64), (m,)).copy())
         if prior is not None:
             R = R + np.asarray(prior, dtype=np.float64)
-        self.mean = np.zeros(m) if mean is None else np.asarray(mean, dtype=np.float64)
-        self.rest_pull = np.broadcast_to(np.asarray(rest_pull, dtype=np.float64), (m,)).copy()
-        self._R = R
-        G = self.basis.T @ self.basis
-        # a floor far below any data term keeps H positive definite when a shape loses its markers
-        self._H = G + R + 1e-9 * max(float(np.trace(G)) / max(m, 1), 1.0) * np.eye(m)
-        self._Rp = R @ self.mean
-        self._last = np.clip(np.zeros(m), self.lower, self.upper)
-        self._none = np.zeros((0, m))
-        self._sense = np.zeros(m, dtype=c_int) if daqp is not None else None
+        mean = np.zeros(m) if mean is None else np.asarray(mean, dtype=np.float64)
+        super().__init__(basis, lower, upper, prior=(mean, R), prior_weight=1.0)
+        self.rest_pull = rest_pull
 
-    def reset(self) -> None:
-        self._last = np.clip(np.zeros_like(self._last), self.lower, self.upper)
+    @property
+    def rest_pull(self) -> np.ndarray:
+        return 2.0 * self.linear
 
-    def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
-        valid = np.asarray(valid, dtype=bool)
-        rows = np.repeat(valid, 3)
-        if not rows.any():
-            return self._last.copy()
-        H = self._H
-        if not rows.all():
-            Bm = self.basis[~rows]
-            H = H - Bm.T @ Bm
-        s = np.asarray(target, dtype=np.float64).reshape(-1)
-        f = -(self.basis[rows].T @ s[rows] + self._Rp) + 0.5 * self.rest_pull
-        w = self._qp(H, f)
-        self._last = w
-        return w.copy()
+    @rest_pull.setter
+    def rest_pull(self, value: np.ndarray | float) -> None:
+        self.linear = 0.5 * np.broadcast_to(np.asarray(value, dtype=np.float64), (self.m,)).copy()
 
-    def _qp(self, H: np.ndarray, f: np.ndarray) -> np.ndarray:
-        if daqp is not None:
-            x, _, flag, _ = daqp.solve(np.ascontiguousarray(H), np.ascontiguousarray(f), self._none,
-                                       self.upper.copy(), self.lower.copy(), self._sense.copy())
-            if flag >= 1 and np.all(np.isfinite(x)):
-                return np.clip(x, self.lower, self.upper)
-        from scipy.optimize import lsq_linear  # fallback: same problem as least squares
-
-        L = np.linalg.cholesky(H)
-        res = lsq_linear(L.T, -np.linalg.solve(L, f), bounds=(self.lower, self.upper), method="bvls")
-        return res.x
+    @property
+    def _last(self) -> np.ndarray:
+        return self._prev
