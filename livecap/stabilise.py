@@ -159,6 +159,22 @@ def _initial(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndar
     return Rb, tb
 
 
+def _deleted_residuals(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Each marker's distance from the rigid fit of the others (0 where that fit has < 4 markers).
+
+    A far (high-leverage) marker that jumps drags the plain fit towards itself and hides in its
+    own residual; fitted without it, the jump shows in full. k tiny SVDs, for small sets only.
+    """
+    k = use.shape[-1]
+    if k < 5 or k > LEAVE_ONE_OUT_MAX:
+        return np.zeros(use.shape)
+    cand = use[..., None, :] & ~np.eye(k, dtype=bool)  # row j leaves marker j out
+    with np.errstate(invalid="ignore", divide="ignore"):  # fits left with too few markers are masked
+        Rc, tc = kabsch(ref[..., None, :, :], pts[..., None, :, :], cand)
+    own = np.einsum("...jab,jb->...ja", Rc, ref) + tc - pts  # marker j under the fit without j
+    return np.where(use & (cand.sum(-1) >= 4), np.linalg.norm(own, axis=-1), 0.0)
+
+
 def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: int = 3,
                 floor_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rigid fit ``R ref + t ~ pts``, robust to outlying markers; batched over ``pts``' leading axes.
@@ -176,7 +192,7 @@ def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: i
     w = use.astype(np.float64)
     if iterations <= 0:
         return R, t, w
-    r = _residuals(ref, pts, R, t)
+    r = np.maximum(_residuals(ref, pts, R, t), _deleted_residuals(ref, pts, use))
     bad = (use & (r > CHECK_SCALES * floor_mm)).any(-1)
     if pts.ndim == 2:
         return _irls(ref, pts, use, iterations, floor_mm) if bad else (R, t, w)
