@@ -28,7 +28,6 @@ and receiver run on the same 2 cores as the drivers and take their share of CPU.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import re
@@ -40,6 +39,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.timing import suite_main
 
 ROOT = Path(__file__).resolve().parents[1]
 RATE = 120.0
@@ -285,18 +286,5 @@ def _print(out: dict) -> None:
               f"{fail}")
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--modes", default="qp,movement-stream")
-    ap.add_argument("--layouts", default="1,2,per-actor")
-    ap.add_argument("--json", help="also write the figures to this JSON file")
-    args = ap.parse_args(argv)
-    out = run(args.quick, tuple(args.modes.split(",")), tuple(args.layouts.split(",")))
-    if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=1))
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(suite_main(run, __doc__, modes="qp,movement-stream", layouts="1,2,per-actor"))

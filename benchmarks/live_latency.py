@@ -15,7 +15,6 @@ than 120 Hz (lsq) skips frames (the ``stale`` column) rather than falling behind
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import re
@@ -28,6 +27,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.timing import suite_main
 
 ROOT = Path(__file__).resolve().parents[1]
 RATE = 120.0
@@ -205,19 +206,5 @@ def _print(out: dict) -> None:
           "driver skipped because a newer one was already waiting")
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--modes", default=",".join(MODES))
-    ap.add_argument("--json", help="also write the figures to this JSON file")
-    args = ap.parse_args(argv)
-    out = run(args.quick, tuple(args.modes.split(",")))
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(out, indent=1))
-        print(f"written {args.json}")
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(suite_main(run, __doc__, modes=",".join(MODES)))

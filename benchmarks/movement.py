@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 
+from benchmarks.timing import suite_main
 from livecap.metrics import drift, velocity_error
 from solvers.movement import Edit, MovementMatching
 from solvers.prior import PCAPrior
@@ -164,4 +165,4 @@ def run(quick: bool = False) -> dict:
 
 
 if __name__ == "__main__":
-    run(quick="--quick" in sys.argv)
+    sys.exit(suite_main(run, __doc__))

@@ -15,16 +15,16 @@ Run: ``python -m benchmarks.qp_libraries [--quick] [--json out.json]``.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
+import sys
 import time
 
 import numpy as np
 from scipy.optimize import lsq_linear
 
 from benchmarks.synthetic import frame_problems
+from benchmarks.timing import suite_main
 
 SIZES = [(54, 50), (72, 150)]
 RIDGE = 1e-2
@@ -221,16 +221,5 @@ def print_table(results: dict) -> None:
             print(f"  {name:38s} {r['p50_us']:9.1f} {r['p99_us']:9.1f} {r['max_err']:12.2e}")
 
 
-def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--json", help="also write the figures to this JSON file")
-    args = p.parse_args(argv)
-    results = run(args.quick)
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(results, fh, indent=1)
-
-
 if __name__ == "__main__":
-    main()
+    sys.exit(suite_main(run, __doc__))

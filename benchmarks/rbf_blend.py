@@ -9,15 +9,15 @@ Run: ``python -m benchmarks.rbf_blend [--quick] [--json out.json]``.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
+import sys
 import time
 
 import numpy as np
 
 from benchmarks.synthetic import frame_problems
+from benchmarks.timing import suite_main
 from solvers.rbf import KeyBlendSolver
 
 SIZES = [(54, 50), (72, 150)]
@@ -59,16 +59,5 @@ def print_table(r: dict) -> None:
               f"{a['p99_us']:8.1f} {b['p50_us']:19.1f} {b['p99_us']:8.1f}")
 
 
-def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--json")
-    args = p.parse_args(argv)
-    r = run(args.quick)
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(r, fh, indent=1)
-
-
 if __name__ == "__main__":
-    main()
+    sys.exit(suite_main(run, __doc__))

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import argparse
 import datetime as _dt
+import json
 import os
 import platform
 import resource
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
@@ -63,3 +66,20 @@ def table(rows: list[dict], columns: list[str], title: str = "") -> str:
     lines.append("  ".join("-" * w for w in widths))
     lines += ["  ".join(v.ljust(w) for v, w in zip(row, widths, strict=True)) for row in cells]
     return "\n".join(lines)
+
+
+def suite_main(run: Callable[..., dict], doc: str, **lists: str) -> int:
+    """A suite run on its own (``python -m benchmarks.NAME``): ``--quick``, ``--json FILE``, and
+    each keyword as a comma-separated option handed to ``run`` (e.g. ``modes="qp,rbf"``)."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="fewer repetitions (a smoke run)")
+    ap.add_argument("--json", help="also write the figures to this JSON file")
+    for name, default in lists.items():
+        ap.add_argument(f"--{name}", default=default, help=f"comma-separated (default {default})")
+    args = ap.parse_args()
+    out = run(args.quick, **{name: tuple(getattr(args, name).split(",")) for name in lists})
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(out, indent=1, default=float))
+        print(f"written {args.json}")
+    return 0

@@ -14,13 +14,13 @@
 
 from __future__ import annotations
 
-import argparse
-import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks.timing import suite_main
 from livecap.transfer import TransferOptions, transfer
 from livecap.transfer.labels import landmark_distances
 from livecap.transfer.landmarks import eye_width
@@ -125,6 +125,7 @@ def run(quick: bool = False) -> dict:
         results["warped-ict"] = [warped_ict_accuracy(0.06), warped_ict_accuracy(0.5)]
     results["solve"] = solve_agreement(5.0 if quick else 20.0)
     results["solve_clean"] = solve_agreement(5.0 if quick else 20.0, clean=True)
+    print_table(results)
     return results
 
 
@@ -154,16 +155,5 @@ def print_table(results: dict) -> None:
                   f"transferred vs own {s['rmse_transferred_vs_own']:.4f}")
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--json", help="write the figures here")
-    args = ap.parse_args()
-    results = run(args.quick)
-    print_table(results)
-    if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1, default=float))
-
-
 if __name__ == "__main__":
-    main()
+    sys.exit(suite_main(run, __doc__))

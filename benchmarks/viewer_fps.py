@@ -10,14 +10,15 @@ read-back to a numpy image; "annotated" adds the weight bars and caption (OpenCV
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.timing import suite_main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -90,16 +91,5 @@ def print_table(res: dict) -> None:
               f"{row['annotated_cpu_ms']:9.2f}")
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "viewer_fps.json"))
-    args = ap.parse_args()
-    res = run(args.quick)
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(res, indent=1))
-    print(f"written {args.json}")
-
-
 if __name__ == "__main__":
-    main()
+    sys.exit(suite_main(run, __doc__))
