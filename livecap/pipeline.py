@@ -197,12 +197,13 @@ class Pipeline:
         if not np.isfinite(w).all():
             self._error("solver_nonfinite", f"frame {frame.frame}: solver returned NaN/inf")
             return None
-        rows = np.repeat(valid, 3)
-        resid = (self._basis[rows] @ w - target.reshape(-1)[rows]) if rows.any() else np.zeros(1)
+        # fitted minus observed per marker; no copy of the basis rows (this runs every frame)
+        miss = (self._basis @ w).reshape(-1, 3) - target
+        rms = float(np.sqrt(np.einsum("ij,ij->i", miss, miss)[valid].mean() / 3.0)) if valid.any() else 0.0
         solve_time = time.perf_counter() - t0
         self.timing["solve"].add(solve_time)
         return SolveResult(frame.frame, frame.timestamp, self._names, w, to_quaternion(R), t,
-                           float(np.sqrt(np.mean(resid ** 2))), solve_time, local, valid)
+                           rms, solve_time, local, valid)
 
     def publish(self, result: SolveResult) -> None:
         t0 = time.perf_counter()
