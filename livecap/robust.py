@@ -10,7 +10,10 @@ and ``solvers.filters`` to Profiles and modes:
 * ``robust_solver`` is the ``robust`` streaming mode, three stages each set from the noise:
   a causal quadratic end-point filter on the markers (no lag on motion up to constant
   acceleration), a sparse bounded fit (L1 at the universal threshold of the filtered noise, with
-  hysteresis; small ridge from held-out markers), and a 1€ filter on the weights;
+  hysteresis; small ridge from held-out markers), and on the weights an IMM of a 'hold' and a
+  'move' constant-velocity Kalman filter (``solvers.tracking``; no lag on ramps) whose
+  measurement variance per shape is the fit's noise ``sigma^2 gain / |b_k|^2`` (option
+  ``weight_filter: "1e"`` gives the earlier 1€ stage);
 * ``smooth_solver`` is ``robust-lag``: the same sparse fit on markers smoothed by a centred
   quadratic over ``2 lag + 1`` frames, streamed with ``lag`` frames of latency; offline (zero
   phase) the weight curves are then smoothed by a centred quartic over ``6 lag + 1`` frames;
@@ -30,6 +33,7 @@ from solvers.filters import CausalPolyFilter, FilteredSolver, FixedLagSmoother, 
 from solvers.observability import noise_floor, observability, tying_prior
 from solvers.regularisation import PriorLeastSquares, estimate_noise, gcv_ridge, holdout_ridge
 from solvers.sparse_fit import HysteresisSparseFit, holdout_sparse_ridge, l1_weights, universal_threshold
+from solvers.tracking import IMMFilter, dwna_variance
 
 # Defaults, used when a profile was never tuned (documented in docs/robustness.md).
 DEFAULTS = {
@@ -45,6 +49,10 @@ DEFAULTS = {
     "beta": 30.0,  # 1€ speed coefficient, per (weight unit / s)
     "d_cutoff": 1.0,  # 1€ derivative cutoff, Hz
     "lag": 4,  # fixed-lag smoother latency, frames
+    "weight_filter": "imm",  # robust mode's weight stage: "imm" (hold/move Kalman) or "1e" (One Euro)
+    "hold_accel": 0.5,  # IMM 'hold' model: acceleration sd, weight units / s^2
+    "move_accel": 80.0,  # IMM 'move' model: acceleration sd, weight units / s^2
+    "sojourn": 0.8,  # IMM mean time in a mode, seconds (Markov switching probability 1 / (sojourn rate))
 }
 
 
@@ -115,17 +123,43 @@ def prior_solver(profile: Profile, options: dict | None = None) -> PriorLeastSqu
     return PriorLeastSquares(B, profile.lower, profile.upper, ridge, prior=prior, rest_pull=pull)
 
 
-def weight_filter(profile: Profile, options: dict | None = None) -> OneEuroFilter:
+def one_euro(profile: Profile, options: dict | None = None) -> OneEuroFilter:
     s = robust_settings(profile, options)
     return OneEuroFilter(_rate(profile, options), s["min_cutoff"], s["beta"], s["d_cutoff"])
 
 
+def weight_noise(profile: Profile, options: dict | None, gain: float) -> np.ndarray:
+    """Per-shape variance of a fitted weight under the (filtered) marker noise: ``sigma^2 gain / |b_k|^2``
+    (the noise of ``b_k^T s / |b_k|^2``; the L1 threshold of the sparse fit uses the same scale)."""
+    sigma = float(robust_settings(profile, options)["noise_mm"])
+    norms = np.maximum(np.linalg.norm(profile.basis, axis=0), 1e-9)
+    return sigma**2 * float(gain) / norms**2
+
+
+def imm_filter(profile: Profile, options: dict | None, gain: float) -> IMMFilter:
+    """The IMM weight stage: 'hold' and 'move' constant-velocity models (acceleration sd in weight units
+    per s^2, converted to per-frame DWNA variances at the stream's rate), R per shape from the noise."""
+    s, rate = robust_settings(profile, options), _rate(profile, options)
+    return IMMFilter(dwna_variance(float(s["hold_accel"]), rate), dwna_variance(float(s["move_accel"]), rate),
+                     weight_noise(profile, options, gain), sojourn_frames=max(2.0, float(s["sojourn"]) * rate))
+
+
+def weight_filter(profile: Profile, options: dict | None = None, gain: float = 1.0) -> IMMFilter | OneEuroFilter:
+    """The robust mode's weight stage, per the ``weight_filter`` setting ("imm" or "1e")."""
+    kind = str(robust_settings(profile, options)["weight_filter"]).lower()
+    if kind in ("1e", "one-euro", "oneeuro"):
+        return one_euro(profile, options)
+    if kind != "imm":
+        raise ValueError(f"unknown weight filter {kind!r} (choose imm or 1e)")
+    return imm_filter(profile, options, gain)
+
+
 def robust_solver(profile: Profile, options: dict | None = None) -> FilteredSolver:
-    """Streaming: causal quadratic marker filter -> sparse fit -> 1€ on the weights (no fixed latency)."""
+    """Streaming: causal quadratic marker filter -> sparse fit -> IMM (or 1€) on the weights (no fixed latency)."""
     s = robust_settings(profile, options)
     markers = marker_filter(_rate(profile, options), float(s["marker_window"]))
     return FilteredSolver(sparse_fit(profile, options, markers.noise_gain), marker_filter=markers,
-                          weight_filter=weight_filter(profile, options))
+                          weight_filter=weight_filter(profile, options, markers.noise_gain))
 
 
 def smooth_solver(profile: Profile, options: dict | None = None) -> LookaheadSolver:
@@ -176,7 +210,7 @@ def filtered(factory: Callable) -> Callable:
 
     def build(profile: Profile, options: dict | None = None):
         inner = factory(profile, options or {})
-        filt = weight_filter(profile, options)
+        filt = one_euro(profile, options)
         if hasattr(inner, "solve"):
             return _OfflineFiltered(inner, weight_filter=filt, lower=profile.lower, upper=profile.upper)
         return FilteredSolver(inner, weight_filter=filt, lower=profile.lower, upper=profile.upper)

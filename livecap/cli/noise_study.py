@@ -26,6 +26,7 @@ from livecap.modes import MODES
 from livecap.robust import (
     ROBUST_MODES,
     filtered,
+    imm_filter,
     marker_filter,
     robust_settings,
     robust_solver,
@@ -192,7 +193,8 @@ def run(args: argparse.Namespace) -> int:
               f"RMSE {sweep['best_rmse']:.4f}")
         print("  " + "  ".join(f"{lam:.3g}:{e:.4f}" for lam, e in zip(sweep["grid"], sweep["rmse"], strict=True)))
         trade = tradeoff(profile, targets, take.valid, truth, rig.names, take.rate, tj)
-        print("jitter / lag / blink trade-off of the robust mode's weight filter (1€ min_cutoff Hz, beta):")
+        print("jitter / lag / blink trade-off of the robust mode's weight filter "
+              "(1€ min_cutoff Hz, beta; IMM move-model acceleration sd /s^2):")
         for r in trade:
             print(f"  {r['filter']:18s} jitter {r['jitter_ratio']:7.2f} x  lag {r['lag']:5.2f} fr  "
                   f"blink {r['blink'] * 100:4.0f}%  RMSE {r['rmse']:.4f}")
@@ -240,22 +242,30 @@ def ridge_sweep(profile, targets, valid, truth, selected: float, rate: float) ->
             "selected": float(selected), "selected_rmse": rmse[grid.index(float(selected))]}
 
 
-TRADE_FILTERS = [None, (1.0, 100.0), (1.0, 30.0), (1.0, 10.0), (0.5, 10.0), (0.25, 3.0), (0.1, 1.0), (0.05, 0.0)]
+TRADE_FILTERS = [None, ("1e", 1.0, 100.0), ("1e", 1.0, 30.0), ("1e", 1.0, 10.0), ("1e", 0.5, 10.0),
+                 ("1e", 0.25, 3.0), ("1e", 0.1, 1.0), ("1e", 0.05, 0.0),
+                 ("imm", 160.0), ("imm", 80.0), ("imm", 40.0), ("imm", 20.0), ("imm", 10.0)]
 
 
 def tradeoff(profile, targets, valid, truth, names, rate: float, truth_jitter: float) -> list[dict]:
-    """The robust mode with weaker to stronger 1€ weight filters: how far jitter falls for how much
-    lag and blink amplitude (the causal marker filter and sparse fit run once; the filters after)."""
+    """The robust mode with weaker to stronger weight filters: 1€ (min_cutoff Hz, beta) and the IMM
+    ('move' model acceleration sd, weight units / s^2): how far jitter falls for how much lag and
+    blink amplitude (the causal marker filter and sparse fit run once; the filters after)."""
     s = robust_settings(profile, {"rate": rate})
     markers = marker_filter(rate, float(s["marker_window"]))
     fit = FilteredSolver(sparse_fit(profile, {"rate": rate}, markers.noise_gain), marker_filter=markers)
     W0, _ = run_solver(fit, targets, valid, True)
     out = []
     for f in TRADE_FILTERS:
-        W = W0 if f is None else np.clip(OneEuroFilter(rate, f[0], f[1], 1.0).filter(W0), profile.lower,
-                                         profile.upper)
-        out.append({"filter": "none" if f is None else f"1e {f[0]:g} Hz, {f[1]:g}",
-                    "jitter_ratio": jitter(W) / truth_jitter, "lag": lag_frames(W, truth),
+        if f is None:
+            W, label = W0, "none"
+        elif f[0] == "1e":
+            W, label = OneEuroFilter(rate, f[1], f[2], 1.0).filter(W0), f"1e {f[1]:g} Hz, {f[2]:g}"
+        else:
+            imm = imm_filter(profile, {"rate": rate, "move_accel": f[1]}, markers.noise_gain)
+            W, label = imm.filter(W0), f"imm move {f[1]:g}"
+        W = np.clip(W, profile.lower, profile.upper)
+        out.append({"filter": label, "jitter_ratio": jitter(W) / truth_jitter, "lag": lag_frames(W, truth),
                     "blink": blink_amplitude(W, truth, names), "rmse": weight_rmse(W, truth)})
     return out
 

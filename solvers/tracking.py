@@ -1,0 +1,174 @@
+"""Motion-model (tracking) filters for weight channels: a constant-velocity Kalman filter and an
+interacting multiple model (IMM) of a 'hold' and a 'move' constant-velocity model.
+
+Why: the first-order 1€ filter (``solvers.filters.OneEuroFilter``) lags on every ramp; a filter
+whose state carries a velocity has zero steady-state lag on a ramp. Per channel the state is
+``[x, v]`` (value, velocity per frame), ``F = [[1, 1], [0, 1]]``, the measurement ``y = x + n``
+with ``n ~ N(0, R)``, and the discrete white-noise acceleration model (DWNA; Bar-Shalom, Li &
+Kirubarajan, "Estimation with Applications to Tracking and Navigation", Wiley 2001, §6.3.2):
+``Q = q G G^T``, ``G = [1/2, 1]``, ``q`` the variance of the per-frame velocity change
+(acceleration sd x period^2, squared). Its steady state is the alpha-beta filter with the
+tracking index ``Lambda = sqrt(q) / sqrt(R)`` (Kalata 1984; Bar-Shalom et al. §6.5.3):
+``alpha_beta_gains``.
+
+A single CV model is a fixed compromise: small ``q`` smooths but lags on an onset (a blink starts
+with a large acceleration), large ``q`` follows but passes noise. The IMM (Blom & Bar-Shalom
+1988; Bar-Shalom et al. 2001 §11.6.6) runs both models, mixes their states by the Markov mode
+probabilities and weights their outputs by the innovation likelihoods, so a channel is smoothed
+hard while its innovations look like noise and follows at once when they do not (the classic
+maneuvering-target answer). Vectorised over channels; ``R`` per channel (for weights from a fit:
+the noise variance of each weight, e.g. ``sigma^2 / |b_k|^2``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def dwna_variance(accel_sd: float | np.ndarray, rate: float) -> np.ndarray:
+    """DWNA process-noise intensity per frame: ``(a T^2)^2`` for acceleration sd ``a`` (units/s^2)."""
+    return (np.asarray(accel_sd, dtype=np.float64) / float(rate) ** 2) ** 2
+
+
+def alpha_beta_gains(q: float | np.ndarray, r: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Steady-state gains of the DWNA constant-velocity Kalman filter (Kalata 1984; Bar-Shalom et al.
+    2001 eq. 6.5.3-16/17): ``Lambda = sqrt(q / r)``,
+    ``alpha = -(L^2 + 8L - (L + 4) sqrt(L^2 + 8L)) / 8``, ``beta = (L^2 + 4L - L sqrt(L^2 + 8L)) / 4``."""
+    lam = np.sqrt(np.asarray(q, dtype=np.float64) / np.asarray(r, dtype=np.float64))
+    root = np.sqrt(lam * lam + 8.0 * lam)
+    alpha = -(lam * lam + 8.0 * lam - (lam + 4.0) * root) / 8.0
+    beta = (lam * lam + 4.0 * lam - lam * root) / 4.0
+    return alpha, beta
+
+
+class _CV:
+    """State of one constant-velocity model over m channels: mean x, v and covariance P (3 terms)."""
+
+    def __init__(self, y: np.ndarray, r: np.ndarray, v_var: np.ndarray) -> None:
+        self.x, self.v = y.copy(), np.zeros_like(y)
+        self.p00, self.p01, self.p11 = r.copy(), np.zeros_like(y), v_var.copy()
+
+    def predict(self, q: np.ndarray) -> None:
+        self.x = self.x + self.v
+        self.p00, self.p01, self.p11 = (self.p00 + 2 * self.p01 + self.p11 + q / 4,
+                                        self.p01 + self.p11 + q / 2, self.p11 + q)
+
+    def update(self, y: np.ndarray, r: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Measurement update where ``ok``; returns innovation and its variance (for the likelihood)."""
+        s = self.p00 + r
+        e = np.where(ok, y - self.x, 0.0)
+        k0, k1 = np.where(ok, self.p00 / s, 0.0), np.where(ok, self.p01 / s, 0.0)
+        self.x, self.v = self.x + k0 * e, self.v + k1 * e
+        self.gain = (k0, k1)
+        self.p00, self.p01, self.p11 = (1 - k0) * self.p00, (1 - k0) * self.p01, self.p11 - k1 * self.p01
+        return e, s
+
+
+class KalmanCV:
+    """Constant-velocity Kalman filter per channel (DWNA process noise ``q``, measurement variance ``r``).
+
+    ``step(y, valid)``: a missing sample is predicted through (no update). The first sample
+    initialises the value (variance ``r``) with zero velocity (variance ``v_var``, default: ``r``).
+    """
+
+    def __init__(self, q: float | np.ndarray, r: float | np.ndarray, v_var: float | np.ndarray | None = None) -> None:
+        self.q = np.asarray(q, dtype=np.float64)
+        self.r = np.asarray(r, dtype=np.float64)
+        self.v_var = self.r if v_var is None else np.asarray(v_var, dtype=np.float64)
+        if np.any(self.r <= 0) or np.any(self.q < 0):
+            raise ValueError("Kalman filter needs r > 0 and q >= 0")
+        self.reset()
+
+    latency_frames = 0  # no steady-state lag on a ramp (constant-velocity model)
+
+    def reset(self) -> None:
+        self._m: _CV | None = None
+
+    @property
+    def gain(self) -> tuple[np.ndarray, np.ndarray]:
+        """The last update's Kalman gains (alpha, beta in the steady state)."""
+        return self._m.gain
+
+    def step(self, y: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+        y = np.asarray(y, dtype=np.float64)
+        ok = np.ones(y.shape, bool) if valid is None else np.broadcast_to(np.asarray(valid, bool), y.shape)
+        r, q = np.broadcast_to(self.r, y.shape), np.broadcast_to(self.q, y.shape)
+        if self._m is None:
+            self._m = _CV(np.where(ok, y, 0.0), r, np.broadcast_to(self.v_var, y.shape))
+            return self._m.x.copy()
+        self._m.predict(q)
+        self._m.update(y, r, ok)
+        return self._m.x.copy()
+
+    def filter(self, Y: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+        """Run over a sequence (T, ...) from a fresh state; the same numbers as calling ``step``."""
+        self.reset()
+        return np.stack([self.step(y, None if valid is None else valid[t]) for t, y in enumerate(np.asarray(Y))])
+
+
+class IMMFilter:
+    """IMM of two constant-velocity models per channel: 'hold' (process noise ``q_hold``) and 'move'
+    (``q_move``), Markov switching with mean sojourn ``sojourn_frames`` in either mode
+    (Bar-Shalom et al. 2001 §11.6.6: interaction/mixing, mode-matched filtering, mode probability
+    update, combination). The output is the probability-weighted mean of the two models' values.
+    """
+
+    def __init__(self, q_hold: float | np.ndarray, q_move: float | np.ndarray, r: float | np.ndarray,
+                 sojourn_frames: float = 100.0, p_move: float = 0.1) -> None:
+        self.q = (np.asarray(q_hold, dtype=np.float64), np.asarray(q_move, dtype=np.float64))
+        self.r = np.asarray(r, dtype=np.float64)
+        if np.any(self.r <= 0) or np.any(self.q[0] < 0) or np.any(self.q[1] < 0):
+            raise ValueError("IMM filter needs r > 0 and q >= 0")
+        if not sojourn_frames > 1:
+            raise ValueError(f"IMM mean sojourn must exceed one frame, got {sojourn_frames}")
+        stay = 1.0 - 1.0 / float(sojourn_frames)
+        self.transition = np.array([[stay, 1 - stay], [1 - stay, stay]])  # [from, to]
+        self.p_move = float(p_move)
+        self.reset()
+
+    latency_frames = 0  # both models are constant-velocity: no steady-state lag on a ramp
+
+    def reset(self) -> None:
+        self._models: list[_CV] | None = None
+        self._mu: np.ndarray | None = None  # (2, channels) mode probabilities
+        self.move_probability: np.ndarray | None = None
+
+    def step(self, y: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+        y = np.asarray(y, dtype=np.float64)
+        ok = np.ones(y.shape, bool) if valid is None else np.broadcast_to(np.asarray(valid, bool), y.shape)
+        r = np.broadcast_to(self.r, y.shape)
+        if self._models is None:
+            start = np.where(ok, y, 0.0)
+            self._models = [_CV(start, r, r.copy()) for _ in range(2)]
+            self._mu = np.stack([np.full(y.shape, 1 - self.p_move), np.full(y.shape, self.p_move)])
+            self.move_probability = self._mu[1].copy()
+            return start.copy()
+        pi, mu, ms = self.transition, self._mu, self._models
+        c = np.einsum("ij,i...->j...", pi, mu)  # predicted mode probabilities
+        w = pi[:, :, None] * mu[:, None] / np.maximum(c[None], 1e-300)  # w[i, j] = P(i before | j now)
+        w = w.reshape(2, 2, *y.shape)
+        mixed = []
+        for j in range(2):  # interaction: each filter starts from the mixture of both
+            x = w[0, j] * ms[0].x + w[1, j] * ms[1].x
+            v = w[0, j] * ms[0].v + w[1, j] * ms[1].v
+            p00 = sum(w[i, j] * (ms[i].p00 + (ms[i].x - x) ** 2) for i in range(2))
+            p01 = sum(w[i, j] * (ms[i].p01 + (ms[i].x - x) * (ms[i].v - v)) for i in range(2))
+            p11 = sum(w[i, j] * (ms[i].p11 + (ms[i].v - v) ** 2) for i in range(2))
+            m = _CV(x, r, r)
+            m.v, m.p00, m.p01, m.p11 = v, p00, p01, p11
+            mixed.append(m)
+        like = []
+        for j, m in enumerate(mixed):
+            m.predict(np.broadcast_to(self.q[j], y.shape))
+            e, s = m.update(y, r, ok)
+            like.append(np.where(ok, np.exp(-0.5 * e * e / s) / np.sqrt(2 * np.pi * s), 1.0))
+        mu = c * np.stack(like) + 1e-300
+        self._mu = mu / mu.sum(0)
+        self._models = mixed
+        self.move_probability = self._mu[1].copy()
+        return self._mu[0] * mixed[0].x + self._mu[1] * mixed[1].x
+
+    def filter(self, Y: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+        """Run over a sequence (T, ...) from a fresh state; the same numbers as calling ``step``."""
+        self.reset()
+        return np.stack([self.step(y, None if valid is None else valid[t]) for t, y in enumerate(np.asarray(Y))])

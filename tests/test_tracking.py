@@ -1,0 +1,98 @@
+"""Constant-velocity Kalman and IMM weight filters (solvers/tracking.py): their defining properties."""
+
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+
+from solvers.tracking import IMMFilter, KalmanCV, alpha_beta_gains, dwna_variance
+
+
+def batch_posterior_last(y: np.ndarray, q: float, r: float, v_var: float) -> float:
+    """Posterior mean of x_{T-1} from the whole stacked linear-Gaussian problem (independent of the filter):
+    unknowns x0, v0, u_1..u_{T-1} (DWNA: s_t = F s_{t-1} + G u_t, u ~ N(0, q)); flat prior on x0,
+    N(0, v_var) on v0, y_t = x_t + N(0, r)."""
+    T = len(y)
+    n = 2 + (T - 1)
+    F, G = np.array([[1.0, 1.0], [0.0, 1.0]]), np.array([0.5, 1.0])
+    # s_t as a linear map of the unknowns
+    maps = [np.zeros((2, n))]
+    maps[0][0, 0] = maps[0][1, 1] = 1.0
+    for t in range(1, T):
+        M = F @ maps[-1]
+        M[:, 1 + t] += G
+        maps.append(M)
+    A = np.array([M[0] for M in maps]) / np.sqrt(r)
+    prior = np.diag(np.r_[0.0, 1.0 / v_var, np.full(T - 1, 1.0 / q)])
+    z = np.linalg.solve(A.T @ A + prior, A.T @ (y / np.sqrt(r)))
+    return float(maps[-1][0] @ z)
+
+
+def test_kalman_equals_the_batch_posterior():
+    rng = np.random.default_rng(3)
+    y = np.cumsum(rng.normal(size=7)) * 0.3
+    q, r, v_var = 0.02, 0.5, 0.7
+    out = KalmanCV(q, r, v_var).filter(y[:, None])[:, 0]
+    for T in (2, 4, 7):
+        assert abs(out[T - 1] - batch_posterior_last(y[:T], q, r, v_var)) < 1e-10
+
+
+def test_steady_state_gains_are_the_alpha_beta_filter():
+    q, r = np.array([1e-6, 1e-4, 1e-2]), np.array([0.01, 0.01, 0.04])
+    kf = KalmanCV(q, r)
+    kf.filter(np.zeros((3000, 3)))
+    alpha, beta = alpha_beta_gains(q, r)
+    np.testing.assert_allclose(kf.gain[0], alpha, rtol=1e-6)
+    np.testing.assert_allclose(kf.gain[1], beta, rtol=1e-6)
+
+
+def test_no_steady_state_lag_on_a_ramp():
+    t = np.arange(600.0)
+    ramp = 0.2 + 0.004 * t
+    out = KalmanCV(1e-7, 0.01).filter(ramp[:, None])[:, 0]
+    assert abs(out[-1] - ramp[-1]) < 1e-6  # a first-order smoother would trail by slope x lag
+    imm = IMMFilter(1e-8, 1e-4, 0.01).filter(ramp[:, None])[:, 0]
+    assert abs(imm[-1] - ramp[-1]) < 1e-6
+
+
+def test_imm_of_two_equal_models_is_the_kalman_filter():
+    rng = np.random.default_rng(5)
+    Y = rng.normal(size=(50, 4)).cumsum(0)
+    r = np.array([0.1, 0.2, 0.3, 0.4])
+    np.testing.assert_allclose(IMMFilter(1e-3, 1e-3, r).filter(Y), KalmanCV(1e-3, r, r).filter(Y), atol=1e-12)
+
+
+def test_imm_smooths_a_still_channel_and_follows_an_onset():
+    """Holds like the low-noise model while still, follows like the high-noise one after an onset."""
+    rng = np.random.default_rng(7)
+    T, onset = 600, 400
+    truth = np.where(np.arange(T) < onset, 0.0, 0.02 * (np.arange(T) - onset))
+    y = (truth + rng.normal(0, 0.05, T))[:, None]
+    r, q_hold, q_move = 0.05**2, dwna_variance(0.5, 120), dwna_variance(80, 120)
+    imm = IMMFilter(q_hold, q_move, r).filter(y)[:, 0]
+    move = KalmanCV(q_move, r).filter(y)[:, 0]
+    hold = KalmanCV(q_hold, r).filter(y)[:, 0]
+    still = slice(100, onset)
+    after = slice(onset + 30, onset + 80)
+    def jitter(x):
+        return np.mean(np.abs(np.diff(x, 2)))
+
+    assert jitter(imm[still]) < 0.5 * jitter(move[still])
+    assert np.mean(np.abs(imm[after] - truth[after])) < 0.1 * np.mean(np.abs(hold[after] - truth[after]))
+
+
+def test_missing_samples_are_predicted_through():
+    y = np.linspace(0, 1, 40)[:, None] * np.ones((1, 2))
+    valid = np.ones((40, 2), bool)
+    valid[10:20, 0] = False
+    for f in (KalmanCV(1e-6, 0.01), IMMFilter(1e-8, 1e-4, 0.01)):
+        out = f.filter(np.where(valid, y, np.nan), valid)
+        assert np.all(np.isfinite(out))
+        assert np.max(np.abs(out - y)) < 0.05  # the gap is bridged along the line
+
+
+@given(st.floats(-5, 5), st.integers(0, 2**16))
+def test_offset_equivariance(offset, seed):
+    """Adding a constant to the input adds it to the output (the CV model has no preferred level)."""
+    Y = np.random.default_rng(seed).normal(size=(30, 3)).cumsum(0) * 0.1
+    for make in (lambda: KalmanCV(1e-3, 0.05), lambda: IMMFilter(1e-6, 1e-2, 0.05)):
+        np.testing.assert_allclose(make().filter(Y + offset), make().filter(Y) + offset, atol=1e-9)
