@@ -1,0 +1,45 @@
+"""The robust mode's weight stage: the IMM wired with per-shape noise, against the 1€ stage it replaced."""
+
+import numpy as np
+import pytest
+
+from livecap.calibration import calibrate
+from livecap.cli.noise_study import lag_frames
+from livecap.demo.performance import PerformanceSettings, perform
+from livecap.metrics import jitter
+from livecap.robust import robust_solver, weight_filter, weight_noise
+from livecap.solve import prepare_targets
+from solvers.filters import OneEuroFilter
+from solvers.tracking import IMMFilter
+
+
+@pytest.fixture(scope="module")
+def take(demo):
+    rig, layout = demo
+    perf = perform(rig, layout, PerformanceSettings(seconds=8.0, occlusion=0.05, seed=3))
+    profile = calibrate(rig, layout, perf.actor_neutral)  # untuned: the default 0.5 mm noise, as generated
+    _, S, _, _ = prepare_targets(perf.take, profile)
+    return profile, S, perf.take.valid, perf.weights
+
+
+def test_weight_stage_selection_and_noise(take):
+    profile = take[0]
+    f = weight_filter(profile, {"rate": 120.0}, gain=0.5)
+    assert isinstance(f, IMMFilter)
+    norms = np.linalg.norm(profile.basis, axis=0)
+    np.testing.assert_allclose(f.r, 0.5**2 * 0.5 / norms**2)
+    np.testing.assert_allclose(weight_noise(profile, {"noise_mm": 0.2}, 1.0), 0.04 / norms**2)
+    assert isinstance(weight_filter(profile, {"weight_filter": "1e"}), OneEuroFilter)
+    with pytest.raises(ValueError, match="weight filter"):
+        weight_filter(profile, {"weight_filter": "median"})
+
+
+def test_imm_stage_is_smoother_than_the_one_euro_at_no_more_lag(take):
+    profile, S, valid, truth = take
+    out = {}
+    for kind in ("imm", "1e"):
+        solver = robust_solver(profile, {"rate": 120.0, "weight_filter": kind})
+        W = np.array([solver.step(S[t], valid[t]) for t in range(len(S))])
+        out[kind] = (jitter(W) / jitter(truth), lag_frames(W, truth))
+    assert out["imm"][0] < 0.85 * out["1e"][0]
+    assert out["imm"][1] <= max(out["1e"][1], 0.0) + 0.15 and out["imm"][1] <= 1.0
