@@ -43,3 +43,14 @@ def test_imm_stage_is_smoother_than_the_one_euro_at_no_more_lag(take):
         out[kind] = (jitter(W) / jitter(truth), lag_frames(W, truth))
     assert out["imm"][0] < 0.85 * out["1e"][0]
     assert out["imm"][1] <= max(out["1e"][1], 0.0) + 0.15 and out["imm"][1] <= 1.0
+
+
+def test_noise_study_tradeoff_lists_both_families(take, demo):
+    from livecap.cli.noise_study import tradeoff
+
+    profile, S, valid, truth = take
+    rows = tradeoff(profile, S[:600], valid[:600], truth[:600], demo[0].names, 120.0, jitter(truth[:600]))
+    imm = [r for r in rows if r["filter"].startswith("imm")]
+    assert rows[0]["filter"] == "none" and any(r["filter"].startswith("1e") for r in rows) and len(imm) >= 3
+    jit = [r["jitter_ratio"] for r in imm]  # a slower 'move' model: smoother (and later) output
+    assert all(a > b for a, b in zip(jit, jit[1:], strict=False))
