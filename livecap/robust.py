@@ -53,6 +53,7 @@ DEFAULTS = {
     "hold_accel": 0.5,  # IMM 'hold' model: acceleration sd, weight units / s^2
     "move_accel": 80.0,  # IMM 'move' model: acceleration sd, weight units / s^2
     "sojourn": 0.8,  # IMM mean time in a mode, seconds (Markov switching probability 1 / (sojourn rate))
+    "weight_noise": "fit",  # IMM measurement variance per shape: "fit" or "marginal" (see weight_noise)
 }
 
 
@@ -129,10 +130,22 @@ def one_euro(profile: Profile, options: dict | None = None) -> OneEuroFilter:
 
 
 def weight_noise(profile: Profile, options: dict | None, gain: float) -> np.ndarray:
-    """Per-shape variance of a fitted weight under the (filtered) marker noise: ``sigma^2 gain / |b_k|^2``
-    (the noise of ``b_k^T s / |b_k|^2``; the L1 threshold of the sparse fit uses the same scale)."""
-    sigma = float(robust_settings(profile, options)["noise_mm"])
-    norms = np.maximum(np.linalg.norm(profile.basis, axis=0), 1e-9)
+    """Per-shape variance of a fitted weight under the (filtered) marker noise.
+
+    ``weight_noise: "fit"`` (default): ``sigma^2 gain / |b_k|^2``, the noise of ``b_k^T s / |b_k|^2``,
+    i.e. of a shape fitted alone (the sparse fit's active sets are small; its L1 threshold uses
+    the same scale). ``"marginal"``: ``sigma^2 gain [(B^T B + ridge I)^-1]_kk``, the marginal variance
+    of the full least-squares fit, larger for shapes that other shapes can mimic (smooths them more).
+    """
+    s = robust_settings(profile, options)
+    sigma, B = float(s["noise_mm"]), profile.basis
+    kind = str(s["weight_noise"]).lower()
+    if kind == "marginal":
+        ridge = float((options or {}).get("ridge", s["sparse_ridge"]))
+        return sigma**2 * float(gain) * np.diag(np.linalg.inv(B.T @ B + max(ridge, 1e-9) * np.eye(B.shape[1])))
+    if kind != "fit":
+        raise ValueError(f"unknown weight noise model {kind!r} (choose fit or marginal)")
+    norms = np.maximum(np.linalg.norm(B, axis=0), 1e-9)
     return sigma**2 * float(gain) / norms**2
 
 

@@ -50,7 +50,18 @@ def test_noise_study_tradeoff_lists_both_families(take, demo):
 
     profile, S, valid, truth = take
     rows = tradeoff(profile, S[:600], valid[:600], truth[:600], demo[0].names, 120.0, jitter(truth[:600]))
-    imm = [r for r in rows if r["filter"].startswith("imm")]
+    imm = [r for r in rows if r["filter"].startswith("imm") and "marginal" not in r["filter"]]
     assert rows[0]["filter"] == "none" and any(r["filter"].startswith("1e") for r in rows) and len(imm) >= 3
     jit = [r["jitter_ratio"] for r in imm]  # a slower 'move' model: smoother (and later) output
     assert all(a > b for a, b in zip(jit, jit[1:], strict=False))
+
+
+def test_marginal_weight_noise_is_the_least_squares_variance(take):
+    """'marginal': the diagonal of sigma^2 (B^T B + ridge)^-1, never below the shape-alone variance."""
+    profile = take[0]
+    B = profile.basis
+    got = weight_noise(profile, {"weight_noise": "marginal", "noise_mm": 0.5, "ridge": 0.1}, 1.0)
+    np.testing.assert_allclose(got, 0.25 * np.diag(np.linalg.inv(B.T @ B + 0.1 * np.eye(B.shape[1]))))
+    alone = weight_noise(profile, {"noise_mm": 0.5}, 1.0)
+    norms2 = np.linalg.norm(B, axis=0) ** 2
+    assert np.all(got >= alone * norms2 / (norms2 + 0.1) - 1e-12)  # conditioning only adds variance

@@ -244,7 +244,8 @@ def ridge_sweep(profile, targets, valid, truth, selected: float, rate: float) ->
 
 TRADE_FILTERS = [None, ("1e", 1.0, 100.0), ("1e", 1.0, 30.0), ("1e", 1.0, 10.0), ("1e", 0.5, 10.0),
                  ("1e", 0.25, 3.0), ("1e", 0.1, 1.0), ("1e", 0.05, 0.0),
-                 ("imm", 160.0), ("imm", 80.0), ("imm", 40.0), ("imm", 20.0), ("imm", 10.0)]
+                 ("imm", 160.0), ("imm", 80.0), ("imm", 40.0), ("imm", 20.0), ("imm", 10.0),
+                 ("imm", 640.0, "marginal"), ("imm", 320.0, "marginal")]
 
 
 def tradeoff(profile, targets, valid, truth, names, rate: float, truth_jitter: float) -> list[dict]:
@@ -262,8 +263,9 @@ def tradeoff(profile, targets, valid, truth, names, rate: float, truth_jitter: f
         elif f[0] == "1e":
             W, label = OneEuroFilter(rate, f[1], f[2], 1.0).filter(W0), f"1e {f[1]:g} Hz, {f[2]:g}"
         else:
-            imm = imm_filter(profile, {"rate": rate, "move_accel": f[1]}, markers.noise_gain)
-            W, label = imm.filter(W0), f"imm move {f[1]:g}"
+            noise = f[2] if len(f) > 2 else "fit"
+            imm = imm_filter(profile, {"rate": rate, "move_accel": f[1], "weight_noise": noise}, markers.noise_gain)
+            W, label = imm.filter(W0), f"imm move {f[1]:g}" + ("" if noise == "fit" else f" {noise}")
         W = np.clip(W, profile.lower, profile.upper)
         out.append({"filter": label, "jitter_ratio": jitter(W) / truth_jitter, "lag": lag_frames(W, truth),
                     "blink": blink_amplitude(W, truth, names), "rmse": weight_rmse(W, truth)})
