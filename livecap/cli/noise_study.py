@@ -196,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
         print("jitter / lag / blink trade-off of the robust mode's weight filter "
               "(1€ min_cutoff Hz, beta; IMM move-model acceleration sd /s^2):")
         for r in trade:
-            print(f"  {r['filter']:18s} jitter {r['jitter_ratio']:7.2f} x  lag {r['lag']:5.2f} fr  "
+            print(f"  {r['filter']:22s} jitter {r['jitter_ratio']:7.2f} x  lag {r['lag']:5.2f} fr  "
                   f"blink {r['blink'] * 100:4.0f}%  RMSE {r['rmse']:.4f}")
     if args.plot:
         plot(args.plot, rig.names, truth, curves, take.rate)
