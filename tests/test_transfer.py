@@ -63,6 +63,13 @@ def test_transfer_keeps_target_topology_and_limits(small):
     # left is still left: eyeBlinkLeft moves +x vertices
     d = np.linalg.norm(new.deltas[new.index("eyeBlinkLeft")], axis=1)
     assert new.neutral[np.argmax(d), 0] > 0
+    # the smooth warp is an option: without it (Xiang's similarity only) the pipeline still runs
+    steps = []
+    res = transfer(rig, layout, other.neutral, other.triangles, TransferOptions(warp=()),
+                   progress=lambda done, total: steps.append((done, total)))
+    assert "smooth warp" not in res.seconds and steps[-1][0] == steps[-1][1]
+    res = transfer(rig, layout, other.neutral, other.triangles, TransferOptions(warp=(2.0, 1.0)))
+    assert "smooth warp" in res.seconds
 
 
 def test_bad_target_is_a_clear_error(small):
