@@ -225,6 +225,23 @@ def test_smooth_warp_follows_an_affine_change_and_keeps_a_copy(small):
         smooth_warp(rig.neutral, rig.triangles, target, 0.0)
 
 
+@settings(max_examples=5, deadline=None)
+@given(scale=st.floats(0.1, 10.0), rotvec=st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3))
+def test_smooth_warp_has_no_units_and_no_frame(tiny, scale, rotvec):
+    """ℓ is in eye widths and both energy terms are surface integrals: scaling and rotating the
+    problem (mm -> cm, another frame) scales and rotates the result. One iteration agrees to 1e-11;
+    after it, round-off can flip a vertex's closest-point pair across the 60° test or the boundary
+    rule, which moves the result by a few µm (0.005 mm of a 150 mm face measured), hence 1e-3."""
+    from livecap.transfer.warp import smooth_warp
+
+    target = Surface(tiny.neutral * np.array([1.08, 1.05, 1.0]) + [1.0, -2.0, 0.5], tiny.triangles)
+    base = smooth_warp(tiny.neutral, tiny.triangles, target, 25.0, (2.0, 1.0)).vertices
+    R = Rotation.from_rotvec(rotvec).as_matrix()
+    moved = Surface(scale * target.vertices @ R.T, tiny.triangles)
+    out = smooth_warp(scale * tiny.neutral @ R.T, tiny.triangles, moved, 25.0 * scale, (2.0, 1.0)).vertices
+    np.testing.assert_allclose(out, scale * base @ R.T, atol=1e-3 * scale * np.ptp(tiny.neutral))
+
+
 # ---------------------------------------------------------------- deformable model, correspondence
 def test_deformable_model_pulls_a_mesh_onto_another(small):
     rig, layout = small
