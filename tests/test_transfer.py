@@ -63,6 +63,13 @@ def test_transfer_keeps_target_topology_and_limits(small):
     # left is still left: eyeBlinkLeft moves +x vertices
     d = np.linalg.norm(new.deltas[new.index("eyeBlinkLeft")], axis=1)
     assert new.neutral[np.argmax(d), 0] > 0
+    # the smooth warp is an option: without it (Xiang's similarity only) the pipeline still runs
+    steps = []
+    res = transfer(rig, layout, other.neutral, other.triangles, TransferOptions(warp=()),
+                   progress=lambda done, total: steps.append((done, total)))
+    assert "smooth warp" not in res.seconds and steps[-1][0] == steps[-1][1]
+    res = transfer(rig, layout, other.neutral, other.triangles, TransferOptions(warp=(2.0, 1.0)))
+    assert "smooth warp" in res.seconds
 
 
 def test_bad_target_is_a_clear_error(small):
@@ -165,6 +172,76 @@ def test_landmarks_found_where_a_moved_copy_puts_them(small):
     np.testing.assert_allclose(same.points, sites, atol=1e-9)
 
 
+def test_landmarks_on_a_warped_decimated_copy(small):
+    """Known answer, fast: the small demo face warped to other proportions (actor_warp), moved and
+    decimated to half its triangles. Xiang's detector (Algorithm 1, r_d = 6 %) after a similarity
+    leaves most landmarks beyond 8 % of the eye width; after the smooth warp most are within it."""
+    import igl
+
+    from livecap.demo.performance import actor_warp
+    from livecap.transfer.warp import smooth_warp
+
+    rig, layout = small
+    warp, R = actor_warp(np.random.default_rng(7)), Rotation.from_rotvec([0.1, 0.15, 0.05]).as_matrix()
+
+    def move(p):
+        return warp(p) @ R.T + np.array([5.0, -20.0, 12.0])
+
+    V, F, _, _ = igl.decimate(move(rig.neutral), rig.triangles, len(rig.triangles) // 2)
+    S = layout.sampling_matrix(rig.n_vertices)
+    truth = move(S @ rig.neutral)
+    target = Surface(V, F)
+    sim = prealign(Surface(rig.neutral, rig.triangles), target)
+    w = eye_width(layout, rig.neutral)[0] * sim.scale
+    opt = TransferOptions()
+    share = {}
+    for name, lengths in (("similarity", ()), ("warp", opt.warp)):
+        x = sim.apply(rig.neutral)
+        if lengths:
+            x = smooth_warp(x, rig.triangles, target, w, lengths).vertices
+        lm = detect_landmarks(Surface(x, rig.triangles), S @ x, layout.vertices[:, 0], target, opt.radius_fraction * w)
+        share[name] = np.mean(np.linalg.norm(lm.points - truth, axis=1) / w < 0.08)
+    print(f"\nwarped demo copy: within 8 % of the eye width {share}")
+    assert share["similarity"] < 0.5 < share["warp"]
+
+
+def test_smooth_warp_follows_an_affine_change_and_keeps_a_copy(small):
+    """The thin-plate energy does not resist an affine map, so the warp recovers one exactly enough
+    for the landmarks (tangential slide included); a target equal to the source stays put."""
+    from livecap.transfer.warp import smooth_warp
+
+    rig, layout = small
+    A = np.diag([1.08, 0.94, 1.0]) + np.array([[0, 0.05, 0], [0, 0, 0], [0, 0, 0]])
+    target = Surface(rig.neutral @ A.T, rig.triangles)
+    S = layout.sampling_matrix(rig.n_vertices)
+    w = eye_width(layout, rig.neutral)[0]
+    out = smooth_warp(rig.neutral, rig.triangles, target, w)
+    err = np.linalg.norm(S @ out.vertices - S @ rig.neutral @ A.T, axis=1) / w
+    before = np.linalg.norm(S @ rig.neutral - S @ rig.neutral @ A.T, axis=1) / w
+    assert np.median(err) < 0.3 * np.median(before) and out.rms[-1] < out.rms[0]
+    same = smooth_warp(rig.neutral, rig.triangles, Surface(rig.neutral, rig.triangles), w, (2.0, 1.0))
+    np.testing.assert_allclose(same.vertices, rig.neutral, atol=1e-6)
+    with pytest.raises(ValueError):
+        smooth_warp(rig.neutral, rig.triangles, target, 0.0)
+
+
+@settings(max_examples=5, deadline=None)
+@given(scale=st.floats(0.1, 10.0), rotvec=st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3))
+def test_smooth_warp_has_no_units_and_no_frame(tiny, scale, rotvec):
+    """ℓ is in eye widths and both energy terms are surface integrals: scaling and rotating the
+    problem (mm -> cm, another frame) scales and rotates the result. One iteration agrees to 1e-11;
+    after it, round-off can flip a vertex's closest-point pair across the 60° test or the boundary
+    rule, which moves the result by a few µm (0.005 mm of a 150 mm face measured), hence 1e-3."""
+    from livecap.transfer.warp import smooth_warp
+
+    target = Surface(tiny.neutral * np.array([1.08, 1.05, 1.0]) + [1.0, -2.0, 0.5], tiny.triangles)
+    base = smooth_warp(tiny.neutral, tiny.triangles, target, 25.0, (2.0, 1.0)).vertices
+    R = Rotation.from_rotvec(rotvec).as_matrix()
+    moved = Surface(scale * target.vertices @ R.T, tiny.triangles)
+    out = smooth_warp(scale * tiny.neutral @ R.T, tiny.triangles, moved, 25.0 * scale, (2.0, 1.0)).vertices
+    np.testing.assert_allclose(out, scale * base @ R.T, atol=1e-3 * scale * np.ptp(tiny.neutral))
+
+
 # ---------------------------------------------------------------- deformable model, correspondence
 def test_deformable_model_pulls_a_mesh_onto_another(small):
     rig, layout = small
@@ -229,3 +306,7 @@ def test_cli_writes_a_loadable_rig_folder(small, tmp_path):
                           "--target", str(tmp_path / "missing.obj"), "--out", str(tmp_path / "x")],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 1 and "missing.obj" in bad.stderr and "Traceback" not in bad.stderr
+    bad = subprocess.run([sys.executable, "-m", "livecap", "rig", "transfer", "--generic", str(tmp_path / "generic"),
+                          "--target", str(tmp_path / "new.obj"), "--out", str(tmp_path / "y"), "--warp", "2,x"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 1 and "--warp" in bad.stderr and "Traceback" not in bad.stderr

@@ -4,10 +4,8 @@ import numpy as np
 import pytest
 
 from livecap.transfer import TransferOptions, transfer
-from livecap.transfer.align import prealign
 from livecap.transfer.labels import DEMO_TO_MULTIPIE, landmark_distances
-from livecap.transfer.landmarks import detect_landmarks, eye_width
-from livecap.transfer.surface import Surface
+from livecap.transfer.landmarks import eye_width
 
 pytestmark = pytest.mark.slow
 
@@ -61,33 +59,29 @@ def test_ict_rig_onto_demo(demo, ict):
 
 
 def test_landmarks_on_a_warped_remeshed_ict(ict):
-    """Ground truth known: ICT warped to other proportions, moved, decimated to half its triangles."""
-    from benchmarks.transfer import warped_remeshed
+    """Known answer (Xiang Fig. 5's claim where anatomy matches): ICT warped to other proportions, moved
+    and decimated to half its triangles; with the default settings most of ICT's 60 landmarks are
+    detected within 8 % of the eye width (Xiang's similarity pre-alignment alone: about a third)."""
+    from benchmarks.transfer import warped_ict_accuracy
 
-    rig, layout = ict
-    V, F, truth = warped_remeshed(rig, layout)
-    src, dst = Surface(rig.neutral, rig.triangles), Surface(V, F)
-    sim = prealign(src, dst)
-    aligned = Surface(sim.apply(rig.neutral), rig.triangles)
-    w = eye_width(layout, rig.neutral)[0] * sim.scale
-    sites = layout.sampling_matrix(rig.n_vertices) @ aligned.vertices
-    res = detect_landmarks(aligned, sites, layout.vertices[:, 0], dst, 0.5 * w)
-    before = np.linalg.norm(sites - truth, axis=1) / w
-    after = np.linalg.norm(res.points - truth, axis=1) / w
-    print(f"\nwarped ICT: within 8 % of the eye width: {np.mean(before < 0.08):.0%} after pre-alignment, "
-          f"{np.mean(after < 0.08):.0%} after detection (r_d = 0.5 eye widths); median {np.median(after):.1%}")
-    assert np.mean(after < 0.08) > 0.5 and np.median(after) < np.median(before)
+    r = warped_ict_accuracy(warp=True)
+    print(f"\nwarped ICT: {r['within_8pct']:.0%} within 8 % of the eye width (before Algorithm 1 "
+          f"{r['before_detection_within_8pct']:.0%}), median {r['median_pct']:.1f} %")
+    assert r["within_8pct"] > 0.75 and r["median_pct"] < 8
 
 
 def test_solving_with_a_transferred_rig():
-    """A take of face B solved with B's own rig and with the demo rig transferred onto B's neutral."""
-    from benchmarks.transfer import solve_agreement
+    """A take of face B solved with B's own rig and with the demo rig transferred onto B's neutral.
 
-    r = solve_agreement(5.0)
-    print(f"\nweight RMSE: own rig {r['rmse_own_vs_truth']:.4f}, transferred {r['rmse_transferred_vs_truth']:.4f}, "
-          f"between {r['rmse_transferred_vs_own']:.4f}")
-    assert r["rmse_transferred_vs_truth"] < r["rmse_own_vs_truth"] + 0.05
-    assert r["rmse_transferred_vs_own"] < 0.2
+    With a ridge (bounded lsq without one turns 0.5 mm of marker noise into weight bias on the
+    worse-conditioned rig, docs/transfer.md) the two solves agree and the own rig is not worse."""
+    from benchmarks.transfer import RIDGE, solve_agreement
+
+    r = solve_agreement(5.0, ridge=RIDGE)
+    print(f"\nweight RMSE (ridge {RIDGE:g}): own rig {r['rmse_own_vs_truth']:.4f}, transferred "
+          f"{r['rmse_transferred_vs_truth']:.4f}, between {r['rmse_transferred_vs_own']:.4f}")
+    assert r["rmse_own_vs_truth"] < 0.08 and r["rmse_transferred_vs_truth"] < 0.08
+    assert r["rmse_transferred_vs_own"] < 0.08
 
 
 def test_transfer_options_reach_the_pipeline(demo, ict):

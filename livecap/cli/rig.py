@@ -38,6 +38,9 @@ def register(sub) -> None:
                    help="landmark patch radius in eye widths (paper: 0.06); a comma list runs coarse to fine")
     t.add_argument("--prealign", default="similarity", choices=["similarity", "rigid", "none"],
                    help="global alignment of the generic onto the new face (default similarity)")
+    t.add_argument("--warp", default=None, metavar="LENGTHS",
+                   help="smooth-warp pre-alignment: smoothing length per iteration in eye widths, comma list "
+                        "coarse to fine (default 2 x8, 1, 0.7), or 'none' for Xiang's similarity only")
     t.add_argument("--refine", action="store_true",
                    help="detect landmarks again on the deformed model and deform again (Xiang 4)")
     t.add_argument("--landmarks", action="store_true", help="print every detected landmark")
@@ -56,6 +59,20 @@ def _radii(text: str) -> float | tuple[float, ...]:
     if not vals or min(vals) <= 0:
         raise ValueError("--radius-fraction must be positive")
     return vals[0] if len(vals) == 1 else vals
+
+
+def _warp(text: str | None) -> tuple[float, ...]:
+    if text is None:
+        return TransferOptions().warp
+    if text.strip().lower() == "none":
+        return ()
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--warp: not a number list: {text!r}") from None
+    if min(vals) <= 0:
+        raise ValueError("--warp lengths must be positive")
+    return vals
 
 
 def _write_sheet(rig: Rig, path) -> None:
@@ -87,7 +104,7 @@ def run_transfer(args: argparse.Namespace) -> int:
     verts, tris = read_obj(target)
     verts = to_mm(verts, args.target_units)
     options = TransferOptions(prealign=args.prealign, radius_fraction=_radii(args.radius_fraction),
-                              refine_landmarks=args.refine)
+                              refine_landmarks=args.refine, warp=_warp(args.warp))
     with progress_bar("transferring rig", transfer_steps(generic, layout, options)) as update:
         res = transfer(generic, layout, verts, tris, options, progress=update)
     out = Path(args.out)

@@ -144,7 +144,9 @@ def detect_landmarks(source: Surface, sites: np.ndarray, site_vertices: np.ndarr
     ``site_vertices`` (n,) are the source vertices nearest each site (the patch centres).
     ``radius``: the patch radius r_d (mm), or several, coarse to fine: each level starts its nine
     states around the previous level's registration (a livecap extension; one radius is the
-    paper). Both surfaces must already be roughly aligned (see :mod:`livecap.transfer.align`).
+    paper). Both surfaces must already be roughly aligned: the patches only correct offsets of
+    about ``radius``, so :func:`livecap.transfer.transfer` runs the similarity of
+    :mod:`livecap.transfer.align` and the smooth warp of :mod:`livecap.transfer.warp` first.
     """
     radii = [float(radius)] if np.ndim(radius) == 0 else [float(r) for r in np.ravel(radius)]
     n = len(sites)
