@@ -56,8 +56,9 @@ class _CV:
     def update(self, y: np.ndarray, r: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Measurement update where ``ok``; returns innovation and its variance (for the likelihood)."""
         s = self.p00 + r
-        e = np.where(ok, y - self.x, 0.0)
-        k0, k1 = np.where(ok, self.p00 / s, 0.0), np.where(ok, self.p01 / s, 0.0)
+        e, k0, k1 = y - self.x, self.p00 / s, self.p01 / s
+        if not ok.all():
+            e, k0, k1 = e * ok, k0 * ok, k1 * ok
         self.x, self.v = self.x + k0 * e, self.v + k1 * e
         self.gain = (k0, k1)
         self.p00, self.p01, self.p11 = (1 - k0) * self.p00, (1 - k0) * self.p01, self.p11 - k1 * self.p01
@@ -129,7 +130,7 @@ class IMMFilter:
     latency_frames = 0  # both models are constant-velocity: no steady-state lag on a ramp
 
     def reset(self) -> None:
-        self._models: list[_CV] | None = None
+        self._models: _CV | None = None
         self._mu: np.ndarray | None = None  # (2, channels) mode probabilities
         self.move_probability: np.ndarray | None = None
 
@@ -137,36 +138,31 @@ class IMMFilter:
         y = np.asarray(y, dtype=np.float64)
         ok = np.ones(y.shape, bool) if valid is None else np.broadcast_to(np.asarray(valid, bool), y.shape)
         r = np.broadcast_to(self.r, y.shape)
-        if self._models is None:
+        if self._models is None:  # both models in one state with a leading model axis (vectorised)
             start = np.where(ok, y, 0.0)
-            self._models = [_CV(start, r, r.copy()) for _ in range(2)]
+            self._models = _CV(np.stack([start, start]), np.stack([r, r]), np.stack([r, r]))
+            self._q = np.stack([np.broadcast_to(q, y.shape) for q in self.q])
             self._mu = np.stack([np.full(y.shape, 1 - self.p_move), np.full(y.shape, self.p_move)])
             self.move_probability = self._mu[1].copy()
             return start.copy()
-        pi, mu, ms = self.transition, self._mu, self._models
+        pi, mu, m = self.transition, self._mu, self._models
         c = np.einsum("ij,i...->j...", pi, mu)  # predicted mode probabilities
-        w = pi[:, :, None] * mu[:, None] / np.maximum(c[None], 1e-300)  # w[i, j] = P(i before | j now)
-        w = w.reshape(2, 2, *y.shape)
-        mixed = []
-        for j in range(2):  # interaction: each filter starts from the mixture of both
-            x = w[0, j] * ms[0].x + w[1, j] * ms[1].x
-            v = w[0, j] * ms[0].v + w[1, j] * ms[1].v
-            p00 = sum(w[i, j] * (ms[i].p00 + (ms[i].x - x) ** 2) for i in range(2))
-            p01 = sum(w[i, j] * (ms[i].p01 + (ms[i].x - x) * (ms[i].v - v)) for i in range(2))
-            p11 = sum(w[i, j] * (ms[i].p11 + (ms[i].v - v) ** 2) for i in range(2))
-            m = _CV(x, r, r)
-            m.v, m.p00, m.p01, m.p11 = v, p00, p01, p11
-            mixed.append(m)
-        like = []
-        for j, m in enumerate(mixed):
-            m.predict(np.broadcast_to(self.q[j], y.shape))
-            e, s = m.update(y, r, ok)
-            like.append(np.where(ok, np.exp(-0.5 * e * e / s) / np.sqrt(2 * np.pi * s), 1.0))
-        mu = c * np.stack(like) + 1e-300
+        w = pi.reshape(2, 2, *(1,) * y.ndim) * mu[:, None] / np.maximum(c[None], 1e-300)  # P(i before | j now)
+        x, v = (w * m.x[:, None]).sum(0), (w * m.v[:, None]).sum(0)  # interaction: mixed starts
+        dx, dv = m.x[:, None] - x[None], m.v[:, None] - v[None]
+        m.p00 = (w * (m.p00[:, None] + dx * dx)).sum(0)
+        m.p01 = (w * (m.p01[:, None] + dx * dv)).sum(0)
+        m.p11 = (w * (m.p11[:, None] + dv * dv)).sum(0)
+        m.x, m.v = x, v
+        m.predict(self._q)
+        e, s = m.update(y, r, ok)
+        like = np.exp(-0.5 * e * e / s) / np.sqrt(2 * np.pi * s)
+        if not ok.all():
+            like = np.where(ok, like, 1.0)
+        mu = c * like + 1e-300
         self._mu = mu / mu.sum(0)
-        self._models = mixed
         self.move_probability = self._mu[1].copy()
-        return self._mu[0] * mixed[0].x + self._mu[1] * mixed[1].x
+        return (self._mu * m.x).sum(0)
 
     def filter(self, Y: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         """Run over a sequence (T, ...) from a fresh state; the same numbers as calling ``step``."""
