@@ -58,7 +58,7 @@ class _CV:
         s = self.p00 + r
         e, k0, k1 = y - self.x, self.p00 / s, self.p01 / s
         if not ok.all():
-            e, k0, k1 = e * ok, k0 * ok, k1 * ok
+            e, k0, k1 = np.where(ok, e, 0.0), k0 * ok, k1 * ok
         self.x, self.v = self.x + k0 * e, self.v + k1 * e
         self.gain = (k0, k1)
         self.p00, self.p01, self.p11 = (1 - k0) * self.p00, (1 - k0) * self.p01, self.p11 - k1 * self.p01
