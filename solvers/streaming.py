@@ -73,6 +73,7 @@ class StreamingMovement:
         self._m, self._S, self._R = m, K + 1, K + 3
         self._F0 = np.ascontiguousarray(self._rows[jo])  # (K+1) x d coefficients of the published row
         self._F01 = np.ascontiguousarray(self._rows[[jo, K - 1]])  # with the newest row (imputation)
+        self._a01, self._c01 = self._a[[jo, K - 1]], self._c[[jo, K - 1]]
         self._F1, self._a1, self._c1 = self._F01[1], self._a[K - 1], self._c[K - 1]
         # The published frame in weights is one product of a constant matrix with the stacked vector
         # v = [window sum (d); w_left (m); 1]:  w = U x + U diag(a) U^T G w_left + U c  (d = 2m sums the
@@ -81,6 +82,7 @@ class StreamingMovement:
         self._UM = np.ascontiguousarray(np.hstack([b.U] * (d // m) + [b.U @ (self._a[jo][:, None] * b.UG),
                                                                       (b.U @ self._c[jo])[:, None]]))
         self._v = np.ones(d + m + 1)
+        self._tmp, self._ones = np.empty((K + 1, d)), np.ones(K + 1)
         self.reset()
 
     # ------------------------------------------------------------------------------ preparation
@@ -155,7 +157,7 @@ class StreamingMovement:
         self._z = np.tile(self.P @ s0, (2 * R, 1))
         self._w = np.tile(w0, (R, 1))
         y0 = b.U.T @ ((b.G + b.K) @ w0)
-        self._ynew = {-1: y0, -2: y0}  # newest-frame modal weights by frame, filled on demand
+        self._ynew, self._ynew_frame = np.tile(y0, (3, 1)), [-3, -2, -1]  # by frame mod 3
         self._s_last = s0.copy()
         self._gap = np.zeros(len(valid), dtype=bool)
         self._gapping = False
@@ -174,29 +176,27 @@ class StreamingMovement:
         y = acc[:, :m] + acc[:, m:] if self._has_b else acc
         return y + self._a[rows] * (self._UG @ self._w[(f - self.window) % self._R]) + self._c[rows]
 
-    def _newest(self, f: int, acc: np.ndarray | None = None) -> np.ndarray:
+    def _newest(self, f: int) -> np.ndarray:
         """Modal weights of frame f as its own window's newest (free) frame. Only the imputation uses
-        them (frames t - 1 and t - 2), so they are computed on demand (``acc``: the window sum if
-        the caller has it) and the last few kept."""
-        cache = self._ynew
-        if f not in cache:
+        them (frames t - 1 and t - 2): imputed frames keep theirs, others are recomputed on demand."""
+        k = f % 3
+        if self._ynew_frame[k] != f:
             i = (f - self.window) % self._R
-            if acc is None:
-                acc = np.einsum("sj,sj->j", self._F1, self._z[i:i + self._S])
-            y = acc[:self._m] + acc[self._m:] if self._has_b else acc.copy()
-            y += self._a1 * (self._UG @ self._w[i])
-            y += self._c1
-            for g in [g for g in cache if g < f - 2]:
-                del cache[g]
-            cache[f] = y
-        return cache[f]
+            acc = np.einsum("sj,sj->j", self._F1, self._z[i:i + self._S])
+            y = acc[:self._m] + acc[self._m:] if self._has_b else acc
+            self._keep_newest(f, y + self._a1 * (self._UG @ self._w[i]) + self._c1)
+        return self._ynew[k]
+
+    def _keep_newest(self, f: int, y: np.ndarray) -> None:
+        self._ynew[f % 3] = y
+        self._ynew_frame[f % 3] = f
 
     def _impute(self, s: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """Missing markers from the rig's fit at the predicted newest frame plus their last offset."""
         missing = ~valid
         y1, y2 = self._newest(self._t - 1), self._newest(self._t - 2)
         opened = missing & ~self._gap
-        if opened.any():
+        if np.count_nonzero(opened):
             ro = np.repeat(opened, 3)
             self._off[opened] = (self._s_last[ro] - self._BU[ro] @ y1).reshape(-1, 3)
         rm = np.repeat(missing, 3)
@@ -210,7 +210,7 @@ class StreamingMovement:
     def _clean(self, s: np.ndarray, valid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """A NaN/inf coordinate makes its marker missing, never a NaN weight."""
         valid = np.ones(len(s) // 3, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
-        if not np.isfinite(s.sum()):
+        if not math.isfinite(s.sum()):
             valid = valid & np.isfinite(s).reshape(-1, 3).all(1)
             s = np.where(np.repeat(valid, 3), s, 0.0)
         return s, valid
@@ -245,16 +245,20 @@ class StreamingMovement:
             self._gapping = False
         self._z[t % R + R] = z
         i = (t - K) % R
-        H, v, d = self._z[i:i + self._S], self._v, len(z)
-        if complete:
-            np.einsum("sj,sj->j", self._F0, H, out=v[:d])
-        else:  # the newest row too: the next frame's imputation starts from it
+        H, w = self._z[i:i + self._S], self._w[(t - self.lookahead) % R]
+        if complete:  # x = sum_s F0[s] * H[s]: an elementwise product, then a BLAS sum over the window
+            v, d = self._v, len(z)
+            np.dot(self._ones, np.multiply(self._F0, H, out=self._tmp), out=v[:d])
+            v[d:-1] = self._w[i]  # the boundary: weights published K - L frames ago
+            np.dot(self._UM, v, out=w)
+        else:  # imputed: the newest row too, as the next frame's imputation starts from it
             y = np.einsum("rsj,sj->rj", self._F01, H)
-            v[:d] = y[0]
-            self._newest(t, y[1])
-        v[d:-1] = self._w[i]  # the boundary: weights published K - L frames ago
-        w = self._w[(t - self.lookahead) % R]
-        np.dot(self._UM, v, out=w)
+            if self._has_b:
+                y = y[:, :self._m] + y[:, self._m:]
+            y += self._a01 * (self._UG @ self._w[i])
+            y += self._c01
+            self._keep_newest(t, y[1])
+            np.dot(self._U, y[0], out=w)
         if self._clip:  # projection onto the rig's limits; the clipped frame is the later boundary
             np.maximum(w, self.lower, out=w)
             np.minimum(w, self.upper, out=w)
