@@ -161,7 +161,8 @@ class StreamingMovement:
         self._s_last = s0.copy()
         self._gap = np.zeros(len(valid), dtype=bool)
         self._gapping = False
-        self._off = np.zeros((len(valid), 3))
+        self._off = np.zeros(3 * len(valid))  # per coordinate row
+        self._xyz = np.arange(3 * len(valid)).reshape(-1, 3)
         self._started = True
 
     def _window(self, f: int) -> np.ndarray:
@@ -195,14 +196,15 @@ class StreamingMovement:
         """Missing markers from the rig's fit at the predicted newest frame plus their last offset."""
         missing = ~valid
         y1, y2 = self._newest(self._t - 1), self._newest(self._t - 2)
-        opened = missing & ~self._gap
-        if np.count_nonzero(opened):
-            ro = np.repeat(opened, 3)
-            self._off[opened] = (self._s_last[ro] - self._BU[ro] @ y1).reshape(-1, 3)
-        rm = np.repeat(missing, 3)
-        pred = 2.0 * y1 - y2
+        idx = np.flatnonzero(missing)
+        rows = self._xyz[idx].ravel()  # the missing markers' coordinate rows
+        BUm = self._BU.take(rows, axis=0)
+        opened = ~self._gap[idx]
+        if np.count_nonzero(opened):  # gone this frame: remember the offset from the fit when last seen
+            r = np.repeat(opened, 3)
+            self._off[rows[r]] = self._s_last[rows[r]] - BUm[r] @ y1
         s = s.copy()
-        s[rm] = self._BU[rm] @ pred + self._off[missing].reshape(-1)
+        s[rows] = BUm @ (2.0 * y1 - y2) + self._off[rows]
         self._gap = missing
         self._gapping = True
         return s
@@ -236,7 +238,7 @@ class StreamingMovement:
             complete = math.isfinite(z[0])
         if not complete:
             s, valid = self._clean(s, valid)
-            complete = bool(valid.all())  # if so, finite data whose projection overflowed: nothing to impute
+            complete = np.count_nonzero(valid) == len(valid)  # finite data, overflowing projection
             if not complete:
                 s = self._impute(s, valid)
                 np.dot(self.P, s, out=z)
