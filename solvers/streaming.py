@@ -162,7 +162,6 @@ class StreamingMovement:
         self._gap = np.zeros(len(valid), dtype=bool)
         self._gapping = False
         self._off = np.zeros(3 * len(valid))  # per coordinate row
-        self._xyz = np.arange(3 * len(valid)).reshape(-1, 3)
         self._started = True
 
     def _window(self, f: int) -> np.ndarray:
@@ -196,18 +195,12 @@ class StreamingMovement:
         """Missing markers from the rig's fit at the predicted newest frame plus their last offset."""
         missing = ~valid
         y1, y2 = self._newest(self._t - 1), self._newest(self._t - 2)
-        idx = np.flatnonzero(missing)
-        rows = self._xyz[idx].ravel()  # the missing markers' coordinate rows
-        BUm = self._BU.take(rows, axis=0)
-        opened = ~self._gap[idx]
+        opened = missing & ~self._gap
         if np.count_nonzero(opened):  # gone this frame: remember the offset from the fit when last seen
-            r = np.repeat(opened, 3)
-            self._off[rows[r]] = self._s_last[rows[r]] - BUm[r] @ y1
-        s = s.copy()
-        s[rows] = BUm @ (2.0 * y1 - y2) + self._off[rows]
+            np.copyto(self._off, self._s_last - self._BU @ y1, where=np.repeat(opened, 3))
         self._gap = missing
         self._gapping = True
-        return s
+        return np.where(np.repeat(missing, 3), self._BU @ (2.0 * y1 - y2) + self._off, s)
 
     def _clean(self, s: np.ndarray, valid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """A NaN/inf coordinate makes its marker missing, never a NaN weight."""
