@@ -82,6 +82,7 @@ class StreamingMovement:
         self._UM = np.ascontiguousarray(np.hstack([b.U] * (d // m) + [b.U @ (self._a[jo][:, None] * b.UG),
                                                                       (b.U @ self._c[jo])[:, None]]))
         self._v = np.ones(d + m + 1)
+        self._v_sum, self._v_left = self._v[:d], self._v[d:d + m]  # views filled per frame
         self._tmp, self._ones = np.empty((K + 1, d)), np.ones(K + 1)
         self.reset()
 
@@ -242,10 +243,9 @@ class StreamingMovement:
         i = (t - K) % R
         H, w = self._z[i:i + self._S], self._w[(t - self.lookahead) % R]
         if complete:  # x = sum_s F0[s] * H[s]: an elementwise product, then a BLAS sum over the window
-            v, d = self._v, len(z)
-            np.dot(self._ones, np.multiply(self._F0, H, out=self._tmp), out=v[:d])
-            v[d:-1] = self._w[i]  # the boundary: weights published K - L frames ago
-            np.dot(self._UM, v, out=w)
+            np.dot(self._ones, np.multiply(self._F0, H, out=self._tmp), out=self._v_sum)
+            self._v_left[:] = self._w[i]  # the boundary: weights published K - L frames ago
+            np.dot(self._UM, self._v, out=w)
         else:  # imputed: the newest row too, as the next frame's imputation starts from it
             y = np.einsum("rsj,sj->rj", self._F01, H)
             if self._has_b:
