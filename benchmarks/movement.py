@@ -17,7 +17,6 @@ import time
 
 import numpy as np
 
-from benchmarks.timing import machine as machine_info
 from benchmarks.timing import suite_main
 from livecap.metrics import drift, velocity_error
 from solvers.movement import Edit, MovementMatching
@@ -161,8 +160,7 @@ def limits_and_drift(quick: bool) -> dict:
 
 
 def run(quick: bool = False) -> dict:
-    machine = (f"{platform.machine()} {machine_info()['cpu']}, {os.cpu_count()} cpus, load {os.getloadavg()[0]:.1f}, "
-               f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}")
+    machine = f"{platform.machine()} {platform.processor() or ''} {os.cpu_count()} cpus, load {os.getloadavg()[0]:.1f}"
     res = {"machine": machine.strip(), "offline": offline(quick), "edit": edit_resolve(quick),
            "streaming_72x150": streaming_latency(quick), "limits_drift": limits_and_drift(quick)}
     print(f"movement matching benchmark ({res['machine']})")
