@@ -74,7 +74,6 @@ class StreamingMovement:
         self._F0 = np.ascontiguousarray(self._rows[jo])  # (K+1) x d coefficients of the published row
         self._F01 = np.ascontiguousarray(self._rows[[jo, K - 1]])  # with the newest row (imputation)
         self._a01, self._c01 = self._a[[jo, K - 1]], self._c[[jo, K - 1]]
-        self._F1, self._a1, self._c1 = self._F01[1], self._a[K - 1], self._c[K - 1]
         # The published frame in weights is one product of a constant matrix with the stacked vector
         # v = [window sum (d); w_left (m); 1]:  w = U x + U diag(a) U^T G w_left + U c  (d = 2m sums the
         # movement and position halves through U twice). One m x (d + m + 1) product per frame.
@@ -182,10 +181,7 @@ class StreamingMovement:
         them (frames t - 1 and t - 2): imputed frames keep theirs, others are recomputed on demand."""
         k = f % 3
         if self._ynew_frame[k] != f:
-            i = (f - self.window) % self._R
-            acc = np.einsum("sj,sj->j", self._F1, self._z[i:i + self._S])
-            y = acc[:self._m] + acc[self._m:] if self._has_b else acc
-            self._keep_newest(f, y + self._a1 * (self._UG @ self._w[i]) + self._c1)
+            self._keep_newest(f, self._solve_rows(f, np.array([self.window - 1]))[0])
         return self._ynew[k]
 
     def _keep_newest(self, f: int, y: np.ndarray) -> None:
