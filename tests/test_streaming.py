@@ -107,3 +107,79 @@ def test_rejects_bad_windows(take):
     for K, L in [(0, 0), (4, 4), (4, -1)]:
         with pytest.raises(ValueError):
             StreamingMovement(B, window=K, lookahead=L)
+
+
+def _literal_window(B, S_win, w_left, *, alpha, prior, beta, mw2):
+    """Seol §4/§7.1 on one window, solved densely: K free frames after the fixed boundary frame
+    (the Appendix's known rows moved to the right-hand side), free right end; no decoupling."""
+    K, m = len(S_win) - 1, B.shape[1]
+    rw = np.repeat(mw2, 3)
+    G, Kp = B.T @ B, alpha * prior.precision + beta * B.T @ (rw[:, None] * B)
+    Lap = 2.0 * np.eye(K) - np.eye(K, k=1) - np.eye(K, k=-1)
+    Lap[-1, -1] = 1.0
+    A = np.kron(Lap, G) + np.kron(np.eye(K), Kp)
+    ds = np.diff(S_win, axis=0)  # ds[tau - 1] = s_tau - s_{tau - 1}, tau = 1..K
+    r = (ds - np.vstack([ds[1:], np.zeros((1, ds.shape[1]))])) @ B + beta * (S_win[1:] * rw) @ B
+    r += alpha * prior.gradient_constant()
+    r[0] += G @ w_left
+    return np.linalg.solve(A, r.ravel()).reshape(K, m)
+
+
+@pytest.mark.parametrize("K, L, limits, weighted", [(6, 0, "clip", False), (8, 3, "clip", True),
+                                                    (5, 4, "none", False), (1, 0, "clip", False)])
+def test_each_published_frame_is_the_literal_window_solve(take, K, L, limits, weighted):
+    """The prefactored, fused per-frame step equals re-solving the K-frame window from scratch with
+    the published (clipped) frame t-K as its boundary, frame after frame."""
+    B, _, S, prior = take
+    T, n, m = 40, S.shape[1], B.shape[1]
+    mw2 = np.random.default_rng(1).uniform(0.5, 2.0, n) ** 2 if weighted else np.ones(n)
+    lo, hi = np.full(m, -0.05), np.full(m, 0.5)
+    st = StreamingMovement(B, lo, hi, window=K, lookahead=L, alpha=0.3, prior=prior, beta=0.2,
+                           marker_weights=np.sqrt(mw2) if weighted else None, limits=limits)
+    X = S[:T].reshape(T, -1)
+    out = np.array([st.step(S[i]) for i in range(T)])  # out[t] is frame t - L
+    for t in range(K + L, T):
+        w_left = out[t - K + L]  # frame t - K as published
+        Y = _literal_window(B, X[t - K:t + 1], w_left, alpha=0.3, prior=prior, beta=0.2, mw2=mw2)
+        expect = np.clip(Y[K - 1 - L], lo, hi) if limits == "clip" else Y[K - 1 - L]
+        assert np.allclose(out[t], expect, atol=1e-9 * max(1.0, np.abs(expect).max())), t
+
+
+def test_nan_coordinates_behave_like_missing_markers(take):
+    """The per-frame path finds NaN/inf from the projection alone; the result must be exactly that
+    of declaring those markers missing."""
+    B, _, S, prior = take
+    T, n = 120, S.shape[1]
+    rng = np.random.default_rng(3)
+    valid = rng.random((T, n)) > 0.05
+    valid[40:45, :3] = False
+    X = S[:T].copy()
+    X[~valid] = np.nan
+    X[50, 2, 1] = np.inf
+    valid[50, 2] = False
+    kw = dict(window=10, lookahead=2, alpha=0.5, prior=prior, beta=0.1)
+    a = StreamingMovement(B, np.zeros(B.shape[1]), np.ones(B.shape[1]), **kw)
+    b = StreamingMovement(B, np.zeros(B.shape[1]), np.ones(B.shape[1]), **kw)
+    Wa = np.array([a.step(X[i]) for i in range(T)])
+    Wb = np.array([b.step(np.where(valid[i][:, None], S[i], 0.0), valid[i]) for i in range(T)])
+    assert np.isfinite(Wa).all()
+    assert np.array_equal(Wa, Wb)
+
+
+def test_step_keeps_no_reference_to_the_callers_buffers(take):
+    """A live source may reuse one array for every frame: the result must not change."""
+    B, _, S, prior = take
+    kw = dict(window=8, lookahead=2, alpha=0.5, prior=prior, beta=0.1)
+    valid = np.ones(S.shape[:2], bool)
+    valid[20:25, :3] = False  # gaps opening after complete frames
+    valid[50:52, 5] = False
+    a, b = StreamingMovement(B, **kw), StreamingMovement(B, **kw)
+    frame, vis = np.empty_like(S[0]), np.empty(S.shape[1], bool)
+    Wa, Wb = [], []
+    for i in range(80):
+        Wa.append(a.step(S[i].copy(), valid[i].copy()))
+        frame[:], vis[:] = S[i], valid[i]
+        w = b.step(frame, vis)
+        Wb.append(w.copy())
+        w[:] = 99.0  # the caller may also scribble on the returned weights
+    assert np.array_equal(np.array(Wa), np.array(Wb))
