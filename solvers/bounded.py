@@ -51,6 +51,7 @@ class BoundedInfo:
     converged: bool
     rho: float
     refactorisations: int
+    accelerated: int = 0  # Anderson steps accepted
 
 
 class BoundedMovement:
@@ -61,7 +62,8 @@ class BoundedMovement:
     """
 
     def __init__(self, blocks: MovementBlocks, lower: np.ndarray, upper: np.ndarray, *, rho: float = 0.1,
-                 tol: float = 1e-6, max_iter: int = 5000, relax: float = 1.6, adapt_every: int = 10) -> None:
+                 tol: float = 1e-6, max_iter: int = 5000, relax: float = 1.6, adapt_every: int = 10,
+                 memory: int = 10) -> None:
         self.blocks = blocks
         m = blocks.n_shapes
         self.lower = np.broadcast_to(np.asarray(lower, dtype=np.float64), (m,)).copy()
@@ -71,7 +73,7 @@ class BoundedMovement:
         d = np.diag(2.0 * blocks.G + blocks.K).copy()
         self.metric = np.maximum(d, 1e-12 * max(d.max(), 1e-300))
         self.rho0, self.tol, self.max_iter = float(rho), float(tol), int(max_iter)
-        self.relax, self.adapt_every = float(relax), int(adapt_every)
+        self.relax, self.adapt_every, self.memory = float(relax), int(adapt_every), int(memory)
         self.info: BoundedInfo | None = None
         self._modes: dict[float, tuple[np.ndarray, np.ndarray]] = {}
 
@@ -102,27 +104,94 @@ class BoundedMovement:
         rho, refactors, a = self.rho0, 0, self.relax
         g, V = self._modes_for(rho)
         factor = factor_modes(g, free, T)
-        rp = rd = np.inf
-        it = 0
-        for it in range(1, self.max_iter + 1):
+
+        def step(Z, Uu):
+            """One (over-relaxed) ADMM iteration from the state (z, u)."""
             b = rhs + rho * D * (Z - Uu)
             y, _ = dpttrs(*factor, (b @ V).T.reshape(-1, 1))
             X = y.reshape(m, N).T @ V.T
             Xr = a * X + (1.0 - a) * Z
-            Zold = Z
-            Z = np.clip(Xr + Uu, lo, hi)
-            Uu += Xr - Z
-            rp = float(np.max(np.abs(X - Z)))
-            rd = float(rho * np.max(np.abs(Z - Zold)))
-            if rp <= self.tol and rd <= self.tol:
-                break
+            Zn = np.clip(Xr + Uu, lo, hi)
+            return Zn, Uu + Xr - Zn, float(np.max(np.abs(X - Zn))), float(rho * np.max(np.abs(Zn - Z)))
+
+        aa = _Anderson(self.memory) if self.memory > 0 else None
+        s = np.concatenate([Z.ravel(), Uu.ravel()])
+        Zn, Un, rp, rd = step(Z, Uu)
+        fs = np.concatenate([Zn.ravel(), Un.ravel()])
+        it, accepted = 1, 0
+        while not (rp <= self.tol and rd <= self.tol) and it < self.max_iter:
             if it % self.adapt_every == 0 and rp > 0 and rd > 0:
                 scale = float(np.clip(np.sqrt(rp / rd), 1e-3, 1e3))
                 if scale > 5.0 or scale < 0.2:  # Boyd §3.4.1 / OSQP: balance the residuals, refactor
                     rho *= scale
-                    Uu /= scale  # the unscaled dual rho D u stays the same
                     g, V = self._modes_for(rho)
                     factor = factor_modes(g, free, T)
                     refactors += 1
-        self.info = BoundedInfo(it, rp, rd, rp <= self.tol and rd <= self.tol, rho, refactors)
+                    Zn, Un = fs[:N * m].reshape(N, m), fs[N * m:].reshape(N, m) / scale  # rho D u unchanged
+                    s = np.concatenate([Zn.ravel(), Un.ravel()])
+                    Zn, Un, rp, rd = step(Zn, Un)
+                    fs = np.concatenate([Zn.ravel(), Un.ravel()])
+                    it += 1
+                    if aa is not None:
+                        aa.reset()
+                    continue
+            gs = fs - s
+            nxt = fs
+            if aa is not None:
+                cand = aa.propose(s, gs)
+                if cand is not None:  # safeguard: keep the extrapolation only if its residual is smaller
+                    Zc, Uc, rpc, rdc = step(cand[:N * m].reshape(N, m), cand[N * m:].reshape(N, m))
+                    it += 1
+                    fc = np.concatenate([Zc.ravel(), Uc.ravel()])
+                    if np.linalg.norm(fc - cand) < np.linalg.norm(gs):
+                        s, fs, rp, rd = cand, fc, rpc, rdc
+                        accepted += 1
+                        continue
+                    aa.reset()
+            s = nxt
+            Zn, Un, rp, rd = step(s[:N * m].reshape(N, m), s[N * m:].reshape(N, m))
+            fs = np.concatenate([Zn.ravel(), Un.ravel()])
+            it += 1
+        Z = fs[:N * m].reshape(N, m)
+        self.info = BoundedInfo(it, rp, rd, rp <= self.tol and rd <= self.tol, rho, refactors, accepted)
         return Z
+
+
+class _Anderson:
+    """Type-II Anderson acceleration of a fixed-point iteration s <- F(s) (Walker and Ni 2011; for
+    ADMM/Douglas-Rachford with a residual safeguard: Zhang, O'Donoghue, Boyd 2020, "Globally
+    convergent type-I Anderson acceleration for nonsmooth fixed-point iterations")."""
+
+    def __init__(self, memory: int) -> None:
+        self.memory = memory
+        self.reset()
+
+    def reset(self) -> None:
+        self.s_prev = self.g_prev = None
+        self.k = 0  # differences stored (ring buffer rows k % memory)
+        self.dS = self.dG = None
+        self.gram = np.zeros((self.memory, self.memory))
+
+    def propose(self, s: np.ndarray, g: np.ndarray) -> np.ndarray | None:
+        """Given the iterate s and its residual g = F(s) - s, the extrapolated next iterate (or None)."""
+        M = self.memory
+        if self.s_prev is not None:
+            if self.dS is None:
+                self.dS, self.dG = np.zeros((M, len(s))), np.zeros((M, len(s)))
+            j = self.k % M
+            np.subtract(s, self.s_prev, out=self.dS[j])
+            np.subtract(g, self.g_prev, out=self.dG[j])
+            self.k += 1
+            col = self.dG @ self.dG[j]  # incremental Gram matrix dG dG^T
+            self.gram[j, :] = col
+            self.gram[:, j] = col
+        self.s_prev, self.g_prev = s, g
+        h = min(self.k, M)
+        if h == 0:
+            return None
+        A = self.gram[:h, :h] + (1e-10 * np.trace(self.gram[:h, :h]) / h + 1e-300) * np.eye(h)
+        try:
+            gamma = np.linalg.solve(A, self.dG[:h] @ g)
+        except np.linalg.LinAlgError:
+            return None
+        return s + g - gamma @ self.dS[:h] - gamma @ self.dG[:h]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from livecap.cli import main
-from livecap.cli.fig11 import compare, plot, table
+from livecap.cli.fig11 import BOUNDED, SOFT, compare, plot, table
 from transport.weights_csv import read_weights_csv, write_weights_csv
 
 REC = Path(__file__).resolve().parents[1] / "recordings"
@@ -74,10 +74,10 @@ def test_fig11_compare_table_and_plot(tmp_path, demo):
     S = (W @ B.T).reshape(T, n, 3) + rng.normal(0, 0.5, (T, n, 3))
     valid = rng.random((T, n)) > 0.02
     res = compare(B, S, valid, -0.5, 1.5)
-    assert set(res["velocity"]) == {"No Const", "Range PF", "Prior PF", "Movement + prior"}
-    for name in ("Range PF", "Prior PF", "Movement + prior"):
+    assert set(res["velocity"]) == {"No Const", "Range PF", "Prior PF", BOUNDED, SOFT}
+    for name in ("Range PF", "Prior PF", BOUNDED, SOFT):
         assert res["weights"][name].min() >= -0.5 - 0.006 and res["weights"][name].max() <= 1.5 + 0.006
         assert res["velocity"][name].sum() >= res["velocity"]["No Const"].sum() - 1e-6  # No Const is optimal
-    assert "Movement + prior" in table(res, -0.5, 1.5)
+    assert BOUNDED in table(res, -0.5, 1.5)
     plot(res, 120.0, tmp_path / "f.png")
     assert (tmp_path / "f.png").stat().st_size > 10_000
