@@ -63,7 +63,7 @@ class BoundedMovement:
 
     def __init__(self, blocks: MovementBlocks, lower: np.ndarray, upper: np.ndarray, *, rho: float = 0.1,
                  tol: float = 1e-6, max_iter: int = 5000, relax: float = 1.6, adapt_every: int = 10,
-                 memory: int = 10) -> None:
+                 memory: int = 5, accelerate_after: int = 30) -> None:
         self.blocks = blocks
         m = blocks.n_shapes
         self.lower = np.broadcast_to(np.asarray(lower, dtype=np.float64), (m,)).copy()
@@ -74,6 +74,7 @@ class BoundedMovement:
         self.metric = np.maximum(d, 1e-12 * max(d.max(), 1e-300))
         self.rho0, self.tol, self.max_iter = float(rho), float(tol), int(max_iter)
         self.relax, self.adapt_every, self.memory = float(relax), int(adapt_every), int(memory)
+        self.accelerate_after = int(accelerate_after)  # plain ADMM first: acceleration costs ~2x per iteration
         self.info: BoundedInfo | None = None
         self._modes: dict[float, tuple[np.ndarray, np.ndarray]] = {}
 
@@ -137,7 +138,7 @@ class BoundedMovement:
                     continue
             gs = fs - s
             nxt = fs
-            if aa is not None:
+            if aa is not None and it >= self.accelerate_after:
                 cand = aa.propose(s, gs)
                 if cand is not None:  # safeguard: keep the extrapolation only if its residual is smaller
                     Zc, Uc, rpc, rdc = step(cand[:N * m].reshape(N, m), cand[N * m:].reshape(N, m))
