@@ -150,3 +150,14 @@ def test_rejects_crossed_limits_and_unknown_modes():
         BoundedMovement(mm.blocks, mm.lower, mm.upper)
     with pytest.raises(ValueError):
         MovementMatching(B, limits="bounded")
+
+
+@pytest.mark.parametrize("missing", ["fill", "exact"])
+def test_missing_markers_keep_the_limits_and_no_nan(missing):
+    rng, B, S = case(9, 40, n=8, m=5, scale=5.0)
+    valid = rng.random(S.shape[:2]) > 0.15
+    S[~valid] = np.nan
+    lo, hi = np.zeros(5), np.ones(5)
+    W = MovementMatching(B, lo, hi, alpha=0.1, prior=PCAPrior.from_shapes(B), beta=0.1, missing=missing,
+                         limits="bound").solve(np.where(valid[..., None], S, 0.0), valid)
+    assert np.isfinite(W).all() and W.min() >= 0 and W.max() <= 1
