@@ -1,8 +1,8 @@
 """Movement-matching solvers built from a Profile and plain options (used by modes.py and the CLI).
 
-Defaults (alpha 1, beta 0.1, prior from the rig's shapes plus the neutral; offline the rig's
-limits as constraints of the solve, streaming clipping of the published frame) were chosen on
-the demo take (docs/movement.md lists the measurements); every one is an option.
+Defaults (alpha 1, beta 0.1, prior from the rig's shapes plus the neutral; the rig's limits by
+clipping: offline the solved take, streaming the published frame) were chosen on the demo take
+and a synthetic take (docs/movement.md lists the measurements); every one is an option.
 """
 
 from __future__ import annotations
@@ -89,5 +89,5 @@ def _build(profile: Profile, o: dict):
                                  lookahead=int(o["lookahead"]),
                                  limits="clip" if o.get("limits") in (None, "bound") else o["limits"], **common)
     return MovementMatching(profile.basis, profile.lower, profile.upper, start=o["start"], end=o["end"],
-                            missing=o["missing"], limits=o.get("limits") or "bound", window=int(o["window"]),
+                            missing=o["missing"], limits=o.get("limits") or "clip", window=int(o["window"]),
                             lookahead=int(o["lookahead"]), **common)

@@ -22,7 +22,7 @@ def add_movement_arguments(p: argparse.ArgumentParser, stream: bool = True) -> N
                    "rig's fit (default, fast) or drop their rows exactly (slower)")
     g.add_argument("--limits", choices=["none", "clip", "bound"], help="rig weight limits: offline 'bound' "
                    "solves with the limits as constraints (ADMM), 'clip' clips the result, 'none' ignores them "
-                   "(offline default bound); streaming clips the published frame ('bound' = 'clip' there)")
+                   "(offline default clip); streaming clips the published frame ('bound' = 'clip' there)")
     g.add_argument("--marker-weight", action="append", metavar="LABEL=W", default=[],
                    help="per-marker weight of the position term (glob patterns allowed; repeatable)")
     if stream:
