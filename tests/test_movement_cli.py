@@ -35,6 +35,16 @@ def test_solve_writes_offline_and_streaming_curves(solved):
     assert st.min() >= 0 and st.max() <= 1 + 1e-6  # streaming clips to the rig's limits
 
 
+def test_solve_limits_clip_by_default_and_bound_on_request(solved, tmp_path):
+    out, args = solved
+    _, off, _ = read_weights_csv(out / "off.csv")
+    assert off.min() >= 0 and off.max() <= 1  # default: clipped to the demo rig's [0, 1]
+    assert main(["solve", *args, "--mode", "movement", "--limits", "bound", "--out", str(tmp_path / "b.csv")]) == 0
+    _, bound, _ = read_weights_csv(tmp_path / "b.csv")
+    assert bound.min() >= 0 and bound.max() <= 1
+    assert 0 < np.abs(bound - off).max()  # a different solution: the limits inside the solve, not after it
+
+
 def test_edit_with_the_source_take(solved, tmp_path):
     out, args = solved
     names, W, _ = read_weights_csv(out / "off.csv")
