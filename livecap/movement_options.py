@@ -1,7 +1,8 @@
 """Movement-matching solvers built from a Profile and plain options (used by modes.py and the CLI).
 
-Defaults (alpha 1, beta 0.1, prior from the rig's shapes plus the neutral) were chosen on the
-demo take (docs/movement.md lists the measurements); every one is an option.
+Defaults (alpha 1, beta 0.1, prior from the rig's shapes plus the neutral; the rig's limits by
+clipping: offline the solved take, streaming the published frame) were chosen on the demo take
+and a synthetic take (docs/movement.md lists the measurements); every one is an option.
 """
 
 from __future__ import annotations
@@ -85,7 +86,8 @@ def _build(profile: Profile, o: dict):
                   marker_weights=marker_weights(profile.labels, o.get("marker_weights")))
     if o.get("stream"):
         return StreamingMovement(profile.basis, profile.lower, profile.upper, window=int(o["window"]),
-                                 lookahead=int(o["lookahead"]), limits=o.get("limits") or "clip", **common)
+                                 lookahead=int(o["lookahead"]),
+                                 limits="clip" if o.get("limits") in (None, "bound") else o["limits"], **common)
     return MovementMatching(profile.basis, profile.lower, profile.upper, start=o["start"], end=o["end"],
-                            missing=o["missing"], limits=o.get("limits") or "none", window=int(o["window"]),
+                            missing=o["missing"], limits=o.get("limits") or "clip", window=int(o["window"]),
                             lookahead=int(o["lookahead"]), **common)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
+from scipy.linalg.lapack import dpttrf
 
 from solvers.prior import PCAPrior
 
@@ -71,6 +72,7 @@ class MovementBlocks:
         self.Qm = U.T @ B.T  # movement data projection: q_t = U^T B^T s_t
         self.Qb = (U.T @ B.T) * (self.beta * self.row_weights)[None, :] if self.beta > 0 else None
         self.BU = B @ U  # model fit from modal coordinates: B w = BU y
+        self.NU = N @ U  # U^-T: back from projected right-hand sides to weight space, r = (U^T r) @ NU^T
 
     @property
     def n_shapes(self) -> int:
@@ -91,3 +93,25 @@ class MovementBlocks:
         """
         q, qb = self.project(np.asarray(targets, dtype=np.float64))
         return self.to_weights(q + self.const + (qb if qb is not None else 0.0))
+
+
+def factor_modes(g: np.ndarray, free: np.ndarray, T: int):
+    """LDL^T (LAPACK ``pttrf``) of the m stacked tridiagonal systems (g_k L_ff + (1 - g_k) I).
+
+    L_ff is the path Laplacian of a T-frame take restricted to the ``free`` frames (a free frame
+    next to a fixed one keeps that edge in its degree: the fixed value moves to the right-hand
+    side, Seol's appendix). Returns None when no frame is free.
+    """
+    N = len(free)
+    if N == 0:
+        return None
+    deg = (free > 0).astype(np.float64) + (free < T - 1)
+    adj = (np.diff(free) == 1).astype(np.float64)
+    d = (g[:, None] * deg[None, :] + (1.0 - g)[:, None]).ravel()
+    e = np.zeros((len(g), N))
+    e[:, :-1] = -g[:, None] * adj[None, :]
+    d, e, info = dpttrf(d, e.ravel()[:-1])
+    if info != 0:
+        raise IllPosedError("movement matching is not determined: a stretch of free frames has no boundary "
+                            "frame and no prior/beta/ridge term (fix a frame, or set beta or ridge > 0)")
+    return d, e

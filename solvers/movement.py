@@ -35,9 +35,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg.lapack import dpttrf, dpttrs
+from scipy.linalg.lapack import dpttrs
 
-from solvers.blocks import IllPosedError, MovementBlocks
+from solvers.blocks import MovementBlocks, factor_modes
 from solvers.prior import PCAPrior
 
 Boundary = str | np.ndarray | None  # "neutral", "free", "fit", or an (m,) weight vector
@@ -120,8 +120,10 @@ class MovementMatching:
     :class:`solvers.streaming.StreamingMovement`) a per-frame ``step`` for live use.
 
     Takes plain arrays: ``basis`` (3n x m), ``lower``/``upper`` weight limits (m,). ``limits``:
-    "none" (Seol: the prior keeps weights plausible) or "clip" (project the result onto the
-    limits afterwards).
+    "none" (Seol: the prior keeps weights plausible), "clip" (project the result onto the
+    limits afterwards) or "bound" (minimise the objective *subject to* the limits, Seol §4 Fig. 3
+    and §7 Fig. 11: :class:`solvers.bounded.BoundedMovement`, ADMM warm-started from the clipped
+    unbounded solve; ``bound_options`` are passed to it, e.g. ``{"tol": 1e-6}``).
     """
 
     def __init__(self, basis: np.ndarray, lower: np.ndarray | None = None, upper: np.ndarray | None = None, *,
@@ -129,7 +131,7 @@ class MovementMatching:
                  marker_weights: np.ndarray | None = None, ridge: float = 0.0,
                  start: Boundary = "neutral", end: Boundary = "neutral", missing: str = "fill",
                  fill_iterations: int = 3, limits: str = "none", window: int = 24, lookahead: int = 0,
-                 blocks: MovementBlocks | None = None) -> None:
+                 blocks: MovementBlocks | None = None, bound_options: Mapping | None = None) -> None:
         self.blocks = blocks or MovementBlocks(basis, alpha=alpha, prior=prior, beta=beta,
                                                marker_weights=marker_weights, ridge=ridge)
         m = self.blocks.n_shapes
@@ -137,8 +139,11 @@ class MovementMatching:
         self.upper = np.full(m, np.inf) if upper is None else np.asarray(upper, dtype=np.float64)
         if missing not in ("fill", "exact"):
             raise ValueError(f"missing must be 'fill' or 'exact', got {missing!r}")
-        if limits not in ("none", "clip"):
-            raise ValueError(f"limits must be 'none' or 'clip', got {limits!r}")
+        if limits not in ("none", "clip", "bound"):
+            raise ValueError(f"limits must be 'none', 'clip' or 'bound', got {limits!r}")
+        self.bound_options = dict(bound_options or {})
+        self._bounder = None  # BoundedMovement, prepared on first use
+        self.bounded_info = None  # how the last bounded solve ended
         self.start, self.end, self.missing, self.limits = start, end, missing, limits
         self.fill_iterations = int(fill_iterations)
         self.window, self.lookahead = int(window), int(lookahead)
@@ -185,8 +190,12 @@ class MovementMatching:
         return w
 
     def solve(self, targets: np.ndarray, valid: np.ndarray | None = None,
-              fixed: Mapping[int, np.ndarray] | None = None) -> np.ndarray:
-        """Weights (T x m) for stabilised marker displacements ``targets`` (T x n x 3, mm)."""
+              fixed: Mapping[int, np.ndarray] | None = None, linear: np.ndarray | None = None) -> np.ndarray:
+        """Weights (T x m) for stabilised marker displacements ``targets`` (T x n x 3, mm).
+
+        ``linear`` (m,) or (T, m) adds sum_t linear_t . w_t to the objective (e.g. an L1 term on
+        non-negative weights); fixed frames ignore it.
+        """
         S = np.asarray(targets, dtype=np.float64)
         T = len(S)
         S = S.reshape(T, -1, 3)
@@ -195,6 +204,7 @@ class MovementMatching:
         if T == 0:
             return np.zeros((0, m))
         bounds = self.boundary_frames(S, valid, fixed)
+        lin = None if linear is None else np.broadcast_to(np.asarray(linear, dtype=np.float64), (T, m))
         W = np.zeros((T, m))
         isfree = np.ones(T, dtype=bool)
         for f, w in bounds.items():
@@ -205,6 +215,8 @@ class MovementMatching:
         if self.missing == "exact" and not valid.all():
             from solvers.masked import solve_masked
 
+            if lin is not None:
+                raise ValueError("a linear term needs missing='fill' (the exact masked solve has none)")
             W = solve_masked(self.blocks, S, valid, W, isfree)
             filled = fill_gaps(S, valid, W, B)
             q, qb = self.blocks.project(filled)
@@ -213,17 +225,34 @@ class MovementMatching:
             filled = plan.fill(S)
             q, qb = self.blocks.project(filled)
             factor = self._factor(free, T)
-            W = self._solve_factored(factor, None, free, isfree, W, q, qb)
+            W = self._solve_factored(factor, None, free, isfree, W, q, qb, lin)
             rows = plan.frames
             for _ in range(0 if plan.empty else self.fill_iterations):
                 filled = plan.fill(S, W, B)
                 q[rows] = filled[rows].reshape(len(rows), -1) @ self.blocks.Qm.T
                 if qb is not None:
                     qb[rows] = filled[rows].reshape(len(rows), -1) @ self.blocks.Qb.T
-                W = self._solve_factored(factor, None, free, isfree, W, q, qb)
+                W = self._solve_factored(factor, None, free, isfree, W, q, qb, lin)
+        if self.limits == "bound":  # gaps stay filled from the unbounded fit's iterations
+            W = self._bounded(q, qb, free, isfree, W, lin)
         self._targets = filled
         self._q, self._qb = q, qb
         return self._apply_limits(W, free)
+
+    def _bounded(self, q: np.ndarray, qb: np.ndarray | None, free: np.ndarray, isfree: np.ndarray, W: np.ndarray,
+                 linear: np.ndarray | None = None) -> np.ndarray:
+        """Re-solve the free frames inside the limits, warm-started from W (the unbounded solve)."""
+        if len(free) == 0:
+            return W
+        if self._bounder is None:
+            from solvers.bounded import BoundedMovement
+
+            self._bounder = BoundedMovement(self.blocks, self.lower, self.upper, **self.bound_options)
+        r = self._rhs(q, qb, free, isfree, W, linear) @ self.blocks.NU.T  # weight-space right-hand side
+        W = W.copy()
+        W[free] = self._bounder.solve(r, free, len(q), W[free])
+        self.bounded_info = self._bounder.info
+        return W
 
     def _apply_limits(self, W: np.ndarray, frames: np.ndarray) -> np.ndarray:
         if self.limits == "clip" and len(frames):
@@ -232,36 +261,25 @@ class MovementMatching:
 
     def _factor(self, free: np.ndarray, T: int):
         """LDL^T of the m stacked tridiagonal systems (g_k L_ff + (1 - g_k) I) over the free frames."""
-        g = self.blocks.g
-        N = len(free)
-        if N == 0:
-            return None
-        deg = (free > 0).astype(np.float64) + (free < T - 1)
-        adj = (np.diff(free) == 1).astype(np.float64)
-        d = (g[:, None] * deg[None, :] + (1.0 - g)[:, None]).ravel()
-        e = np.zeros((len(g), N))
-        e[:, :-1] = -g[:, None] * adj[None, :]
-        d, e, info = dpttrf(d, e.ravel()[:-1])
-        if info != 0:
-            raise IllPosedError("movement matching is not determined: a stretch of free frames has no boundary "
-                                "frame and no prior/beta/ridge term (fix a frame, or set beta or ridge > 0)")
-        return d, e
+        return factor_modes(self.blocks.g, free, T)
 
     def _solve_factored(self, factor, targets: np.ndarray, free: np.ndarray, isfree: np.ndarray,
-                        W: np.ndarray, q: np.ndarray | None = None, qb: np.ndarray | None = None) -> np.ndarray:
+                        W: np.ndarray, q: np.ndarray | None = None, qb: np.ndarray | None = None,
+                        linear: np.ndarray | None = None) -> np.ndarray:
         if factor is None:
             return W
         if q is None:
             q, qb = self.blocks.project(targets)
-        r = self._rhs(q, qb, free, isfree, W)
+        r = self._rhs(q, qb, free, isfree, W, linear)
         y, info = dpttrs(*factor, r.T.reshape(-1, 1))
         W = W.copy()
         W[free] = self.blocks.to_weights(y.reshape(len(self.blocks.g), -1).T)
         return W
 
     def _rhs(self, q: np.ndarray, qb: np.ndarray | None, free: np.ndarray, isfree: np.ndarray,
-             W: np.ndarray) -> np.ndarray:
-        """Projected right-hand side U^T r for the free frames (appendix: known rows moved right)."""
+             W: np.ndarray, linear: np.ndarray | None = None) -> np.ndarray:
+        """Projected right-hand side U^T r for the free frames (appendix: known rows moved right);
+        a linear term mu.w in the objective moves r by -mu/2."""
         T, m = q.shape
         dq = np.zeros((T + 1, m))
         dq[1:T] = q[1:] - q[:-1]  # dq[t] = q_t - q_{t-1}; no pair before frame 0 or after T-1
@@ -273,6 +291,8 @@ class MovementMatching:
             ok[ok] = ~isfree[nb[ok]]
             if ok.any():
                 r[ok] += W[nb[ok]] @ self.blocks.UG.T
+        if linear is not None:
+            r -= 0.5 * linear[free] @ self.blocks.U
         return r
 
     # ----------------------------------------------------------------------------------- editing
@@ -326,6 +346,8 @@ class MovementMatching:
         f_local = free - lo
         factor = self._factor(f_local, hi - lo + 1)
         Wsub = self._solve_factored(factor, None, f_local, isfree, W[sub], q, qb)
+        if self.limits == "bound":
+            Wsub = self._bounded(q, qb, f_local, isfree, Wsub)
         W[sub] = Wsub
         return self._apply_limits(W, free)
 

@@ -34,6 +34,20 @@ def solve_reference(basis: np.ndarray, targets: np.ndarray, fixed: Mapping[int, 
                     marker_weights: np.ndarray | None = None, ridge: float = 0.0,
                     valid: np.ndarray | None = None) -> np.ndarray:
     """Weights (f x m) minimising Eq. 4/5 (+ beta position + ridge) with ``fixed`` frames known."""
+    N, rhs, known, x = reference_system(basis, targets, fixed, alpha=alpha, prior=prior, beta=beta,
+                                        marker_weights=marker_weights, ridge=ridge, valid=valid)
+    x[~known] = spla.spsolve(N, rhs)
+    return x.reshape(len(x) // np.asarray(basis).shape[1], -1)
+
+
+def reference_system(basis: np.ndarray, targets: np.ndarray, fixed: Mapping[int, np.ndarray], *,
+                     alpha: float = 0.0, prior: PCAPrior | None = None, beta: float = 0.0,
+                     marker_weights: np.ndarray | None = None, ridge: float = 0.0,
+                     valid: np.ndarray | None = None) -> tuple[sp.csc_matrix, np.ndarray, np.ndarray, np.ndarray]:
+    """The literal normal equations over the unknown entries of vec(W): (N, rhs, known, x).
+
+    The objective is x_u^T N x_u - 2 rhs^T x_u + const over the unknowns x_u = x[~known];
+    ``x`` holds the fixed frames' values (frame-major, f*m). Tests hand it to QP solvers."""
     B = np.asarray(basis, dtype=np.float64)
     n3, m = B.shape
     S = np.asarray(targets, dtype=np.float64).reshape(len(targets), -1)
@@ -80,6 +94,4 @@ def solve_reference(basis: np.ndarray, targets: np.ndarray, fixed: Mapping[int, 
         x[fr * m:(fr + 1) * m] = np.asarray(w, dtype=np.float64)
     A1, A2 = A[:, ~known], A[:, known]
     R = b - A2 @ x[known]  # appendix: the known rows of W^T moved to the right-hand side
-    N = (A1.T @ A1).tocsc()
-    x[~known] = spla.spsolve(N, A1.T @ R)
-    return x.reshape(f, m)
+    return (A1.T @ A1).tocsc(), A1.T @ R, known, x

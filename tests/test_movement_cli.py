@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from livecap.cli import main
-from livecap.cli.fig11 import compare, plot, table
+from livecap.cli.fig11 import BOUNDED, SOFT, compare, plot, table
 from transport.weights_csv import read_weights_csv, write_weights_csv
 
 REC = Path(__file__).resolve().parents[1] / "recordings"
@@ -33,6 +33,16 @@ def test_solve_writes_offline_and_streaming_curves(solved):
     assert np.isfinite(off).all() and np.isfinite(st).all()
     assert np.allclose(off[0], 0, atol=1e-6) and np.allclose(off[-1], 0, atol=1e-6)  # neutral boundaries
     assert st.min() >= 0 and st.max() <= 1 + 1e-6  # streaming clips to the rig's limits
+
+
+def test_solve_limits_clip_by_default_and_bound_on_request(solved, tmp_path):
+    out, args = solved
+    _, off, _ = read_weights_csv(out / "off.csv")
+    assert off.min() >= 0 and off.max() <= 1  # default: clipped to the demo rig's [0, 1]
+    assert main(["solve", *args, "--mode", "movement", "--limits", "bound", "--out", str(tmp_path / "b.csv")]) == 0
+    _, bound, _ = read_weights_csv(tmp_path / "b.csv")
+    assert bound.min() >= 0 and bound.max() <= 1
+    assert 0 < np.abs(bound - off).max()  # a different solution: the limits inside the solve, not after it
 
 
 def test_edit_with_the_source_take(solved, tmp_path):
@@ -74,10 +84,10 @@ def test_fig11_compare_table_and_plot(tmp_path, demo):
     S = (W @ B.T).reshape(T, n, 3) + rng.normal(0, 0.5, (T, n, 3))
     valid = rng.random((T, n)) > 0.02
     res = compare(B, S, valid, -0.5, 1.5)
-    assert set(res["velocity"]) == {"No Const", "Range PF", "Prior PF", "Movement + prior"}
-    for name in ("Range PF", "Prior PF", "Movement + prior"):
+    assert set(res["velocity"]) == {"No Const", "Range PF", "Prior PF", BOUNDED, SOFT}
+    for name in ("Range PF", "Prior PF", BOUNDED, SOFT):
         assert res["weights"][name].min() >= -0.5 - 0.006 and res["weights"][name].max() <= 1.5 + 0.006
         assert res["velocity"][name].sum() >= res["velocity"]["No Const"].sum() - 1e-6  # No Const is optimal
-    assert "Movement + prior" in table(res, -0.5, 1.5)
+    assert BOUNDED in table(res, -0.5, 1.5)
     plot(res, 120.0, tmp_path / "f.png")
     assert (tmp_path / "f.png").stat().st_size > 10_000

@@ -2,10 +2,18 @@
 
 Velocity error |D(BW)^T - DS^T|_F^2 (Seol §7) of constrained solves, over the unconstrained
 per-frame solve ("No Const"): per-frame hard range -0.5 <= w <= 1.5 ("Range PF"), per-frame PCA
-prior ("Prior PF") and movement matching with the prior (§4-5). As in Seol §7, each alpha is
-fitted so that method's weights reach the Range PF range: the smallest alpha keeping them inside
-it, found by bisection on log alpha. Writes a Markdown table, the per-frame errors as CSV and a
-PNG: (a) total error per method, (b) extra error over No Const along time.
+prior ("Prior PF"), and movement matching with the prior (§4-5) in two forms:
+
+* "Movement + prior, bounded": constraints active, as in Seol's Figs. 3 and 11: the same range
+  as hard limits of the spacetime solve (solvers/bounded.py) with a small prior weight, Seol's
+  alpha = 0.01 (§5, Fig. 7f, §7). Seol §7 pick each alpha "to produce the same weight range
+  used for Range PF"; with the range a constraint that holds for any alpha, so the prior keeps
+  the value Seol found to work for movement matching (--alpha-bound changes it).
+* "Movement + prior, soft": no limits; alpha fitted so the prior alone brings the weights into
+  the range (the smallest such alpha, bisection on log alpha), as is Prior PF's.
+
+Writes a Markdown table, the per-frame errors as CSV and a PNG: (a) total error per method,
+(b) extra error over No Const along time.
 
 Default: Seol's setting, retargeting onto a different character that cannot reproduce the
 source (livecap.demo.retarget: an actor performing demo_rig(0), target demo_rig(3) reduced to 33
@@ -32,6 +40,8 @@ from transport.takefile import read_take
 
 RECORDINGS = Path(__file__).resolve().parents[2] / "recordings"
 TOL = 0.005  # how far past the range a fitted alpha's weights may go (the bisection's target)
+ALPHA_BOUND = 0.01  # Seol et al. 2012 §5 (Fig. 7f) and §7: the movement-matching prior weight
+BOUNDED, SOFT = "Movement + prior, bounded", "Movement + prior, soft"
 
 
 def register(sub) -> None:
@@ -57,7 +67,9 @@ def register(sub) -> None:
     p.add_argument("--range", nargs=2, type=float, default=[-0.5, 1.5], metavar=("LO", "HI"),
                    help="Range PF limits and the weight range every alpha is fitted to (default -0.5 1.5)")
     p.add_argument("--alpha-pf", type=float, help="Prior PF alpha (default: fitted to the range)")
-    p.add_argument("--alpha-mm", type=float, help="movement-matching alpha (default: fitted to the range)")
+    p.add_argument("--alpha-mm", type=float, help="soft movement-matching alpha (default: fitted to the range)")
+    p.add_argument("--alpha-bound", type=float, default=ALPHA_BOUND,
+                   help=f"bounded movement-matching alpha (default {ALPHA_BOUND:g}, Seol §5/§7)")
     p.add_argument("--out-dir", default="out/fig11", help="where fig11.md, fig11*.csv and fig11.png go")
     p.set_defaults(func=run)
 
@@ -85,8 +97,10 @@ def fit_alpha(solve, lo: float, hi: float, tol: float = TOL, steps: int = 24,
 
 
 def compare(basis: np.ndarray, targets: np.ndarray, valid: np.ndarray, lo: float, hi: float,
-            alpha_pf: float | None = None, alpha_mm: float | None = None, prior: PCAPrior | None = None) -> dict:
-    """Weights, alphas, per-frame velocity errors and timings of the four methods.
+            alpha_pf: float | None = None, alpha_mm: float | None = None, prior: PCAPrior | None = None,
+            alpha_bound: float = ALPHA_BOUND, soft: bool = True) -> dict:
+    """Weights, alphas, per-frame velocity errors and timings of the methods (``soft``: include
+    the soft-prior movement solve, whose alpha fit costs ~25 solves).
 
     ``prior`` defaults to Seol §7's: all the target's blendshapes as training examples (plus
     the neutral, see :meth:`solvers.prior.PCAPrior.from_shapes`).
@@ -106,7 +120,16 @@ def compare(basis: np.ndarray, targets: np.ndarray, valid: np.ndarray, lo: float
     def mm(a):
         return MovementMatching(basis, alpha=a, prior=prior).solve(targets, valid)
 
-    for name, fn, given in (("Prior PF", pf, alpha_pf), ("Movement + prior", mm, alpha_mm)):
+    m = basis.shape[1]
+    t0 = time.perf_counter()
+    bounded = MovementMatching(basis, np.full(m, lo), np.full(m, hi), alpha=alpha_bound,
+                               prior=prior if alpha_bound > 0 else None, limits="bound")
+    out["weights"][BOUNDED] = bounded.solve(targets, valid)
+    out["seconds"][BOUNDED] = time.perf_counter() - t0
+    out["alpha"][BOUNDED] = alpha_bound
+    out["admm"] = bounded.bounded_info
+    methods = [("Prior PF", pf, alpha_pf)] + ([(SOFT, mm, alpha_mm)] if soft else [])
+    for name, fn, given in methods:
         t0 = time.perf_counter()
         a, W = (given, fn(given)) if given is not None else fit_alpha(fn, lo, hi)
         out["seconds"][name] = time.perf_counter() - t0
@@ -128,14 +151,21 @@ def table(result: dict, lo: float, hi: float) -> str:
     for name, v in result["velocity"].items():
         W = result["weights"][name]
         a = result["alpha"].get(name)
-        miss = " (range not reached)" if a is not None and range_excess(W, lo, hi) > TOL else ""
+        miss = " (range not reached)" if range_excess(W, lo, hi) > TOL and name != "No Const" else ""
         lines.append(f"| {name} | {'' if a is None else f'{a:.4g}'} | [{W.min():.2f}, {W.max():.2f}]{miss} | "
                      f"{v.sum():.1f} | {v.sum() - base:+.1f} ({(v.sum() - base) / base * 100:+.1f}%) |")
-    lines.append(f"\nConstrained weight range [{lo:g}, {hi:g}]; alphas fitted to it (Seol et al. 2012 §7).")
+    lines.append(f"\nConstrained weight range [{lo:g}, {hi:g}]: hard limits of Range PF and of the bounded "
+                 f"movement solve (alpha {result['alpha'][BOUNDED]:g}, Seol §5/§7); Prior PF's and the soft "
+                 "movement solve's alphas fitted to reach it (Seol et al. 2012 §7).")
+    info = result.get("admm")
+    if info is not None:
+        lines.append(f"Bounded solve: ADMM {info.iterations} iterations, converged {info.converged}, "
+                     f"{result['seconds'][BOUNDED]:.2f} s.")
     return "\n".join(lines)
 
 
-COLORS = {"No Const": "0.5", "Range PF": "tab:orange", "Prior PF": "tab:green", "Movement + prior": "tab:blue"}
+COLORS = {"No Const": "0.5", "Range PF": "tab:orange", "Prior PF": "tab:green", BOUNDED: "tab:blue",
+          SOFT: "tab:purple"}
 
 
 def plot(result: dict, rate: float, path: Path, title: str = "") -> None:
@@ -156,14 +186,15 @@ def plot_variants(variants: list[tuple[str, dict, float]], path: Path) -> None:
         base = v["No Const"]
         names = list(v)
         ax1.bar(range(len(names)), [v[n].sum() for n in names], color=[COLORS.get(n, "k") for n in names])
-        ax1.set_xticks(range(len(names)), [n.replace(" + ", "\n+ ") for n in names], fontsize=8)
+        ax1.set_xticks(range(len(names)), [n.replace(" + ", "\n+ ").replace(", ", ",\n") for n in names],
+                       fontsize=7)
         ax1.set_ylabel("sum of velocity errors (mm²)")
         ax1.set_title(f"(a) velocity error{' — ' + title if title else ''}", fontsize=9)
         k = max(1, int(round(rate * 0.25)))
         t = np.arange(len(base)) / rate
         for n in names[1:]:
             d = np.convolve(v[n] - base, np.ones(k) / k, mode="same")
-            ax2.plot(t, d, color=COLORS.get(n, "k"), ls="-" if n.startswith("Movement") else ":", lw=1.2, label=n)
+            ax2.plot(t, d, color=COLORS.get(n, "k"), ls="-" if n == BOUNDED else ":", lw=1.2, label=n)
         ax2.axhline(0, color="0.6", lw=0.8)
         ax2.set_xlabel("time (s)")
         ax2.set_ylabel("extra velocity error per frame (mm², 0.25 s mean)")
@@ -208,7 +239,7 @@ def run(args: argparse.Namespace) -> int:
     doc = ["# Seol et al. 2012 Fig. 11", ""]
     plots, written = [], []
     for tag, desc, basis, targets, valid, rate in variants:
-        result = compare(basis, targets, valid, lo, hi, args.alpha_pf, args.alpha_mm)
+        result = compare(basis, targets, valid, lo, hi, args.alpha_pf, args.alpha_mm, alpha_bound=args.alpha_bound)
         text = table(result, lo, hi)
         doc += [f"## {desc}", "", text, ""]
         names = list(result["velocity"])

@@ -20,8 +20,9 @@ def add_movement_arguments(p: argparse.ArgumentParser, stream: bool = True) -> N
     g.add_argument("--end", choices=["neutral", "free", "fit"], help="boundary at the last frame (default neutral)")
     g.add_argument("--missing", choices=["fill", "exact"], help="missing markers offline: fill gaps from the "
                    "rig's fit (default, fast) or drop their rows exactly (slower)")
-    g.add_argument("--limits", choices=["none", "clip"], help="rig weight limits: offline default none (the "
-                   "prior keeps weights plausible), streaming default clip")
+    g.add_argument("--limits", choices=["none", "clip", "bound"], help="rig weight limits: offline 'bound' "
+                   "solves with the limits as constraints (ADMM), 'clip' clips the result, 'none' ignores them "
+                   "(offline default clip); streaming clips the published frame ('bound' = 'clip' there)")
     g.add_argument("--marker-weight", action="append", metavar="LABEL=W", default=[],
                    help="per-marker weight of the position term (glob patterns allowed; repeatable)")
     if stream:
