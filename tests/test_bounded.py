@@ -38,7 +38,7 @@ def qp_reference(B, S, bounds, lo, hi, linear=None, **kw):
     prob = osqp.OSQP()
     prob.setup(sp.triu(2.0 * N).tocsc(), q, sp.identity(nu, format="csc"), np.tile(lo, T)[~known],
                np.tile(hi, T)[~known], eps_abs=1e-12, eps_rel=1e-12, max_iter=200000, polishing=True, verbose=False)
-    x[~known] = prob.solve().x
+    x[~known] = prob.solve(raise_error=True).x
     return x.reshape(T, m)
 
 
