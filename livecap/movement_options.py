@@ -92,7 +92,8 @@ def build_movement(profile: Profile, options: Mapping | None = None):
         inner = _build(profile, {**o, "ridge": ridge})
     if not robust:
         return inner
-    return RobustMovement(inner, float(noise), lag=lag, weight_lag=given.get("weight_lag"))
+    return RobustMovement(inner, float(noise), lag=lag, weight_lag=given.get("weight_lag"),
+                          reweight=int(given.get("reweight", 0)))
 
 
 def _build(profile: Profile, o: dict):

@@ -22,7 +22,12 @@ stores in ``profile.settings["robust"]`` (sigma per coordinate, mm):
    below its own fit, as in the per-frame fit);
 4. the limits as constraints (``limits="bound"``: ``solvers.bounded.BoundedMovement``), so
    resting shapes are exactly 0 instead of noise;
-5. the solved curves smoothed zero-phase by the centred quartic over ``6 lag + 1`` frames (the
+5. optionally (``reweight`` > 0, default 0) reweighted L1 (Candes, Wakin & Boyd 2008, "Enhancing
+   sparsity by reweighted l1 minimization"): re-solve with ``mu eps / (w + eps)``, eps the L1
+   offset in weight units ``mu_k / (2 beta |b_k|^2)``, which removes the lasso's shrinkage of
+   active shapes (blinks) but also lets model error grow spurious sustained shapes
+   (docs/robustness.md has both measured);
+6. the solved curves smoothed zero-phase by the centred quartic over ``6 lag + 1`` frames (the
    ``robust-lag`` mode's offline weight smoother), fixed frames restored afterwards.
 
 ``MovementMatching`` itself stays the plain solver; this class wraps one.
@@ -52,12 +57,13 @@ class RobustMovement:
 
     ``inner`` is the plain :class:`MovementMatching` (alpha 0, beta from the smoother, bounded
     limits); ``noise_mm`` the raw marker noise sigma; ``lag`` the smoother half-width (frames);
-    ``weight_lag`` the weight smoother's half-width (0: none). ``step``/``reset`` are the inner
-    solver's (live use is the plain streaming solver).
+    ``weight_lag`` the weight smoother's half-width (0: none); ``reweight`` the number of
+    reweighted-L1 re-solves. ``step``/``reset`` are the inner solver's (live use is the plain
+    streaming solver).
     """
 
     def __init__(self, inner: MovementMatching, noise_mm: float, lag: int = 4, weight_lag: int | None = None,
-                 z: float | None = None) -> None:
+                 z: float | None = None, reweight: int = 0) -> None:
         self.inner = inner
         self.lower, self.upper = inner.lower, inner.upper
         self.lag = int(lag)
@@ -70,6 +76,8 @@ class RobustMovement:
         scale = inner.blocks.beta if inner.blocks.beta > 0 else 1.0
         self.noise_mm = float(noise_mm)
         self.mu = scale * l1_weights(B, self.noise_mm * np.sqrt(gain), zz)
+        self.eps = self.mu / (2.0 * scale * np.maximum(np.sum(B**2, axis=0), 1e-12))  # L1 offset, weight units
+        self.reweight = int(reweight)
 
     def smooth(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         S = np.asarray(targets, dtype=np.float64)
@@ -83,7 +91,10 @@ class RobustMovement:
         valid = np.ones(S.shape[:2], dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
         if len(S) == 0:
             return self.inner.solve(S, valid, fixed)
-        W = self.inner.solve(self.smooth(S, valid), valid, fixed, linear=self.mu)
+        smoothed = self.smooth(S, valid)
+        W = self.inner.solve(smoothed, valid, fixed, linear=self.mu)
+        for _ in range(self.reweight):
+            W = self.inner.solve(smoothed, valid, fixed, linear=self.mu * self.eps / (np.maximum(W, 0.0) + self.eps))
         if self.weight_smoother is not None and len(W) > 1:
             W = np.clip(self.weight_smoother.filter(W), self.lower, self.upper)
             for f, w in self.inner.boundary_frames(S, valid, fixed).items():
