@@ -97,7 +97,7 @@ class RobustMovement:
             W = self.inner.solve(smoothed, valid, fixed, linear=self.mu * self.eps / (np.maximum(W, 0.0) + self.eps))
         if self.weight_smoother is not None and len(W) > 1:
             W = np.clip(self.weight_smoother.filter(W), self.lower, self.upper)
-            for f, w in self.inner.boundary_frames(S, valid, fixed).items():
+            for f, w in self.inner.boundary_frames(smoothed, valid, fixed).items():
                 W[f] = w
         return W
 
