@@ -3,6 +3,12 @@
 Defaults (alpha 1, beta 0.1, prior from the rig's shapes plus the neutral; the rig's limits by
 clipping: offline the solved take, streaming the published frame) were chosen on the demo take
 and a synthetic take (docs/movement.md lists the measurements); every one is an option.
+
+Offline on a profile that carries a noise estimate (``settings["robust"]``, stored by
+``livecap.robust.tune_profile`` on every CLI calibration path) the mode is the noise-robust
+:class:`livecap.robust_movement.RobustMovement` (smoothed markers, alpha 0, beta from the
+smoother, L1 at the noise threshold, bounded limits, smoothed weights); explicit options still
+override its alpha/beta/limits/...; option ``robust: false`` gives the plain Seol solve.
 """
 
 from __future__ import annotations
@@ -14,12 +20,15 @@ from collections.abc import Mapping
 import numpy as np
 
 from livecap.calibration import Profile
+from livecap.robust import DEFAULTS as ROBUST_DEFAULTS
+from livecap.robust_movement import BOUND_TOL, RobustMovement, smoother_beta
 from solvers.blocks import IllPosedError
 from solvers.movement import MovementMatching
 from solvers.prior import PCAPrior
 from solvers.streaming import StreamingMovement
 
 log = logging.getLogger(__name__)
+ROBUST_LAG = int(ROBUST_DEFAULTS["lag"])  # marker smoother half-width, frames (the robust-lag mode's default)
 
 DEFAULTS = {"alpha": 1.0, "beta": 0.1, "prior": "shapes", "prior_threshold": 1e-6, "ridge": 0.0,
             "start": "neutral", "end": "neutral", "missing": "fill", "window": 24, "lookahead": 0}
@@ -66,15 +75,25 @@ def build_movement(profile: Profile, options: Mapping | None = None):
     film-scale rigs) and no ridge was asked for, a ridge of 1e-6 of the basis's mean column
     energy makes it well posed instead of failing.
     """
-    o = {**DEFAULTS, **{k: v for k, v in (options or {}).items() if v is not None}}
+    given = {k: v for k, v in (options or {}).items() if v is not None}
+    noise = profile.settings.get("robust", {}).get("noise_mm")
+    robust = noise is not None and not given.get("stream") and bool(given.get("robust", True))
+    lag = int(given.get("lag", profile.settings.get("robust", {}).get("lag", ROBUST_LAG)))
+    base = {**DEFAULTS, "alpha": 0.0, "beta": smoother_beta(lag), "limits": "bound",
+            "bound_options": {"tol": BOUND_TOL}} if robust else DEFAULTS
+    o = {**base, **given}
     try:
-        return _build(profile, o)
+        inner = _build(profile, o)
     except IllPosedError:
         if float(o["ridge"]) > 0:
             raise
         ridge = 1e-6 * float(np.mean(np.sum(profile.basis**2, axis=0)))
         log.info("movement system singular; adding ridge %.3g", ridge)
-        return _build(profile, {**o, "ridge": ridge})
+        inner = _build(profile, {**o, "ridge": ridge})
+    if not robust:
+        return inner
+    return RobustMovement(inner, float(noise), lag=lag, weight_lag=given.get("weight_lag"),
+                          reweight=int(given.get("reweight", 0)))
 
 
 def _build(profile: Profile, o: dict):
@@ -90,4 +109,4 @@ def _build(profile: Profile, o: dict):
                                  limits="clip" if o.get("limits") in (None, "bound") else o["limits"], **common)
     return MovementMatching(profile.basis, profile.lower, profile.upper, start=o["start"], end=o["end"],
                             missing=o["missing"], limits=o.get("limits") or "clip", window=int(o["window"]),
-                            lookahead=int(o["lookahead"]), **common)
+                            lookahead=int(o["lookahead"]), bound_options=o.get("bound_options"), **common)

@@ -37,9 +37,14 @@ def test_solve_writes_offline_and_streaming_curves(solved):
 
 def test_solve_limits_clip_by_default_and_bound_on_request(solved, tmp_path):
     out, args = solved
-    _, off, _ = read_weights_csv(out / "off.csv")
-    assert off.min() >= 0 and off.max() <= 1  # default: clipped to the demo rig's [0, 1]
-    assert main(["solve", *args, "--mode", "movement", "--limits", "bound", "--out", str(tmp_path / "b.csv")]) == 0
+    _, robust, _ = read_weights_csv(out / "off.csv")
+    assert robust.min() >= 0 and robust.max() <= 1  # the noise-robust default solves inside the limits
+    assert main(["solve", *args, "--mode", "movement", "--plain", "--out", str(tmp_path / "p.csv")]) == 0
+    _, off, _ = read_weights_csv(tmp_path / "p.csv")
+    assert off.min() >= 0 and off.max() <= 1  # plain Seol: clipped to the demo rig's [0, 1] by default
+    assert np.abs(off - robust).max() > 0.05
+    assert main(["solve", *args, "--mode", "movement", "--plain", "--limits", "bound",
+                 "--out", str(tmp_path / "b.csv")]) == 0
     _, bound, _ = read_weights_csv(tmp_path / "b.csv")
     assert bound.min() >= 0 and bound.max() <= 1
     assert 0 < np.abs(bound - off).max()  # a different solution: the limits inside the solve, not after it

@@ -23,6 +23,8 @@ def add_movement_arguments(p: argparse.ArgumentParser, stream: bool = True) -> N
     g.add_argument("--limits", choices=["none", "clip", "bound"], help="rig weight limits: offline 'bound' "
                    "solves with the limits as constraints (ADMM), 'clip' clips the result, 'none' ignores them "
                    "(offline default clip); streaming clips the published frame ('bound' = 'clip' there)")
+    g.add_argument("--plain", action="store_true", help="offline: the plain Seol solve even on a profile with a "
+                   "noise estimate (default there: the noise-robust solve, docs/robustness.md)")
     g.add_argument("--marker-weight", action="append", metavar="LABEL=W", default=[],
                    help="per-marker weight of the position term (glob patterns allowed; repeatable)")
     if stream:
@@ -38,6 +40,8 @@ def movement_options(args: argparse.Namespace) -> dict:
                                                 "limits", "window", "lookahead")}
     if getattr(args, "stream", False):
         opts["stream"] = True
+    if getattr(args, "plain", False):
+        opts["robust"] = False
     prior = getattr(args, "prior", None)
     if prior is not None and prior not in ("shapes", "none"):
         names, weights, _ = read_weights_csv(prior)

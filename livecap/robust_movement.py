@@ -1,0 +1,116 @@
+"""Noise-robust offline movement matching: the `movement` mode's offline solve on a tuned profile.
+
+Plain movement matching (Seol et al. 2012 §4, Eq. 2) matches the markers' velocities, so on
+noisy markers it reproduces the noise's velocity, and its PCA shapes prior (§5) is a uniform
+pull that shrinks blinks (docs/movement.md, docs/robustness.md). This solve keeps Seol's
+objective and sets every weight from the noise estimate that ``livecap.robust.tune_profile``
+stores in ``profile.settings["robust"]`` (sigma per coordinate, mm):
+
+1. markers smoothed zero-phase by the centred quadratic over ``2 lag + 1`` frames
+   (``solvers.filters.FixedLagSmoother.filter``, ``lag`` the robust default 4): the velocity term
+   then matches the motion, and the noise left has variance ``sigma^2 sum(h^2)``;
+2. beta (Sobolev position term, §7.1) by inverse-variance weighting of the two residuals: after
+   the smoother h, position noise has variance ``sigma^2 sum(h^2)`` and velocity noise
+   ``sigma^2 sum(diff(h)^2)``; weighting each term by its inverse variance and normalising the
+   velocity term to 1 gives ``beta = sum(diff(h)^2) / sum(h^2)`` (0.373 for lag 4; 2 on raw
+   markers). beta > 0 is also what stops drift;
+3. no PCA prior (alpha 0): plausibility comes from an L1 term on the non-negative weights
+   (Lewis et al. 2014 §5.2), ``mu_k = beta * 2 z sigma' |b_k|`` with sigma' the smoothed noise and
+   z = sqrt(2 ln m) (``solvers.sparse_fit``): the same threshold as the sparse per-frame fit,
+   scaled by beta because the L1 competes with the position term (in a steady state of the
+   decoupled problem an active shape sits at ``y - mu / (2 beta |b|^2)``, i.e. z sigma' / |b_k|
+   below its own fit, as in the per-frame fit);
+4. the limits as constraints (``limits="bound"``: ``solvers.bounded.BoundedMovement``), so
+   resting shapes are exactly 0 instead of noise;
+5. optionally (``reweight`` > 0, default 0) reweighted L1 (Candes, Wakin & Boyd 2008, "Enhancing
+   sparsity by reweighted l1 minimization"): re-solve with ``mu eps / (w + eps)``, eps the L1
+   offset in weight units ``mu_k / (2 beta |b_k|^2)``, which removes the lasso's shrinkage of
+   active shapes (blinks) but also lets model error grow spurious sustained shapes
+   (docs/robustness.md has both measured);
+6. the solved curves smoothed zero-phase by the centred quartic over ``6 lag + 1`` frames (the
+   ``robust-lag`` mode's offline weight smoother), fixed frames restored afterwards.
+
+``MovementMatching`` itself stays the plain solver; this class wraps one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from solvers.filters import FixedLagSmoother, savgol_weights
+from solvers.movement import Edit, MovementMatching
+from solvers.sparse_fit import l1_weights, universal_threshold
+
+BOUND_TOL = 1e-4  # ADMM residuals, weight units: far below a weight's noise sd (~0.01-0.05)
+
+
+def smoother_beta(lag: int) -> float:
+    """Inverse-variance ratio velocity / position of white noise after the centred quadratic over 2 lag + 1."""
+    h = savgol_weights(int(lag))
+    return float(np.sum(np.diff(np.r_[0.0, h, 0.0]) ** 2) / np.sum(h**2))
+
+
+class RobustMovement:
+    """Offline: smooth markers -> bounded movement matching with an L1 term -> smooth weights.
+
+    ``inner`` is the plain :class:`MovementMatching` (alpha 0, beta from the smoother, bounded
+    limits); ``noise_mm`` the raw marker noise sigma; ``lag`` the smoother half-width (frames);
+    ``weight_lag`` the weight smoother's half-width (0: none); ``reweight`` the number of
+    reweighted-L1 re-solves. ``step``/``reset`` are the inner solver's (live use is the plain
+    streaming solver).
+    """
+
+    def __init__(self, inner: MovementMatching, noise_mm: float, lag: int = 4, weight_lag: int | None = None,
+                 z: float | None = None, reweight: int = 0) -> None:
+        self.inner = inner
+        self.lower, self.upper = inner.lower, inner.upper
+        self.lag = int(lag)
+        self.smoother = FixedLagSmoother(self.lag)
+        wl = 3 * self.lag if weight_lag is None else int(weight_lag)
+        self.weight_smoother = FixedLagSmoother(wl, order=4) if wl > 0 else None
+        B = inner.blocks.basis
+        gain = float(np.sum(savgol_weights(self.lag) ** 2))
+        zz = universal_threshold(B.shape[1]) if z is None else float(z)
+        scale = inner.blocks.beta if inner.blocks.beta > 0 else 1.0
+        self.noise_mm = float(noise_mm)
+        self.mu = scale * l1_weights(B, self.noise_mm * np.sqrt(gain), zz)
+        self.eps = self.mu / (2.0 * scale * np.maximum(np.sum(B**2, axis=0), 1e-12))  # L1 offset, weight units
+        self.reweight = int(reweight)
+
+    def smooth(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        S = np.asarray(targets, dtype=np.float64)
+        S = S.reshape(len(S), -1, 3)
+        return self.smoother.filter(S, np.broadcast_to(np.asarray(valid, bool)[..., None], S.shape))
+
+    def solve(self, targets: np.ndarray, valid: np.ndarray | None = None,
+              fixed: Mapping[int, np.ndarray] | None = None) -> np.ndarray:
+        S = np.asarray(targets, dtype=np.float64)
+        S = S.reshape(len(S), -1, 3)
+        valid = np.ones(S.shape[:2], dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+        if len(S) == 0:
+            return self.inner.solve(S, valid, fixed)
+        smoothed = self.smooth(S, valid)
+        W = self.inner.solve(smoothed, valid, fixed, linear=self.mu)
+        for _ in range(self.reweight):
+            W = self.inner.solve(smoothed, valid, fixed, linear=self.mu * self.eps / (np.maximum(W, 0.0) + self.eps))
+        if self.weight_smoother is not None and len(W) > 1:
+            W = np.clip(self.weight_smoother.filter(W), self.lower, self.upper)
+            for f, w in self.inner.boundary_frames(smoothed, valid, fixed).items():
+                W[f] = w
+        return W
+
+    def edit(self, weights: np.ndarray, edits: Sequence[Edit], targets: np.ndarray | None = None,
+             valid: np.ndarray | None = None) -> np.ndarray:
+        """Seol §6 edits, re-solved against the smoothed source markers (or the last solve's)."""
+        if targets is not None:
+            v = np.ones(np.shape(targets)[:2], bool) if valid is None else np.asarray(valid, bool)
+            targets = self.smooth(targets, v)
+        return self.inner.edit(weights, edits, targets, valid)
+
+    def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        return self.inner.step(target, valid)
+
+    def reset(self) -> None:
+        self.inner.reset()
