@@ -169,10 +169,31 @@ def _deleted_residuals(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> np.
     if k < 5 or k > LEAVE_ONE_OUT_MAX:
         return np.zeros(use.shape)
     cand = use[..., None, :] & ~np.eye(k, dtype=bool)  # row j leaves marker j out
+    if pts.ndim == 2:
+        return _deleted_residuals_one(ref, pts, use, cand)
     with np.errstate(invalid="ignore", divide="ignore"):  # fits left with too few markers are masked
         Rc, tc = kabsch(ref[..., None, :, :], pts[..., None, :, :], cand)
     own = np.einsum("...jab,jb->...ja", Rc, ref) + tc - pts  # marker j under the fit without j
     return np.where(use & (cand.sum(-1) >= 4), np.linalg.norm(own, axis=-1), 0.0)
+
+
+def _deleted_residuals_one(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, cand: np.ndarray) -> np.ndarray:
+    """One frame of ``_deleted_residuals`` with matmul instead of einsum (it runs every streamed frame):
+    the k leave-one-out cross-covariances are one product of the weights with the per-marker outer
+    products, minus each subset's centroid term, then one batched SVD."""
+    W = cand.astype(np.float64)
+    n = W.sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cs, cd = (W @ ref) / n[:, None], (W @ pts) / n[:, None]
+        H = (W @ (ref[:, :, None] * pts[:, None, :]).reshape(len(ref), 9)).reshape(-1, 3, 3) \
+            - n[:, None, None] * cs[:, :, None] * cd[:, None, :]
+        ok = use & (n >= 4)
+        H[~ok] = np.eye(3)
+        U, _, Vt = np.linalg.svd(H)
+        Vt[:, 2] *= np.sign(np.linalg.det(U) * np.linalg.det(Vt))[:, None]
+        R = np.matmul(Vt.transpose(0, 2, 1), U.transpose(0, 2, 1))
+        own = (R @ (ref - cs)[:, :, None])[:, :, 0] + cd - pts
+    return np.where(ok, np.sqrt((own * own).sum(1)), 0.0)
 
 
 def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: int = 3,

@@ -169,3 +169,18 @@ def test_demo_take_with_stable_markers_missing_for_a_second_still_stabilises(dem
                               profile.source_neutral, perf.actor_neutral)
     assert rot[span].max() < 2.0 and tr[span].max() < 3.0
     assert rot.mean() < 0.8 and tr.mean() < 1.2
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(5, 12), st.integers(0, 2**31 - 1), st.sampled_from([0.01, 1.0, 20.0]))
+def test_streamed_deleted_residuals_equal_the_batched_ones(k, seed, noise):
+    """The single-frame leave-one-out path (every streamed frame) gives the batched path's numbers."""
+    from livecap.stabilise import _deleted_residuals
+
+    rng = np.random.default_rng(seed)
+    ref = rng.normal(size=(k, 3)) * 40
+    pts = ref @ Rotation.random(random_state=seed).as_matrix().T + rng.normal(size=3) * 10
+    pts += rng.normal(size=(k, 3)) * noise
+    use = rng.random(k) > 0.25
+    np.testing.assert_allclose(_deleted_residuals(ref, pts, use), _deleted_residuals(ref, pts[None], use[None])[0],
+                               atol=1e-8)
