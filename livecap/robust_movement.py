@@ -103,11 +103,12 @@ class RobustMovement:
 
     def edit(self, weights: np.ndarray, edits: Sequence[Edit], targets: np.ndarray | None = None,
              valid: np.ndarray | None = None) -> np.ndarray:
-        """Seol §6 edits, re-solved against the smoothed source markers (or the last solve's)."""
+        """Seol §6 edits, re-solved against the smoothed source markers (or the last solve's) under the
+        solve's own L1 term, so resting shapes inside the range stay at rest."""
         if targets is not None:
             v = np.ones(np.shape(targets)[:2], bool) if valid is None else np.asarray(valid, bool)
             targets = self.smooth(targets, v)
-        return self.inner.edit(weights, edits, targets, valid)
+        return self.inner.edit(weights, edits, targets, valid, linear=self.mu)
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         return self.inner.step(target, valid)

@@ -297,11 +297,12 @@ class MovementMatching:
 
     # ----------------------------------------------------------------------------------- editing
     def edit(self, weights: np.ndarray, edits: Sequence[Edit], targets: np.ndarray | None = None,
-             valid: np.ndarray | None = None) -> np.ndarray:
+             valid: np.ndarray | None = None, linear: np.ndarray | None = None) -> np.ndarray:
         """Apply spacetime edits (§6) to ``weights`` (T x m); frames outside every range are untouched.
 
         The source movement is ``targets`` (T x n x 3) or, when None, the take of the last
-        :meth:`solve`.
+        :meth:`solve`; ``linear`` is the same objective term as in :meth:`solve`, so a range is
+        re-solved under the objective that produced the weights around it.
         """
         W = np.array(weights, dtype=np.float64)
         T, m = W.shape
@@ -345,9 +346,10 @@ class MovementMatching:
         isfree = region[sub]
         f_local = free - lo
         factor = self._factor(f_local, hi - lo + 1)
-        Wsub = self._solve_factored(factor, None, f_local, isfree, W[sub], q, qb)
+        lin = None if linear is None else np.broadcast_to(np.asarray(linear, dtype=np.float64), (T, m))[sub]
+        Wsub = self._solve_factored(factor, None, f_local, isfree, W[sub], q, qb, lin)
         if self.limits == "bound":
-            Wsub = self._bounded(q, qb, f_local, isfree, Wsub)
+            Wsub = self._bounded(q, qb, f_local, isfree, Wsub, lin)
         W[sub] = Wsub
         return self._apply_limits(W, free)
 

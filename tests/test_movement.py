@@ -145,6 +145,16 @@ def test_a_no_op_edit_reproduces_the_solution(solved):
     assert np.allclose(E, W, atol=1e-9)
 
 
+def test_a_no_op_edit_under_a_linear_term_reproduces_that_solution(solved):
+    """The linear term of the solve, passed to the edit too, leaves the optimum where it was."""
+    mm, _, S = solved
+    mu = np.linspace(0.5, 2.0, 6)
+    W = mm.solve(S, linear=mu)
+    assert not np.allclose(W, mm.solve(S), atol=1e-6)
+    assert np.allclose(mm.edit(W, [Edit(30, {}, (10, 50))], S, linear=mu), W, atol=1e-9)
+    assert not np.allclose(mm.edit(W, [Edit(30, {}, (10, 50))], S), W, atol=1e-6)
+
+
 def test_edits_compose(solved):
     mm, W, S = solved
     e1, e2 = Edit(20, {0: 1.0}, (12, 28)), Edit(45, {2: 0.1}, (38, 55))

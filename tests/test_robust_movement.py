@@ -81,3 +81,17 @@ def test_reweighting_lifts_blinks(take):
     W0 = build_movement(profile, {}).solve(targets, valid)
     W1 = build_movement(profile, {"reweight": 1}).solve(targets, valid)
     assert blink_amplitude(W1, truth, names) > blink_amplitude(W0, truth, names) + 0.02
+
+
+def test_an_edit_keeps_resting_shapes_at_rest(take):
+    """The range is re-solved under the solve's own L1 term: shapes at rest around the edit stay at 0."""
+    profile, targets, valid, _, names = take
+    solver = build_movement(profile, {})
+    W = solver.solve(targets, valid)
+    j = names.index("jawOpen")
+    E = solver.edit(W, [Edit(400, {j: 0.9 if W[400, j] < 0.45 else 0.0}, (380, 420))], targets, valid)
+    others = np.arange(W.shape[1]) != j
+    resting = (W[381:420][:, others] == 0).all(0)  # at rest in the whole range before the edit
+    assert resting.any()
+    moved = np.abs(E[381:420][:, others][:, resting])
+    assert moved.max() < 0.1 and moved.mean() < 0.01  # without the L1 term: a shape reaches 1, mean ~0.08
