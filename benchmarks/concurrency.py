@@ -40,9 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.processes import first_line, free_port, spawn
 from benchmarks.timing import suite_main
 
-ROOT = Path(__file__).resolve().parents[1]
 RATE = 120.0
 LEVELS = (1, 2, 4, 8, 12, 16, 24, 32)
 WARMUP_S = 0.5
@@ -114,28 +114,12 @@ json.dump(got, open(out, "w"))
 """
 
 
-def _env() -> dict:
-    return {**os.environ, "PYTHONPATH": str(ROOT)}
 
 
-def _spawn(args: list) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=_env())
 
 
-def _line(proc: subprocess.Popen) -> str:
-    line = proc.stdout.readline().strip()
-    if not line:
-        raise RuntimeError(f"{proc.args[:4]} exited: {proc.stderr.read()[-2000:]}")
-    return line
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -152,11 +136,11 @@ def _drivers(layout: str, n: int, port: int, profile: Path, mode: str, stats: Pa
               "--no-skip-stale"]
     actors = [f"a{i}" for i in range(n)]
     if layout == "per-actor":
-        return [_spawn(["-m", "livecap", "run", *common, "--actor", a, "--zmq-out", "tcp://127.0.0.1:0",
+        return [spawn(["-m", "livecap", "run", *common, "--actor", a, "--zmq-out", "tcp://127.0.0.1:0",
                         "--stats-file", stats / f"{a}.json"]) for a in actors]
     k = min(int(layout), n)
     groups = [actors[i::k] for i in range(k)]
-    return [_spawn(["-m", "benchmarks.multi_driver", "--actors", *g, "--stats-dir", stats, "--", *common])
+    return [spawn(["-m", "benchmarks.multi_driver", "--actors", *g, "--stats-dir", stats, "--", *common])
             for g in groups]
 
 
@@ -164,17 +148,17 @@ def trial(layout: str, n: int, mode: str, seconds: float, take: Path, profile: P
     """One run: N actors for ``seconds``; returns the counts, latency percentiles and the verdict."""
     stats = work / f"stats-{layout}-{mode}-{n}-{time.monotonic_ns()}"
     stats.mkdir()
-    port = _free_port()
+    port = free_port()
     drivers = _drivers(layout, n, port, profile, mode, stats)
     outs = []
     try:
         for d in drivers:
-            ready = _line(d)
+            ready = first_line(d)
             outs += re.findall(r"tcp://[\d.]+:\d+", ready.split("zmq-out", 1)[-1] if "zmq-out" in ready else ready)
-        rx = _spawn(["-c", textwrap.dedent(RECEIVER), stats / "rx.json", 3.0, *outs])
-        _line(rx)
-        sender = _spawn(["-c", textwrap.dedent(SENDER), take, profile, port, n, seconds, RATE])
-        _line(sender)
+        rx = spawn(["-c", textwrap.dedent(RECEIVER), stats / "rx.json", 3.0, *outs])
+        first_line(rx)
+        sender = spawn(["-c", textwrap.dedent(SENDER), take, profile, port, n, seconds, RATE])
+        first_line(sender)
         t0 = time.monotonic()
         cpu0 = sum(_cpu_seconds(d.pid) for d in drivers)  # start-up (imports, solver set-up) excluded
         s_out, s_err = sender.communicate(timeout=seconds + 180)

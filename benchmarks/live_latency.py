@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import socket
 import subprocess
 import sys
 import tempfile
@@ -28,9 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.processes import first_line, free_port, spawn
 from benchmarks.timing import suite_main
 
-ROOT = Path(__file__).resolve().parents[1]
 RATE = 120.0
 
 RECEIVER = """
@@ -69,26 +68,12 @@ while True:
 """
 
 
-def _env() -> dict:
-    return {**os.environ, "PYTHONPATH": str(ROOT)}
 
 
-def _spawn(args: list, **kw) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=_env(), **kw)
 
 
-def _line(proc: subprocess.Popen) -> str:
-    line = proc.stdout.readline().strip()
-    if not line:
-        raise RuntimeError(f"{proc.args} exited: {proc.stderr.read()}")
-    return line
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _stats(lat: list[float], sent: int) -> dict:
@@ -101,17 +86,17 @@ def _stats(lat: list[float], sent: int) -> dict:
 
 
 def _send(take: Path, port: int, frames: int) -> subprocess.Popen:
-    return _spawn(["-m", "livecap", "send", take, "--zmq", f"tcp://127.0.0.1:{port}", "--loop", "--clock",
+    return spawn(["-m", "livecap", "send", take, "--zmq", f"tcp://127.0.0.1:{port}", "--loop", "--clock",
                    "monotonic", "--frames", frames, "--labels-every", 0])
 
 
 def bare(take: Path, frames: int, work: Path) -> dict:
     """Sender -> bare relay -> receiver: the same payloads and hops without livecap in between."""
-    port = _free_port()
-    relay = _spawn(["-c", textwrap.dedent(RELAY), f"tcp://127.0.0.1:{port}"])
-    relay_out = _line(relay)
-    rx = _spawn(["-c", textwrap.dedent(RECEIVER), relay_out, work / "bare.json", 2.0])
-    _line(rx)
+    port = free_port()
+    relay = spawn(["-c", textwrap.dedent(RELAY), f"tcp://127.0.0.1:{port}"])
+    relay_out = first_line(relay)
+    rx = spawn(["-c", textwrap.dedent(RECEIVER), relay_out, work / "bare.json", 2.0])
+    first_line(rx)
     sender = _send(take, port, frames)
     sender.communicate(timeout=frames / RATE + 120)
     rx.communicate(timeout=60)
@@ -123,13 +108,13 @@ def bare(take: Path, frames: int, work: Path) -> dict:
 def driver(take: Path, profile: Path, mode: str, frames: int, work: Path, extra: tuple = ()) -> dict:
     """``livecap run`` with its defaults for a live ZeroMQ source (``--skip-stale`` on: a solver
     slower than the stream skips frames, counted as stale, instead of falling ever further behind)."""
-    port = _free_port()
-    run = _spawn(["-m", "livecap", "run", "--zmq-in", f"tcp://127.0.0.1:{port}", "--zmq-out", "0", "--profile",
+    port = free_port()
+    run = spawn(["-m", "livecap", "run", "--zmq-in", f"tcp://127.0.0.1:{port}", "--zmq-out", "0", "--profile",
                   profile, "--mode", mode, "--idle-timeout", 2.0, "--stats-file", work / f"{mode}.stats.json",
                   *extra])
-    out_addr = re.search(r"zmq-out ([^;\s]+)", _line(run)).group(1)
-    rx = _spawn(["-c", textwrap.dedent(RECEIVER), out_addr, work / f"{mode}.json", 3.0])
-    _line(rx)
+    out_addr = re.search(r"zmq-out ([^;\s]+)", first_line(run)).group(1)
+    rx = spawn(["-c", textwrap.dedent(RECEIVER), out_addr, work / f"{mode}.json", 3.0])
+    first_line(rx)
     t0 = time.monotonic()
     sender = _send(take, port, frames)
     sender.communicate(timeout=frames / RATE + 600)
