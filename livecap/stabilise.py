@@ -36,19 +36,15 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     w = np.ones(src.shape[:-1]) if weights is None else np.asarray(weights, dtype=np.float64)
     if src.ndim == 2 and dst.ndim == 2 and w.ndim == 1:
         return _kabsch_one(src, dst, w)
-    wsum = np.maximum(w.sum(-1, keepdims=True), 1e-300)[..., None]
-    cs = (w[..., None] * src).sum(-2, keepdims=True) / wsum
-    cd = (w[..., None] * dst).sum(-2, keepdims=True) / wsum
-    H = np.einsum("...ki,...kj->...ij", w[..., None] * (src - cs), dst - cd)
+    wsum = np.maximum(w.sum(-1), 1e-300)[..., None]
+    cs = (w[..., None, :] @ src)[..., 0, :] / wsum
+    cd = (w[..., None, :] @ dst)[..., 0, :] / wsum
+    H = np.swapaxes(src - cs[..., None, :], -1, -2) @ (w[..., None] * (dst - cd[..., None, :]))
     U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.einsum("...ij,...jk->...ik", U, Vt)))
-    d = np.where(d == 0, 1.0, d)
-    D = np.zeros(H.shape)
-    D[..., 0, 0] = 1.0
-    D[..., 1, 1] = 1.0
-    D[..., 2, 2] = d
-    R = np.einsum("...ji,...jk,...lk->...il", Vt, D, U)
-    t = cd[..., 0, :] - np.einsum("...ij,...j->...i", R, cs[..., 0, :])
+    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    Vt[..., 2, :] *= np.where(d == 0, 1.0, d)[..., None]  # reflection guard: flip the smallest axis
+    R = np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)
+    t = cd - (R @ cs[..., None])[..., 0]
     return R, t
 
 
@@ -169,31 +165,10 @@ def _deleted_residuals(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> np.
     if k < 5 or k > LEAVE_ONE_OUT_MAX:
         return np.zeros(use.shape)
     cand = use[..., None, :] & ~np.eye(k, dtype=bool)  # row j leaves marker j out
-    if pts.ndim == 2:
-        return _deleted_residuals_one(ref, pts, use, cand)
     with np.errstate(invalid="ignore", divide="ignore"):  # fits left with too few markers are masked
         Rc, tc = kabsch(ref[..., None, :, :], pts[..., None, :, :], cand)
     own = np.einsum("...jab,jb->...ja", Rc, ref) + tc - pts  # marker j under the fit without j
     return np.where(use & (cand.sum(-1) >= 4), np.linalg.norm(own, axis=-1), 0.0)
-
-
-def _deleted_residuals_one(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, cand: np.ndarray) -> np.ndarray:
-    """One frame of ``_deleted_residuals`` with matmul instead of einsum (it runs every streamed frame):
-    the k leave-one-out cross-covariances are one product of the weights with the per-marker outer
-    products, minus each subset's centroid term, then one batched SVD."""
-    W = cand.astype(np.float64)
-    n = W.sum(1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cs, cd = (W @ ref) / n[:, None], (W @ pts) / n[:, None]
-        H = (W @ (ref[:, :, None] * pts[:, None, :]).reshape(len(ref), 9)).reshape(-1, 3, 3) \
-            - n[:, None, None] * cs[:, :, None] * cd[:, None, :]
-        ok = use & (n >= 4)
-        H[~ok] = np.eye(3)
-        U, _, Vt = np.linalg.svd(H)
-        Vt[:, 2] *= np.sign(np.linalg.det(U) * np.linalg.det(Vt))[:, None]
-        R = np.matmul(Vt.transpose(0, 2, 1), U.transpose(0, 2, 1))
-        own = (R @ (ref - cs)[:, :, None])[:, :, 0] + cd - pts
-    return np.where(ok, np.sqrt((own * own).sum(1)), 0.0)
 
 
 def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: int = 3,

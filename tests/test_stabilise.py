@@ -174,7 +174,7 @@ def test_demo_take_with_stable_markers_missing_for_a_second_still_stabilises(dem
 @settings(max_examples=60, deadline=None)
 @given(st.integers(5, 12), st.integers(0, 2**31 - 1), st.sampled_from([0.01, 1.0, 20.0]))
 def test_streamed_deleted_residuals_equal_the_batched_ones(k, seed, noise):
-    """The single-frame leave-one-out path (every streamed frame) gives the batched path's numbers."""
+    """A streamed frame (k, 3) and a batch of that one frame (1, k, 3) get the same leave-one-out residuals."""
     from livecap.stabilise import _deleted_residuals
 
     rng = np.random.default_rng(seed)
