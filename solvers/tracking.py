@@ -132,7 +132,11 @@ class IMMFilter:
     def reset(self) -> None:
         self._models: _CV | None = None
         self._mu: np.ndarray | None = None  # (2, channels) mode probabilities
-        self.move_probability: np.ndarray | None = None
+
+    @property
+    def move_probability(self) -> np.ndarray | None:
+        """Each channel's current probability of the 'move' model (diagnostics)."""
+        return None if self._mu is None else self._mu[1]
 
     def step(self, y: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         y = np.asarray(y, dtype=np.float64)
@@ -143,7 +147,6 @@ class IMMFilter:
             self._models = _CV(np.stack([start, start]), np.stack([r, r]), np.stack([r, r]))
             self._q = np.stack([np.broadcast_to(q, y.shape) for q in self.q])
             self._mu = np.stack([np.full(y.shape, 1 - self.p_move), np.full(y.shape, self.p_move)])
-            self.move_probability = self._mu[1].copy()
             return start.copy()
         pi, mu, m = self.transition, self._mu, self._models
         c = np.einsum("ij,i...->j...", pi, mu)  # predicted mode probabilities
@@ -161,7 +164,6 @@ class IMMFilter:
             like = np.where(ok, like, 1.0)
         mu = c * like + 1e-300
         self._mu = mu / mu.sum(0)
-        self.move_probability = self._mu[1].copy()
         return (self._mu * m.x).sum(0)
 
     def filter(self, Y: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
