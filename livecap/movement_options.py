@@ -78,7 +78,8 @@ def build_movement(profile: Profile, options: Mapping | None = None):
     given = {k: v for k, v in (options or {}).items() if v is not None}
     noise = profile.settings.get("robust", {}).get("noise_mm")
     robust = noise is not None and not given.get("stream") and bool(given.get("robust", True))
-    lag = int(given.get("lag", profile.settings.get("robust", {}).get("lag", ROBUST_LAG)))
+    tuned = profile.settings.get("robust", {})
+    lag = int(given.get("lag", tuned.get("lag", ROBUST_LAG)))
     base = {**DEFAULTS, "alpha": 0.0, "beta": smoother_beta(lag), "limits": "bound",
             "bound_options": {"tol": BOUND_TOL}} if robust else DEFAULTS
     o = {**base, **given}
@@ -92,8 +93,8 @@ def build_movement(profile: Profile, options: Mapping | None = None):
         inner = _build(profile, {**o, "ridge": ridge})
     if not robust:
         return inner
-    return RobustMovement(inner, float(noise), lag=lag, weight_lag=given.get("weight_lag"),
-                          reweight=int(given.get("reweight", 0)))
+    trend = float(given.get("trend", tuned.get("trend", ROBUST_DEFAULTS["trend"])))
+    return RobustMovement(inner, float(noise), lag=lag, trend=trend, reweight=int(given.get("reweight", 0)))
 
 
 def _build(profile: Profile, o: dict):

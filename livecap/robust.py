@@ -34,6 +34,7 @@ from solvers.observability import noise_floor, observability, tying_prior
 from solvers.regularisation import PriorLeastSquares, estimate_noise, gcv_ridge, holdout_ridge
 from solvers.sparse_fit import HysteresisSparseFit, holdout_sparse_ridge, l1_weights, universal_threshold
 from solvers.tracking import IMMFilter, dwna_variance
+from solvers.trend import TrendFilter
 
 # Defaults, used when a profile was never tuned (documented in docs/robustness.md).
 DEFAULTS = {
@@ -49,6 +50,7 @@ DEFAULTS = {
     "beta": 30.0,  # 1€ speed coefficient, per (weight unit / s)
     "d_cutoff": 1.0,  # 1€ derivative cutoff, Hz
     "lag": 4,  # fixed-lag smoother latency, frames
+    "trend": 10.0,  # offline l1 trend filter on the weight curves, in weight-noise sds per shape (0: none)
     "weight_filter": "imm",  # robust mode's weight stage: "imm" (hold/move Kalman) or "1e" (One Euro)
     "hold_accel": 0.5,  # IMM 'hold' model: acceleration sd, weight units / s^2
     "move_accel": 80.0,  # IMM 'move' model: acceleration sd, weight units / s^2
@@ -178,18 +180,19 @@ def robust_solver(profile: Profile, options: dict | None = None) -> FilteredSolv
 def smooth_solver(profile: Profile, options: dict | None = None) -> LookaheadSolver:
     """Lookahead / offline: centred quadratic marker smoothing over 2 lag + 1 frames -> sparse fit;
     ``latency_frames`` = lag when streamed, none offline."""
-    lag = int(robust_settings(profile, options)["lag"])
+    s = robust_settings(profile, options)
+    lag, trend = int(s["lag"]), float(s["trend"])
     gain = float(np.sum(savgol_weights(lag) ** 2))
-    return LookaheadSolver(sparse_fit(profile, options, gain), FixedLagSmoother(lag),
-                           FixedLagSmoother(3 * lag, order=4))
+    offline = TrendFilter.for_basis(profile.basis, float(s["noise_mm"]) * np.sqrt(gain), trend) if trend > 0 else None
+    return LookaheadSolver(sparse_fit(profile, options, gain), FixedLagSmoother(lag), offline)
 
 
 class LookaheadSolver:
     """``step``: streamed with ``lag`` frames of lookahead (markers smoothed around frame t - lag,
     whose weights it returns); ``solve``: the whole take, the smoother centred on every frame, then
-    the weight curves smoothed by ``offline`` (zero phase: a centred quartic keeps blink peaks)."""
+    the weight curves filtered by ``offline`` (zero phase: the l1 trend filter keeps blink peaks)."""
 
-    def __init__(self, inner, smoother: FixedLagSmoother, offline: FixedLagSmoother | None = None) -> None:
+    def __init__(self, inner, smoother: FixedLagSmoother, offline: TrendFilter | None = None) -> None:
         self.inner, self.smoother, self.offline = inner, smoother, offline
         self.lower, self.upper = inner.lower, inner.upper
         self._valid: deque = deque(maxlen=smoother.lag + 1)

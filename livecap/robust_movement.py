@@ -27,8 +27,12 @@ stores in ``profile.settings["robust"]`` (sigma per coordinate, mm):
    offset in weight units ``mu_k / (2 beta |b_k|^2)``, which removes the lasso's shrinkage of
    active shapes (blinks) but also lets model error grow spurious sustained shapes
    (docs/robustness.md has both measured);
-6. the solved curves smoothed zero-phase by the centred quartic over ``6 lag + 1`` frames (the
-   ``robust-lag`` mode's offline weight smoother), fixed frames restored afterwards.
+6. the solved curves l1-trend-filtered (``solvers.trend``, Kim, Koh, Boyd & Gorinevsky 2009 §2):
+   ``min |w - x|^2 / 2 + lam_k |D2 x|_1`` per shape with ``lam_k = trend * s_k``, ``s_k = sigma' /
+   |b_k|`` the shape's weight noise sd and ``trend`` 10 (``livecap.robust.DEFAULTS``):
+   piecewise-linear curves whose kinks are where the data put them, so the noise's second
+   differences go while blink onsets and peaks stay (a quadratic smoother of that strength shaves
+   peaks); fixed frames restored afterwards.
 
 ``MovementMatching`` itself stays the plain solver; this class wraps one.
 """
@@ -39,9 +43,11 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from livecap.robust import DEFAULTS
 from solvers.filters import FixedLagSmoother, savgol_weights
 from solvers.movement import Edit, MovementMatching
 from solvers.sparse_fit import l1_weights, universal_threshold
+from solvers.trend import TrendFilter
 
 BOUND_TOL = 1e-4  # ADMM residuals, weight units: far below a weight's noise sd (~0.01-0.05)
 
@@ -53,25 +59,24 @@ def smoother_beta(lag: int) -> float:
 
 
 class RobustMovement:
-    """Offline: smooth markers -> bounded movement matching with an L1 term -> smooth weights.
+    """Offline: smooth markers -> bounded movement matching with an L1 term -> trend-filter weights.
 
     ``inner`` is the plain :class:`MovementMatching` (alpha 0, beta from the smoother, bounded
     limits); ``noise_mm`` the raw marker noise sigma; ``lag`` the smoother half-width (frames);
-    ``weight_lag`` the weight smoother's half-width (0: none); ``reweight`` the number of
+    ``trend`` the weight trend filter's penalty in weight noise sds (0: none); ``reweight`` the number of
     reweighted-L1 re-solves. ``step``/``reset`` are the inner solver's (live use is the plain
     streaming solver).
     """
 
-    def __init__(self, inner: MovementMatching, noise_mm: float, lag: int = 4, weight_lag: int | None = None,
+    def __init__(self, inner: MovementMatching, noise_mm: float, lag: int = 4, trend: float = DEFAULTS["trend"],
                  z: float | None = None, reweight: int = 0) -> None:
         self.inner = inner
         self.lower, self.upper = inner.lower, inner.upper
         self.lag = int(lag)
         self.smoother = FixedLagSmoother(self.lag)
-        wl = 3 * self.lag if weight_lag is None else int(weight_lag)
-        self.weight_smoother = FixedLagSmoother(wl, order=4) if wl > 0 else None
         B = inner.blocks.basis
         gain = float(np.sum(savgol_weights(self.lag) ** 2))
+        self.trend = TrendFilter.for_basis(B, noise_mm * np.sqrt(gain), trend) if trend > 0 else None
         zz = universal_threshold(B.shape[1]) if z is None else float(z)
         scale = inner.blocks.beta if inner.blocks.beta > 0 else 1.0
         self.noise_mm = float(noise_mm)
@@ -95,8 +100,8 @@ class RobustMovement:
         W = self.inner.solve(smoothed, valid, fixed, linear=self.mu)
         for _ in range(self.reweight):
             W = self.inner.solve(smoothed, valid, fixed, linear=self.mu * self.eps / (np.maximum(W, 0.0) + self.eps))
-        if self.weight_smoother is not None and len(W) > 1:
-            W = np.clip(self.weight_smoother.filter(W), self.lower, self.upper)
+        if self.trend is not None and len(W) > 2:
+            W = np.clip(self.trend.filter(W), self.lower, self.upper)
             for f, w in self.inner.boundary_frames(smoothed, valid, fixed).items():
                 W[f] = w
         return W

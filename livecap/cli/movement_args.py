@@ -25,6 +25,8 @@ def add_movement_arguments(p: argparse.ArgumentParser, stream: bool = True) -> N
                    "(offline default clip); streaming clips the published frame ('bound' = 'clip' there)")
     g.add_argument("--plain", action="store_true", help="offline: the plain Seol solve even on a profile with a "
                    "noise estimate (default there: the noise-robust solve, docs/robustness.md)")
+    g.add_argument("--trend", type=float, help="noise-robust offline solve: l1 trend filter penalty on the weight "
+                   "curves, in weight-noise sds per shape (default 10; 0 turns it off; docs/robustness.md)")
     g.add_argument("--marker-weight", action="append", metavar="LABEL=W", default=[],
                    help="per-marker weight of the position term (glob patterns allowed; repeatable)")
     if stream:
@@ -37,7 +39,7 @@ def add_movement_arguments(p: argparse.ArgumentParser, stream: bool = True) -> N
 def movement_options(args: argparse.Namespace) -> dict:
     """Options for livecap.modes' movement factory; unset flags fall back to its defaults."""
     opts = {k: getattr(args, k, None) for k in ("alpha", "beta", "prior_threshold", "start", "end", "missing",
-                                                "limits", "window", "lookahead")}
+                                                "limits", "window", "lookahead", "trend")}
     if getattr(args, "stream", False):
         opts["stream"] = True
     if getattr(args, "plain", False):
