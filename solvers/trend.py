@@ -8,7 +8,7 @@ without the peak-shaving a quadratic (Savitzky-Golay, Hodrick-Prescott) smoother
 strength gives. Zero-phase: for offline use.
 
 Solved by ADMM on the split ``z = D2 x`` (Boyd et al. 2011, "Distributed optimization and
-statistical learning via ADMM", §6.4.1, the generalised lasso): the x-update is one banded
+statistical learning via ADMM", §6.4.1, the generalised lasso; over-relaxed, §3.4.3): the x-update is one banded
 (pentadiagonal) solve with the Cholesky factor of ``I + rho D2^T D2`` computed once per length,
 shared by every channel because each channel is scaled to lam = 1.
 """
@@ -19,6 +19,8 @@ import numpy as np
 from scipy.linalg import cho_solve_banded, cholesky_banded
 
 STENCIL = np.array([1.0, -2.0, 1.0])
+RELAX = 1.6  # ADMM over-relaxation (Boyd et al. 2011 §3.4.3: 1.5-1.8 speeds convergence); measured 1.2-1.5x fewer
+#             iterations on the noise-study weight curves
 TOL = 1e-3  # ADMM residuals in the data's units: for weights, far below a weight's noise sd (~0.01-0.05)
 
 
@@ -101,7 +103,7 @@ class TrendFilter:
             self.iterations += 1
             x = cho_solve_banded((factor, False), y + rho * second_difference_t(z - u, n))
             dx = second_difference(x)
-            v = dx + u
+            v = RELAX * dx + (1.0 - RELAX) * z + u
             z_old = z
             z = np.sign(v) * np.maximum(np.abs(v) - 1.0 / rho, 0.0)
             u = v - z
