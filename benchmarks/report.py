@@ -121,6 +121,15 @@ def viewer_fps(s: dict) -> str:
             + _table(["deformation", "MSAA", "deform/s", "frames/s", "annotated frames/s", "CPU ms/frame"], rows))
 
 
+def weight_smoothing(s: dict) -> str:
+    rows = [[r["smoother"], r["seconds"], r["time_ratio"], r["iterations"], r["jitter_ratio"], r["rmse"], r["blink"]]
+            for r in s["rows"]]
+    scale = ", ".join(f"{r['frames']} frames {r['ms_per_frame']:.2f} ms/frame" for r in s["scaling"])
+    return (f"Demo take, {s['frames']} frames x {s['shapes']} shapes, best of {s['repeats']}.\n\n"
+            + _table(["smoother", "s per take", "x quartic", "ADMM it", "jitter x truth", "RMSE", "blinks"], rows)
+            + f"\n\nTrend filter (10 sd) on longer takes: {scale}.")
+
+
 def goals(report: dict) -> str:
     """Each goal of issue 8 next to the measured figure and their ratio (measured / goal)."""
     su = report["suites"]
@@ -157,7 +166,8 @@ def goals(report: dict) -> str:
 SECTIONS = [("solve_latency", "Per-frame solve latency", solve_latency), ("movement", "Movement matching", movement),
             ("qp_libraries", "QP libraries", qp_libraries), ("rbf_blend", "RBF key blending", rbf_blend),
             ("live_latency", "End-to-end live latency", live_latency), ("concurrency", "Concurrency", concurrency),
-            ("viewer_fps", "Offscreen preview", viewer_fps)]
+            ("viewer_fps", "Offscreen preview", viewer_fps),
+            ("weight_smoothing", "Offline weight smoothing (l1 trend filter)", weight_smoothing)]
 
 
 def render(report: dict) -> str:
