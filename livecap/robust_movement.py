@@ -45,7 +45,7 @@ import numpy as np
 
 from livecap.robust import DEFAULTS
 from solvers.filters import FixedLagSmoother, savgol_weights
-from solvers.movement import Edit, MovementMatching
+from solvers.movement import Edit, MovementMatching, edit_region
 from solvers.sparse_fit import l1_weights, universal_threshold
 from solvers.trend import TrendFilter
 
@@ -109,11 +109,21 @@ class RobustMovement:
     def edit(self, weights: np.ndarray, edits: Sequence[Edit], targets: np.ndarray | None = None,
              valid: np.ndarray | None = None) -> np.ndarray:
         """Seol §6 edits, re-solved against the smoothed source markers (or the last solve's) under the
-        solve's own L1 term, so resting shapes inside the range stay at rest."""
+        solve's own L1 term, so resting shapes inside the range stay at rest; the re-solved frames are
+        then trend-filtered like the solve's, keys and range ends fixed, so the range is as smooth as
+        the curves around it."""
         if targets is not None:
             v = np.ones(np.shape(targets)[:2], bool) if valid is None else np.asarray(valid, bool)
             targets = self.smooth(targets, v)
-        return self.inner.edit(weights, edits, targets, valid, linear=self.mu)
+        E = self.inner.edit(weights, edits, targets, valid, linear=self.mu)
+        free = edit_region(edits, len(E))
+        if self.trend is None or not free.any():
+            return E
+        idx = np.flatnonzero(free)
+        seg = slice(max(idx[0] - 2, 0), min(idx[-1] + 3, len(E)))  # two fixed frames each side carry the slope in
+        filtered = np.clip(self.trend.filter(E[seg], fixed=~free[seg]), self.lower, self.upper)
+        E[seg] = np.where(free[seg, None], filtered, E[seg])
+        return E
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         return self.inner.step(target, valid)

@@ -53,6 +53,19 @@ class Edit:
     range: tuple[int, int] | None = None
 
 
+def edit_region(edits: Sequence[Edit], T: int) -> np.ndarray:
+    """Frames a set of edits re-solves (Seol §6): inside each range, ends and edited frames excluded."""
+    region = np.zeros(T, dtype=bool)
+    for e in edits:
+        k = int(e.frame)
+        a, b = (0, T - 1) if e.range is None else (int(e.range[0]), int(e.range[1]))
+        if not (0 <= a <= k <= b <= T - 1):
+            raise ValueError(f"edit at frame {k}: range [{a}, {b}] must satisfy 0 <= a <= k <= b <= {T - 1}")
+        region[a + 1:b] = True
+    region[[int(e.frame) for e in edits]] = False
+    return region
+
+
 class GapPlan:
     """Where markers are missing and which observed frames bracket each gap (computed once per take)."""
 
@@ -308,13 +321,10 @@ class MovementMatching:
         T, m = W.shape
         if targets is None and (self._q is None or len(self._q) != T):
             raise ValueError("edit needs the source targets (or a preceding solve of a take of the same length)")
-        region = np.zeros(T, dtype=bool)
+        region = edit_region(edits, T)
         poses: dict[int, np.ndarray] = {}
         for e in edits:
             k = int(e.frame)
-            a, b = (0, T - 1) if e.range is None else (int(e.range[0]), int(e.range[1]))
-            if not (0 <= a <= k <= b <= T - 1):
-                raise ValueError(f"edit at frame {k}: range [{a}, {b}] must satisfy 0 <= a <= k <= b <= {T - 1}")
             pose = poses.get(k, W[k]).copy()
             if isinstance(e.weights, Mapping):
                 for j, val in e.weights.items():
@@ -326,10 +336,8 @@ class MovementMatching:
                 if pose.shape != (m,):
                     raise ValueError(f"edit at frame {k}: expected {m} weights, got shape {pose.shape}")
             poses[k] = pose
-            region[a + 1:b] = True
         for k, pose in poses.items():
             W[k] = pose
-            region[k] = False
         free = np.flatnonzero(region)
         if len(free) == 0:
             return W

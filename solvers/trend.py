@@ -21,6 +21,7 @@ from scipy.linalg import cho_solve_banded, cholesky_banded
 STENCIL = np.array([1.0, -2.0, 1.0])
 RELAX = 1.6  # ADMM over-relaxation (Boyd et al. 2011 §3.4.3: 1.5-1.8 speeds convergence); measured 1.2-1.5x fewer
 #             iterations on the noise-study weight curves
+FIXED = 1e8  # data weight of a fixed frame: its value moves by ~lam / FIXED before it is restored
 TOL = 1e-3  # ADMM residuals in the data's units: for weights, far below a weight's noise sd (~0.01-0.05)
 
 
@@ -37,14 +38,14 @@ def second_difference_t(z: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-def _normal_factor(n: int, rho: float) -> np.ndarray:
-    """Banded Cholesky factor (upper form) of I + rho D2^T D2, n x n."""
+def _normal_factor(n: int, rho: float, data: np.ndarray | None = None) -> np.ndarray:
+    """Banded Cholesky factor (upper form) of diag(data) + rho D2^T D2 (data: ones), n x n."""
     band = np.zeros((3, n))
     for a in range(3):
         band[2, a:n - 2 + a] += rho * STENCIL[a] ** 2
         for b in range(a + 1, 3):
             band[2 - (b - a), b:n - 2 + b] += rho * STENCIL[a] * STENCIL[b]
-    band[2] += 1.0
+    band[2] += 1.0 if data is None else data
     return cholesky_banded(band)
 
 
@@ -78,22 +79,32 @@ class TrendFilter:
             self._factors[n] = _normal_factor(n, self.rho)
         return self._factors[n]
 
-    def filter(self, y: np.ndarray) -> np.ndarray:
-        """Trend-filtered copy of ``y`` (frames along axis 0; 1-D or (frames, channels))."""
+    def filter(self, y: np.ndarray, fixed: np.ndarray | None = None) -> np.ndarray:
+        """Trend-filtered copy of ``y`` (frames along axis 0; 1-D or (frames, channels)).
+
+        ``fixed`` (bool per frame): frames kept at their values (a data weight of FIXED instead of 1,
+        then restored exactly), e.g. the keys and range ends of a spacetime edit.
+        """
         Y = np.asarray(y, dtype=np.float64)
         one = Y.ndim == 1
         Y2 = Y[:, None] if one else Y.reshape(len(Y), -1)
         lam = np.broadcast_to(self.lam, Y2.shape[1:]).copy()
         out = Y2.copy()
         todo = (lam > 0) & np.any(Y2 != 0, axis=0)
+        data = None if fixed is None else np.where(np.asarray(fixed, dtype=bool), FIXED, 1.0)
         if len(Y2) >= 3 and todo.any():
-            out[:, todo] = self._solve(Y2[:, todo] / lam[todo]) * lam[todo]
+            out[:, todo] = self._solve(Y2[:, todo] / lam[todo], data) * lam[todo]
+        if fixed is not None:
+            out[fixed] = Y2[fixed]
         return out[:, 0] if one else out.reshape(Y.shape)
 
-    def _solve(self, y: np.ndarray) -> np.ndarray:
-        """ADMM for lam = 1 on every column (the columns are pre-scaled)."""
+    def _solve(self, y: np.ndarray, data: np.ndarray | None = None) -> np.ndarray:
+        """ADMM for lam = 1 on every column (the columns are pre-scaled); ``data``: per-frame weights
+        of the data term (None: ones)."""
         n = len(y)
-        factor, rho = self._factor(n), self.rho
+        rho = self.rho
+        factor = self._factor(n) if data is None else _normal_factor(n, rho, data)
+        rhs = y if data is None else y * data[:, None]
         x = y.copy()
         z = second_difference(x)
         u = np.zeros_like(z)
@@ -101,7 +112,7 @@ class TrendFilter:
         self.iterations = 0
         while self.iterations < self.max_iter:
             self.iterations += 1
-            x = cho_solve_banded((factor, False), y + rho * second_difference_t(z - u, n))
+            x = cho_solve_banded((factor, False), rhs + rho * second_difference_t(z - u, n))
             dx = second_difference(x)
             v = RELAX * dx + (1.0 - RELAX) * z + u
             z_old = z

@@ -48,3 +48,35 @@ def test_noisy_blink_loses_jitter_not_its_peak():
     assert jitter(x) / jitter(truth) < 1.5  # measured 0.89
     assert x[105:136].max() > 0.9  # measured 1.02
     assert np.abs(second_difference(x)).max() > 0.01  # kinks remain (not a straight line)
+
+
+def constrained_solution(y: np.ndarray, lam: float, fixed: np.ndarray) -> np.ndarray:
+    """The fixed-frame problem as a QP in (x_free, t) by quadprog: min |x - y|^2 / 2 + lam sum t,
+    -t <= D2 x <= t, x = y on fixed frames (t gets a 1e-9 quadratic so the QP is strictly convex)."""
+    from quadprog import solve_qp
+
+    n = len(y)
+    D = second_difference(np.eye(n))
+    F = np.flatnonzero(~fixed)
+    b0 = D[:, fixed] @ y[fixed]
+    DF = D[:, F]
+    k, r = len(F), len(D)
+    G = np.diag(np.r_[np.ones(k), np.full(r, 1e-9)])
+    a = np.r_[y[F], -lam * np.ones(r)]
+    C = np.block([[-DF, np.eye(r)], [DF, np.eye(r)]])  # t - D x >= b0, t + D x >= -b0
+    sol = solve_qp(G, a, C.T, np.r_[b0, -b0])[0]
+    x = y.copy()
+    x[F] = sol[:k]
+    return x
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(8, 30), st.floats(0.05, 3.0), st.integers(0, 2**31 - 1))
+def test_fixed_frames_match_a_constrained_qp(n, lam, seed):
+    rng = np.random.default_rng(seed)
+    y = np.cumsum(rng.normal(size=n))
+    fixed = rng.random(n) < 0.3
+    fixed[[0, -1]] = True
+    x = TrendFilter(lam, tol=1e-9, max_iter=200_000).filter(y, fixed=fixed)
+    assert np.array_equal(x[fixed], y[fixed])
+    assert np.allclose(x, constrained_solution(y, lam, fixed), atol=1e-4)
