@@ -50,6 +50,16 @@ def test_solve_limits_clip_by_default_and_bound_on_request(solved, tmp_path):
     assert 0 < np.abs(bound - off).max()  # a different solution: the limits inside the solve, not after it
 
 
+def test_trend_flag_sets_the_weight_trend_filter(solved, tmp_path):
+    from livecap.metrics import jitter
+
+    out, args = solved
+    _, smooth, _ = read_weights_csv(out / "off.csv")
+    assert main(["solve", *args, "--mode", "movement", "--trend", "0", "--out", str(tmp_path / "t0.csv")]) == 0
+    _, rough, _ = read_weights_csv(tmp_path / "t0.csv")
+    assert jitter(rough) > 5 * jitter(smooth)  # the L1 solve's jitter (benchmark: 42 x vs 1.25 x truth)
+
+
 def test_edit_with_the_source_take(solved, tmp_path):
     out, args = solved
     names, W, _ = read_weights_csv(out / "off.csv")
