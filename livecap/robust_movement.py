@@ -39,6 +39,7 @@ stores in ``profile.settings["robust"]`` (sigma per coordinate, mm):
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -49,6 +50,7 @@ from solvers.movement import Edit, MovementMatching, edit_region
 from solvers.sparse_fit import l1_weights, universal_threshold
 from solvers.trend import TrendFilter
 
+log = logging.getLogger(__name__)
 BOUND_TOL = 1e-4  # ADMM residuals, weight units: far below a weight's noise sd (~0.01-0.05)
 
 
@@ -102,6 +104,9 @@ class RobustMovement:
             W = self.inner.solve(smoothed, valid, fixed, linear=self.mu * self.eps / (np.maximum(W, 0.0) + self.eps))
         if self.trend is not None and len(W) > 2:
             W = np.clip(self.trend.filter(W), self.lower, self.upper)
+            if not self.trend.converged:
+                log.warning("weight trend filter stopped at %d iterations before its tolerance %.1g",
+                            self.trend.iterations, self.trend.tol)
             for f, w in self.inner.boundary_frames(smoothed, valid, fixed).items():
                 W[f] = w
         return W

@@ -24,8 +24,17 @@ def dual_solution(y: np.ndarray, lam: float) -> np.ndarray:
 def test_matches_the_dual_solved_independently(n, lam, seed):
     rng = np.random.default_rng(seed)
     y = np.cumsum(rng.normal(size=n)) + rng.normal(size=n)
-    x = TrendFilter(lam, tol=1e-9, max_iter=200_000).filter(y)
+    tf = TrendFilter(lam, tol=1e-9, max_iter=200_000)
+    x = tf.filter(y)
+    assert tf.converged
     assert np.allclose(x, dual_solution(y, lam), atol=1e-5)
+
+
+def test_unconverged_is_reported():
+    y = np.cumsum(np.random.default_rng(1).normal(size=200))
+    tf = TrendFilter(1.0, tol=1e-12, max_iter=3)
+    tf.filter(y)
+    assert not tf.converged and tf.iterations == 3
 
 
 def test_a_line_is_kept_and_zero_channels_are_untouched():
