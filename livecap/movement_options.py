@@ -20,7 +20,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from livecap.calibration import Profile
-from livecap.robust import DEFAULTS as ROBUST_DEFAULTS
+from livecap.robust import robust_settings
 from livecap.robust_movement import BOUND_TOL, RobustMovement, smoother_beta
 from solvers.blocks import IllPosedError
 from solvers.movement import MovementMatching
@@ -28,7 +28,6 @@ from solvers.prior import PCAPrior
 from solvers.streaming import StreamingMovement
 
 log = logging.getLogger(__name__)
-ROBUST_LAG = int(ROBUST_DEFAULTS["lag"])  # marker smoother half-width, frames (the robust-lag mode's default)
 
 DEFAULTS = {"alpha": 1.0, "beta": 0.1, "prior": "shapes", "prior_threshold": 1e-6, "ridge": 0.0,
             "start": "neutral", "end": "neutral", "missing": "fill", "window": 24, "lookahead": 0}
@@ -78,8 +77,8 @@ def build_movement(profile: Profile, options: Mapping | None = None):
     given = {k: v for k, v in (options or {}).items() if v is not None}
     noise = profile.settings.get("robust", {}).get("noise_mm")
     robust = noise is not None and not given.get("stream") and bool(given.get("robust", True))
-    tuned = profile.settings.get("robust", {})
-    lag = int(given.get("lag", tuned.get("lag", ROBUST_LAG)))
+    settings = robust_settings(profile, given)  # the robust defaults, the tuned profile, then the options
+    lag = int(settings["lag"])
     base = {**DEFAULTS, "alpha": 0.0, "beta": smoother_beta(lag), "limits": "bound",
             "bound_options": {"tol": BOUND_TOL}} if robust else DEFAULTS
     o = {**base, **given}
@@ -93,8 +92,8 @@ def build_movement(profile: Profile, options: Mapping | None = None):
         inner = _build(profile, {**o, "ridge": ridge})
     if not robust:
         return inner
-    trend = float(given.get("trend", tuned.get("trend", ROBUST_DEFAULTS["trend"])))
-    return RobustMovement(inner, float(noise), lag=lag, trend=trend, reweight=int(given.get("reweight", 0)))
+    return RobustMovement(inner, float(noise), lag=lag, trend=float(settings["trend"]),
+                          reweight=int(given.get("reweight", 0)))
 
 
 def _build(profile: Profile, o: dict):

@@ -121,8 +121,10 @@ class RobustMovement:
             v = np.ones(np.shape(targets)[:2], bool) if valid is None else np.asarray(valid, bool)
             targets = self.smooth(targets, v)
         E = self.inner.edit(weights, edits, targets, valid, linear=self.mu)
+        if self.trend is None:
+            return E
         free = edit_region(edits, len(E))
-        if self.trend is None or not free.any():
+        if not free.any():
             return E
         idx = np.flatnonzero(free)
         seg = slice(max(idx[0] - 2, 0), min(idx[-1] + 3, len(E)))  # two fixed frames each side carry the slope in
