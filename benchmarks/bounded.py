@@ -9,21 +9,18 @@ synthetic take whose actor goes 20% past the rig (54 markers x 50 shapes, Seol's
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
+from benchmarks.demo_take import TAKE, demo_take
 from benchmarks.timing import suite_main
 from livecap.metrics import velocity_error
 from solvers.movement import MovementMatching
 from solvers.prior import PCAPrior
-
-RECORDINGS = Path(__file__).resolve().parents[1] / "recordings"
 
 
 def _synthetic(seconds: float, rate: float = 120.0, n: int = 54, m: int = 50):
@@ -38,22 +35,6 @@ def _synthetic(seconds: float, rate: float = 120.0, n: int = 54, m: int = 50):
     S = (truth @ B.T).reshape(T, n, 3) + rng.normal(0, 0.3, (T, n, 3))
     valid = rng.random((T, n)) > 0.02
     return B, np.zeros(m), np.ones(m), S, valid, truth
-
-
-def _demo_take():
-    from livecap.cli.common import load_rig, profile_for
-    from livecap.demo import truth_path
-    from livecap.demo.performance import GroundTruth
-    from livecap.solve import prepare_targets
-    from transport.takefile import read_take
-
-    args = argparse.Namespace(rig=str(RECORDINGS / "demo_rig.npz"), markers=None, profile=None, neutral_seconds=1.0)
-    rig, layout = load_rig(args)
-    take = read_take(RECORDINGS / "demo_take.c3d")
-    profile = profile_for(args, rig, layout, take)
-    sel, targets, _, _ = prepare_targets(take, profile)
-    truth = GroundTruth.load(truth_path(RECORDINGS / "demo_take.c3d")).weights
-    return profile.basis, profile.lower, profile.upper, targets, sel.valid, truth
 
 
 def compare_limits(B, lower, upper, S, valid, truth, alpha: float, beta: float) -> dict:
@@ -80,8 +61,9 @@ def compare_limits(B, lower, upper, S, valid, truth, alpha: float, beta: float) 
 def run(quick: bool = False) -> dict:
     machine = f"{platform.machine()} {platform.processor() or ''} {os.cpu_count()} cpus, load {os.getloadavg()[0]:.1f}"
     cases = {f"synthetic {30 if quick else 120} s 54x50": _synthetic(30 if quick else 120)}
-    if (RECORDINGS / "demo_take.c3d").exists():
-        cases["demo take"] = _demo_take()
+    if TAKE.exists():
+        d = demo_take()
+        cases["demo take"] = d.profile.basis, d.profile.lower, d.profile.upper, d.targets, d.valid, d.truth
     res: dict = {"machine": machine.strip(), "cases": {}}
     print(f"bounded movement matching ({res['machine']})")
     print(f"{'case':>26} {'alpha':>6} {'limits':>6} {'velocity err':>13} {'extra':>8} {'RMSE':>7} {'out':>7} "

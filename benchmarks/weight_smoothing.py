@@ -11,42 +11,29 @@ iteration).
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
+from benchmarks.demo_take import demo_take
 from benchmarks.timing import suite_main
-from solvers.filters import FixedLagSmoother, savgol_weights
+from solvers.filters import FixedLagSmoother
 from solvers.trend import TrendFilter
 
-RECORDINGS = Path(__file__).resolve().parents[1] / "recordings"
 MULTIPLES = (5.0, 10.0, 20.0)
 QUARTIC_LAG = 12  # the replaced smoother: centred quartic over 25 frames
 
 
 def _raw_solve():
-    """The demo take's noise-robust movement solve with the weight smoothing off, its truth, the rig
-    basis, the weight noise scale the trend penalty is measured in, and the shape names."""
-    from livecap.cli.common import load_rig, profile_for
-    from livecap.demo import truth_path
-    from livecap.demo.performance import GroundTruth
+    """The demo take's noise-robust movement solve with the weight smoothing off, its truth, the
+    penalty of one weight-noise sd per shape (the unit the trend multiple is in), and the take."""
     from livecap.movement_options import build_movement
-    from livecap.solve import prepare_targets
-    from transport.takefile import read_take
 
-    args = argparse.Namespace(rig=str(RECORDINGS / "demo_rig.npz"), markers=None, profile=None, neutral_seconds=1.0)
-    rig, layout = load_rig(args)
-    take = read_take(RECORDINGS / "demo_take.c3d")
-    profile = profile_for(args, rig, layout, take)
-    sel, targets, _, _ = prepare_targets(take, profile)
-    solver = build_movement(profile, {"trend": 0})
-    W = solver.solve(targets, sel.valid)
-    truth = GroundTruth.load(truth_path(RECORDINGS / "demo_take.c3d")).weights
-    noise = solver.noise_mm * np.sqrt(float(np.sum(savgol_weights(solver.lag) ** 2)))
-    return W, truth, profile.basis, noise, profile.lower, profile.upper, rig.names
+    d = demo_take()
+    W = build_movement(d.profile, {"trend": 0}).solve(d.targets, d.valid)
+    unit = build_movement(d.profile, {"trend": 1.0}).trend.lam
+    return W, unit, d
 
 
 def _timed(fn, repeats: int):
@@ -62,7 +49,8 @@ def run(quick: bool = False) -> dict:
     from livecap.cli.noise_study import blink_amplitude
     from livecap.metrics import jitter, weight_rmse
 
-    W, truth, B, noise, lower, upper, names = _raw_solve()
+    W, unit, d = _raw_solve()
+    truth, names, lower, upper = d.truth, d.names, d.profile.lower, d.profile.upper
     repeats = 1 if quick else 3
     tj = jitter(truth)
 
@@ -76,7 +64,7 @@ def run(quick: bool = False) -> dict:
     rows = [row("none", W, 0.0, None), row("quartic over 25 frames (before)", S, sec, None)]
     base = sec
     for multiple in MULTIPLES[1:2] if quick else MULTIPLES:
-        tf = TrendFilter.for_basis(B, noise, multiple)
+        tf = TrendFilter(multiple * unit)
         S, sec = _timed(lambda tf=tf: tf.filter(W), repeats)
         rows.append(row(f"trend filter {multiple:g} sd", S, sec, tf.iterations))
     print(f"demo take: {len(W)} frames, {W.shape[1]} shapes ({int(np.any(W != 0, axis=0).sum())} ever active); "
@@ -89,7 +77,7 @@ def run(quick: bool = False) -> dict:
               f"{r['jitter_ratio']:>9.2f} {r['rmse']:>7.4f} {r['blink']:>6.2f}")
 
     scaling = []
-    tf = TrendFilter.for_basis(B, noise, 10.0)
+    tf = TrendFilter(10.0 * unit)
     print(f"\ntrend filter 10 sd on the take repeated end to end: {'frames':>7} {'seconds':>8} {'ms/frame':>9}")
     for copies in ((1, 2) if quick else (1, 2, 4)):
         Wn = np.tile(W, (copies, 1))
