@@ -18,7 +18,7 @@ import numpy as np
 
 from benchmarks.demo_take import TAKE, demo_take
 from benchmarks.timing import suite_main
-from livecap.metrics import velocity_error
+from livecap.offline.metrics import velocity_error
 from solvers.movement import MovementMatching
 from solvers.prior import PCAPrior
 

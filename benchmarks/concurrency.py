@@ -49,7 +49,7 @@ WARMUP_S = 0.5
 
 SENDER = """
 import json, sys, time, zmq
-from livecap.calibration import Profile
+from livecap.calibration.profile import Profile
 from transport.takefile import read_take
 from transport.wire import encode_markers, layout_id, topic
 take_path, profile_path, port, n, seconds, rate = sys.argv[1:7]
@@ -224,11 +224,11 @@ def _layout_name(layout: str) -> str:
 
 
 def run(quick: bool = False, modes=("qp", "movement-stream"), layouts=("1", "2", "per-actor")) -> dict:
-    from livecap.calibration import calibrate, estimate_neutral
+    from livecap.calibration.profile import calibrate, estimate_neutral
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
     from livecap.demo import DEMO_TAKE, generate
     from livecap.demo.performance import PerformanceSettings
-    from livecap.markers import MarkerLayout
-    from livecap.rig import Rig
     from transport.takefile import read_take
 
     seconds = 5.0 if quick else 20.0

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.calibration import Profile
+from livecap.calibration.profile import Profile
 
 RECORDINGS = Path(__file__).resolve().parents[1] / "recordings"
 TAKE = RECORDINGS / "demo_take.c3d"
@@ -29,7 +29,7 @@ def demo_take() -> DemoTake:
     from livecap.cli.common import load_rig, profile_for
     from livecap.demo import truth_path
     from livecap.demo.performance import GroundTruth
-    from livecap.solve import prepare_targets
+    from livecap.offline.solve import prepare_targets
     from transport.takefile import read_take
 
     args = argparse.Namespace(rig=str(RECORDINGS / "demo_rig.npz"), markers=None, profile=None, neutral_seconds=1.0)

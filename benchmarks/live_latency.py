@@ -140,12 +140,12 @@ MODES = ("qp", "movement-stream", "robust", "rbf", "lsq")
 
 def run(quick: bool = False, modes=MODES) -> dict:
     """Measure; ``quick`` streams 10 s instead of 60 s."""
-    from livecap.calibration import calibrate, estimate_neutral
+    from livecap.calibration.profile import calibrate, estimate_neutral
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
     from livecap.demo import DEMO_TAKE, generate
     from livecap.demo.performance import PerformanceSettings
     from livecap.demo.rom import generate_rom
-    from livecap.markers import MarkerLayout
-    from livecap.rig import Rig
     from transport.takefile import read_take
 
     seconds = 10 if quick else 60

@@ -18,7 +18,7 @@ import time
 import numpy as np
 
 from benchmarks.timing import suite_main
-from livecap.metrics import drift, velocity_error
+from livecap.offline.metrics import drift, velocity_error
 from solvers.movement import Edit, MovementMatching
 from solvers.prior import PCAPrior
 from solvers.reference import solve_reference

@@ -3,7 +3,7 @@
 Each mode is timed on the same synthetic stream (benchmarks/synthetic.py) through its ``step``
 (what the live pipeline calls); the ratio column compares its p99 with plain unconstrained least
 squares (a prefactored pseudo-inverse product) measured in the same run. Every mode in
-livecap.modes.MODES gets a row per size: timed, or the reason it is not.
+livecap.modes.registry.MODES gets a row per size: timed, or the reason it is not.
 
 * ``rbf`` needs key pairs: a synthetic range-of-motion key set (neutral + one key per shape,
   benchmarks.synthetic.rom_keys) is passed through the factory's ``keys`` option.
@@ -28,7 +28,7 @@ import numpy as np
 
 from benchmarks.synthetic import rom_keys, synthetic_profile, synthetic_stream
 from benchmarks.timing import table, time_calls
-from livecap.modes import MODES, build_solver
+from livecap.modes.registry import MODES, build_solver
 
 SIZES = [(54, 50), (72, 150), (72, 1000)]
 SLOW_LIMIT_S = 1.0

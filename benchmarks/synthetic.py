@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from livecap.calibration import Profile
+from livecap.calibration.profile import Profile
 
 
 def synthetic_profile(n_markers: int, n_shapes: int, seed: int = 0) -> Profile:
@@ -67,7 +67,7 @@ def frame_problems(n_markers: int, n_shapes: int, n_frames: int, seed: int = 0, 
 def rom_keys(profile: Profile, noise_mm: float = 0.3, seed: int = 2):
     """A synthetic range-of-motion key set for the RBF mode (Pyun et al. 2003 §3): the neutral plus
     one key per shape at full weight, its marker displacement the shape's plus noise."""
-    from livecap.keys import KeySet
+    from livecap.calibration.keys import KeySet
 
     rng = np.random.default_rng(seed)
     m, n = profile.basis.shape[1], profile.n_markers

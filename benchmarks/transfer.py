@@ -36,8 +36,8 @@ ICT = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "ict-
 
 
 def _ict():
-    from livecap.markers import MarkerLayout
-    from livecap.rig import Rig
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
 
     rig = Rig.load(ICT)
     return rig, MarkerLayout.load(ICT / "markers.json", rig)
@@ -107,12 +107,12 @@ def warped_ict_accuracy(warp: bool = True, seed: int = 7) -> dict:
 
 def solve_agreement(seconds: float = 20.0, clean: bool = False, ridge: float = 0.0) -> dict:
     """Weight RMSE: a take of face B solved with B's own rig vs with the demo rig transferred onto B."""
-    from livecap.calibration import calibrate, estimate_neutral
+    from livecap.calibration.profile import calibrate, estimate_neutral
     from livecap.demo.face import demo_rig
     from livecap.demo.performance import PerformanceSettings, perform
-    from livecap.metrics import weight_rmse
-    from livecap.modes import build_solver
-    from livecap.solve import solve_take
+    from livecap.modes.registry import build_solver
+    from livecap.offline.metrics import weight_rmse
+    from livecap.offline.solve import solve_take
 
     generic, generic_layout = demo_rig(0)
     own, own_layout = demo_rig(3, resolution=(56, 50))

@@ -28,7 +28,7 @@ QUARTIC_LAG = 12  # the replaced smoother: centred quartic over 25 frames
 def _raw_solve():
     """The demo take's noise-robust movement solve with the weight smoothing off, its truth, the
     penalty of one weight-noise sd per shape (the unit the trend multiple is in), and the take."""
-    from livecap.movement_options import build_movement
+    from livecap.modes.movement import build_movement
 
     d = demo_take()
     W = build_movement(d.profile, {"trend": 0}).solve(d.targets, d.valid)
@@ -47,7 +47,7 @@ def _timed(fn, repeats: int):
 
 def run(quick: bool = False) -> dict:
     from livecap.cli.noise_study import blink_amplitude
-    from livecap.metrics import jitter, weight_rmse
+    from livecap.offline.metrics import jitter, weight_rmse
 
     W, unit, d = _raw_solve()
     truth, names, lower, upper = d.truth, d.names, d.profile.lower, d.profile.upper

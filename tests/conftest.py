@@ -31,8 +31,8 @@ def ict():
     """The real ICT-FaceKit rig from ../shared (skipped when that folder is absent)."""
     if not (ICT / "neutral.obj").exists():
         pytest.skip(f"ICT face rig not found at {ICT} (../shared/realdata is not beside this checkout)")
-    from livecap.markers import MarkerLayout
-    from livecap.rig import Rig
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
 
     rig = Rig.load(ICT)
     return rig, MarkerLayout.load(ICT / "markers.json", rig)

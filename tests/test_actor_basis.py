@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from livecap.actor_basis import actor_basis
-from livecap.calibration import calibrate
+from livecap.calibration.actor_basis import actor_basis
+from livecap.calibration.keys import KeySpec, keys_from_take, load_keys, read_key_file, write_key_file
+from livecap.calibration.profile import calibrate
 from livecap.demo.performance import PerformanceSettings
 from livecap.demo.rom import rom_take
-from livecap.keys import KeySpec, keys_from_take, load_keys, read_key_file, write_key_file
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +55,7 @@ def test_peak_frames_make_the_actor_basis(rom):
 
 
 def test_keys_file_round_trip_and_qp_actor_mode(rom, tmp_path):
-    from livecap.modes import build_solver
+    from livecap.modes.registry import build_solver
     from transport.takefile import write_take
 
     rig, layout, perf, specs = rom
@@ -74,7 +74,7 @@ def test_keys_file_round_trip_and_qp_actor_mode(rom, tmp_path):
 
 
 def test_bad_key_files(tmp_path):
-    from livecap.keys import KeyFileError
+    from livecap.calibration.keys import KeyFileError
 
     p = tmp_path / "k.json"
     p.write_text('{"keys": [{"name": "a"}]}')

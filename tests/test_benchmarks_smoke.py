@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from benchmarks.__main__ import SUITES
-from livecap.modes import MODES
+from livecap.modes.registry import MODES
 
 
 @pytest.mark.parametrize("name", [*SUITES, "multi_driver", "synthetic", "timing"])

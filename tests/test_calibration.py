@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from livecap.calibration import (
+from livecap.calibration.profile import (
     CalibrationError,
     NeutralCapture,
     Profile,
@@ -14,9 +14,9 @@ from livecap.calibration import (
     estimate_neutral,
     neutral_from_frames,
 )
+from livecap.calibration.stabilise import head_pose_error, kabsch
+from livecap.calibration.warp import warp_rig
 from livecap.demo.performance import PerformanceSettings, actor_warp, perform
-from livecap.stabilise import head_pose_error, kabsch
-from livecap.warp import warp_rig
 
 NEUTRAL = PerformanceSettings(seconds=2.0, rate=60, neutral_start=2.0, neutral_end=0.0, beyond_limits=False,
                               stable_dropout=0.0, occlusion=0.0, seed=101)
@@ -121,8 +121,8 @@ def test_profile_round_trip_keeps_warp_and_marker_rig(demo, tmp_path):
 
 
 def test_calibrated_pipeline_beats_uncalibrated_on_a_generated_take(demo):
-    from livecap.calibration_report import VARIANTS, compare
-    from livecap.modes import build_solver
+    from livecap.calibration.report import VARIANTS, compare
+    from livecap.modes.registry import build_solver
 
     rig, layout = demo
     s = PerformanceSettings(seconds=4.5, rate=40, seed=11)
@@ -141,8 +141,8 @@ def test_calibrated_pipeline_beats_uncalibrated_on_a_generated_take(demo):
 
 def test_calibration_on_the_ict_rig(ict):
     """The real ICT-FaceKit rig (cm on disk, 53 shapes): stabilise, warp and model a generated take."""
-    from livecap.calibration_report import model_error
-    from livecap.solve import prepare_targets
+    from livecap.calibration.report import model_error
+    from livecap.offline.solve import prepare_targets
 
     rig, layout = ict
     rng = np.random.default_rng(0)  # 1 s neutral, then 15 s of random combinations of every shape

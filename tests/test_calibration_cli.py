@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from livecap.calibration import Profile
+from livecap.calibration.profile import Profile
 
 RECORDINGS = Path(__file__).resolve().parents[1] / "recordings"
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from livecap.gaps import fill_gaps, gap_runs
+from livecap.calibration.gaps import fill_gaps, gap_runs
 
 
 def _trajectories(T=240, n=4, noise=0.0, seed=0):
@@ -54,9 +54,9 @@ def test_zero_max_gap_fills_nothing():
 
 
 def test_offline_solve_fills_gaps_and_no_nan_reaches_the_solver(demo):
-    from livecap.calibration import calibrate, estimate_neutral
+    from livecap.calibration.profile import calibrate, estimate_neutral
     from livecap.demo.performance import PerformanceSettings, perform
-    from livecap.solve import prepare_targets, solve_take
+    from livecap.offline.solve import prepare_targets, solve_take
 
     rig, layout = demo
     perf = perform(rig, layout, PerformanceSettings(seconds=3, rate=60, occlusion=0.05, seed=2))

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from livecap.warp import ProportionWarp, WarpError, warp_rig
+from livecap.calibration.warp import ProportionWarp, WarpError, warp_rig
 
 
 def _centres(seed, n):

@@ -61,8 +61,8 @@ def test_propagation_only_from_values_above_s1():
 
 def test_combined_set_on_demo_rig_keeps_visemes_at_the_mouth(demo, tmp_path):
     from livecap.cli import main
+    from livecap.core.objfile import read_obj
     from livecap.demo.keymodels import key_models
-    from livecap.objfile import read_obj
 
     rig, _ = demo
     emotional, verbal = key_models(rig)

@@ -18,7 +18,7 @@ from livecap.cli.fig11 import BOUNDED, SOFT, TOL, compare, extra, fit_alpha
 from livecap.demo.face import demo_rig
 from livecap.demo.performance import PerformanceSettings
 from livecap.demo.retarget import reduced_rig, retarget_scenario
-from livecap.metrics import position_error, range_excess
+from livecap.offline.metrics import position_error, range_excess
 from solvers.movement import MovementMatching
 from solvers.per_frame import prior_pf
 from solvers.prior import PCAPrior

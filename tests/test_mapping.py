@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from livecap.mapping import MappingError, by_name, cloning_matrix, load_config
+from livecap.offline.mapping import MappingError, by_name, cloning_matrix, load_config
 
 
 def test_gain_offset_clamp_and_identity_by_name(tmp_path):

@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from livecap.markers import LayoutError, MarkerLayout
+from livecap.core.markers import LayoutError, MarkerLayout
 
 
 def test_basis_matches_evaluate(demo):

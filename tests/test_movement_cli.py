@@ -51,7 +51,7 @@ def test_solve_limits_clip_by_default_and_bound_on_request(solved, tmp_path):
 
 
 def test_trend_flag_sets_the_weight_trend_filter(solved, tmp_path):
-    from livecap.metrics import jitter
+    from livecap.offline.metrics import jitter
 
     out, args = solved
     _, smooth, _ = read_weights_csv(out / "off.csv")

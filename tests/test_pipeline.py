@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import zmq
 
-from livecap.calibration import calibrate, estimate_neutral
+from livecap.calibration.profile import calibrate, estimate_neutral
 from livecap.demo.performance import PerformanceSettings, perform
-from livecap.modes import build_solver
-from livecap.pipeline import Pipeline, StageTiming
-from livecap.session import SessionError, load_session
-from livecap.solve import solve_take
+from livecap.live.pipeline import Pipeline, StageTiming
+from livecap.live.session import SessionError, load_session
+from livecap.modes.registry import build_solver
+from livecap.offline.solve import solve_take
 from transport.recorders import JsonlRecorder, read_jsonl_recording
 from transport.wire import encode_markers, topic
 from transport.zmq_source import ZmqSource

@@ -18,7 +18,7 @@ import zmq
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from livecap.calibration import calibrate
+from livecap.calibration.profile import calibrate
 from livecap.demo.face import demo_rig
 from transport.wire import encode_markers, topic
 from transport.zmq_source import ZmqSource

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from livecap.calibration import calibrate, estimate_neutral
+from livecap.calibration.profile import calibrate, estimate_neutral
 from livecap.cli.common import load_rig
 from transport.recorders import read_csv_recording, read_jsonl_recording, read_marker_recording
 from transport.takefile import read_take

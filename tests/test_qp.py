@@ -100,8 +100,8 @@ def test_marker_weights_scale_rows():
 
 
 def test_qp_mode_on_demo_profile(demo):
-    from livecap.calibration import calibrate
-    from livecap.modes import build_solver
+    from livecap.calibration.profile import calibrate
+    from livecap.modes.registry import build_solver
 
     rig, layout = demo
     profile = calibrate(rig, layout, layout.marker_rig(rig).neutral)

@@ -1,11 +1,11 @@
-"""livecap.stabilise.to_quaternion (numpy, used every live frame) agrees with scipy's Rotation."""
+"""livecap.calibration.stabilise.to_quaternion (numpy, used every live frame) agrees with scipy's Rotation."""
 
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from livecap.stabilise import to_quaternion
+from livecap.calibration.stabilise import to_quaternion
 
 
 @given(st.integers(0, 2**32 - 1), st.sampled_from([0.0, 1e-3, np.pi - 1e-6, np.pi]))

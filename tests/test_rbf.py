@@ -83,11 +83,11 @@ def test_solver_neutral_key_missing_markers_and_bad_input():
 
 
 def test_rbf_mode_from_rom_keys_recovers_key_poses(demo):
-    from livecap.calibration import calibrate
+    from livecap.calibration.keys import keys_from_take
+    from livecap.calibration.profile import calibrate
     from livecap.demo.performance import PerformanceSettings
     from livecap.demo.rom import rom_take
-    from livecap.keys import keys_from_take
-    from livecap.modes import build_solver
+    from livecap.modes.registry import build_solver
 
     rig, layout = demo
     shapes = ["jawOpen", "mouthSmileLeft", "eyeBlinkLeft", "browInnerUp", "mouthPucker"]

@@ -86,10 +86,10 @@ def test_rest_pull_keeps_unused_shapes_exactly_at_rest():
 
 
 def test_tune_profile_stores_selection_in_settings(demo):
-    from livecap.calibration import Profile, calibrate
+    from livecap.calibration.profile import Profile, calibrate
     from livecap.demo.performance import PerformanceSettings, perform
-    from livecap.robust import robust_settings, tune_profile
-    from livecap.solve import prepare_targets
+    from livecap.modes.robust import robust_settings, tune_profile
+    from livecap.offline.solve import prepare_targets
 
     rig, layout = demo
     perf = perform(rig, layout, PerformanceSettings(seconds=4.0, occlusion=0.05))

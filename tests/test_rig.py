@@ -3,8 +3,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from livecap.objfile import ObjError, write_obj
-from livecap.rig import Rig, RigError
+from livecap.core.objfile import ObjError, write_obj
+from livecap.core.rig import Rig, RigError
 
 
 def tiny_rig():

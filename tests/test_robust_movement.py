@@ -1,4 +1,4 @@
-"""The movement mode's noise-robust offline solve (livecap/robust_movement.py) against plain Seol."""
+"""The movement mode's noise-robust offline solve (livecap/modes/robust_movement.py) against plain Seol."""
 
 from __future__ import annotations
 
@@ -7,13 +7,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from livecap.calibration import calibrate, estimate_neutral
+from livecap.calibration.profile import calibrate, estimate_neutral
 from livecap.cli.noise_study import blink_amplitude
 from livecap.demo.performance import PerformanceSettings, perform
-from livecap.metrics import jitter, weight_rmse
-from livecap.movement_options import build_movement
-from livecap.robust_movement import RobustMovement, smoother_beta
-from livecap.solve import prepare_targets
+from livecap.modes.movement import build_movement
+from livecap.modes.robust_movement import RobustMovement, smoother_beta
+from livecap.offline.metrics import jitter, weight_rmse
+from livecap.offline.solve import prepare_targets
 from solvers.movement import Edit, MovementMatching
 from solvers.prior import PCAPrior
 from solvers.regularisation import estimate_noise

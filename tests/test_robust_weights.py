@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from livecap.calibration import calibrate
+from livecap.calibration.profile import calibrate
 from livecap.cli.noise_study import lag_frames
 from livecap.demo.performance import PerformanceSettings, perform
-from livecap.metrics import jitter
-from livecap.robust import robust_solver, weight_filter, weight_noise
-from livecap.solve import prepare_targets
+from livecap.modes.robust import robust_solver, weight_filter, weight_noise
+from livecap.offline.metrics import jitter
+from livecap.offline.solve import prepare_targets
 from solvers.filters import OneEuroFilter
 from solvers.tracking import IMMFilter
 

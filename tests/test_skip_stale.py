@@ -17,10 +17,10 @@ import zmq
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from livecap.calibration import calibrate
-from livecap.modes import MODES
-from livecap.pipeline import Pipeline
-from livecap.take import MarkerFrame
+from livecap.calibration.profile import calibrate
+from livecap.core.take import MarkerFrame
+from livecap.live.pipeline import Pipeline
+from livecap.modes.registry import MODES
 from transport.replay import ReplaySource
 from transport.wire import encode_markers, topic
 from transport.zmq_source import ZmqSource
@@ -169,7 +169,7 @@ def test_zmq_burst_solves_the_newest_and_counts_the_rest(profile, monkeypatch):
 
 
 def test_replay_pending_only_when_paced_and_behind(profile):
-    from livecap.take import Take
+    from livecap.core.take import Take
 
     n = len(profile.labels)
     take = Take(profile.labels, np.repeat(np.asarray(profile.source_neutral)[None], 3, 0), np.ones((3, n), bool), 50.0)

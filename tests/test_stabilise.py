@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from livecap.stabilise import HeadStabiliser, head_pose_error, kabsch, robust_pose, smooth_pose
+from livecap.calibration.stabilise import HeadStabiliser, head_pose_error, kabsch, robust_pose, smooth_pose
 
 
 @settings(max_examples=60, deadline=None)
@@ -153,7 +153,7 @@ def test_head_pose_error_is_zero_for_the_truth_in_another_reference_frame():
 
 @pytest.mark.parametrize("missing", [1, 4])
 def test_demo_take_with_stable_markers_missing_for_a_second_still_stabilises(demo, missing):
-    from livecap.calibration import calibrate, estimate_neutral
+    from livecap.calibration.profile import calibrate, estimate_neutral
     from livecap.demo.performance import PerformanceSettings, perform
 
     rig, layout = demo
@@ -175,7 +175,7 @@ def test_demo_take_with_stable_markers_missing_for_a_second_still_stabilises(dem
 @given(st.integers(5, 12), st.integers(0, 2**31 - 1), st.sampled_from([0.01, 1.0, 20.0]))
 def test_streamed_deleted_residuals_equal_the_batched_ones(k, seed, noise):
     """A streamed frame (k, 3) and a batch of that one frame (1, k, 3) get the same leave-one-out residuals."""
-    from livecap.stabilise import _deleted_residuals
+    from livecap.calibration.stabilise import _deleted_residuals
 
     rng = np.random.default_rng(seed)
     ref = rng.normal(size=(k, 3)) * 40

@@ -3,7 +3,7 @@ import warnings
 import numpy as np
 import pytest
 
-from livecap.take import Take
+from livecap.core.take import Take
 from transport.errors import TakeFileError
 from transport.takefile import read_take, write_take
 

@@ -6,9 +6,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from livecap.core.markers import MarkerLayout
+from livecap.core.rig import RigError
 from livecap.demo.face import demo_rig
-from livecap.markers import MarkerLayout
-from livecap.rig import RigError
 from livecap.transfer import TransferOptions, transfer, transfer_rig
 from livecap.transfer.align import Similarity, prealign
 from livecap.transfer.correspondence import dense_correspondence, place_markers
@@ -282,8 +282,8 @@ def test_cli_writes_a_loadable_rig_folder(small, tmp_path):
     import subprocess
     import sys
 
-    from livecap.objfile import write_obj
-    from livecap.rig import Rig
+    from livecap.core.objfile import write_obj
+    from livecap.core.rig import Rig
 
     rig, layout = small
     rig.save_obj_folder(tmp_path / "generic")

@@ -5,8 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from livecap.result import SolveResult
-from livecap.take import MarkerFrame
+from livecap.core.result import SolveResult
+from livecap.core.take import MarkerFrame
 from transport.arkit import ARKIT_NAMES
 from transport.recorders import (
     LLF_CSV_HEADER,
@@ -146,7 +146,7 @@ def test_marker_recording_c3d(tmp_path):
 
 
 def test_replay_paces_loops_and_slices(tmp_path):
-    from livecap.take import Take
+    from livecap.core.take import Take
 
     take = Take(["a"], np.arange(12, dtype=float).reshape(12, 1, 1).repeat(3, 2), np.ones((12, 1), bool), 100.0, 10)
     src = ReplaySource(take, loop=True, start=12, end=16, speed=2.0)

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from pythonosc.osc_bundle import OscBundle
 from scipy.spatial.transform import Rotation
 
-from livecap.result import SolveResult
+from livecap.core.result import SolveResult
 from transport.arkit import ARKIT_NAMES, arkit_matrix, is_arkit
 from transport.livelink import LiveLinkSink
 from transport.security import Curve, keygen, udp_address, zmq_address

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from livecap.result import SolveResult
+from livecap.core.result import SolveResult
 from transport.badinput import BadInput, FrameOrder, LabelMap
 from transport.osc_source import OscDecodeError, decode_osc_frame, encode_osc_frame
 from transport.wire import (

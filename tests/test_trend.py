@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import lsq_linear
 
-from livecap.metrics import jitter
+from livecap.offline.metrics import jitter
 from solvers.trend import TrendFilter, second_difference, second_difference_t
 
 

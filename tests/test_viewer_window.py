@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from livecap.result import SolveResult
+from livecap.core.result import SolveResult
 from viewer.errors import create_context
 from viewer.window import LatestSlot, WindowSink
 
@@ -128,9 +128,9 @@ def test_run_window_needs_the_rig():
 def test_a_profile_adopted_later_draws_like_one_given_up_front():
     """set_profile's path (summary computed in the solver's process, adopted by the window's Preview)
     draws exactly what a Preview constructed with the profile draws: markers, residual lines, head."""
-    from livecap.calibration import calibrate, estimate_neutral
-    from livecap.markers import MarkerLayout
-    from livecap.rig import Rig
+    from livecap.calibration.profile import calibrate, estimate_neutral
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
     from transport.takefile import read_take
     from viewer.preview import Preview
     from viewer.window import adopt_profile, display_profile

@@ -136,9 +136,9 @@ def colour_pixels(img: np.ndarray, rgb, tol: int = 30) -> int:
 
 CHILD = """
 import sys, numpy as np
-from livecap.rig import Rig
-from livecap.markers import MarkerLayout
-from livecap.result import SolveResult
+from livecap.core.rig import Rig
+from livecap.core.markers import MarkerLayout
+from livecap.core.result import SolveResult
 from viewer.window import WindowSink
 if __name__ == "__main__":
     rig = Rig.load(sys.argv[1]); layout = MarkerLayout.load(sys.argv[2], rig)
@@ -157,9 +157,9 @@ if __name__ == "__main__":
 
 def test_window_shows_exactly_the_published_frame(xserver, take, tmp_path):
     """The screen holds the frame Preview renders offscreen for the same result (and not the neutral)."""
-    from livecap.markers import MarkerLayout
-    from livecap.result import SolveResult
-    from livecap.rig import Rig
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.result import SolveResult
+    from livecap.core.rig import Rig
     from viewer.errors import create_context
     from viewer.preview import Preview
 

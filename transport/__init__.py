@@ -1,1 +1,4 @@
-"""Sources and sinks: each module speaks one file or wire format. Never imports solvers."""
+"""Sources and sinks: each module speaks one file or wire format.
+
+May import ``livecap.core`` only (never solvers, the modes or the pipeline).
+"""

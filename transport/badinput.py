@@ -13,7 +13,7 @@ from collections import Counter
 
 import numpy as np
 
-from livecap.take import MarkerFrame
+from livecap.core.take import MarkerFrame
 
 log = logging.getLogger("livecap.input")
 

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.take import Take
-from livecap.units import to_mm
+from livecap.core.take import Take
+from livecap.core.units import to_mm
 from transport.errors import TakeFileError
 
 

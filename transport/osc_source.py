@@ -25,7 +25,7 @@ from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message import OscMessage
 from pythonosc.osc_message_builder import OscMessageBuilder
 
-from livecap.take import MarkerFrame
+from livecap.core.take import MarkerFrame
 from transport.badinput import BadInput, FrameOrder
 from transport.wire import WIRE_VERSION
 

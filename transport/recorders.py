@@ -30,7 +30,7 @@ from typing import IO
 
 import numpy as np
 
-from livecap.take import MarkerFrame, Take
+from livecap.core.take import MarkerFrame, Take
 from transport.arkit import ARKIT_NAMES, POSE_NAMES, arkit_matrix, head_angles, is_arkit
 
 # Column order of the Live Link Face app's CSV (it lists jaw and mouth Right before Left).

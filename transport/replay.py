@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.take import MarkerFrame, Take
+from livecap.core.take import MarkerFrame, Take
 from transport.takefile import read_take
 
 

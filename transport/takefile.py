@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from livecap.take import Take
+from livecap.core.take import Take
 from transport.c3d import read_c3d, write_c3d
 from transport.csv_take import read_csv_take, write_csv_take
 from transport.errors import TakeFileError

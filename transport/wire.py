@@ -196,7 +196,7 @@ def encode_header(names: Sequence[str], actor: str, rate: float | None = None) -
 
 
 def encode_weights(result, names_id: str) -> bytes:
-    """Payload of one ``weights.<actor>`` frame from a :class:`livecap.result.SolveResult`."""
+    """Payload of one ``weights.<actor>`` frame from a :class:`livecap.core.result.SolveResult`."""
     msg = {
         "v": WIRE_VERSION, "type": "weights", "frame": int(result.frame), "timestamp": float(result.timestamp),
         "names_id": names_id, "weights": np.asarray(result.weights, dtype="<f4").tobytes(),

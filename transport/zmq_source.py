@@ -13,7 +13,7 @@ from collections.abc import Iterator
 
 import zmq
 
-from livecap.take import MarkerFrame
+from livecap.core.take import MarkerFrame
 from transport.badinput import BadInput, FrameOrder, LabelMap
 from transport.security import Curve
 from transport.wire import WireError, decode_markers, layout_id, topic

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from livecap.rig import Rig
+from livecap.core.rig import Rig
 from viewer.compose import put_lines
 from viewer.renderer import Renderer
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from livecap.rig import Rig
+from livecap.core.rig import Rig
 
 
 class CpuDeformer:

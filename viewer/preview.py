@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from livecap.markers import MarkerLayout
-from livecap.result import SolveResult
-from livecap.rig import Rig
+from livecap.core.markers import MarkerLayout
+from livecap.core.result import SolveResult
+from livecap.core.rig import Rig
 from viewer.compose import Caption, put_lines, retarget_markers, top_shapes, weight_bars
 from viewer.renderer import Renderer
 from viewer.scene import Similarity, model_matrix

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from livecap.markers import MarkerLayout
-from livecap.rig import Rig
+from livecap.core.markers import MarkerLayout
+from livecap.core.rig import Rig
 from viewer import shaders
 from viewer.errors import create_context
 from viewer.scene import Camera, project, transform

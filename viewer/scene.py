@@ -52,7 +52,7 @@ class Similarity:
     @classmethod
     def fit(cls, rig_points: np.ndarray, head_points: np.ndarray) -> Similarity:
         """Least-squares similarity (Umeyama) from rig marker sites to the actor's neutral markers."""
-        from livecap.calibration import similarity
+        from solvers.rigid import similarity
 
         s, R, t = similarity(np.asarray(rig_points, float), np.asarray(head_points, float))
         return cls(s, R, t)

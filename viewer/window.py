@@ -23,7 +23,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from livecap.result import SolveResult
+from livecap.core.result import SolveResult
 from viewer.errors import NoDisplay, ViewerUnavailable
 
 log = logging.getLogger("viewer.window")

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.calibration import WARPS, Profile, calibrate, estimate_neutral
+from livecap.calibration.profile import WARPS, Profile, calibrate, estimate_neutral
 from livecap.cli.common import add_rig_arguments, load_rig, progress_bar, tune_on_take
-from livecap.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS
+from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS
 from transport.takefile import read_take
 
 
@@ -106,8 +106,8 @@ def _stats(a: np.ndarray) -> str:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from livecap.calibration_report import compare, subsample
-    from livecap.modes import build_solver
+    from livecap.calibration.report import compare, subsample
+    from livecap.modes.registry import build_solver
 
     rig, layout = load_rig(args)
     take = read_take(args.take)

@@ -6,10 +6,10 @@ import argparse
 from contextlib import contextmanager
 from pathlib import Path
 
-from livecap.calibration import Profile, calibrate, estimate_neutral
-from livecap.markers import MarkerLayout
-from livecap.rig import Rig
-from livecap.take import Take
+from livecap.calibration.profile import Profile, calibrate, estimate_neutral
+from livecap.core.markers import MarkerLayout
+from livecap.core.rig import Rig
+from livecap.core.take import Take
 
 
 def markers_path(rig_path: str | Path) -> Path:
@@ -33,7 +33,7 @@ def add_rig_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_take_solve_arguments(p: argparse.ArgumentParser) -> None:
     """A take, its rig, calibration and the solver mode: what every take-solving command takes."""
-    from livecap.modes import DEFAULT_MODE, MODES
+    from livecap.modes.registry import DEFAULT_MODE, MODES
 
     p.add_argument("take", help="marker take: .c3d, .trc or .csv")
     add_rig_arguments(p)
@@ -53,7 +53,7 @@ def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
 
 def profile_for(args: argparse.Namespace, rig: Rig, layout: MarkerLayout, take: Take) -> Profile:
     """The given profile, or one calibrated on the take's first seconds with its regularisation
-    selected from the take itself (livecap.robust.tune_profile)."""
+    selected from the take itself (livecap.modes.robust.tune_profile)."""
     if getattr(args, "profile", None):
         return Profile.load(args.profile)
     sel = take.select(layout.labels)
@@ -64,8 +64,8 @@ def profile_for(args: argparse.Namespace, rig: Rig, layout: MarkerLayout, take: 
 
 
 def tune_on_take(profile: Profile, take: Take) -> dict:
-    from livecap.robust import tune_profile
-    from livecap.solve import prepare_targets
+    from livecap.modes.robust import tune_profile
+    from livecap.offline.solve import prepare_targets
 
     sel, targets, _, _ = prepare_targets(take, profile)
     return tune_profile(profile, targets, sel.valid, take.rate)

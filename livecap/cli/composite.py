@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.objfile import read_obj, write_obj
+from livecap.core.objfile import read_obj, write_obj
 from solvers.compositing import ImportanceSettings, composite_all
 
 
@@ -41,9 +41,9 @@ def _read(paths: list[str], base: np.ndarray, tris: np.ndarray) -> dict[str, np.
 
 def run(args: argparse.Namespace) -> int:
     if args.demo:
+        from livecap.core.rig import Rig
         from livecap.demo import DEMO_RIG
         from livecap.demo.keymodels import key_models
-        from livecap.rig import Rig
 
         rig = Rig.load(args.rig or Path(__file__).resolve().parents[2] / "recordings" / DEMO_RIG)
         base, tris = rig.neutral, rig.triangles

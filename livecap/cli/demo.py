@@ -8,9 +8,9 @@ from pathlib import Path
 from livecap.cli.common import load_rig, profile_for, progress_bar
 from livecap.demo import DEMO_RIG, DEMO_TAKE, truth_path
 from livecap.demo.performance import GroundTruth
-from livecap.metrics import jitter, vertex_error, weight_rmse
-from livecap.modes import DEFAULT_MODE, MODES, build_solver
-from livecap.solve import solve_take
+from livecap.modes.registry import DEFAULT_MODE, MODES, build_solver
+from livecap.offline.metrics import jitter, vertex_error, weight_rmse
+from livecap.offline.solve import solve_take
 from transport.takefile import read_take
 from transport.weights_csv import write_weights_csv
 

@@ -18,8 +18,8 @@ import numpy as np
 
 from livecap.cli.common import add_calibration_arguments, load_rig, profile_for
 from livecap.cli.movement_args import add_movement_arguments, movement_options
-from livecap.movement_options import build_movement
-from livecap.solve import prepare_targets
+from livecap.modes.movement import build_movement
+from livecap.offline.solve import prepare_targets
 from solvers.movement import Edit, MovementMatching
 from transport.takefile import read_take
 from transport.weights_csv import read_weights_csv, write_weights_csv

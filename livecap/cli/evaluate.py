@@ -1,6 +1,6 @@
 """``livecap evaluate``: every solver mode on one take with ground truth, side by side.
 
-Modes come from livecap.modes.MODES, so a newly registered mode shows up without touching this
+Modes come from livecap.modes.registry.MODES, so a newly registered mode shows up without touching this
 file. Each mode gets the same calibrated profile and the same options (``keys`` from a labelled
 ROM take, so example-based and actor-basis modes can run); a mode that cannot be built says why.
 """
@@ -19,9 +19,9 @@ import numpy as np
 from livecap.cli.common import add_calibration_arguments, load_rig, profile_for, progress_bar
 from livecap.demo import DEMO_RIG, DEMO_TAKE, truth_path
 from livecap.demo.performance import GroundTruth, PerformanceSettings
-from livecap.metrics import jitter, vertex_error, weight_rmse
-from livecap.modes import MODES, build_solver
-from livecap.solve import prepare_targets
+from livecap.modes.registry import MODES, build_solver
+from livecap.offline.metrics import jitter, vertex_error, weight_rmse
+from livecap.offline.solve import prepare_targets
 from transport.takefile import read_take
 
 RECORDINGS = Path(__file__).resolve().parents[2] / "recordings"
@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     options: dict = {}
     keys_path = args.keys or (_demo_keys(rig, layout) if demo else None)
     if keys_path:
-        from livecap.keys import load_keys
+        from livecap.calibration.keys import load_keys
 
         options["keys"] = load_keys(keys_path, profile)
     if args.ridge is not None:

@@ -31,8 +31,8 @@ import numpy as np
 
 from livecap.cli.common import load_rig, profile_for
 from livecap.demo import DEMO_RIG, DEMO_TAKE
-from livecap.metrics import range_excess, velocity_error_per_frame
-from livecap.solve import prepare_targets
+from livecap.offline.metrics import range_excess, velocity_error_per_frame
+from livecap.offline.solve import prepare_targets
 from solvers.movement import MovementMatching
 from solvers.per_frame import no_const, prior_pf, range_pf
 from solvers.prior import PCAPrior

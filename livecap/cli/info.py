@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from livecap.cli.common import markers_path
-from livecap.markers import MarkerLayout
-from livecap.rig import Rig
+from livecap.core.markers import MarkerLayout
+from livecap.core.rig import Rig
 from transport.takefile import READERS, read_take
 
 
@@ -26,7 +26,7 @@ def register(sub) -> None:
 
 
 def observability_report(args: argparse.Namespace, rig: Rig | None, layout: MarkerLayout | None) -> None:
-    from livecap.calibration import Profile
+    from livecap.calibration.profile import Profile
     from solvers.observability import observability
 
     if args.profile:

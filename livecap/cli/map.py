@@ -6,7 +6,7 @@ import argparse
 
 import numpy as np
 
-from livecap.mapping import by_name, cloning_matrix, load_config
+from livecap.offline.mapping import by_name, cloning_matrix, load_config
 from transport.weights_csv import read_weights_csv, write_weights_csv
 
 
@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
               f"fit residual RMS {np.sqrt(np.mean((Ws @ E.T - Vt) ** 2)):.4g}")
     else:
         if args.target_rig:
-            from livecap.rig import Rig
+            from livecap.core.rig import Rig
 
             out_names = list(Rig.load(args.target_rig).names)
         else:

@@ -37,7 +37,7 @@ def add_movement_arguments(p: argparse.ArgumentParser, stream: bool = True) -> N
 
 
 def movement_options(args: argparse.Namespace) -> dict:
-    """Options for livecap.modes' movement factory; unset flags fall back to its defaults."""
+    """Options for livecap.modes.registry' movement factory; unset flags fall back to its defaults."""
     opts = {k: getattr(args, k, None) for k in ("alpha", "beta", "prior_threshold", "start", "end", "missing",
                                                 "limits", "window", "lookahead", "trend")}
     if getattr(args, "stream", False):

@@ -2,7 +2,7 @@
 
 Generates a take with ``livecap.demo.performance.perform`` (configurable noise and occlusion),
 calibrates from its neutral span, selects the regularisation from the take
-(``livecap.robust.tune_profile``), then solves it with every mode in MODES, plus a 1€-filtered
+(``livecap.modes.robust.tune_profile``), then solves it with every mode in MODES, plus a 1€-filtered
 variant of each mode that lacks one, and prints weight RMSE, vertex error (mm), jitter ratio
 (solved / ground-truth mean |second difference|), added latency (frames, the cross-correlation
 lag of solved against true curves) and blink peak amplitude. Also a sweep of the ridge against
@@ -18,12 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.calibration import calibrate, estimate_neutral
+from livecap.calibration.profile import calibrate, estimate_neutral
 from livecap.cli.common import add_rig_arguments, load_rig, progress_bar
 from livecap.demo.performance import PerformanceSettings, perform
-from livecap.metrics import jitter, vertex_error, weight_rmse
-from livecap.modes import MODES
-from livecap.robust import (
+from livecap.modes.registry import MODES
+from livecap.modes.robust import (
     ROBUST_MODES,
     filtered,
     imm_filter,
@@ -33,7 +32,8 @@ from livecap.robust import (
     sparse_fit,
     tune_profile,
 )
-from livecap.solve import prepare_targets
+from livecap.offline.metrics import jitter, vertex_error, weight_rmse
+from livecap.offline.solve import prepare_targets
 from solvers.filters import FilteredSolver, OneEuroFilter
 from solvers.sparse_fit import SPARSE_GRID
 

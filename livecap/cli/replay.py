@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from livecap.calibration.stabilise import to_quaternion
 from livecap.cli.common import (
     add_take_solve_arguments,
     load_rig,
@@ -20,9 +21,8 @@ from livecap.cli.common import (
     solver_options,
 )
 from livecap.demo import truth_path
-from livecap.modes import build_solver
-from livecap.solve import prepare_targets
-from livecap.stabilise import to_quaternion
+from livecap.modes.registry import build_solver
+from livecap.offline.solve import prepare_targets
 from transport.takefile import read_take
 
 

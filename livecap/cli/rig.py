@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 
 from livecap.cli.common import markers_path, progress_bar
-from livecap.markers import MarkerLayout
-from livecap.objfile import read_obj
-from livecap.rig import Rig
+from livecap.core.markers import MarkerLayout
+from livecap.core.objfile import read_obj
+from livecap.core.rig import Rig
+from livecap.core.units import MM_PER_UNIT, to_mm
 from livecap.transfer import TransferOptions, transfer, transfer_steps
 from livecap.transfer.labels import landmark_distances
 from livecap.transfer.landmarks import eye_width
-from livecap.units import MM_PER_UNIT, to_mm
 
 
 def register(sub) -> None:

@@ -1,6 +1,6 @@
 """``livecap run``: a live session. Markers in (ZeroMQ, OSC or a paced take), weights out.
 
-Set-up on the command line or in a TOML session file (``--session``, see livecap/session.py);
+Set-up on the command line or in a TOML session file (``--session``, see livecap/live/session.py);
 command-line options win. Prints one ``ready`` line when every socket is bound (with the real
 endpoints, so port 0 / ``*`` work), a timing report on SIGUSR1, and the report on exit.
 Ctrl-C or SIGTERM stops cleanly: every recorder is flushed and closed.
@@ -12,11 +12,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from livecap.calibration import Profile, calibrate, estimate_neutral
+from livecap.calibration.profile import Profile, calibrate, estimate_neutral
 from livecap.cli.common import load_rig
-from livecap.modes import DEFAULT_MODE, MODES
-from livecap.pipeline import Pipeline
-from livecap.session import load_session
+from livecap.live.pipeline import Pipeline
+from livecap.live.session import load_session
+from livecap.modes.registry import DEFAULT_MODE, MODES
 
 _PARSER: argparse.ArgumentParser | None = None
 

@@ -12,8 +12,8 @@ from livecap.cli.common import (
     solver_options,
 )
 from livecap.cli.movement_args import add_movement_arguments, movement_options
-from livecap.modes import build_solver
-from livecap.solve import solve_take
+from livecap.modes.registry import build_solver
+from livecap.offline.solve import solve_take
 from transport.takefile import read_take
 from transport.weights_csv import write_weights_csv
 

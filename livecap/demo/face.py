@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from livecap.markers import MarkerLayout
-from livecap.rig import Rig
+from livecap.core.markers import MarkerLayout
+from livecap.core.rig import Rig
 
 # Moves: (cx, cy, sx, sy, dx, dy, dz): a Gaussian patch at (cx, cy) on the front of the face
 # displaced by (dx, dy, dz) mm at its centre. "L" shapes are mirrored into their "R" twins.

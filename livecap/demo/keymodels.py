@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from livecap.core.rig import Rig
 from livecap.demo.performance import _find
-from livecap.rig import Rig
 
 EMOTIONS: dict[str, dict[tuple[str, ...], float]] = {
     "happy": {("smile",): 0.9, ("cheeksquint",): 0.6, ("eyesquint",): 0.3},

@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from livecap.markers import MarkerLayout
-from livecap.rig import Rig
-from livecap.take import Take
+from livecap.core.markers import MarkerLayout
+from livecap.core.rig import Rig
+from livecap.core.take import Take
 
 
 @dataclass

@@ -14,7 +14,7 @@ proportions (§3.2). Unconstrained, the target contorts with extreme weights; th
   Seol's smaller character rigs; same marker labels, so correspondences exist);
 * calibration: the project's own (neutral from the take's neutral start, rigid frame, RBF warp
   of the target's marker sites onto the actor, Seol §3.2), then head stabilisation and gap
-  filling as for any take (:func:`livecap.solve.prepare_targets`).
+  filling as for any take (:func:`livecap.offline.solve.prepare_targets`).
 """
 
 from __future__ import annotations
@@ -23,11 +23,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from livecap.calibration import Profile, calibrate, estimate_neutral
+from livecap.calibration.profile import Profile, calibrate, estimate_neutral
+from livecap.core.rig import Corrective, InBetween, Rig
 from livecap.demo.face import demo_rig
 from livecap.demo.performance import PerformanceSettings, perform
-from livecap.rig import Corrective, InBetween, Rig
-from livecap.solve import prepare_targets
+from livecap.offline.solve import prepare_targets
 
 
 @dataclass

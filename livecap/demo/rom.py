@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from livecap.calibration.keys import KeySpec, write_key_file
+from livecap.core.markers import MarkerLayout
+from livecap.core.rig import Rig
 from livecap.demo.performance import Performance, PerformanceSettings, perform
-from livecap.keys import KeySpec, write_key_file
-from livecap.markers import MarkerLayout
-from livecap.rig import Rig
 
 DEMO_ROM = "demo_rom.c3d"
 DEMO_ROM_KEYS = "demo_rom.keys.json"

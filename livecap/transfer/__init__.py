@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from livecap.markers import MarkerLayout
-from livecap.rig import Rig, RigError
+from livecap.core.markers import MarkerLayout
+from livecap.core.rig import Rig, RigError
 from livecap.transfer.align import Similarity, prealign
 from livecap.transfer.correspondence import Correspondence, dense_correspondence, place_markers
 from livecap.transfer.deformable import DeformResult, Schedule, deform

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from livecap.stabilise import kabsch
 from livecap.transfer.surface import Surface
+from solvers.rigid import kabsch
 
 
 @dataclass(frozen=True)

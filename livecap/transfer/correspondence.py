@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from livecap.markers import MarkerLayout
+from livecap.core.markers import MarkerLayout
 from livecap.transfer.surface import Surface
 
 

@@ -28,9 +28,9 @@ from dataclasses import dataclass
 import igl
 import numpy as np
 
-from livecap.markers import MarkerLayout
-from livecap.stabilise import kabsch
+from livecap.core.markers import MarkerLayout
 from livecap.transfer.surface import Surface, unit, vertex_normals
+from solvers.rigid import kabsch
 
 # Eye-corner marker pairs (outer, inner) by naming scheme: 68-landmark multi-PIE numbering as in
 # ICT's markers.json (36-39 the subject's right eye, 42-45 the left), and common mocap names.

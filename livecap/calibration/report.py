@@ -15,12 +15,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from livecap.calibration import Profile, calibrate
-from livecap.markers import MarkerLayout
-from livecap.rig import Rig
-from livecap.solve import SolvedTake, solve_take
-from livecap.stabilise import HeadStabiliser, head_pose_error
-from livecap.take import Take
+from livecap.calibration.profile import Profile, calibrate
+from livecap.calibration.stabilise import HeadStabiliser, head_pose_error
+from livecap.core.markers import MarkerLayout
+from livecap.core.rig import Rig
+from livecap.core.take import Take
+from livecap.offline.solve import SolvedTake, solve_take
 
 
 class FixedPose:

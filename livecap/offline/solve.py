@@ -7,10 +7,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from livecap.calibration import Profile
-from livecap.gaps import fill_gaps
-from livecap.stabilise import smooth_pose, to_quaternion
-from livecap.take import Take
+from livecap.calibration.gaps import fill_gaps
+from livecap.calibration.profile import Profile
+from livecap.calibration.stabilise import smooth_pose, to_quaternion
+from livecap.core.take import Take
 
 DEFAULT_MAX_GAP_SECONDS = 0.25  # Curio §2.1 fills gaps by spline; longer gaps stay missing
 DEFAULT_POSE_SMOOTHING_SECONDS = 0.2  # offline head-pose smoothing window (see stabilise.smooth_pose)

@@ -2,7 +2,7 @@
 
 Per frame: remove head motion against the actor's neutral (Seol et al. 2012 §3.1), hand the
 stabilised displacement to the chosen solver mode's ``step``, wrap the weights and head pose in
-a :class:`~livecap.result.SolveResult` and give it to every sink. Nothing in the loop waits on
+a :class:`~livecap.core.result.SolveResult` and give it to every sink. Nothing in the loop waits on
 a consumer: sinks send without blocking (transport/), recorders write to the OS and are
 flushed every ``flush_every`` seconds.
 
@@ -37,13 +37,13 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.calibration import CalibrationError, Profile
-from livecap.modes import build_solver
-from livecap.result import SolveResult
-from livecap.stabilise import to_quaternion
-from livecap.take import MarkerFrame, Take
+from livecap.calibration.profile import CalibrationError, Profile
+from livecap.calibration.stabilise import to_quaternion
+from livecap.core.result import SolveResult
+from livecap.core.take import MarkerFrame, Take
+from livecap.modes.registry import build_solver
 
-log = logging.getLogger("livecap.pipeline")
+log = logging.getLogger("livecap.live.pipeline")
 
 STAGES = ("receive", "solve", "publish")
 

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.objfile import read_obj, write_obj
-from livecap.units import to_mm
+from livecap.core.objfile import read_obj, write_obj
+from livecap.core.units import to_mm
 
 log = logging.getLogger(__name__)
 

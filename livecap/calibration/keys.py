@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.calibration import Profile
-from livecap.solve import prepare_targets
-from livecap.take import Take
+from livecap.calibration.profile import Profile
+from livecap.core.take import Take
+from livecap.offline.solve import prepare_targets
 
 
 class KeyFileError(ValueError):

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from livecap.rig import Rig
-from livecap.units import MM_PER_UNIT
+from livecap.core.rig import Rig
+from livecap.core.units import MM_PER_UNIT
 
 
 class LayoutError(ValueError):

@@ -5,8 +5,8 @@ clipping: offline the solved take, streaming the published frame) were chosen on
 and a synthetic take (docs/movement.md lists the measurements); every one is an option.
 
 Offline on a profile that carries a noise estimate (``settings["robust"]``, stored by
-``livecap.robust.tune_profile`` on every CLI calibration path) the mode is the noise-robust
-:class:`livecap.robust_movement.RobustMovement` (smoothed markers, alpha 0, beta from the
+``livecap.modes.robust.tune_profile`` on every CLI calibration path) the mode is the noise-robust
+:class:`livecap.modes.robust_movement.RobustMovement` (smoothed markers, alpha 0, beta from the
 smoother, L1 at the noise threshold, bounded limits, smoothed weights); explicit options still
 override its alpha/beta/limits/...; option ``robust: false`` gives the plain Seol solve.
 """
@@ -19,9 +19,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from livecap.calibration import Profile
-from livecap.robust import robust_settings
-from livecap.robust_movement import BOUND_TOL, RobustMovement, smoother_beta
+from livecap.calibration.profile import Profile
+from livecap.modes.robust import robust_settings
+from livecap.modes.robust_movement import BOUND_TOL, RobustMovement, smoother_beta
 from solvers.blocks import IllPosedError
 from solvers.movement import MovementMatching
 from solvers.prior import PCAPrior

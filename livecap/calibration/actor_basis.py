@@ -19,8 +19,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from livecap.calibration import Profile
-from livecap.keys import KeySet
+from livecap.calibration.keys import KeySet
+from livecap.calibration.profile import Profile
 
 
 @dataclass

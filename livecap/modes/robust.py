@@ -28,7 +28,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from livecap.calibration import Profile
+from livecap.calibration.profile import Profile
 from solvers.filters import CausalPolyFilter, FilteredSolver, FixedLagSmoother, OneEuroFilter, savgol_weights
 from solvers.observability import noise_floor, observability, tying_prior
 from solvers.regularisation import PriorLeastSquares, estimate_noise, gcv_ridge, holdout_ridge

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from livecap.rig import Corrective, InBetween, Rig
+from livecap.core.rig import Corrective, InBetween, Rig
 
 
 class WarpError(ValueError):

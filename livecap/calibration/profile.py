@@ -6,7 +6,7 @@
   the rig's marker sites), so stabilised markers and the published head pose are relative to the
   character's head, whatever the capture volume's axes.
 * Proportions: an RBF warp from the rig's marker sites to the actor's markers (Seol §3.2, see
-  livecap.warp), applied to every sculpt's sites to give the marker-space basis B and a warped
+  livecap.calibration.warp), applied to every sculpt's sites to give the marker-space basis B and a warped
   marker-site rig (with in-betweens and correctives) in the actor's proportions.
 """
 
@@ -18,11 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.markers import MarkerLayout
-from livecap.rig import Corrective, InBetween, Rig
-from livecap.stabilise import MAD_TO_SIGMA, HeadStabiliser, kabsch
-from livecap.take import Take
-from livecap.warp import ProportionWarp, WarpError, warp_rig
+from livecap.calibration.stabilise import MAD_TO_SIGMA, HeadStabiliser
+from livecap.calibration.warp import ProportionWarp, WarpError, warp_rig
+from livecap.core.markers import MarkerLayout
+from livecap.core.rig import Corrective, InBetween, Rig
+from livecap.core.take import Take
+from solvers.rigid import kabsch, similarity
 
 WARPS = ("rbf", "similarity", "rigid")
 
@@ -198,14 +199,6 @@ class NeutralCapture:
 
 
 # ---------------------------------------------------------------------- proportions
-def similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Scale, rotation, translation with s R src + t ~ dst (Umeyama 1991)."""
-    R, _ = kabsch(src, dst)
-    cs, cd = src.mean(0), dst.mean(0)
-    s = np.sum((dst - cd) * ((src - cs) @ R.T)) / np.sum((src - cs) ** 2)
-    return float(s), R, cd - s * R @ cs
-
-
 def fit_warp(kind: str, sites: np.ndarray, neutral: np.ndarray, smoothing: float = 0.0) -> ProportionWarp:
     """Rig marker sites -> actor neutral: ``rbf`` (Seol §3.2), ``similarity`` (uniform scale),
     or ``rigid`` (no proportion change at all: the uncalibrated baseline)."""

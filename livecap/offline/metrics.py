@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from livecap.rig import Rig
+from livecap.core.rig import Rig
 
 
 def _velocity_residual(basis: np.ndarray, weights: np.ndarray, targets: np.ndarray,

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from livecap.calibration import Profile
-from livecap.movement_options import build_movement
-from livecap.per_frame_modes import qp_mode, rbf_mode
-from livecap.robust import ROBUST_MODES
+from livecap.calibration.profile import Profile
+from livecap.modes.movement import build_movement
+from livecap.modes.per_frame import qp_mode, rbf_mode
+from livecap.modes.robust import ROBUST_MODES
 from solvers.least_squares import BoundedLeastSquares
 
 
@@ -26,7 +26,7 @@ MODES: dict[str, Callable] = {
     "qp": qp_mode,
     "rbf": rbf_mode,
 }
-MODES.update(ROBUST_MODES)  # noise-robust modes (livecap/robust.py, docs/robustness.md)
+MODES.update(ROBUST_MODES)  # noise-robust modes (livecap/modes/robust.py, docs/robustness.md)
 
 
 def build_solver(mode: str, profile: Profile, options: dict | None = None):

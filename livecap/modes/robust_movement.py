@@ -3,7 +3,7 @@
 Plain movement matching (Seol et al. 2012 §4, Eq. 2) matches the markers' velocities, so on
 noisy markers it reproduces the noise's velocity, and its PCA shapes prior (§5) is a uniform
 pull that shrinks blinks (docs/movement.md, docs/robustness.md). This solve keeps Seol's
-objective and sets every weight from the noise estimate that ``livecap.robust.tune_profile``
+objective and sets every weight from the noise estimate that ``livecap.modes.robust.tune_profile``
 stores in ``profile.settings["robust"]`` (sigma per coordinate, mm):
 
 1. markers smoothed zero-phase by the centred quadratic over ``2 lag + 1`` frames
@@ -29,7 +29,7 @@ stores in ``profile.settings["robust"]`` (sigma per coordinate, mm):
    (docs/robustness.md has both measured);
 6. the solved curves l1-trend-filtered (``solvers.trend``, Kim, Koh, Boyd & Gorinevsky 2009 §2):
    ``min |w - x|^2 / 2 + lam_k |D2 x|_1`` per shape with ``lam_k = trend * s_k``, ``s_k = sigma' /
-   |b_k|`` the shape's weight noise sd and ``trend`` 10 (``livecap.robust.DEFAULTS``):
+   |b_k|`` the shape's weight noise sd and ``trend`` 10 (``livecap.modes.robust.DEFAULTS``):
    piecewise-linear curves whose kinks are where the data put them, so the noise's second
    differences go while blink onsets and peaks stay (a quadratic smoother of that strength shaves
    peaks); fixed frames restored afterwards.
@@ -44,7 +44,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from livecap.robust import DEFAULTS
+from livecap.modes.robust import DEFAULTS
 from solvers.filters import FixedLagSmoother, savgol_weights
 from solvers.movement import Edit, MovementMatching, edit_region
 from solvers.sparse_fit import l1_weights, universal_threshold

@@ -1,4 +1,4 @@
-"""Factories for the per-frame modes (registered in livecap.modes): ``qp`` and ``rbf``.
+"""Factories for the per-frame modes (registered in livecap.modes.registry): ``qp`` and ``rbf``.
 
 Options (from the CLI or a session config):
 
@@ -15,13 +15,13 @@ import logging
 
 import numpy as np
 
-from livecap.calibration import Profile
+from livecap.calibration.profile import Profile
 
 log = logging.getLogger(__name__)
 
 
 def _keyset(profile: Profile, options: dict):
-    from livecap.keys import KeySet, load_keys
+    from livecap.calibration.keys import KeySet, load_keys
 
     keys = options.get("keys")
     if keys is None:
@@ -39,7 +39,7 @@ def qp_mode(profile: Profile, options: dict):
     from solvers.qp import FrameQP
 
     if options.get("basis", "rig") == "actor":
-        from livecap.actor_basis import actor_basis
+        from livecap.calibration.actor_basis import actor_basis
 
         keys = _keyset(profile, options)
         if keys is None:

@@ -1,0 +1,52 @@
+"""The rooms' import rules (livecap/__init__.py): solvers import nothing of livecap, transport or
+viewer; transport and viewer import only livecap.core of livecap; core imports nothing above it.
+Read from the source (every import statement, function-level ones included), not from sys.modules."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _imports(package: str) -> list[tuple[str, str]]:
+    found = []
+    for path in sorted((ROOT / package).rglob("*.py")):
+        tree = ast.parse(path.read_text(), filename=str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                found += [(str(path.relative_to(ROOT)), a.name) for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                found.append((str(path.relative_to(ROOT)), node.module))
+    return found
+
+
+def _violations(package: str, allowed) -> list[str]:
+    ours = {"livecap", "solvers", "transport", "viewer"}
+    return [f"{f}: {m}" for f, m in _imports(package) if m.split(".")[0] in ours and not allowed(m)]
+
+
+@pytest.mark.parametrize("package, allowed", [
+    ("solvers", lambda m: m.startswith("solvers")),
+    ("transport", lambda m: m.startswith(("transport", "livecap.core"))),
+    ("viewer", lambda m: m.startswith(("viewer", "livecap.core", "solvers.rigid"))),
+    ("livecap/core", lambda m: m.startswith(("livecap.core", "solvers"))),
+])
+def test_rooms_import_only_what_they_may(package, allowed):
+    assert _violations(package, allowed) == []
+
+
+def test_livecap_top_level_holds_only_packages():
+    loose = sorted(p.name for p in (ROOT / "livecap").glob("*.py") if p.name not in {"__init__.py", "__main__.py"})
+    assert loose == []
+
+
+def test_the_rule_catches_a_forbidden_import(tmp_path, monkeypatch):
+    """The checker itself: a transport module importing the pipeline is reported."""
+    (tmp_path / "transport").mkdir()
+    (tmp_path / "transport" / "bad.py").write_text("def f():\n    from livecap.live.pipeline import Pipeline\n")
+    monkeypatch.setitem(globals(), "ROOT", tmp_path)
+    assert _violations("transport", lambda m: m.startswith(("transport", "livecap.core"))) != []
