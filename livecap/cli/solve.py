@@ -12,6 +12,7 @@ from livecap.cli.common import (
     solver_options,
 )
 from livecap.cli.movement_args import add_movement_arguments, movement_options
+from livecap.modes.per_frame import QPSettings
 from livecap.modes.registry import build_solver
 from livecap.offline.solve import solve_take
 from transport.takefile import read_take
@@ -22,7 +23,7 @@ def register(sub) -> None:
     p = sub.add_parser("solve", help="solve a take (C3D/TRC/CSV) for rig weights, write a weights CSV",
                        description="Solve every frame of a recorded take for the rig's blendshape weights.")
     add_take_solve_arguments(p)
-    p.add_argument("--temporal", type=float, default=0.0, help="qp: weight gamma of |w - w_prev|^2")
+    p.add_argument("--temporal", type=float, help=f"qp: weight gamma of |w - w_prev|^2 (default {QPSettings.temporal})")
     p.add_argument("--keys", help="keys file (labelled ROM take or explicit key pairs): rbf keys, qp actor basis")
     p.add_argument("--basis", choices=["rig", "actor"], default="rig",
                    help="qp: calibrated rig basis, or the actor's own from --keys (Curio 2006)")
