@@ -176,8 +176,8 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_explicit_scheduler_with_dask_processes(library, tmp_path):
-    """``dask scheduler`` and ``dask worker`` as real processes; ``livecap batch --scheduler`` as a third."""
+def test_explicit_scheduler_with_dask_processes(library, tmp_path, capsys):
+    """``dask scheduler`` and ``dask worker`` as real processes; ``livecap batch --scheduler`` connects to them."""
     dask = Path(sys.executable).with_name("dask")
     address = f"tcp://127.0.0.1:{_free_port()}"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -188,12 +188,11 @@ def test_explicit_scheduler_with_dask_processes(library, tmp_path):
                                        "--no-dashboard"], env=env, stdout=subprocess.DEVNULL,
                                       stderr=subprocess.DEVNULL))
         out = tmp_path / "out"
-        done = subprocess.run([sys.executable, "-m", "livecap", "batch", str(library["takes"] / "take0.c3d"),
-                               str(library["takes"] / "broken.c3d"), "--rig", RIG, "--profile", library["profile"],
-                               "--out", str(out), "--scheduler", address], env=env, capture_output=True,
-                              text=True, timeout=120)
-        assert done.returncode == 1, done.stderr[-2000:]
-        assert "broken.c3d" in done.stdout and "not a readable C3D" in done.stdout
+        code = main(["batch", str(library["takes"] / "take0.c3d"), str(library["takes"] / "broken.c3d"), "--rig", RIG,
+                     "--profile", library["profile"], "--out", str(out), "--scheduler", address])
+        printed = capsys.readouterr().out
+        assert code == 1, printed[-2000:]
+        assert "broken.c3d" in printed and "not a readable C3D" in printed
         solo = _solve(library["takes"] / "take0.c3d", tmp_path / "solo.csv", "--profile", library["profile"])
         assert (out / "take0.csv").read_bytes() == solo
         summary = json.loads((out / "summary.json").read_text())

@@ -146,7 +146,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     """Solve one take exactly as ``livecap solve`` would and write its output and record; never raises:
     a failure comes back as a row with ``status`` "failed" and a one-line ``error``."""
     cache = cache or _cache()
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     row: dict = {"take": job.take, "stem": job.stem, "actor": job.actor, "mode": job.mode,
                  "profile": job.profile or "", "output": str(job.output), "status": "failed", "error": "",
                  "worker": os.getpid()}
@@ -182,6 +182,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
         logging.getLogger().removeHandler(handler)
     row.pop("frame_residual_mm", None)
     row["seconds"] = time.perf_counter() - start
+    row["cpu_seconds"] = time.process_time() - cpu  # the worker process's CPU: load on a shared machine aside
     if row["status"] == "ok":
         job.record.parent.mkdir(parents=True, exist_ok=True)
         tmp = job.record.with_name(job.record.name + ".partial")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import logging
 import shlex
 import time
 
@@ -83,7 +82,6 @@ def run(args: argparse.Namespace) -> int:
     jobs = plan_jobs(args.takes, args.manifest, rig=args.rig, out_dir=args.out, mode=args.mode, fmt=args.format,
                      profile=args.profile, calibrate_from=args.calibrate_from, markers=args.markers,
                      neutral_seconds=args.neutral_seconds, options=tuple(shlex.split(args.solve_options)))
-    logging.getLogger("distributed").setLevel(logging.ERROR)
     prog, done = _progress(len(jobs))
     with dask_client(args.workers, args.scheduler) as client, prog:
         rows, meta = run_batch(jobs, args.out, client, force=args.force, on_done=done)
