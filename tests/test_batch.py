@@ -202,3 +202,19 @@ def test_explicit_scheduler_with_dask_processes(library, tmp_path, capsys):
             p.terminate()
         for p in procs:
             p.wait(timeout=30)
+
+
+def test_csv_manifest_paths_and_options(tmp_path):
+    (tmp_path / "day1").mkdir()
+    for name in ("a.c3d", "b.c3d"):
+        (tmp_path / "day1" / name).write_bytes(b"")
+    (tmp_path / "m.csv").write_text("take,actor,profile,mode,options\n"
+                                    "day1/*.c3d,anna,anna.npz,qp,--ridge 0.01 --temporal 2\n")
+    from livecap.batch.jobs import read_manifest
+
+    (row,) = read_manifest(tmp_path / "m.csv")
+    assert row["take"] == str(tmp_path / "day1" / "*.c3d") and row["profile"] == str(tmp_path / "anna.npz")
+    assert row["options"] == ("--ridge", "0.01", "--temporal", "2") and row["actor"] == "anna"
+    jobs = plan_jobs([], [str(tmp_path / "m.csv")], rig=RIG, out_dir=str(tmp_path / "out"), mode="robust", fmt="csv")
+    assert [Path(j.take).name for j in jobs] == ["a.c3d", "b.c3d"] and {j.mode for j in jobs} == {"qp"}
+    assert jobs[0].solve_argv()[-4:] == ["--ridge", "0.01", "--temporal", "2"]

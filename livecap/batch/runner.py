@@ -27,7 +27,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
     that is closed on exit; the solver cache is registered as a worker plugin either way."""
     from distributed import Client, LocalCluster
 
-    logging.getLogger("distributed").setLevel(logging.WARNING)  # its INFO lines would bury the progress bar
+    logging.getLogger("distributed").setLevel(logging.ERROR)  # its INFO lines would bury the progress bar
     if scheduler:
         client = Client(scheduler, timeout="30s")
         cluster = None

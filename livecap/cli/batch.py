@@ -63,7 +63,7 @@ def _table(rows: list[dict], meta: dict):
 
     t = Table(title=f"livecap batch: {meta['n_takes']} takes, {meta['solved']} solved, {meta['skipped']} skipped "
                     f"(up to date), {meta['failed']} failed, {meta['wall_seconds']:.1f} s on {meta['workers']} workers")
-    for col in ("take", "status", "frames", "s", "res p50", "res p95", "missing", "at upper"):
+    for col in ("take", "status", "frames", "s", "p50 mm", "p95 mm", "missing", "@upper"):
         t.add_column(col, justify="left" if col in ("take", "status") else "right", no_wrap=True,
                      min_width=len(col))
     for r in rows:
