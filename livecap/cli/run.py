@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from livecap.calibration.profile import Profile, calibrate, estimate_neutral
-from livecap.cli.common import load_rig
+from livecap.cli.common import load_rig, tune_on_take
 from livecap.live.pipeline import Pipeline
 from livecap.live.session import load_session
 from livecap.modes.registry import DEFAULT_MODE, MODES
@@ -218,6 +218,7 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     if profile is None:
         def calibrator(take, rig=rig, layout=layout):
             calibrated = calibrate(rig, layout, estimate_neutral(take, layout.stable))
+            tune_on_take(calibrated, take)  # what every calibration path stores: the noise estimate
             if window is not None:  # the window shows the actor's markers from now on
                 window.set_profile(calibrated)
             return calibrated
