@@ -1,7 +1,6 @@
 """Sinks in one process over real sockets: ZeroMQ (drops, header on join, CurveZMQ), VMC, Live Link Face."""
 
 import socket
-import struct
 import time
 
 import numpy as np
