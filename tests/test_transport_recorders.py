@@ -48,7 +48,7 @@ def test_csv_livecap_layout_round_trip(tmp_path):
 def test_csv_live_link_face_layout_for_arkit_rigs(tmp_path):
     names = ["jawOpen", "eyeBlinkLeft", "mouthLeft", "jawRight"]
     res, W = results(names, rate=60)
-    rec = CsvRecorder(tmp_path / "w.csv", 60)
+    rec = CsvRecorder(tmp_path / "w.csv", 60, timecode="12:00:00:00")  # not the clock: published at once
     for r in res:
         rec.publish(r)
     rec.close()

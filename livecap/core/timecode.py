@@ -2,11 +2,15 @@
 timecoded sources (the Live Link Face app stamps its packets and CSV rows with the phone's time of
 day, SMPTE-style ``HH:MM:SS:FF``).
 
-A :class:`TimecodeClock` anchors the first frame's timestamp to a start time of day and counts the
-stream's own timestamps from there, so frames stay evenly spaced whatever the solve's jitter:
+A :class:`TimecodeClock` maps the stream's own timestamps to a time of day, so frames stay evenly
+spaced whatever the solve's jitter:
 
-* ``"clock"`` (default): the system clock's local time of day when the first frame is published;
-* ``"HH:MM:SS:FF"``: that start timecode (frames at the stream's rate);
+* ``"clock"`` (default): the system clock's local time of day. The offset between timestamps and
+  the clock is the smallest seen so far (the least-delayed frame is the closest to its capture):
+  frames published late in a burst (the calibration window, a stall) do not push the stream's
+  timecode late; once frames flow, the timecode is the clock's less the solve latency. The
+  frames of a burst itself may run ahead by up to its length, once.
+* ``"HH:MM:SS:FF"``: that start timecode for the first frame (frames at the stream's rate);
 * ``"take"``: the take's own timestamps as the time of day.
 """
 
@@ -58,20 +62,23 @@ class TimecodeClock:
 
     start: str = "clock"
     rate: float = 60.0
-    _anchor: float | None = field(default=None, init=False)
-    _first: float = field(default=0.0, init=False)
+    _offset: float | None = field(default=None, init=False)
 
     def __post_init__(self) -> None:
         if self.start not in ("clock", "take"):
             parse_timecode(self.start, self.rate)  # a bad start fails before the session runs
 
     def seconds_of_day(self, timestamp: float) -> float:
+        ts = float(timestamp)
         if self.start == "take":
-            return float(timestamp) % SECONDS_PER_DAY
-        if self._anchor is None:
-            self._anchor = now_of_day() if self.start == "clock" else parse_timecode(self.start, self.rate)
-            self._first = float(timestamp)
-        return (self._anchor + float(timestamp) - self._first) % SECONDS_PER_DAY
+            return ts % SECONDS_PER_DAY
+        if self.start == "clock":
+            offset = now_of_day() - ts
+            if self._offset is None or offset < self._offset:
+                self._offset = offset
+        elif self._offset is None:
+            self._offset = parse_timecode(self.start, self.rate) - ts
+        return (self._offset + ts) % SECONDS_PER_DAY
 
 
 def split_frames(seconds_of_day: float, fps: float) -> tuple[int, float]:
