@@ -255,3 +255,38 @@ def test_livelinkface_csv_is_what_the_app_writes(tmp_path):
             assert _signature(cell.lstrip("-")) in forms[i], (i, cell)
         frames.add(int(cells[0].split(":")[3].split(".")[0]))
     assert max(frames) <= 59 and len(frames) > 30  # the frame field counts 00-59 at 60 fps
+
+
+def test_zmq_weights_carry_solve_quality():
+    """valid / markers counts and at_bound travel with each frame (docs/protocol.md §3), read with
+    pyzmq + msgpack as a subscriber would, from a real session."""
+    import msgpack
+    import zmq
+
+    cmd = [sys.executable, "-m", "livecap", "run", "--replay", str(TAKE), "--rig", str(RIG), "--zmq-out",
+           "tcp://127.0.0.1:*", "--max-frames", 360]
+    proc = subprocess.Popen(list(map(str, cmd)), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    ctx = zmq.Context()
+    sub = ctx.socket(zmq.SUB)
+    try:
+        ready = proc.stdout.readline()
+        sub.connect(re.search(r"zmq-out ([^;\s]+)", ready).group(1))
+        sub.setsockopt(zmq.SUBSCRIBE, b"weights.")
+        sub.setsockopt(zmq.RCVTIMEO, 10000)
+        frames = []
+        while len(frames) < 100:
+            _, payload = sub.recv_multipart()
+            msg = msgpack.unpackb(payload, raw=False)
+            if msg["type"] == "weights":
+                frames.append(msg)
+    finally:
+        sub.close(0)
+        ctx.term()
+        proc.wait(timeout=60)
+    for msg in frames:
+        w = np.frombuffer(msg["weights"], dtype="<f4")
+        at = np.frombuffer(msg["at_bound"], dtype=np.int8)
+        assert at.shape == w.shape and set(at.tolist()) <= {-1, 0, 1}
+        assert np.all(np.abs(w[at == -1]) < 1e-5) and np.all(w[at == 0] > -1e-6)  # demo limits [0, 1]
+        assert 0 < msg["valid"] <= msg["markers"] and msg["residual"] >= 0
+    assert any((np.frombuffer(m["at_bound"], dtype=np.int8) == 0).any() for m in frames)
