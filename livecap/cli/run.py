@@ -64,9 +64,17 @@ def register(sub) -> None:
                      help="count: drop and count when a subscriber is full; fair: libzmq drops per subscriber")
     out.add_argument("--header-every", type=float, default=1.0, help="re-send the shape names every S seconds")
     out.add_argument("--vmc", help="[HOST:]PORT to send VMC (OSC) to (VMC's port is 39539)")
-    out.add_argument("--vmc-arkit", action="store_true", help="send VMC shapes under ARKit names")
+    out.add_argument("--vmc-arkit", action="store_true", help="same as --vmc-perfect-sync")
+    out.add_argument("--vmc-perfect-sync", action="store_true",
+                     help="send VMC shapes under Perfect Sync names (the 52 ARKit shapes as EyeBlinkLeft, ...)")
+    out.add_argument("--vmc-vrm", type=int, choices=[0, 1],
+                     help="send VMC VRM expression presets (VRM 0.x: A, Blink_L, Joy...; 1.0: aa, blinkLeft, happy...)")
+    out.add_argument("--vrm-map", help="JSON table VRM 1.0 expression -> {ARKit term: coefficient} (docs/protocol.md)")
     out.add_argument("--livelink", help="[HOST:]PORT to send Live Link Face UDP to (Unreal's port is 11111)")
-    out.add_argument("--livelink-subject", default="livecap", help="Live Link subject name")
+    out.add_argument("--livelink-subject", help="Live Link subject name (default: --actor)")
+    out.add_argument("--timecode", default="clock",
+                     help="Live Link / CSV timecode: 'clock' (system time of day, default), HH:MM:SS:FF (start "
+                          "there) or 'take' (the take's own timestamps)")
     out.add_argument("--arkit-map", help="JSON mapping ARKit name -> rig shape name(s), for non-ARKit rigs")
     out.add_argument("--window", action="store_true", help="live preview window of the solve (needs a display and "
                      "--rig; drops frames, never slows the solver)")
@@ -176,6 +184,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
 
         mapping = load_mapping(args.arkit_map)
     sinks: list = []
+    neutral_frames = max(1, int(round(args.neutral_seconds * rate)))
+    if args.timecode not in ("clock", "take"):
+        from livecap.core.timecode import parse_timecode
+
+        parse_timecode(args.timecode, rate)
     if args.zmq_out:
         from transport.zmq_sink import ZmqSink
 
@@ -188,18 +201,27 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         from transport.vmc import DEFAULT_PORT, VmcSink
 
         host, port = udp_address(args.vmc, DEFAULT_PORT, args.interface)
-        sinks.append(VmcSink(host, port, arkit=args.vmc_arkit, mapping=mapping, where=str(args.arkit_map)))
+        from transport.vrm import load_vrm_table
+
+        names = f"vrm{args.vmc_vrm}" if args.vmc_vrm is not None else (
+            "perfect-sync" if args.vmc_perfect_sync or args.vmc_arkit else "rig")
+        table = load_vrm_table(args.vrm_map) if args.vrm_map else None
+        sinks.append(VmcSink(host, port, mapping=mapping, where=str(args.arkit_map), names=names, vrm_table=table,
+                             neutral_frames=neutral_frames))
         described.append(f"vmc {host}:{port}")
     if args.livelink:
         from transport.livelink import DEFAULT_PORT, LiveLinkSink
 
         host, port = udp_address(args.livelink, DEFAULT_PORT, args.interface)
-        sinks.append(LiveLinkSink(host, port, args.livelink_subject, mapping, fps=rate, where=str(args.arkit_map)))
+        sinks.append(LiveLinkSink(host, port, args.livelink_subject or args.actor, mapping, fps=rate,
+                                  where=str(args.arkit_map), timecode=args.timecode, actor=args.actor,
+                                  neutral_frames=neutral_frames))
         described.append(f"livelink {host}:{port}")
     from transport.recorders import CsvRecorder, JsonlRecorder, MarkerRecorder
 
     if args.record_csv:
-        sinks.append(CsvRecorder(args.record_csv, rate, args.csv_layout, mapping, fsync=args.fsync))
+        sinks.append(CsvRecorder(args.record_csv, rate, args.csv_layout, mapping, fsync=args.fsync,
+                                 timecode=args.timecode, neutral_frames=neutral_frames))
         described.append(f"csv {args.record_csv}")
     if args.record_jsonl:
         sinks.append(JsonlRecorder(args.record_jsonl, fsync=args.fsync))
