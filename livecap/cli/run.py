@@ -14,6 +14,7 @@ from pathlib import Path
 
 from livecap.calibration.profile import Profile, calibrate, estimate_neutral
 from livecap.cli.common import load_rig
+from livecap.live.checks import check_overlap, check_profile_rig
 from livecap.live.pipeline import Pipeline
 from livecap.live.session import load_session
 from livecap.modes.registry import DEFAULT_MODE, MODES
@@ -60,8 +61,9 @@ def register(sub) -> None:
     out = p.add_argument_group("sinks")
     out.add_argument("--zmq-out", help="ZeroMQ address to publish weights.<actor> on (binds; port 0 or * = any)")
     out.add_argument("--zmq-hwm", type=int, default=100, help="send high-water mark in messages (default 100)")
-    out.add_argument("--zmq-policy", default="count", choices=["count", "fair"],
-                     help="count: drop and count when a subscriber is full; fair: libzmq drops per subscriber")
+    out.add_argument("--zmq-policy", default="fair", choices=["count", "fair"],
+                     help="fair (default): libzmq drops only for a full subscriber, the others get every frame; "
+                          "count: drop for everyone and count it when any subscriber is full")
     out.add_argument("--header-every", type=float, default=1.0, help="re-send the shape names every S seconds")
     out.add_argument("--vmc", help="[HOST:]PORT to send VMC (OSC) to (VMC's port is 39539)")
     out.add_argument("--vmc-arkit", action="store_true", help="send VMC shapes under ARKit names")
@@ -117,11 +119,9 @@ def _apply_session(args: argparse.Namespace) -> dict:
 
 
 def _curve(args):
-    from transport.security import Curve
+    from transport.security import curve_from_flags
 
-    if not args.curve_secret:
-        return None
-    return Curve(args.curve_secret, args.curve_clients, args.curve_server)
+    return curve_from_flags(args.curve_secret, args.curve_clients, args.curve_server)
 
 
 def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
@@ -139,8 +139,9 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     if args.profile:
         profile = Profile.load(args.profile)
         labels = profile.labels
-        if want_window:
+        if want_window or args.rig:
             rig, layout = load_rig(args)
+            check_profile_rig(profile, rig, args.profile, args.rig)
     elif args.rig:
         rig, layout = load_rig(args)
         labels = list(layout.labels)
@@ -150,10 +151,17 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     described = []
     rate = args.rate
     if args.replay:
-        from transport.replay import ReplaySource
+        from transport.replay import ReplaySource, open_take
+        from transport.takefile import size_problem
 
-        source = ReplaySource.open(args.replay, labels, speed=args.speed, fast=args.fast, loop=args.loop,
-                                   start=args.start, end=args.end)
+        take, frames, timestamps = open_take(args.replay)
+        stable = profile.stable if profile is not None else layout.stable
+        check_overlap(take.labels, labels, stable, args.replay, args.profile or args.rig)
+        problem = size_problem(take.select(labels))
+        if problem:
+            raise ValueError(f"{args.replay}: {problem}")
+        source = ReplaySource(take, labels, speed=args.speed, fast=args.fast, loop=args.loop, start=args.start,
+                              end=args.end, frames=frames, timestamps=timestamps)
         rate = source.rate
         described.append(f"replay {args.replay}")
     elif args.zmq_in:
@@ -247,6 +255,8 @@ def _window(args: argparse.Namespace, rig, layout, profile):
 def run(args: argparse.Namespace) -> int:
     import signal
 
+    import zmq
+
     from viewer.errors import NoDisplay
 
     if hasattr(signal, "SIGUSR1"):  # a report request while sockets come up must not kill the session
@@ -256,6 +266,9 @@ def run(args: argparse.Namespace) -> int:
     except NoDisplay as exc:  # --window without a display: one line, exit 2 (a usage problem, not a bad file)
         print(f"livecap run: {exc}", file=sys.stderr)
         return 2
+    except zmq.ZMQError as exc:  # port in use, endpoint libzmq refuses: one line, no traceback
+        print(f"livecap run: error: ZeroMQ: {exc}", file=sys.stderr)
+        return 1
     pipeline.install_signal_handlers()
     print("ready: " + "; ".join(described), flush=True)
     pipeline.run()
