@@ -24,6 +24,7 @@ import json
 import math
 import os
 import struct
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
@@ -351,5 +352,5 @@ def read_marker_recording(path: str | Path) -> MarkerRecording:
         take = Take(labels, z["positions"].astype(np.float64), z["valid"], float(z["rate"]),
                     int(z["frames"][0]) if len(z["frames"]) else 0)
         return MarkerRecording(take, z["frames"], z["timestamps"])
-    except (OSError, KeyError, ValueError) as exc:
+    except (OSError, KeyError, ValueError, IndexError, EOFError, zipfile.BadZipFile) as exc:
         raise ValueError(f"{path}: not a livecap marker recording ({exc})") from None

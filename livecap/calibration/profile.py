@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -88,7 +89,7 @@ class Profile:
             profile = cls([str(s) for s in z["labels"]], names, z["source_neutral"],
                           z["stable"], z["basis"], z["lower"], z["upper"], z["target_sites"],
                           json.loads(str(z["settings"])), warp, mrig)
-        except (OSError, KeyError, ValueError, TypeError) as exc:
+        except (OSError, KeyError, ValueError, TypeError, EOFError, zipfile.BadZipFile) as exc:
             raise CalibrationError(f"{path}: not a livecap profile ({exc})") from None
         profile.check(str(path))
         return profile
