@@ -61,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--outlier-at", type=int)
     ap.add_argument("--restart-at", type=int)
     ap.add_argument("--truncate-every", type=int, default=0)
+    ap.add_argument("--layout-flood", type=int, default=0,
+                    help="ZeroMQ: this many ~40 KB packets, each announcing a new 3000-label layout under its true id")
     ap.add_argument("--wait", type=float, default=20.0, help="ZeroMQ: seconds to wait for a subscriber")
     args = ap.parse_args(argv)
     labels = read_take(args.take).labels
@@ -91,6 +93,10 @@ def main(argv: list[str] | None = None) -> int:
 
         def poison(f, ts, pos, val) -> None:
             send(encode_markers(f, ts, pos[::-1], val[::-1], labels[::-1], lid))
+
+        def big_layout(k: int) -> None:
+            big = [f"L{k}_{j}" for j in range(3000)]
+            send(encode_markers(0, 0.0, np.zeros((3000, 3)), np.ones(3000, bool), big, layout_id(big)))
     else:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         host, port = args.address.rsplit(":", 1)
@@ -125,6 +131,9 @@ def main(argv: list[str] | None = None) -> int:
             sent["outlier"] += 1
         valid(i, f, ts, pos, val)
         sent["valid"] += 1
+        if args.kind == "zmq" and sent.setdefault("layouts", 0) < args.layout_flood:
+            big_layout(sent["layouts"])
+            sent["layouts"] += 1
         for _ in range(args.garbage):
             send(junk[g % len(junk)])
             g += 1

@@ -121,7 +121,7 @@ def test_truncated_osc_bundles_are_counted_and_never_solved(d, tmp_path):
 def test_idle_timeout_ends_a_session_that_never_got_a_frame(d):
     t0 = time.monotonic()
     run = spawn("-m", "livecap", "run", "--zmq-in", f"tcp://127.0.0.1:{free_port()}", "--profile",
-                d / "profile.npz", "--idle-timeout", 1)
+                d / "profile.npz", "--idle-timeout", 1, "--first-frame-timeout", 1)
     out, _ = finish(run, timeout=30)
     assert "frames in 0" in out and time.monotonic() - t0 < 20
 

@@ -157,3 +157,26 @@ def test_osc_garbage_does_not_make_valid_frames_stale():
     assert next(it).frame == 0 and not src.pending()
     tx.close()
     src.close()
+
+
+def test_final_recording_appears_atomically_or_not_at_all(tmp_path, monkeypatch):
+    """A kill while the final file is written must not leave a torn file beside the journal."""
+    from livecap.core.take import MarkerFrame
+    from transport import recorders
+
+    path = tmp_path / "m.npz"
+    rec = recorders.MarkerRecorder(path, LABELS, 120.0)
+    for f in range(30):
+        rec.record(MarkerFrame(f, f / 120, POS, VALID))
+
+    def torn(fh, **arrays):  # the process dies half-way through writing the archive
+        fh.write(b"PK\x03\x04 half an archive")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(recorders.np, "savez_compressed", torn)
+    with pytest.raises(KeyboardInterrupt):
+        rec.close()
+    assert not path.exists() and list(tmp_path.iterdir()) == [recorders.journal_path(path)]
+    monkeypatch.undo()
+    out, n = recorders.recover_marker_journal(recorders.journal_path(path))
+    assert out == path and n == 30 and recorders.read_marker_recording(path).take.n_frames == 30

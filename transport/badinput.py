@@ -141,7 +141,7 @@ class LabelMap:
             unknown = [lab for lab in labels if lab not in self._where]
             hit = f"unknown labels {unknown[:5]}" if unknown else np.array([self._where[lab] for lab in labels],
                                                                           dtype=np.int64)
-            if len(self._cache) < 64:
+            if len(self._cache) < 64 and not isinstance(hit, str):  # never keep a hostile label list
                 self._cache[key] = hit
         if isinstance(hit, str):
             raise KeyError(hit)

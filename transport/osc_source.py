@@ -144,10 +144,13 @@ class OscSource:
     """
 
     def __init__(self, host: str, port: int, labels: list[str], idle_timeout: float | None = None,
+                 first_frame_timeout: float | None = None,
                  poll_s: float = 0.1, queue_size: int = 4096) -> None:
         self.labels = list(labels)
         self._where = {lab: i for i, lab in enumerate(self.labels)}
         self.idle_timeout = idle_timeout
+        # senders usually start after the driver: waiting for the first frame gets its own limit
+        self.first_frame_timeout = first_frame_timeout
         self.last_decode_seconds = 0.0
         self.received = 0
         self._order = FrameOrder()
@@ -222,13 +225,15 @@ class OscSource:
         return MarkerFrame(frame, ts, pos, val)
 
     def __iter__(self) -> Iterator[MarkerFrame]:
-        last_good = time.monotonic()  # no frame at all also ends the session after idle_timeout
+        last_good = time.monotonic()  # no frame at all ends the session after first_frame_timeout
+        limit = self.first_frame_timeout if self.first_frame_timeout is not None else self.idle_timeout
         while self._running:
             frame, self._ahead = self._ahead, None
             if frame is None:
                 frame = self._next(self.poll_s)
             if frame is not None:
                 last_good = time.monotonic()
+                limit = self.idle_timeout
                 yield frame
-            elif self.idle_timeout and time.monotonic() - last_good > self.idle_timeout:
+            elif limit and time.monotonic() - last_good > limit:
                 return  # checked outside the wait: a flood of garbage does not keep a dead session alive

@@ -23,13 +23,16 @@ DRAIN = 1000  # messages decoded per look before the loop checks stop and idle t
 
 class ZmqSource:
     def __init__(self, address: str, labels: list[str], actor: str = "actor", bind: bool = False,
-                 curve: Curve | None = None, idle_timeout: float | None = None, poll_ms: int = 100,
+                 curve: Curve | None = None, idle_timeout: float | None = None,
+                 first_frame_timeout: float | None = None, poll_ms: int = 100,
                  context: zmq.Context | None = None) -> None:
         self.address = address
         self.labels = list(labels)
         self.topic = topic("markers", actor)
         self.bad = BadInput(f"zmq {address}")
         self.idle_timeout = idle_timeout
+        # senders usually start after the driver: waiting for the first frame gets its own limit
+        self.first_frame_timeout = first_frame_timeout
         self.poll_ms = poll_ms
         self.last_decode_seconds = 0.0
         self.received = 0
@@ -103,7 +106,8 @@ class ZmqSource:
         return frame
 
     def __iter__(self) -> Iterator[MarkerFrame]:
-        last_good = time.monotonic()  # no frame at all also ends the session after idle_timeout
+        last_good = time.monotonic()  # no frame at all ends the session after first_frame_timeout
+        limit = self.first_frame_timeout if self.first_frame_timeout is not None else self.idle_timeout
         poller = zmq.Poller()
         poller.register(self.sock, zmq.POLLIN)
         while self._running:
@@ -112,8 +116,9 @@ class ZmqSource:
                 frame = self._next()
             if frame is not None:
                 last_good = time.monotonic()
+                limit = self.idle_timeout
                 yield frame
                 continue
-            if self.idle_timeout and time.monotonic() - last_good > self.idle_timeout:
+            if limit and time.monotonic() - last_good > limit:
                 return  # checked outside the poll: a flood of garbage does not keep a dead session alive
             poller.poll(self.poll_ms)

@@ -20,6 +20,7 @@ from livecap.live.session import load_session
 from livecap.modes.registry import DEFAULT_MODE, MODES
 
 _PARSER: argparse.ArgumentParser | None = None
+FIRST_FRAME_GRACE = 10.0  # seconds a session with --idle-timeout waits for its first frame by default
 
 
 def register(sub) -> None:
@@ -40,6 +41,9 @@ def register(sub) -> None:
     src.add_argument("--rate", type=float, default=120.0, help="stream frame rate for network sources (default 120)")
     src.add_argument("--idle-timeout", type=float,
                      help="end the session after this many seconds without a frame (network sources)")
+    src.add_argument("--first-frame-timeout", type=float,
+                     help="end the session when no frame came this many seconds after start (default: with "
+                          "--idle-timeout, the larger of it and 10 s: senders often start after the driver)")
     src.add_argument("--skip-stale", action=argparse.BooleanOptionalAction, default=None,
                      help="when the solver falls behind, solve only the newest waiting frame and count the skipped "
                           "ones as stale, so latency stays bounded (default: on for --zmq-in/--osc-in, off for "
@@ -169,13 +173,14 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
 
         addr = zmq_address(args.zmq_in, args.interface)
         source = ZmqSource(addr, labels, args.actor, bind=args.zmq_in_bind, curve=curve,
-                           idle_timeout=args.idle_timeout)
+                           idle_timeout=args.idle_timeout, first_frame_timeout=_first_frame_timeout(args))
         described.append(f"zmq-in {addr}")
     else:
         from transport.osc_source import OscSource
 
         host, port = udp_address(args.osc_in, 0, args.interface)
-        source = OscSource(host, port, labels, idle_timeout=args.idle_timeout)
+        source = OscSource(host, port, labels, idle_timeout=args.idle_timeout,
+                           first_frame_timeout=_first_frame_timeout(args))
         described.append(f"osc-in {host}:{source.port}")
 
     mapping = None
@@ -237,6 +242,12 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
                         stats_every=args.stats_every,
                         skip_stale=(not args.replay) if args.skip_stale is None else args.skip_stale)
     return pipeline, described
+
+
+def _first_frame_timeout(args: argparse.Namespace) -> float | None:
+    if args.first_frame_timeout is not None:
+        return args.first_frame_timeout
+    return max(args.idle_timeout, FIRST_FRAME_GRACE) if args.idle_timeout else None
 
 
 def _window(args: argparse.Namespace, rig, layout, profile):
