@@ -38,6 +38,8 @@ import json, sys, time, msgpack, zmq
 addr, out, idle, delay = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4])
 s = zmq.Context().socket(zmq.SUB)
 s.setsockopt(zmq.RCVHWM, 100)
+if delay:  # a small kernel buffer: the stuck/slow reader's backlog reaches the driver's high-water mark
+    s.setsockopt(zmq.RCVBUF, 4096)
 s.connect(addr)
 s.setsockopt(zmq.SUBSCRIBE, b"")
 time.sleep(0.5)
@@ -90,18 +92,22 @@ class RssSampler(threading.Thread):
         return {"rss_start_mb": after1[0], "rss_end_mb": after1[-1], "rss_peak_mb": max(after1)}
 
 
-def flood(work: Path, kind: str, valid: int, garbage: int, layout_flood: int = 0) -> dict:
+def flood(work: Path, kind: str, valid: int, garbage: int, layout_flood: int = 0, skip_stale: bool = True) -> dict:
+    """One session under one attack. ``skip_stale`` off: every valid frame must be solved, so
+    ``solved`` shows whether garbage starved any; on (the live default): ``stale`` counts only
+    valid frames skipped because a newer valid one was waiting (the machine's load decides how many)."""
     port = free_port()
     prof = work / "profile.npz"
     take = work / "demo_take.c3d"
-    stats = work / f"{kind}-{garbage}-{layout_flood}.json"
+    stats = work / f"{kind}-{garbage}-{layout_flood}-{skip_stale}.json"
     src = ["--zmq-in", f"tcp://127.0.0.1:{port}"] if kind == "zmq" else ["--osc-in", f"127.0.0.1:{port}"]
     addr = f"tcp://127.0.0.1:{port}" if kind == "zmq" else f"127.0.0.1:{port}"
     if kind == "zmq":  # the sender binds; the driver connects
         sender = spawn(["-m", "benchmarks.hostile_traffic", kind, addr, take, "--valid", valid, "--rate", RATE,
                         "--garbage", garbage, "--layout-flood", layout_flood])
         first_line(sender)
-    run = spawn(["-m", "livecap", "run", *src, "--profile", prof, "--idle-timeout", 2.0, "--stats-file", stats])
+    run = spawn(["-m", "livecap", "run", *src, "--profile", prof, "--idle-timeout", 2.0, "--stats-file", stats,
+                 "--skip-stale" if skip_stale else "--no-skip-stale"])
     first_line(run)
     sampler = RssSampler(run.pid)
     sampler.start()
@@ -118,7 +124,8 @@ def flood(work: Path, kind: str, valid: int, garbage: int, layout_flood: int = 0
     bad = st["bad_input"]
     attack = "none" if not garbage and not layout_flood else (
         f"{sent['garbage']} malformed" if garbage else f"{sent.get('layouts', 0)} x 40 KB layouts")
-    return {"source": kind, "attack": attack, "valid_sent": sent["valid"], "solved": st["frames_out"],
+    return {"source": kind, "attack": attack, "skip_stale": "on" if skip_stale else "off",
+            "valid_sent": sent["valid"], "received": st["frames_in"], "solved": st["frames_out"],
             "solved_pct": 100.0 * st["frames_out"] / sent["valid"], "stale": st["stale"],
             "bad_counted": sum(v for k, v in bad.items() if k != "stream_restart"), **sampler.summary()}
 
@@ -133,7 +140,7 @@ def subscribers(work: Path, policy: str, frames: int, others: bool) -> dict:
     healthy = spawn(["-c", sub, out_addr, work / "healthy.json", 3.0, 0.0])
     procs = [healthy]
     if others:
-        dead = spawn(["-c", sub, out_addr, work / "dead.json", 3.0, 0.0])
+        dead = spawn(["-c", sub, out_addr, work / "dead.json", 3.0, 1.0])
         slow = spawn(["-c", sub, out_addr, work / "slow.json", 3.0, 0.05])
         procs += [dead, slow]
     for p in procs:
@@ -182,15 +189,16 @@ def run(quick: bool = False) -> dict:
             (work / "demo_take.c3d").symlink_to(work / DEMO_TAKE)
         floods = []
         for kind in ("zmq", "osc"):
-            floods.append(flood(work, kind, valid, 0))
-            floods.append(flood(work, kind, valid, per_frame))
-        floods.append(flood(work, "zmq", valid, 0, layout_flood=400))
+            for garbage, skip in ((0, False), (per_frame, False), (0, True), (per_frame, True)):
+                floods.append(flood(work, kind, valid, garbage, skip_stale=skip))
+        floods.append(flood(work, "zmq", valid, 0, layout_flood=400, skip_stale=False))
         subs = [subscribers(work, policy, valid, others) for policy in ("fair", "count") for others in (False, True)]
     out = {"rate_hz": RATE, "valid_frames": valid, "floods": floods, "subscribers": subs,
            "machine": f"{os.cpu_count()} CPUs (shared VM), load average {load:.2f} at start, "
                       f"{os.getloadavg()[0]:.2f} at the end",
            "data": "livecap generate seed 0: 60 markers, 43 shapes, 10 s take looped, --profile, mode lsq"}
-    print(table(floods, ["source", "attack", "valid_sent", "solved", "solved_pct", "stale", "bad_counted",
+    print(table(floods, ["source", "attack", "skip_stale", "valid_sent", "received", "solved", "solved_pct", "stale",
+                         "bad_counted",
                          "rss_start_mb", "rss_end_mb", "rss_peak_mb"], f"flood at {RATE:g} Hz ({out['machine']})"))
     print(table(subs, ["policy", "beside", "published", "healthy_received", "healthy_pct", "p50_ms", "p99_ms",
                        "sink_drops"], "healthy subscriber beside a dead (SIGSTOP) and a slow (20 msg/s) one"))
