@@ -26,6 +26,7 @@ COMMANDS = [
     "calibrate",
     "rig",
     "export",
+    "recover",
 ]
 
 

@@ -14,11 +14,13 @@ from pathlib import Path
 
 from livecap.calibration.profile import Profile, calibrate, estimate_neutral
 from livecap.cli.common import load_rig, tune_on_take
+from livecap.live.checks import check_overlap, check_profile_rig
 from livecap.live.pipeline import Pipeline
 from livecap.live.session import load_session
 from livecap.modes.registry import DEFAULT_MODE, MODES
 
 _PARSER: argparse.ArgumentParser | None = None
+FIRST_FRAME_GRACE = 10.0  # seconds a session with --idle-timeout waits for its first frame by default
 
 
 def register(sub) -> None:
@@ -39,6 +41,9 @@ def register(sub) -> None:
     src.add_argument("--rate", type=float, default=120.0, help="stream frame rate for network sources (default 120)")
     src.add_argument("--idle-timeout", type=float,
                      help="end the session after this many seconds without a frame (network sources)")
+    src.add_argument("--first-frame-timeout", type=float,
+                     help="end the session when no frame came this many seconds after start (default: with "
+                          "--idle-timeout, the larger of it and 10 s: senders often start after the driver)")
     src.add_argument("--skip-stale", action=argparse.BooleanOptionalAction, default=None,
                      help="when the solver falls behind, solve only the newest waiting frame and count the skipped "
                           "ones as stale, so latency stays bounded (default: on for --zmq-in/--osc-in, off for "
@@ -60,8 +65,9 @@ def register(sub) -> None:
     out = p.add_argument_group("sinks")
     out.add_argument("--zmq-out", help="ZeroMQ address to publish weights.<actor> on (binds; port 0 or * = any)")
     out.add_argument("--zmq-hwm", type=int, default=100, help="send high-water mark in messages (default 100)")
-    out.add_argument("--zmq-policy", default="count", choices=["count", "fair"],
-                     help="count: drop and count when a subscriber is full; fair: libzmq drops per subscriber")
+    out.add_argument("--zmq-policy", default="fair", choices=["count", "fair"],
+                     help="fair (default): libzmq drops only for a full subscriber, the others get every frame; "
+                          "count: drop for everyone and count it when any subscriber is full")
     out.add_argument("--header-every", type=float, default=1.0, help="re-send the shape names every S seconds")
     out.add_argument("--vmc", help="[HOST:]PORT to send VMC (OSC) to (VMC's port is 39539)")
     out.add_argument("--vmc-arkit", action="store_true", help="same as --vmc-perfect-sync")
@@ -125,11 +131,9 @@ def _apply_session(args: argparse.Namespace) -> dict:
 
 
 def _curve(args):
-    from transport.security import Curve
+    from transport.security import curve_from_flags
 
-    if not args.curve_secret:
-        return None
-    return Curve(args.curve_secret, args.curve_clients, args.curve_server)
+    return curve_from_flags(args.curve_secret, args.curve_clients, args.curve_server)
 
 
 def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
@@ -147,8 +151,9 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     if args.profile:
         profile = Profile.load(args.profile)
         labels = profile.labels
-        if want_window:
+        if want_window or args.rig:
             rig, layout = load_rig(args)
+            check_profile_rig(profile, rig, args.profile, args.rig)
     elif args.rig:
         rig, layout = load_rig(args)
         labels = list(layout.labels)
@@ -158,10 +163,17 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     described = []
     rate = args.rate
     if args.replay:
-        from transport.replay import ReplaySource
+        from transport.replay import ReplaySource, open_take
+        from transport.takefile import size_problem
 
-        source = ReplaySource.open(args.replay, labels, speed=args.speed, fast=args.fast, loop=args.loop,
-                                   start=args.start, end=args.end)
+        take, frames, timestamps = open_take(args.replay)
+        stable = profile.stable if profile is not None else layout.stable
+        check_overlap(take.labels, labels, stable, args.replay, args.profile or args.rig)
+        problem = size_problem(take.select(labels))
+        if problem:
+            raise ValueError(f"{args.replay}: {problem}")
+        source = ReplaySource(take, labels, speed=args.speed, fast=args.fast, loop=args.loop, start=args.start,
+                              end=args.end, frames=frames, timestamps=timestamps)
         rate = source.rate
         described.append(f"replay {args.replay}")
     elif args.zmq_in:
@@ -169,13 +181,14 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
 
         addr = zmq_address(args.zmq_in, args.interface)
         source = ZmqSource(addr, labels, args.actor, bind=args.zmq_in_bind, curve=curve,
-                           idle_timeout=args.idle_timeout)
+                           idle_timeout=args.idle_timeout, first_frame_timeout=_first_frame_timeout(args))
         described.append(f"zmq-in {addr}")
     else:
         from transport.osc_source import OscSource
 
         host, port = udp_address(args.osc_in, 0, args.interface)
-        source = OscSource(host, port, labels, idle_timeout=args.idle_timeout)
+        source = OscSource(host, port, labels, idle_timeout=args.idle_timeout,
+                           first_frame_timeout=_first_frame_timeout(args))
         described.append(f"osc-in {host}:{source.port}")
 
     mapping = None
@@ -254,6 +267,12 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     return pipeline, described
 
 
+def _first_frame_timeout(args: argparse.Namespace) -> float | None:
+    if args.first_frame_timeout is not None:
+        return args.first_frame_timeout
+    return max(args.idle_timeout, FIRST_FRAME_GRACE) if args.idle_timeout else None
+
+
 def _window(args: argparse.Namespace, rig, layout, profile):
     """The live preview sink (viewer/window.py), or None with --window-optional and no display."""
     from viewer.window import NoDisplay, WindowSink
@@ -270,6 +289,8 @@ def _window(args: argparse.Namespace, rig, layout, profile):
 def run(args: argparse.Namespace) -> int:
     import signal
 
+    import zmq
+
     from viewer.errors import NoDisplay
 
     if hasattr(signal, "SIGUSR1"):  # a report request while sockets come up must not kill the session
@@ -279,6 +300,9 @@ def run(args: argparse.Namespace) -> int:
     except NoDisplay as exc:  # --window without a display: one line, exit 2 (a usage problem, not a bad file)
         print(f"livecap run: {exc}", file=sys.stderr)
         return 2
+    except zmq.ZMQError as exc:  # port in use, endpoint libzmq refuses: one line, no traceback
+        print(f"livecap run: error: ZeroMQ: {exc}", file=sys.stderr)
+        return 1
     pipeline.install_signal_handlers()
     print("ready: " + "; ".join(described), flush=True)
     pipeline.run()
