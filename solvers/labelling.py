@@ -39,8 +39,10 @@ class LabellerSettings:
     min_labelled: float = 0.5  # a frame labelling fewer than this fraction of labels is poor
     lost_after: int = 3  # consecutive poor frames that end the track (re-initialise)
     limit_slack: float = 0.5  # the fit's weights may pass the rig's limits by this fraction of their range
-    reject_mm: float = 8.0  # a labelled point this far from the fitted model is dropped (ghost or swap)
+    reject_mm: float = 6.0  # a labelled point this far from the fitted model is dropped (ghost or swap)
     refine_at: int = 3  # this many labels missing and points unused: re-fit from a wide gate
+    close_pair_mm: float = 15.0  # label pairs this close at rest are watched for meeting (blinks)
+    recheck_frames: int = 6  # frames after two labels' predictions met that get a second opinion
     init_iterations: int = 20
     init_gate_mm: float = 25.0  # the ICP's first gate; it shrinks to gate_mm
     scale_range: tuple[float, float] = (0.8, 1.25)
@@ -156,6 +158,8 @@ class MarkerLabeller:
         self._gram = gram + lam * np.eye(m)
         rows = self.basis.reshape(self.n, 3, m)
         self._marker_gram = np.einsum("nki,nkj->nij", rows, rows)  # each marker's share of the gram
+        gap = np.linalg.norm(self.neutral[:, None] - self.neutral[None], axis=-1)
+        self._pairs = np.argwhere(np.triu(gap < self.settings.close_pair_mm, 1)).T  # 2 x p
         self._zero_w = np.clip(np.zeros(m), lower, upper)
         self.reset()
 
@@ -171,6 +175,9 @@ class MarkerLabeller:
         self.initialisations = 0
         self.refines = 0
         self.rejected = 0
+        self.second_opinions = 0
+        self.recheck = 0
+        self._forget: np.ndarray | None = None
         self.missing_for = np.zeros(self.n)
 
     # ------------------------------------------------------------------ model
@@ -258,8 +265,15 @@ class MarkerLabeller:
                 index[np.flatnonzero(lab)[far]] = -1
                 lab = index >= 0
                 res = res[~far]
+                if self._second_opinion(points):
+                    return self._frame(points, self._settle(points), False)
+            elif self._pairs_met(model) and self._second_opinion(points):
+                return self._frame(points, self._settle(points), False)
             self.residual *= s.residual_decay
             self.residual[lab] = self._clip(res)
+            if self._forget is not None:
+                self.residual[self._forget] = 0.0
+                self._forget = None
         if lab.sum() < s.min_labelled * self.n:
             self.poor += 1
             if self.poor >= s.lost_after:
@@ -267,6 +281,44 @@ class MarkerLabeller:
         else:
             self.poor = 0
         return self._frame(points, index, False)
+
+    def _pairs_met(self, model: np.ndarray) -> bool:
+        """True on the frames just after two watched labels' model positions came within the gate."""
+        a, b = self._pairs
+        d = model[a] - model[b]
+        met = np.einsum("ij,ij->i", d, d) < self.settings.gate_mm ** 2
+        if met.any():
+            self.recheck = self.settings.recheck_frames
+            self._forget = np.concatenate([a[met], b[met]])  # their residuals would hold a swap
+            return True
+        elif self.recheck > 0:
+            self.recheck -= 1
+            return True
+        return False
+
+    def _second_opinion(self, points: np.ndarray) -> bool:
+        """After a rejection: the track may carry a consistent swap (two lid markers that met in
+        a blink). Re-fit the shape from the neutral at the current head pose and keep whichever
+        of the two explains the cloud better (gated cost of the model without remembered residuals)."""
+        g = self.settings.gate_mm
+        _, kept = gated_assignment(self._world(self.model(self.w)), points, g)
+        state = (self.w.copy(), self.R.copy(), self.t.copy())
+        self.w = self._zero_w.copy()
+        self._refine(points, 3, g)
+        _, fresh = gated_assignment(self._world(self.model(self.w)), points, g)
+        if fresh < kept:
+            self.second_opinions += 1
+            return True
+        self.w, self.R, self.t = state
+        return False
+
+    def _settle(self, points: np.ndarray) -> np.ndarray:
+        """Labels from the current pose and shape, remembered residuals cleared."""
+        self.residual[:] = 0.0
+        self._model = self.model(self.w)
+        index, _ = gated_assignment(self._world(self._model), points, self.settings.gate_mm)
+        self.missing_for[index >= 0] = 0.0
+        return index
 
     def _clip(self, r: np.ndarray) -> np.ndarray:
         norm = np.sqrt(np.einsum("ij,ij->i", r, r))
