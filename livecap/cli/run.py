@@ -33,6 +33,9 @@ def register(sub) -> None:
     src.add_argument("--zmq-in-bind", action="store_true", help="bind the SUB socket instead of connecting")
     src.add_argument("--osc-in", help="[HOST:]PORT to receive OSC frame bundles on")
     src.add_argument("--replay", help="take to replay at its own pace (.c3d, .trc, .csv, raw .npz recording)")
+    src.add_argument("--lsl-in", help="Lab Streaming Layer marker stream name (labels from its description)")
+    src.add_argument("--unlabelled", action="store_true",
+                     help="the source's points are unlabelled (or wrongly named): label them against --profile")
     src.add_argument("--speed", type=float, default=1.0, help="replay speed factor (default 1)")
     src.add_argument("--fast", action="store_true", help="replay as fast as possible")
     src.add_argument("--loop", action="store_true", help="replay in a loop")
@@ -69,6 +72,7 @@ def register(sub) -> None:
                      help="fair (default): libzmq drops only for a full subscriber, the others get every frame; "
                           "count: drop for everyone and count it when any subscriber is full")
     out.add_argument("--header-every", type=float, default=1.0, help="re-send the shape names every S seconds")
+    out.add_argument("--lsl-out", help="Lab Streaming Layer outlet name for weights and head pose")
     out.add_argument("--vmc", help="[HOST:]PORT to send VMC (OSC) to (VMC's port is 39539)")
     out.add_argument("--vmc-arkit", action="store_true", help="same as --vmc-perfect-sync")
     out.add_argument("--vmc-perfect-sync", action="store_true",
@@ -141,9 +145,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     from transport.security import udp_address, zmq_address
 
     options = _apply_session(args)
-    sources = [x for x in (args.zmq_in, args.osc_in, args.replay) if x]
+    sources = [x for x in (args.zmq_in, args.osc_in, args.replay, args.lsl_in) if x]
     if len(sources) != 1:
-        raise ValueError("give exactly one source: --zmq-in, --osc-in or --replay")
+        raise ValueError("give exactly one source: --zmq-in, --osc-in, --replay or --lsl-in")
+    if args.unlabelled and not (args.profile and (args.replay or args.lsl_in)):
+        raise ValueError("--unlabelled needs --profile and --replay or --lsl-in (ZeroMQ/OSC frames carry labels)")
     profile = rig = layout = None
     want_window = args.window or args.window_optional
     if want_window and not args.rig:
@@ -166,14 +172,18 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         from transport.replay import ReplaySource, open_take
         from transport.takefile import size_problem
 
-        take, frames, timestamps = open_take(args.replay)
-        stable = profile.stable if profile is not None else layout.stable
-        check_overlap(take.labels, labels, stable, args.replay, args.profile or args.rig)
-        problem = size_problem(take.select(labels))
-        if problem:
-            raise ValueError(f"{args.replay}: {problem}")
-        source = ReplaySource(take, labels, speed=args.speed, fast=args.fast, loop=args.loop, start=args.start,
-                              end=args.end, frames=frames, timestamps=timestamps)
+        if args.unlabelled:
+            source = ReplaySource.open(args.replay, None, speed=args.speed,
+                                       fast=args.fast, loop=args.loop, start=args.start, end=args.end)
+        else:
+            take, frames, timestamps = open_take(args.replay)
+            stable = profile.stable if profile is not None else layout.stable
+            check_overlap(take.labels, labels, stable, args.replay, args.profile or args.rig)
+            problem = size_problem(take.select(labels))
+            if problem:
+                raise ValueError(f"{args.replay}: {problem}")
+            source = ReplaySource(take, labels, speed=args.speed, fast=args.fast, loop=args.loop, start=args.start,
+                                  end=args.end, frames=frames, timestamps=timestamps)
         rate = source.rate
         described.append(f"replay {args.replay}")
     elif args.zmq_in:
@@ -183,6 +193,14 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         source = ZmqSource(addr, labels, args.actor, bind=args.zmq_in_bind, curve=curve,
                            idle_timeout=args.idle_timeout, first_frame_timeout=_first_frame_timeout(args))
         described.append(f"zmq-in {addr}")
+    elif args.lsl_in:
+        from transport.lsl import LslMarkerSource
+
+        source = LslMarkerSource(args.lsl_in, None if args.unlabelled else labels, idle_timeout=args.idle_timeout)
+        if source.labels is None and not args.unlabelled:
+            raise ValueError(f"LSL stream {args.lsl_in!r} has no marker labels: give --unlabelled and --profile")
+        rate = source.rate or rate
+        described.append(f"lsl-in {args.lsl_in}")
     else:
         from transport.osc_source import OscSource
 
@@ -190,6 +208,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         source = OscSource(host, port, labels, idle_timeout=args.idle_timeout,
                            first_frame_timeout=_first_frame_timeout(args))
         described.append(f"osc-in {host}:{source.port}")
+    if args.unlabelled:
+        from livecap.live.unlabelled import LabelledSource
+
+        source = LabelledSource(source, profile)
+        described[-1] += " (unlabelled)"
 
     mapping = None
     if args.arkit_map:
@@ -210,6 +233,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
                        curve=curve, rate=rate)
         sinks.append(sink)
         described.append(f"zmq-out {sink.address}")
+    if args.lsl_out:
+        from transport.lsl import LslWeightSink
+
+        sinks.append(LslWeightSink(args.lsl_out, profile.names if profile else rig.names, rate))
+        described.append(f"lsl-out {args.lsl_out}")
     if args.vmc:
         from transport.vmc import DEFAULT_PORT, VmcSink
 
