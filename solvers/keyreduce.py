@@ -116,3 +116,37 @@ def evaluate_keys(keys: Keys, times: np.ndarray, at: np.ndarray | None = None) -
     h00, h10, h01, h11 = hermite_basis(s)
     return (h00 * keys.values[i] + dt * h10 * keys.out_tangents[i]
             + h01 * keys.values[i + 1] + dt * h11 * keys.in_tangents[i + 1])
+
+
+def slope_keys(keys: Keys, times: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Derivative (per second) of the keys' interpolant at ``at``, inside a segment."""
+    t = np.asarray(times, dtype=np.float64)
+    kt = t[keys.frames]
+    if len(kt) == 1:
+        return np.zeros(len(at))
+    i = np.clip(np.searchsorted(kt, at, side="right") - 1, 0, len(kt) - 2)
+    dt = kt[i + 1] - kt[i]
+    s = np.clip((at - kt[i]) / dt, 0.0, 1.0)
+    d00, d10, d01, d11 = 6 * s * s - 6 * s, 3 * s * s - 4 * s + 1, -6 * s * s + 6 * s, 3 * s * s - 2 * s
+    return ((d00 * keys.values[i] + d01 * keys.values[i + 1]) / dt
+            + d10 * keys.out_tangents[i] + d11 * keys.in_tangents[i + 1])
+
+
+def shared_keys(keys: list[Keys], times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """All shapes keyed at the union of their key frames, the same curves exactly.
+
+    glTF animates a mesh's morph weights with one sampler, one key time for every target. A cubic
+    Hermite segment split at an inner time is the same curve with value and slope there as the new
+    key, so each shape's interpolant is unchanged. Returns (frames, values, in, out), values K x m.
+    """
+    frames = np.unique(np.concatenate([k.frames for k in keys]))
+    t = np.asarray(times, dtype=np.float64)[frames]
+    K, m = len(frames), len(keys)
+    values, ins, outs = np.zeros((K, m)), np.zeros((K, m)), np.zeros((K, m))
+    for j, k in enumerate(keys):
+        values[:, j] = evaluate_keys(k, times, t)
+        slope = slope_keys(k, times, t)
+        ins[:, j], outs[:, j] = slope, slope
+        own = np.searchsorted(frames, k.frames)
+        ins[own, j], outs[own, j] = k.in_tangents, k.out_tangents
+    return frames, values, ins, outs

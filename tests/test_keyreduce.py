@@ -34,3 +34,16 @@ def test_smooth_curves_reduce_a_lot():
     for j, k in enumerate(keys):
         assert np.max(np.abs(evaluate_keys(k, t) - W[:, j])) <= 0.01
         assert len(k.frames) < 0.05 * len(t)
+
+
+def test_shared_keys_keep_every_curve():
+    from solvers.keyreduce import Keys, shared_keys
+
+    rng = np.random.default_rng(0)
+    t = np.arange(300) / 60.0
+    W = np.cumsum(rng.normal(0, 0.01, (300, 4)), axis=0)
+    keys = reduce_curves(t, W, KeySettings(0.005))
+    frames, values, ins, outs = shared_keys(keys, t)
+    for j in range(4):
+        merged = Keys(frames, values[:, j], ins[:, j], outs[:, j])
+        np.testing.assert_allclose(evaluate_keys(merged, t), evaluate_keys(keys[j], t), atol=1e-9)

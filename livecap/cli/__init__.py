@@ -25,6 +25,8 @@ COMMANDS = [
     "noise_study",
     "calibrate",
     "rig",
+    "review",
+    "pose",
 ]
 
 
