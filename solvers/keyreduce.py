@@ -49,8 +49,13 @@ def _fit_segment(t: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
     if len(t) <= 2:
         slope = (y[-1] - y[0]) / dt
         return slope, slope, 0.0
-    A = np.stack([dt * h10[1:-1], dt * h11[1:-1]], axis=1)
-    (m0, m1), *_ = np.linalg.lstsq(A, y[1:-1] - base[1:-1], rcond=None)
+    a, b, r = dt * h10[1:-1], dt * h11[1:-1], y[1:-1] - base[1:-1]
+    aa, ab, bb = a @ a, a @ b, b @ b
+    det = aa * bb - ab * ab  # 2 x 2 normal equations; singular only for one inner sample
+    if det > 1e-12 * aa * bb:
+        m0, m1 = (bb * (a @ r) - ab * (b @ r)) / det, (aa * (b @ r) - ab * (a @ r)) / det
+    else:  # rank one: the least-norm slopes
+        (m0, m1), *_ = np.linalg.lstsq(np.stack([a, b], axis=1), r, rcond=None)
     err = float(np.max(np.abs(base + dt * (h10 * m0 + h11 * m1) - y)))
     return float(m0), float(m1), err
 

@@ -45,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
         sock.bind((args.interface, args.port))
     except OSError as exc:
         raise OSError(f"--port {args.port}: cannot listen on {args.interface} ({exc.strerror})") from None
+    sock.listen(128)  # connections queue from here on, before the URL is printed
     host, port = sock.getsockname()[:2]
     url = f"http://{'[' + host + ']' if ':' in host else host}:{port}/"
     print(f"livecap review: {session.n_frames} frames x {len(session.names)} shapes at {url}", flush=True)

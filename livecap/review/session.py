@@ -91,6 +91,7 @@ class ReviewSession:
     undo_stack: list[Change] = field(default_factory=list)
     redo_stack: list[Change] = field(default_factory=list)
     _pins: dict = field(default_factory=dict)
+    _keys_cache: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.names = list(self.profile.names)
@@ -198,7 +199,11 @@ class ReviewSession:
     def keys(self, max_error: float) -> list[Keys]:
         if not max_error > 0:
             raise ValueError(f"max_error must be > 0, not {max_error}")
-        return reduce_curves(self.times, self.weights, KeySettings(max_error))
+        version = (len(self.undo_stack), len(self.redo_stack), id(self.undo_stack[-1]) if self.undo_stack else 0)
+        if self._keys_cache.get("key") != (max_error, version):
+            self._keys_cache = {"key": (max_error, version),
+                                "keys": reduce_curves(self.times, self.weights, KeySettings(max_error))}
+        return self._keys_cache["keys"]
 
     def keys_report(self, max_error: float) -> dict:
         keys = self.keys(max_error)
