@@ -14,14 +14,12 @@ import urllib.request
 import numpy as np
 import pytest
 
-from tests.review_server import ROOT, ReviewServer
+from tests.review_server import ROOT
 
 
-@pytest.fixture(scope="module")
-def server():
-    s = ReviewServer()
-    yield s
-    s.close()
+@pytest.fixture
+def server(review_server):
+    return review_server
 
 
 def get(server, path):
