@@ -28,6 +28,8 @@ COMMANDS = [
     "batch",
     "export",
     "recover",
+    "review",
+    "pose",
 ]
 
 
