@@ -30,6 +30,7 @@ COMMANDS = [
     "recover",
     "review",
     "pose",
+    "realeval",
 ]
 
 
