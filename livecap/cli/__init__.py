@@ -27,6 +27,10 @@ COMMANDS = [
     "rig",
     "batch",
     "export",
+    "recover",
+    "review",
+    "pose",
+    "realeval",
 ]
 
 
