@@ -153,17 +153,20 @@ def test_manifest_errors_name_the_file(tmp_path):
                   options=("--no-such-flag",))
 
 
-def test_glb_and_jsonl_outputs(library, tmp_path):
-    """In process (no cluster): the .glb is livecap solve's bytes, the JSONL holds the CSV's weights."""
+def test_glb_and_jsonl_outputs_and_a_reused_solver(library, tmp_path):
+    """In process (no cluster): the .glb and the CSV are livecap solve's bytes though the CSV's solve is the
+    last of four on one cached robust solver (reset between takes); the JSONL holds the CSV's weights."""
     take = library["takes"] / "take2.c3d"
     cache = SolverCache()
-    for fmt in ("glb", "jsonl", "csv"):
-        row = solve_job(Job(str(take), RIG, str(tmp_path), "qp", fmt, profile=library["profile"]), cache)
+    for stem, fmt in (("take2", "glb"), ("take0", "csv"), ("take2", "jsonl"), ("take2", "csv")):
+        job = Job(str(library["takes"] / f"{stem}.c3d"), RIG, str(tmp_path), "robust", fmt, profile=library["profile"])
+        row = solve_job(job, cache)
         assert row["status"] == "ok", row["error"]
     assert cache.built == 1
     (tmp_path / "solo").mkdir()
-    assert (tmp_path / "take2.glb").read_bytes() == _solve(take, tmp_path / "solo" / "take2.glb", "--profile",
-                                                           library["profile"], "--mode", "qp")
+    for fmt in ("glb", "csv"):
+        solo = _solve(take, tmp_path / "solo" / f"take2.{fmt}", "--profile", library["profile"])
+        assert (tmp_path / f"take2.{fmt}").read_bytes() == solo
     names, frames = read_jsonl_recording(tmp_path / "take2.jsonl")
     csv_names, W, _ = read_weights_csv(tmp_path / "take2.csv")
     assert names == csv_names and len(frames) == FRAMES

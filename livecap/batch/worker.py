@@ -172,15 +172,14 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
             solver = build_solver(args.mode, profile, options)
         solved = solve_take(take, profile, solver)
         stats = take_stats(take, solved, profile)
-        write_output(job, solved, stats["frame_residual_mm"], rig)
-        row.update(stats)
+        write_output(job, solved, stats.pop("frame_residual_mm"), rig)
         row["warnings"] = notes + stats.pop("flags") + handler.lines
+        row.update(stats)
         row["status"] = "ok"
     except Exception as exc:  # a bad take must not stop the batch: it comes back as a failed row
         row["error"] = one_line(exc)
     finally:
         logging.getLogger().removeHandler(handler)
-    row.pop("frame_residual_mm", None)
     row["seconds"] = time.perf_counter() - start
     row["cpu_seconds"] = time.process_time() - cpu  # the worker process's CPU: load on a shared machine aside
     if row["status"] == "ok":
