@@ -32,8 +32,12 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
         client = Client(scheduler, timeout="30s")
         cluster = None
     else:
-        cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.ERROR)
+        import dask
+
+        # the workers' statistical profiler samples the solving thread every 10 ms: CPU a batch does not need
+        with dask.config.set({"distributed.worker.profile.enabled": False}):
+            cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=logging.ERROR)
         client = Client(cluster)
     try:
         client.register_plugin(SolverCache(), name=SolverCache.name)
