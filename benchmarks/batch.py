@@ -20,6 +20,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 from benchmarks.timing import suite_main
@@ -72,16 +73,53 @@ def _loop_in_process(profile: str, out: Path, warm: Path, takes: list[Path]) -> 
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def _batch(workers: int, profile: str, out: Path, warm: Path, takes: list[Path]) -> dict:
+@contextmanager
+def _session_workers(n: int):
+    """A ``dask scheduler`` and ``n`` ``dask worker`` processes, each in its own session: the kernel's
+    autogroup scheduling then gives every worker its own fair share, as separate machines would have."""
+    from benchmarks.processes import free_port
+
+    dask = Path(sys.executable).with_name("dask")
+    address = f"tcp://127.0.0.1:{free_port()}"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False"}
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True, "env": env}
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1],
+                               "--no-dashboard"], **quiet)]
+    try:
+        for _ in range(n):
+            procs.append(subprocess.Popen([dask, "worker", address, "--nworkers", "1", "--nthreads", "1",
+                                           "--no-dashboard"], **quiet))
+        yield address
+    finally:
+        for proc in reversed(procs):
+            proc.terminate()
+        for proc in procs:
+            proc.wait(timeout=60)
+
+
+@contextmanager
+def _client(workers: int, placement: str):
+    from livecap.batch.runner import dask_client
+
+    if placement == "sessions":
+        with _session_workers(workers) as address, dask_client(scheduler=address) as client:
+            client.wait_for_workers(workers, timeout=120)
+            yield client
+    else:
+        with dask_client(workers=workers) as client:
+            yield client
+
+
+def _batch(workers: int, profile: str, out: Path, warm: Path, takes: list[Path], placement: str = "cluster") -> dict:
     from livecap.batch.jobs import Job
-    from livecap.batch.runner import dask_client, run_batch
+    from livecap.batch.runner import run_batch
 
     def jobs(paths, where):
         return [Job(str(p), str(RIG), str(where), MODE, "csv", profile=profile) for p in paths]
 
     t0 = time.perf_counter()
     load0 = _load()
-    with dask_client(workers=workers) as client:
+    with _client(workers, placement) as client:
         started = time.perf_counter() - t0
         warm_jobs = []
         for i in range(workers):  # one warm-up take per worker (same file under another name)
@@ -96,14 +134,17 @@ def _batch(workers: int, profile: str, out: Path, warm: Path, takes: list[Path])
     failed = [r["error"] for r in rows if r["status"] != "ok"]
     if failed:
         raise RuntimeError(f"batch failed: {failed[0]}")
-    return {"workers": workers, "takes": len(takes), "wall_s": wall, "takes_per_s": len(takes) / wall,
+    return {"workers": workers, "placement": placement, "takes": len(takes), "wall_s": wall,
+            "takes_per_s": len(takes) / wall,
             "per_take_s": wall / len(takes) * workers, "cluster_start_s": started, "warm_up_s": warmed,
             "worker_seconds_per_take": sum(r["seconds"] for r in rows) / len(rows),
             "cpu_per_take_s": sum(r["cpu_seconds"] for r in rows) / len(rows),
             "load_start": load0, "load_end": _load()}
 
 
-def run(quick: bool = False) -> dict:
+def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",)) -> dict:
+    """``placement``: "cluster" (livecap's LocalCluster) and/or "sessions" (dask scheduler and workers as
+    separate processes, each in its own session)."""
     from livecap.cli import main as livecap
     from transport.takefile import read_take, write_take
 
@@ -134,10 +175,11 @@ def run(quick: bool = False) -> dict:
         loop_s = timed["wall"]
         base = {"takes": n, "wall_s": loop_s, "per_take_s": loop_s / n, "takes_per_s": n / loop_s,
                 "cpu_per_take_s": timed["cpu"] / n, "load_start": load0, "load_end": _load()}
-        one = _batch(1, profile, work / "one", warm, takes)
-        two = _batch(2, profile, work / "two", warm, takes)
+        results = [_batch(w, profile, work / f"{where}{w}", warm, takes, where) for where in placement
+                   for w in (1, 2)]
     finally:
         shutil.rmtree(work, ignore_errors=True)
+    one, two = results[0], results[1]
     overhead = one["per_take_s"] / base["per_take_s"] - 1.0
     cpu_overhead = one["cpu_per_take_s"] / base["cpu_per_take_s"] - 1.0
     speedup = two["takes_per_s"] / one["takes_per_s"]
@@ -146,18 +188,22 @@ def run(quick: bool = False) -> dict:
           f"{'load':>11}")
     print(f"{'in-process loop (baseline)':>28} {base['takes_per_s']:>8.3f} {base['per_take_s']:>7.2f} "
           f"{base['cpu_per_take_s']:>10.2f} {'1.00':>8} {'-':>13} {base['load_start']:>5.1f}-{base['load_end']:<5.1f}")
-    for r in (one, two):
-        print(f"{'batch, ' + str(r['workers']) + ' worker(s)':>28} {r['takes_per_s']:>8.3f} "
+    for r in results:
+        label = f"{r['placement']}, {r['workers']} worker(s)"
+        print(f"{label:>28} {r['takes_per_s']:>8.3f} "
               f"{r['wall_s'] / r['takes']:>7.2f} {r['cpu_per_take_s']:>10.2f} "
               f"{r['takes_per_s'] / base['takes_per_s']:>8.2f} "
               f"{r['cluster_start_s'] + r['warm_up_s']:>13.1f} {r['load_start']:>5.1f}-{r['load_end']:<5.1f}")
     print(f"per-take overhead of the batch path (1 worker) over the warm loop: wall {overhead:+.1%}, "
           f"CPU {cpu_overhead:+.1%} (goal <= 10%)")
-    print(f"2 workers / 1 worker takes/s: {speedup:.2f}x (goal >= 1.7x)")
+    speedups = {results[i]["placement"]: results[i + 1]["takes_per_s"] / results[i]["takes_per_s"]
+                for i in range(0, len(results), 2)}
+    for where, ratio in speedups.items():
+        print(f"{where}: 2 workers / 1 worker takes/s: {ratio:.2f}x (goal >= 1.7x)")
     return {"takes": n, "take_seconds": duration, "take_frames": frames, "mode": MODE, "loop": base,
-            "batch": [one, two], "overhead_1_worker": overhead,
+            "batch": results, "speedups": speedups, "overhead_1_worker": overhead,
             "cpu_overhead_1_worker": cpu_overhead, "speedup_2_workers": speedup}
 
 
 if __name__ == "__main__":
-    sys.exit(suite_main(run, __doc__))
+    sys.exit(suite_main(run, __doc__, placement="cluster"))
