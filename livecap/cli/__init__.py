@@ -27,6 +27,7 @@ COMMANDS = [
     "rig",
     "export",
     "realeval",
+    "prior",
 ]
 
 
