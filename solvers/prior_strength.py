@@ -30,6 +30,10 @@ class HeldOutStrength:
         self.count = np.zeros(len(self.grid))
         self.t = 0
         self.best = len(self.grid) // 2
+        for qp in self.qps:  # expensive preparation once: each fold's workspace, not on the first frames
+            for f in range(folds):
+                qp.step(np.zeros(3 * n), self.fold_of != f)
+            qp.reset()
 
     def observe(self, target: np.ndarray, valid: np.ndarray) -> None:
         g = self.t % len(self.grid)

@@ -52,6 +52,9 @@ class MarkerKalmanSolver:
         self.filter.reset()
         self.selector = self._selector(0.5 ** (1.0 / STREAM_HALF_LIFE_FRAMES))
         self._fits: dict[int, FrameQP] = {}
+        for k in range(len(STRENGTHS)):  # build every workspace now, not on the first frames
+            self._fit(k).step(np.zeros(3 * self.profile.n_markers), np.ones(self.profile.n_markers, bool))
+            self._fits[k].reset()
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         x, ok = self.filter.step(target, valid)
