@@ -8,6 +8,7 @@ flood the log or slow the solver.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import Counter
 
@@ -30,9 +31,11 @@ class BadInput:
         self.counts: Counter[str] = Counter()
         self._last_log: dict[str, float] = {}
         self._suppressed: Counter[str] = Counter()
+        self._lock = threading.Lock()  # a source's reader thread counts too
 
     def skip(self, kind: str, detail: str) -> None:
-        self.counts[kind] += 1
+        with self._lock:
+            self.counts[kind] += 1
         now = time.monotonic()
         if now - self._last_log.get(kind, -1e9) >= self.interval:
             extra = f" ({self._suppressed[kind]} more since last report)" if self._suppressed[kind] else ""
