@@ -252,6 +252,10 @@ def encode_weights(result, names_id: str) -> bytes:
         "head_translation": [float(x) for x in result.head_translation],
         "residual": float(result.residual), "solve_time": float(result.solve_time),
     }
+    if result.valid is not None:
+        msg["markers"], msg["valid"] = int(len(result.valid)), int(np.count_nonzero(result.valid))
+    if result.at_bound is not None:
+        msg["at_bound"] = np.asarray(result.at_bound, dtype=np.int8).tobytes()
     return msgpack.packb(msg, use_bin_type=True)
 
 
@@ -265,6 +269,9 @@ class WeightsPacket:
     head_translation: np.ndarray  # 3 mm
     residual: float
     solve_time: float
+    valid: int | None = None  # markers seen this frame (of ``markers``)
+    markers: int | None = None
+    at_bound: np.ndarray | None = None  # m int8: -1 at the lower limit, +1 at the upper, 0 inside
 
 
 def decode_payload(payload: bytes):
@@ -286,4 +293,16 @@ def decode_payload(payload: bytes):
     return WeightsPacket(int(_number(msg, "frame", int)), float(_number(msg, "timestamp", float)),
                          str(msg.get("names_id")), np.frombuffer(w, dtype="<f4").astype(np.float64),
                          np.asarray(rot, dtype=float), np.asarray(tr, dtype=float),
-                         float(msg.get("residual", 0.0)), float(msg.get("solve_time", 0.0)))
+                         float(msg.get("residual", 0.0)), float(msg.get("solve_time", 0.0)),
+                         *_quality(msg, len(w) // 4))
+
+
+def _quality(msg: dict, m: int) -> tuple[int | None, int | None, np.ndarray | None]:
+    """The optional solve-quality keys (valid, markers, at_bound); absent ones are None."""
+    counts = [msg.get(k) for k in ("valid", "markers")]
+    if any(c is not None and (not isinstance(c, int) or c < 0) for c in counts):
+        raise MalformedPacket("valid / markers are not counts")
+    b = msg.get("at_bound")
+    if b is not None and (not isinstance(b, bytes) or len(b) != m):
+        raise MalformedPacket("at_bound is not one int8 per weight")
+    return counts[0], counts[1], None if b is None else np.frombuffer(b, dtype=np.int8).copy()

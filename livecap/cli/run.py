@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from livecap.calibration.profile import Profile, calibrate, estimate_neutral
-from livecap.cli.common import load_rig
+from livecap.cli.common import load_rig, tune_on_take
 from livecap.live.checks import check_overlap, check_profile_rig
 from livecap.live.pipeline import Pipeline
 from livecap.live.session import load_session
@@ -33,6 +33,9 @@ def register(sub) -> None:
     src.add_argument("--zmq-in-bind", action="store_true", help="bind the SUB socket instead of connecting")
     src.add_argument("--osc-in", help="[HOST:]PORT to receive OSC frame bundles on")
     src.add_argument("--replay", help="take to replay at its own pace (.c3d, .trc, .csv, raw .npz recording)")
+    src.add_argument("--lsl-in", help="Lab Streaming Layer marker stream name (labels from its description)")
+    src.add_argument("--unlabelled", action="store_true",
+                     help="the source's points are unlabelled (or wrongly named): label them against --profile")
     src.add_argument("--speed", type=float, default=1.0, help="replay speed factor (default 1)")
     src.add_argument("--fast", action="store_true", help="replay as fast as possible")
     src.add_argument("--loop", action="store_true", help="replay in a loop")
@@ -69,10 +72,19 @@ def register(sub) -> None:
                      help="fair (default): libzmq drops only for a full subscriber, the others get every frame; "
                           "count: drop for everyone and count it when any subscriber is full")
     out.add_argument("--header-every", type=float, default=1.0, help="re-send the shape names every S seconds")
+    out.add_argument("--lsl-out", help="Lab Streaming Layer outlet name for weights and head pose")
     out.add_argument("--vmc", help="[HOST:]PORT to send VMC (OSC) to (VMC's port is 39539)")
-    out.add_argument("--vmc-arkit", action="store_true", help="send VMC shapes under ARKit names")
+    out.add_argument("--vmc-arkit", action="store_true", help="same as --vmc-perfect-sync")
+    out.add_argument("--vmc-perfect-sync", action="store_true",
+                     help="send VMC shapes under Perfect Sync names (the 52 ARKit shapes as EyeBlinkLeft, ...)")
+    out.add_argument("--vmc-vrm", type=int, choices=[0, 1],
+                     help="send VMC VRM expression presets (VRM 0.x: A, Blink_L, Joy...; 1.0: aa, blinkLeft, happy...)")
+    out.add_argument("--vrm-map", help="JSON table VRM 1.0 expression -> {ARKit term: coefficient} (docs/protocol.md)")
     out.add_argument("--livelink", help="[HOST:]PORT to send Live Link Face UDP to (Unreal's port is 11111)")
-    out.add_argument("--livelink-subject", default="livecap", help="Live Link subject name")
+    out.add_argument("--livelink-subject", help="Live Link subject name (default: --actor)")
+    out.add_argument("--timecode", default="clock",
+                     help="Live Link / CSV timecode: 'clock' (system time of day, default), HH:MM:SS:FF (start "
+                          "there) or 'take' (the take's own timestamps)")
     out.add_argument("--arkit-map", help="JSON mapping ARKit name -> rig shape name(s), for non-ARKit rigs")
     out.add_argument("--window", action="store_true", help="live preview window of the solve (needs a display and "
                      "--rig; drops frames, never slows the solver)")
@@ -133,9 +145,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     from transport.security import udp_address, zmq_address
 
     options = _apply_session(args)
-    sources = [x for x in (args.zmq_in, args.osc_in, args.replay) if x]
+    sources = [x for x in (args.zmq_in, args.osc_in, args.replay, args.lsl_in) if x]
     if len(sources) != 1:
-        raise ValueError("give exactly one source: --zmq-in, --osc-in or --replay")
+        raise ValueError("give exactly one source: --zmq-in, --osc-in, --replay or --lsl-in")
+    if args.unlabelled and not (args.profile and (args.replay or args.lsl_in)):
+        raise ValueError("--unlabelled needs --profile and --replay or --lsl-in (ZeroMQ/OSC frames carry labels)")
     profile = rig = layout = None
     want_window = args.window or args.window_optional
     if want_window and not args.rig:
@@ -158,14 +172,18 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         from transport.replay import ReplaySource, open_take
         from transport.takefile import size_problem
 
-        take, frames, timestamps = open_take(args.replay)
-        stable = profile.stable if profile is not None else layout.stable
-        check_overlap(take.labels, labels, stable, args.replay, args.profile or args.rig)
-        problem = size_problem(take.select(labels))
-        if problem:
-            raise ValueError(f"{args.replay}: {problem}")
-        source = ReplaySource(take, labels, speed=args.speed, fast=args.fast, loop=args.loop, start=args.start,
-                              end=args.end, frames=frames, timestamps=timestamps)
+        if args.unlabelled:
+            source = ReplaySource.open(args.replay, None, speed=args.speed,
+                                       fast=args.fast, loop=args.loop, start=args.start, end=args.end)
+        else:
+            take, frames, timestamps = open_take(args.replay)
+            stable = profile.stable if profile is not None else layout.stable
+            check_overlap(take.labels, labels, stable, args.replay, args.profile or args.rig)
+            problem = size_problem(take.select(labels))
+            if problem:
+                raise ValueError(f"{args.replay}: {problem}")
+            source = ReplaySource(take, labels, speed=args.speed, fast=args.fast, loop=args.loop, start=args.start,
+                                  end=args.end, frames=frames, timestamps=timestamps)
         rate = source.rate
         described.append(f"replay {args.replay}")
     elif args.zmq_in:
@@ -175,6 +193,14 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         source = ZmqSource(addr, labels, args.actor, bind=args.zmq_in_bind, curve=curve,
                            idle_timeout=args.idle_timeout, first_frame_timeout=_first_frame_timeout(args))
         described.append(f"zmq-in {addr}")
+    elif args.lsl_in:
+        from transport.lsl import LslMarkerSource
+
+        source = LslMarkerSource(args.lsl_in, None if args.unlabelled else labels, idle_timeout=args.idle_timeout)
+        if source.labels is None and not args.unlabelled:
+            raise ValueError(f"LSL stream {args.lsl_in!r} has no marker labels: give --unlabelled and --profile")
+        rate = source.rate or rate
+        described.append(f"lsl-in {args.lsl_in}")
     else:
         from transport.osc_source import OscSource
 
@@ -182,6 +208,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         source = OscSource(host, port, labels, idle_timeout=args.idle_timeout,
                            first_frame_timeout=_first_frame_timeout(args))
         described.append(f"osc-in {host}:{source.port}")
+    if args.unlabelled:
+        from livecap.live.unlabelled import LabelledSource
+
+        source = LabelledSource(source, profile)
+        described[-1] += " (unlabelled)"
 
     mapping = None
     if args.arkit_map:
@@ -189,6 +220,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
 
         mapping = load_mapping(args.arkit_map)
     sinks: list = []
+    neutral_frames = max(1, int(round(args.neutral_seconds * rate)))
+    if args.timecode not in ("clock", "take"):
+        from livecap.core.timecode import parse_timecode
+
+        parse_timecode(args.timecode, rate)
     if args.zmq_out:
         from transport.zmq_sink import ZmqSink
 
@@ -197,22 +233,36 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
                        curve=curve, rate=rate)
         sinks.append(sink)
         described.append(f"zmq-out {sink.address}")
+    if args.lsl_out:
+        from transport.lsl import LslWeightSink
+
+        sinks.append(LslWeightSink(args.lsl_out, profile.names if profile else rig.names, rate))
+        described.append(f"lsl-out {args.lsl_out}")
     if args.vmc:
         from transport.vmc import DEFAULT_PORT, VmcSink
 
         host, port = udp_address(args.vmc, DEFAULT_PORT, args.interface)
-        sinks.append(VmcSink(host, port, arkit=args.vmc_arkit, mapping=mapping, where=str(args.arkit_map)))
+        from transport.vrm import load_vrm_table
+
+        names = f"vrm{args.vmc_vrm}" if args.vmc_vrm is not None else (
+            "perfect-sync" if args.vmc_perfect_sync or args.vmc_arkit else "rig")
+        table = load_vrm_table(args.vrm_map) if args.vrm_map else None
+        sinks.append(VmcSink(host, port, mapping=mapping, where=str(args.arkit_map), names=names, vrm_table=table,
+                             neutral_frames=neutral_frames))
         described.append(f"vmc {host}:{port}")
     if args.livelink:
         from transport.livelink import DEFAULT_PORT, LiveLinkSink
 
         host, port = udp_address(args.livelink, DEFAULT_PORT, args.interface)
-        sinks.append(LiveLinkSink(host, port, args.livelink_subject, mapping, fps=rate, where=str(args.arkit_map)))
+        sinks.append(LiveLinkSink(host, port, args.livelink_subject or args.actor, mapping, fps=rate,
+                                  where=str(args.arkit_map), timecode=args.timecode, actor=args.actor,
+                                  neutral_frames=neutral_frames))
         described.append(f"livelink {host}:{port}")
     from transport.recorders import CsvRecorder, JsonlRecorder, MarkerRecorder
 
     if args.record_csv:
-        sinks.append(CsvRecorder(args.record_csv, rate, args.csv_layout, mapping, fsync=args.fsync))
+        sinks.append(CsvRecorder(args.record_csv, rate, args.csv_layout, mapping, fsync=args.fsync,
+                                 timecode=args.timecode, neutral_frames=neutral_frames))
         described.append(f"csv {args.record_csv}")
     if args.record_jsonl:
         sinks.append(JsonlRecorder(args.record_jsonl, fsync=args.fsync))
@@ -231,6 +281,7 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     if profile is None:
         def calibrator(take, rig=rig, layout=layout):
             calibrated = calibrate(rig, layout, estimate_neutral(take, layout.stable))
+            tune_on_take(calibrated, take)  # what every calibration path stores: the noise estimate
             if window is not None:  # the window shows the actor's markers from now on
                 window.set_profile(calibrated)
             return calibrated

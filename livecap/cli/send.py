@@ -21,6 +21,9 @@ def register(sub) -> None:
     dest = p.add_mutually_exclusive_group(required=True)
     dest.add_argument("--zmq", help="ZeroMQ address to publish markers.<actor> on (binds)")
     dest.add_argument("--osc", help="[HOST:]PORT to send OSC frame bundles to")
+    dest.add_argument("--lsl", help="Lab Streaming Layer outlet name (markers, 3 channels per marker, mm)")
+    p.add_argument("--strip-labels", action="store_true",
+                   help="LSL: no channel labels, markers shuffled every frame (an unlabelled cloud)")
     p.add_argument("--connect", action="store_true", help="ZeroMQ: connect instead of binding")
     p.add_argument("--actor", default="actor")
     p.add_argument("--speed", type=float, default=1.0)
@@ -48,7 +51,10 @@ def run(args: argparse.Namespace) -> int:
     source = ReplaySource.open(args.take, None, speed=args.speed, fast=args.fast, loop=args.loop,
                                start=args.start, end=args.end)
     labels = source.labels
-    send = _zmq_sender(args, labels) if args.zmq else _osc_sender(args, labels)
+    if args.lsl:
+        send = _lsl_sender(args, labels, source.rate)
+    else:
+        send = _zmq_sender(args, labels) if args.zmq else _osc_sender(args, labels)
     n = 0
     t0 = time.perf_counter()
     try:
@@ -122,5 +128,22 @@ def _osc_sender(args, labels):
             sock.sendto(encode_osc_frame(frame, ts, labels, positions, valid), (host, port))
         except OSError:
             pass  # nobody listening yet: UDP is fire-and-forget
+
+    return send
+
+
+def _lsl_sender(args, labels, rate):
+    from transport.lsl import LslMarkerSender
+
+    out = LslMarkerSender(args.lsl, labels, rate, strip=args.strip_labels)
+    print(f"ready: lsl {args.lsl}", flush=True)
+    if args.wait_subscriber > 0:
+        out.wait_for_consumer(args.wait_subscriber)
+
+    def send(frame, ts, positions, valid, n):
+        if frame is None:
+            out.close()
+            return
+        out.send(positions, valid)
 
     return send
