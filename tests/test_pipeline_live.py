@@ -297,7 +297,8 @@ def test_stuck_subscriber_never_blocks_the_solver(take_dir, tmp_path):
     d = take_dir
     port = free_port()
     run = livecap("run", "--replay", d / "demo_take.c3d", "--profile", d / "profile.npz", "--speed", "4",
-                  "--zmq-out", f"tcp://127.0.0.1:{port}", "--zmq-hwm", "1", "--record-jsonl", tmp_path / "w.jsonl",
+                  "--zmq-out", f"tcp://127.0.0.1:{port}", "--zmq-hwm", "1", "--zmq-policy", "count",
+                  "--record-jsonl", tmp_path / "w.jsonl",
                   "--stats-file", tmp_path / "stats.json")
     stuck = spawn("-c", textwrap.dedent("""
         import sys, time, zmq
