@@ -109,6 +109,20 @@ def test_restarted_sender_is_solved_again(d, tmp_path):
     assert st["frames_in"] == 240 and st["bad_input"].get("stream_restart") == 1, st
 
 
+def test_stream_sharing_no_labels_with_the_profile_is_one_error_line(d, tmp_path):
+    take = read_take(d / "demo_take.c3d")
+    take.labels = [f"other_{lab}" for lab in take.labels]
+    write_take(take, tmp_path / "other.c3d")
+    port = free_port()
+    send = spawn("-m", "livecap", "send", tmp_path / "other.c3d", "--zmq", f"127.0.0.1:{port}", "--frames", 240)
+    run = spawn("-m", "livecap", "run", "--zmq-in", f"tcp://127.0.0.1:{port}", "--profile", d / "profile.npz")
+    _, err = run.communicate(timeout=60)
+    send.kill()
+    send.communicate()
+    lines = [e for e in err.strip().splitlines() if not e.startswith("WARNING ")]
+    assert run.returncode == 1 and len(lines) == 1 and "wrong --profile or --rig" in lines[0], err
+
+
 def test_truncated_osc_bundles_are_counted_and_never_solved(d, tmp_path):
     port = free_port()
     run = spawn("-m", "livecap", "run", "--osc-in", f"127.0.0.1:{port}", "--profile", d / "profile.npz",

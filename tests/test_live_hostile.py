@@ -192,3 +192,25 @@ def test_osc_garbage_cannot_fill_the_queue_and_push_out_valid_frames():
     assert src.bad.counts["malformed"] == 100 and src.bad.counts["overrun"] == 0
     tx.close()
     src.close()
+
+
+def test_a_stream_sharing_no_labels_with_the_profile_is_an_error(zmq_pair):
+    from transport.badinput import MISMATCH_PACKETS, LabelMismatch
+
+    pub, src = zmq_pair
+    other = [f"x{i}" for i in range(len(LABELS))]
+    for f in range(MISMATCH_PACKETS + 5):
+        pub.send_multipart([TP, good(f, labels=other)])
+    with pytest.raises(LabelMismatch, match="wrong --profile or --rig"):
+        list(src)
+
+
+def test_unknown_labels_after_good_frames_are_only_counted(zmq_pair):
+    from transport.badinput import MISMATCH_PACKETS
+
+    pub, src = zmq_pair
+    pub.send_multipart([TP, good(0)])
+    other = [f"x{i}" for i in range(len(LABELS))]
+    for f in range(1, MISMATCH_PACKETS + 5):
+        pub.send_multipart([TP, good(f, labels=other)])
+    assert [f.frame for f in src] == [0] and src.bad.counts["unknown_label"] == MISMATCH_PACKETS + 4

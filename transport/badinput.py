@@ -24,6 +24,13 @@ KINDS = ("short", "malformed", "version", "nonfinite", "unknown_label", "duplica
 EVENTS = ("stream_restart",)
 
 
+MISMATCH_PACKETS = 120  # packets naming unknown markers, before any good frame, that end a session
+
+
+class LabelMismatch(ValueError):
+    """The stream's markers are not the session's: every packet names labels the profile/rig lacks."""
+
+
 class BadInput:
     def __init__(self, where: str = "input", interval: float = 2.0) -> None:
         self.where = where
@@ -44,6 +51,13 @@ class BadInput:
             self._suppressed[kind] = 0
         else:
             self._suppressed[kind] += 1
+
+    def check_labels_match(self, seen_good: bool, detail: str) -> None:
+        """Raise :class:`LabelMismatch` when the first :data:`MISMATCH_PACKETS` packets all named
+        unknown labels: a wrong --profile/--rig, which would otherwise publish nothing, silently."""
+        if not seen_good and self.counts["unknown_label"] >= MISMATCH_PACKETS:
+            raise LabelMismatch(f"{self.where}: the first {self.counts['unknown_label']} packets name markers the "
+                                f"profile/rig does not have ({detail}): wrong --profile or --rig for this stream?")
 
     def event(self, kind: str, detail: str) -> None:
         """Count and log (rate-limited) something that is not a skip, e.g. a sender restart."""

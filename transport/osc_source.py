@@ -163,6 +163,7 @@ class OscSource:
         self._order = FrameOrder()
         self._running = True
         self._ahead: MarkerFrame | None = None
+        self._seen_good = False
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
         self.sock.bind((host, port))
@@ -232,9 +233,12 @@ class OscSource:
             frame, ts, pos, val = decode_osc_frame(dgram, self._where)
         except OscDecodeError as exc:
             self.bad.skip(exc.kind, str(exc))
+            if exc.kind == "unknown_label":
+                self.bad.check_labels_match(self._seen_good, str(exc))
             return None
         if not self.bad.in_order(self._order, frame, ts):
             return None
+        self._seen_good = True
         return MarkerFrame(frame, ts, pos, val)
 
     def __iter__(self) -> Iterator[MarkerFrame]:
