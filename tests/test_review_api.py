@@ -107,7 +107,7 @@ def test_drag_over_websocket_moves_the_site_towards_the_goal(server):
     assert np.linalg.norm(moved - goal) < np.linalg.norm(site - goal) - 1.0
 
 
-def test_keys_hold_the_bound_and_export(server):
+def test_keys_hold_the_bound_and_export(server, tmp_path):
     rep = get(server, "/api/keys?max_error=0.05")
     assert rep["worst"] <= 0.05 and all(s["error"] <= 0.05 for s in rep["shapes"].values())
     text = get(server, "/export/keys.csv?max_error=0.05").decode()
@@ -115,13 +115,20 @@ def test_keys_hold_the_bound_and_export(server):
     assert len(rows) == rep["keys"] and set(rows[0]) == {"shape", "frame", "time", "value", "in_tangent", "out_tangent"}
     import pygltflib
 
-    glb = pygltflib.GLTF2.load_from_bytes(get(server, "/export/keys.glb?max_error=0.05"))
+    data = get(server, "/export/keys.glb?max_error=0.05")
+    glb = pygltflib.GLTF2.load_from_bytes(data)
     prim = glb.meshes[0].primitives[0]
     assert len(prim.targets) == 43
     sampler = glb.animations[0].samplers[0]
     assert sampler.interpolation == "CUBICSPLINE"
     n_keys = glb.accessors[sampler.input].count
     assert glb.accessors[sampler.output].count == 3 * n_keys * 43
+    from tests.gltf_validator import validate
+
+    path = tmp_path / "keys.glb"
+    path.write_bytes(data)
+    report = validate(path)
+    assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:3]
     wcsv = get(server, "/export/weights.csv").decode().splitlines()
     assert wcsv[0].startswith("frame,time,browDownLeft") and len(wcsv) == 2401
 

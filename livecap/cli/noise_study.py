@@ -253,7 +253,7 @@ def tradeoff(profile, targets, valid, truth, names, rate: float, truth_jitter: f
     ('move' model acceleration sd, weight units / s^2): how far jitter falls for how much lag and
     blink amplitude (the causal marker filter and sparse fit run once; the filters after)."""
     s = robust_settings(profile, {"rate": rate})
-    markers = marker_filter(rate, float(s["marker_window"]))
+    markers = marker_filter(rate, float(s.marker_window))
     fit = FilteredSolver(sparse_fit(profile, {"rate": rate}, markers.noise_gain), marker_filter=markers)
     W0, _ = run_solver(fit, targets, valid, True)
     out = []

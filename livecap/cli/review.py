@@ -32,13 +32,16 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
     import socket
 
+    import numpy as np
+
     from livecap.review.load import open_session
     from livecap.review.server import make_app
-    from transport.gltf_keys import rig_glb
+    from transport.gltf import glb_bytes
 
     session = open_session(args.take, args.rig, args.markers, args.profile, args.weights, args.truth, args.mode,
                            args.neutral_seconds, args.pull)
-    app = make_app(session, rig_glb(session.rig, session.names))
+    rest = np.zeros((1, len(session.names)))
+    app = make_app(session, glb_bytes(session.rig, session.names, np.zeros(1), rest, name="rig"))
     sock = socket.socket(socket.AF_INET6 if ":" in args.interface else socket.AF_INET)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:

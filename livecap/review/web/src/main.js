@@ -51,10 +51,10 @@ function setPoints(p, pts, valid) {
   a.needsUpdate = true;
 }
 
-function setWeights(mesh, w) {
+function setWeights(mesh, w) { // by name: the glTF's targets are in the rig's order, w in the solve's
   if (!mesh) return;
-  const inf = mesh.morphTargetInfluences;
-  for (let j = 0; j < w.length; j++) inf[j] = w[j];
+  const inf = mesh.morphTargetInfluences, dict = mesh.morphTargetDictionary;
+  state.names.forEach((n, j) => { if (n in dict) inf[dict[n]] = w[j]; });
 }
 
 function render() { renderer.render(scene, camera); }
@@ -293,6 +293,7 @@ $('keys').addEventListener('click', async () => {
 // ---------------------------------------------------------------- start
 async function main() {
   state.meta = await api('/api/meta');
+  state.names = state.meta.names;
   await refreshCurves();
   const names = state.meta.names;
   for (const id of ['shapes', 'edit-shape']) {
