@@ -89,10 +89,15 @@ def test_drag_over_websocket_moves_the_site_towards_the_goal(server):
 
     async def drag():
         async with aiohttp.ClientSession() as s, s.ws_connect(server.url + "ws") as ws:
+            await ws.send_str("{not json")
+            bad = await ws.receive_json(timeout=30)
+            await ws.send_json({"frame": 300, "pins": [{"marker": "noSuchMarker", "goal": [0, 0, 0]}]})
+            unknown = await ws.receive_json(timeout=30)
             await ws.send_json({"frame": 300, "pins": [{"marker": meta["labels"][i], "goal": goal.tolist()}]})
-            return await ws.receive_json(timeout=30)
+            return bad, unknown, await ws.receive_json(timeout=30)
 
-    r = asyncio.run(drag())
+    bad, unknown, r = asyncio.run(drag())
+    assert "error" in bad and "noSuchMarker" in unknown["error"] and unknown["skipped"] == bad["skipped"] + 1
     w = np.array(r["weights"])
     assert np.all(w >= np.array(meta["lower"]) - 1e-12) and np.all(w <= np.array(meta["upper"]) + 1e-12)
     assert r["server_ms"] < 50
@@ -131,6 +136,14 @@ def test_keys_hold_the_bound_and_export(server, tmp_path):
     assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:3]
     wcsv = get(server, "/export/weights.csv").decode().splitlines()
     assert wcsv[0].startswith("frame,time,browDownLeft") and len(wcsv) == 2401
+
+
+def test_review_refuses_a_busy_port(server):
+    port = server.url.rstrip("/").rsplit(":", 1)[1]
+    r = subprocess.run([sys.executable, "-m", "livecap", "review", str(ROOT / "recordings/demo_take.c3d"),
+                        "--rig", str(ROOT / "recordings/demo_rig.npz"), "--port", port, "--no-browser"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1 and f"--port {port}" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
 def test_pose_command_reaches_a_pinned_vertex(tmp_path):
