@@ -156,6 +156,8 @@ def test_scrub_edit_drag(page):
     ActionChains(driver).move_to_element_with_offset(canvas, int(px[0] - 320), int(px[1] - 240) - 3) \
         .click_and_hold().move_by_offset(0, -30).move_by_offset(0, -30).release().perform()
     commit = wait(driver, "return window.review.lastCommit", what="the drag")
+    live = wait(driver, "return window.review.lastDrag", what="a live drag solve over the WebSocket")
+    assert live["frame"] == frame and len(live["weights"]) == len(names)
     assert commit["server_ms"] < 50
     dragged = api(server, f"/api/frame/{frame}")["weights"]
     np.testing.assert_allclose(dragged, commit["weights"], atol=1e-9)
