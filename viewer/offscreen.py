@@ -17,7 +17,6 @@ import numpy as np
 
 from viewer.errors import create_context  # noqa: F401  (re-exported: the offscreen context)
 
-
 VIDEO_CODEC = "libx264"
 
 
