@@ -139,7 +139,7 @@ def test_unity_conversion_is_the_x_mirror(q, t, v):
 # ------------------------------------------------------------------------------- ZeroMQ
 def test_zmq_sink_counts_drops_instead_of_blocking():
     ctx = zmq.Context()
-    sink = ZmqSink("inproc://w", hwm=2, context=ctx)
+    sink = ZmqSink("inproc://w", hwm=2, policy="count", context=ctx)
     stuck = ctx.socket(zmq.SUB)
     stuck.setsockopt(zmq.RCVHWM, 2)
     stuck.connect("inproc://w")
@@ -153,9 +153,10 @@ def test_zmq_sink_counts_drops_instead_of_blocking():
     ctx.term()
 
 
-def test_zmq_sink_fair_policy_keeps_feeding_a_reader_next_to_a_stuck_one():
+@pytest.mark.parametrize("policy", ["fair", None])  # None: the default must never let one reader starve another
+def test_zmq_sink_fair_policy_keeps_feeding_a_reader_next_to_a_stuck_one(policy):
     ctx = zmq.Context()
-    sink = ZmqSink("inproc://f", hwm=2, policy="fair", context=ctx)
+    sink = ZmqSink("inproc://f", hwm=2, context=ctx, **({"policy": policy} if policy else {}))
     stuck, reader = ctx.socket(zmq.SUB), ctx.socket(zmq.SUB)
     for s in (stuck, reader):
         s.setsockopt(zmq.RCVHWM, 2)

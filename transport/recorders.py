@@ -26,6 +26,7 @@ import json
 import math
 import os
 import struct
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
@@ -254,6 +255,7 @@ class MarkerRecorder(_Appending):
         if self.fh.closed:
             return
         self.flush()
+        os.fsync(self.fh.fileno())  # the journal is the only copy until the final file is renamed in
         self.fh.close()
         rec = read_marker_journal(self.journal)
         write_marker_recording(rec, self.path)
@@ -283,13 +285,13 @@ def read_marker_journal(path: str | Path) -> MarkerRecording:
         body = fh.read()
     try:
         head = json.loads(head_line)
-        if head.get("magic") != _JOURNAL_MAGIC:
+        if not isinstance(head, dict) or head.get("magic") != _JOURNAL_MAGIC:
             raise ValueError("wrong magic")
         fmt = head["record"]
-        labels, rate = head["labels"], float(head["rate"])
-    except (ValueError, KeyError) as exc:
+        labels, rate = [str(s) for s in head["labels"]], float(head["rate"])
+        size = struct.calcsize(fmt)
+    except (ValueError, KeyError, TypeError, struct.error) as exc:
         raise ValueError(f"{path}: not a livecap marker journal ({exc})") from None
-    size = struct.calcsize(fmt)
     n = len(labels)
     count = len(body) // size
     rec = np.dtype([("frame", "<i8"), ("t", "<f8"), ("pos", "<f8", (n, 3)), ("valid", "u1", (n,))])
@@ -302,16 +304,57 @@ def read_marker_journal(path: str | Path) -> MarkerRecording:
 
 
 def write_marker_recording(rec: MarkerRecording, path: str | Path) -> None:
+    """Write the whole recording atomically: to a temporary name beside ``path``, fsync, rename,
+    fsync the folder. A kill at any point leaves either no final file or a complete one."""
     path = Path(path)
-    if path.suffix.lower() == ".c3d":
-        from transport.c3d import write_c3d
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    try:
+        if path.suffix.lower() == ".c3d":
+            from transport.c3d import write_c3d
 
-        write_c3d(rec.take, path)
+            write_c3d(rec.take, tmp)
+        else:
+            with open(tmp, "wb") as fh:  # np.savez would append .npz to a name without it
+                np.savez_compressed(fh, labels=np.array(rec.take.labels), frames=rec.frames,
+                                    timestamps=rec.timestamps, positions=rec.take.positions, valid=rec.take.valid,
+                                    rate=np.array(rec.take.rate))
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
         return
-    with open(path, "wb") as fh:  # np.savez would append .npz to a name without it
-        np.savez_compressed(fh, labels=np.array(rec.take.labels), frames=rec.frames, timestamps=rec.timestamps,
-                            positions=rec.take.positions, valid=rec.take.valid,
-                            rate=np.array(rec.take.rate))
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def recover_marker_journal(journal: str | Path, out: str | Path | None = None) -> tuple[Path, int]:
+    """Turn the journal a killed session left into its final recording; returns (path, frames).
+    The journal stays until the final file is safely in place."""
+    journal = Path(journal)
+    if not journal.name.endswith(".partial"):
+        raise ValueError(f"{journal}: not a journal (expected a name ending in .partial)")
+    if not journal.exists():
+        raise ValueError(f"{journal}: no such file")
+    out = Path(out) if out else journal.with_name(journal.name[: -len(".partial")])
+    if out.suffix.lower() not in (".npz", ".c3d"):
+        raise ValueError(f"{out}: raw marker recordings are .npz or .c3d")
+    rec = read_marker_journal(journal)
+    if rec.take.n_frames == 0:
+        raise ValueError(f"{journal}: holds no complete frame")
+    write_marker_recording(rec, out)
+    return out, rec.take.n_frames
 
 
 def read_marker_recording(path: str | Path) -> MarkerRecording:
@@ -325,5 +368,5 @@ def read_marker_recording(path: str | Path) -> MarkerRecording:
         take = Take(labels, z["positions"].astype(np.float64), z["valid"], float(z["rate"]),
                     int(z["frames"][0]) if len(z["frames"]) else 0)
         return MarkerRecording(take, z["frames"], z["timestamps"])
-    except (OSError, KeyError, ValueError) as exc:
+    except (OSError, KeyError, ValueError, IndexError, EOFError, zipfile.BadZipFile) as exc:
         raise ValueError(f"{path}: not a livecap marker recording ({exc})") from None

@@ -39,12 +39,17 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def solve_options(args: argparse.Namespace) -> dict:
+    """The solver options ``livecap solve``'s flags give (``livecap batch`` builds its solvers from them too)."""
+    return {**solver_options(args), "temporal": args.temporal, "keys": args.keys, "basis": args.basis,
+            **movement_options(args)}
+
+
 def run(args: argparse.Namespace) -> int:
     rig, layout = load_rig(args)
     take = read_take(args.take)
     profile = profile_for(args, rig, layout, take)
-    solver = build_solver(args.mode, profile, {**solver_options(args), "temporal": args.temporal,
-                                               "keys": args.keys, "basis": args.basis, **movement_options(args)})
+    solver = build_solver(args.mode, profile, solve_options(args))
     with progress_bar(f"solving ({args.mode})", take.n_frames) as update:
         solved = solve_take(take, profile, solver, progress=update)
     if Path(args.out).suffix.lower() == ".glb":
