@@ -15,12 +15,15 @@ from collections import Counter
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pylivelinkface import PyLiveLinkFace
 from pythonosc.dispatcher import Dispatcher
 from pythonosc.osc_bundle import OscBundle
 from pythonosc.osc_server import ThreadingOSCUDPServer
 from scipy.spatial.transform import Rotation
 
+from livecap.core.headpose import NeutralWindow
 from livecap.core.result import SolveResult
 from livecap.core.timecode import frame_rate_fraction, now_of_day
 from tests.conftest import ROOT, SHARED
@@ -290,3 +293,32 @@ def test_zmq_weights_carry_solve_quality():
         assert np.all(np.abs(w[at == -1]) < 1e-5) and np.all(w[at == 0] > -1e-6)  # demo limits [0, 1]
         assert 0 < msg["valid"] <= msg["markers"] and msg["residual"] >= 0
     assert any((np.frombuffer(m["at_bound"], dtype=np.int8) == 0).any() for m in frames)
+
+
+@pytest.mark.parametrize("args, names", [(["--timecode", "25:00:00:00"], "--timecode"),
+                                         (["--vmc", "9", "--vmc-vrm", "1", "--vrm-map", "nowhere.json"],
+                                          "nowhere.json")])
+def test_bad_timecode_and_vrm_table_are_one_line(tmp_path, args, names):
+    cmd = [sys.executable, "-m", "livecap", "run", "--replay", str(TAKE), "--rig", str(RIG), *args]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert done.returncode == 1 and names in done.stderr and len(done.stderr.strip().splitlines()) == 1
+
+
+@given(st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda v: np.linalg.norm(v) > 0.1),
+       st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda v: np.linalg.norm(v) > 0.1),
+       st.sampled_from(["y", "z"]))
+@settings(max_examples=50, deadline=None)
+def test_head_pose_sent_does_not_depend_on_the_capture_axes(q0, q, up):
+    """A Z-up volume (Vicon, Qualisys) or an actor facing any way: the world frame rotates every
+    pose alike, and the pose relative to the neutral is unchanged (finding 1)."""
+    world = Rotation.from_euler("x", 90, degrees=True) if up == "z" else Rotation.from_euler("y", 137, degrees=True)
+    neutral, pose = Rotation.from_quat(q0), Rotation.from_quat(q)
+    t0, t = np.array([10.0, 1500.0, -30.0]), np.array([25.0, 1490.0, -20.0])
+    a = NeutralWindow(1)
+    a.relative(neutral.as_quat(), t0)
+    b = NeutralWindow(1)
+    b.relative((world * neutral).as_quat(), world.apply(t0))
+    qa, sa = a.relative(pose.as_quat(), t)
+    qb, sb = b.relative((world * pose).as_quat(), world.apply(t))
+    assert (Rotation.from_quat(qa) * Rotation.from_quat(qb).inv()).magnitude() < 1e-6
+    np.testing.assert_allclose(sa, sb, atol=1e-9)
