@@ -4,6 +4,7 @@ The runs use the demo the generator writes (``generate`` is itself a row), with 
 that still exercise each command, so the whole file stays quick.
 """
 
+import argparse
 import re
 from pathlib import Path
 
@@ -60,6 +61,22 @@ def test_the_table_lists_every_command_and_each_has_a_run():
     assert sorted(names) == sorted(RUNS), "a README command without a demo run here, or the reverse"
     registered = set(build_parser()._subparsers._group_actions[0].choices)
     assert {n.split()[0] for n in names} <= registered
+
+
+def _undocumented(name: str, parser) -> list[str]:
+    out = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub, p in action.choices.items():
+                out += _undocumented(f"{name} {sub}", p)
+        elif action.option_strings and action.dest != "help" and not action.help:
+            out.append(f"{name} {action.option_strings[0]}")
+    return out
+
+
+def test_every_option_has_a_help_text():
+    commands = build_parser()._subparsers._group_actions[0].choices
+    assert [o for n, p in commands.items() for o in _undocumented(n, p)] == []
 
 
 @pytest.mark.parametrize("name", sorted(RUNS))

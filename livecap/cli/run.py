@@ -74,7 +74,9 @@ def register(sub) -> None:
                      help="like --window, but carry on without it when there is no display")
     rec = p.add_argument_group("recorders")
     rec.add_argument("--record-csv", help="weights CSV (Live Link Face layout when the names are ARKit)")
-    rec.add_argument("--csv-layout", default="auto", choices=["auto", "livecap", "livelinkface"])
+    rec.add_argument("--csv-layout", default="auto", choices=["auto", "livecap", "livelinkface"],
+                     help="--record-csv columns: livecap (frame,time,shapes), livelinkface (Live Link Face CSV), "
+                     "auto (livelinkface for an ARKit rig; default)")
     rec.add_argument("--record-jsonl", help="weights as JSON lines")
     rec.add_argument("--record-markers", help="raw incoming markers (.npz or .c3d) for exact replay")
     rec.add_argument("--flush-every", type=float, default=0.1, help="recorder flush interval in seconds")
