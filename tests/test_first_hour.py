@@ -121,3 +121,28 @@ def test_calibration_report_defaults_and_layout(short_take, capsys):
     fit = out.split("per-frame marker fit")[1].splitlines()[1:len(VARIANTS) + 1]
     figures = [line[width + 2:] for line in fit if "identical to" not in line]
     assert len(figures) == len(set(figures)), "two variants print the same figures"
+
+
+def test_output_clutter_is_gone(short_take, profile_path, tmp_path, caplog):
+    """Finding 7: no blank first line from solve (piped), run without a sink warns, noise-study prints no nan."""
+    import subprocess
+    import sys
+
+    from livecap.cli.noise_study import percent
+
+    r = subprocess.run([sys.executable, "-m", "livecap", "solve", str(short_take), "--rig", RIG, "--profile",
+                        profile_path, "--mode", "qp", "--out", str(tmp_path / "w.csv")],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and r.stdout.startswith(str(tmp_path / "w.csv")), repr(r.stdout[:80])
+    with caplog.at_level(logging.WARNING):
+        assert main(["run", "--replay", str(short_take), "--fast", "--max-frames", "10", "--rig", RIG,
+                     "--profile", profile_path]) == 0
+    assert any("no output" in rec.getMessage() for rec in caplog.records)
+    assert percent(float("nan")) == "n/a" and percent(0.92) == "92%"
+
+
+def test_a_take_of_another_rig_says_it_shares_no_labels(vendors, capsys):
+    """Finding 7: a Vicon take on the demo rig is a wrong pairing, said in one line, not 8 missing labels."""
+    assert main(["calibrate", str(vendors / "Vicon.c3d"), "--rig", RIG, "--out", "unused.npz"]) == 1
+    err = capsys.readouterr().err
+    assert "shares none of the 60 marker labels" in err and "Vicon.c3d" in err

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from livecap.calibration.profile import WARPS, Profile, calibrate, estimate_neutral
-from livecap.cli.common import add_rig_arguments, load_rig, progress_bar, tune_on_take
+from livecap.cli.common import add_rig_arguments, check_labels, load_rig, progress_bar, tune_on_take
 from livecap.modes.registry import DEFAULT_MODE, MODES
 from livecap.modes.robust import ROBUST_MODES
 from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS
@@ -61,6 +61,7 @@ def register(sub) -> None:
 def run_calibrate(args: argparse.Namespace) -> int:
     rig, layout = load_rig(args)
     take = read_take(args.neutral)
+    check_labels(take, layout, args.neutral, args.rig)
     sel = take.select(layout.labels)
     absent = [lab for lab, seen in zip(layout.labels, sel.valid.any(0), strict=True) if not seen]
     if absent:

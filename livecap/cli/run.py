@@ -9,6 +9,7 @@ Ctrl-C or SIGTERM stops cleanly: every recorder is flushed and closed.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -17,6 +18,8 @@ from livecap.cli.common import load_rig, tune_on_take
 from livecap.live.pipeline import Pipeline
 from livecap.live.session import load_session
 from livecap.modes.registry import DEFAULT_MODE, MODES
+
+log = logging.getLogger(__name__)
 
 _PARSER: argparse.ArgumentParser | None = None
 
@@ -216,6 +219,9 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         sinks.append(window)
         described.append(f"window {window.size[0]}x{window.size[1]}")
 
+    if not sinks:
+        log.warning("no output: the solved weights go nowhere (give --zmq-out, --vmc, --livelink, --record-csv, "
+                    "--record-jsonl or --window)")
     calibrator = None
     if profile is None:
         def calibrator(take, rig=rig, layout=layout):
