@@ -65,7 +65,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
     sel = take.select(layout.labels)
     absent = [lab for lab, seen in zip(layout.labels, sel.valid.any(0), strict=True) if not seen]
     if absent:
-        raise ValueError(f"{args.neutral}: markers of {args.rig} never seen in the neutral take: {absent[:8]}")
+        shared = len(set(take.labels) & set(layout.labels))
+        hint = f"; the take shares only {shared} of {layout.n_markers} labels: wrong take?" \
+            if shared < layout.n_markers / 2 else ""
+        raise ValueError(f"{args.neutral}: {len(absent)} markers of {args.rig} never seen in the neutral take: "
+                         f"{absent[:8]}{hint}")
     frames = max(1, int(round(args.seconds * take.rate))) if args.seconds else None
     neutral = estimate_neutral(sel, layout.stable, frames)
     settings = {"max_gap_seconds": args.max_gap, "robust_stabilise": not args.plain_stabilise,
