@@ -72,7 +72,7 @@ def load_mapping(path: str | Path) -> dict:
     p = Path(path)
     try:
         data = json.loads(p.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError) as exc:  # ValueError: JSON and UTF-8 decode errors
         raise ValueError(f"{p}: cannot read ARKit name mapping ({exc})") from None
     if not isinstance(data, dict) or not all(isinstance(v, str | list) for v in data.values()):
         raise ValueError(f"{p}: mapping must be a JSON object of ARKit name -> rig shape name(s)")

@@ -25,7 +25,11 @@ COMMANDS = [
     "noise_study",
     "calibrate",
     "rig",
+    "batch",
     "export",
+    "recover",
+    "review",
+    "pose",
     "realeval",
     "prior",
 ]

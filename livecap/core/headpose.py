@@ -50,3 +50,26 @@ def to_unity(quaternion: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, 
     q[..., 1:3] *= -1.0
     p[..., 0] *= -1.0
     return q, p
+
+
+class NeutralWindow:
+    """The neutral pose of a live stream: the mean over its first ``frames`` frames (the window a
+    live session calibrates its neutral face on, livecap run --neutral-seconds), fixed after that;
+    until then the mean so far. Sinks ask it for each frame's pose relative to the neutral."""
+
+    def __init__(self, frames: int = 1) -> None:
+        self.frames = max(1, int(frames))
+        self._q: list[np.ndarray] = []
+        self._t: list[np.ndarray] = []
+        self.pose: NeutralPose | None = None
+
+    def relative(self, quaternion: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        q = np.asarray(quaternion, dtype=np.float64)
+        t = np.asarray(translation, dtype=np.float64)
+        if not (np.isfinite(q).all() and np.isfinite(t).all()) or np.linalg.norm(q) < 1e-9:
+            return np.array([0.0, 0.0, 0.0, 1.0]), np.zeros(3)
+        if len(self._q) < self.frames:
+            self._q.append(q)
+            self._t.append(t)
+            self.pose = NeutralPose.mean_of(np.array(self._q), np.array(self._t))
+        return self.pose.relative(q, t)

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from livecap.calibration.profile import Profile
-from livecap.modes.robust import robust_settings
+from livecap.modes.robust import robust_settings, warn_untuned
 from livecap.modes.robust_movement import BOUND_TOL, RobustMovement, smoother_beta
 from solvers.blocks import IllPosedError
 from solvers.movement import MovementMatching
@@ -121,6 +121,9 @@ def build_movement(profile: Profile, options: Mapping | MovementSettings | None 
     energy makes it well posed instead of failing.
     """
     s = options if isinstance(options, MovementSettings) else movement_settings(profile, options)
+    plain_asked = isinstance(options, Mapping) and options.get("robust") is False
+    if not s.stream and s.noise_mm is None and not plain_asked:
+        warn_untuned(profile, "movement", "it runs the plain Seol solve, not the noise-robust one")
     try:
         inner = _build(profile, s)
     except IllPosedError:

@@ -27,6 +27,7 @@ and ``solvers.filters`` to Profiles and modes:
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields, replace
@@ -40,6 +41,8 @@ from solvers.regularisation import PriorLeastSquares, estimate_noise, gcv_ridge,
 from solvers.sparse_fit import HysteresisSparseFit, holdout_sparse_ridge, l1_weights, universal_threshold
 from solvers.tracking import IMMFilter, dwna_variance
 from solvers.trend import TrendFilter
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -90,6 +93,18 @@ def robust_settings(profile: Profile, options: Mapping | RobustSettings | None =
     if "ridge" in given:
         s = replace(s, sparse_ridge=float(given["ridge"]))
     return s
+
+
+def untuned(profile: Profile) -> bool:
+    """True when calibration stored no noise estimate (profiles written before every path tuned)."""
+    return profile.settings.get("robust", {}).get("noise_mm") is None
+
+
+def warn_untuned(profile: Profile, mode: str, fallback: str) -> None:
+    """One warning per solver build: the mode falls back because the profile carries no noise estimate."""
+    if untuned(profile):
+        log.warning("mode %s: the profile has no noise estimate, so %s; re-run 'livecap calibrate' "
+                    "(it stores one) or give the take to tune on with --tune", mode, fallback)
 
 
 def tune_profile(profile: Profile, targets: np.ndarray, valid: np.ndarray, rate: float) -> dict:
@@ -190,6 +205,8 @@ def weight_filter(profile: Profile, options: Mapping | RobustSettings | None = N
 def robust_solver(profile: Profile, options: Mapping | RobustSettings | None = None) -> FilteredSolver:
     """Streaming: causal quadratic marker filter -> sparse fit -> IMM (or 1€) on the weights (no fixed latency)."""
     s = robust_settings(profile, options)
+    if not isinstance(options, RobustSettings):
+        warn_untuned(profile, "robust", f"it assumes {s.noise_mm:g} mm marker noise")
     markers = marker_filter(float(s.rate), float(s.marker_window))
     return FilteredSolver(sparse_fit(profile, s, markers.noise_gain), marker_filter=markers,
                           weight_filter=weight_filter(profile, s, markers.noise_gain))
@@ -199,6 +216,8 @@ def smooth_solver(profile: Profile, options: Mapping | RobustSettings | None = N
     """Lookahead / offline: centred quadratic marker smoothing over 2 lag + 1 frames -> sparse fit;
     ``latency_frames`` = lag when streamed, none offline."""
     s = robust_settings(profile, options)
+    if not isinstance(options, RobustSettings):
+        warn_untuned(profile, "robust-lag", f"it assumes {s.noise_mm:g} mm marker noise")
     lag, trend = int(s.lag), float(s.trend)
     gain = float(np.sum(savgol_weights(lag) ** 2))
     offline = TrendFilter.for_basis(profile.basis, float(s.noise_mm) * np.sqrt(gain), trend) if trend > 0 else None
