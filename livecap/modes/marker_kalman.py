@@ -24,6 +24,7 @@ from solvers.qp import FrameQP
 
 STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it balances)
 STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
+STREAM_POSE_REFITS = 1  # per frame, on the filtered markers
 POSE_REFITS = 2  # offline pose/expression alternations (issue 15: ICT 0.2 mm vertex p95 0.66 -> 0.43 -> 0.35 mm)
 
 
@@ -61,7 +62,12 @@ class MarkerKalmanSolver:
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         x, ok = self.filter.step(target, valid)
         self.selector.observe(x, ok)
-        return self._fit(self.selector.best).step(x, ok)
+        fit, p = self._fit(self.selector.best), self.profile
+        w = fit.step(x, ok)
+        for _ in range(STREAM_POSE_REFITS):  # pose re-fitted to the stable markers this expression predicts
+            x = refit_pose(x[None], ok[None], w[None], p.source_neutral, p.stable, p.basis)[0]
+            w = fit.step(x, ok)
+        return w
 
     def solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """RTS-smoothed markers -> prior fit; then POSE_REFITS times: head pose re-fitted to the
