@@ -19,7 +19,8 @@ from benchmarks.timing import machine, peak_rss_mb
 
 # suite name -> module under benchmarks/ exposing run(quick) -> dict
 SUITES = ["solve_latency", "movement", "qp_libraries", "rbf_blend", "live_latency", "concurrency", "viewer_fps",
-          "transfer", "bounded", "weight_smoothing", "offline"]
+          "transfer", "bounded", "weight_smoothing", "hostile",
+          "offline"]
 RESULTS = Path(__file__).resolve().parent / "results"
 
 

@@ -21,6 +21,9 @@ def register(sub) -> None:
     dest = p.add_mutually_exclusive_group(required=True)
     dest.add_argument("--zmq", help="ZeroMQ address to publish markers.<actor> on (binds)")
     dest.add_argument("--osc", help="[HOST:]PORT to send OSC frame bundles to")
+    dest.add_argument("--lsl", help="Lab Streaming Layer outlet name (markers, 3 channels per marker, mm)")
+    p.add_argument("--strip-labels", action="store_true",
+                   help="LSL: no channel labels, markers shuffled every frame (an unlabelled cloud)")
     p.add_argument("--connect", action="store_true", help="ZeroMQ: connect instead of binding")
     p.add_argument("--actor", default="actor")
     p.add_argument("--speed", type=float, default=1.0)
@@ -48,7 +51,10 @@ def run(args: argparse.Namespace) -> int:
     source = ReplaySource.open(args.take, None, speed=args.speed, fast=args.fast, loop=args.loop,
                                start=args.start, end=args.end)
     labels = source.labels
-    send = _zmq_sender(args, labels) if args.zmq else _osc_sender(args, labels)
+    if args.lsl:
+        send = _lsl_sender(args, labels, source.rate)
+    else:
+        send = _zmq_sender(args, labels) if args.zmq else _osc_sender(args, labels)
     n = 0
     t0 = time.perf_counter()
     try:
@@ -69,20 +75,24 @@ def run(args: argparse.Namespace) -> int:
 def _zmq_sender(args, labels):
     import zmq
 
-    from transport.security import Curve, zmq_address
+    from transport.security import curve_from_flags, zmq_address
     from transport.wire import encode_markers, layout_id, topic
 
     ctx = zmq.Context.instance()
     sock = ctx.socket(zmq.XPUB)
     sock.setsockopt(zmq.SNDHWM, 100000)
-    if args.curve_secret:
-        Curve(args.curve_secret, args.curve_clients, args.curve_server).apply(sock, server=not args.connect)
+    curve = curve_from_flags(args.curve_secret, args.curve_clients, args.curve_server)
+    if curve is not None:
+        curve.apply(sock, server=not args.connect)
     addr = zmq_address(args.zmq, args.interface)
-    if args.connect:
-        sock.connect(addr)
-    else:
-        sock.bind(addr)
-        addr = sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    try:
+        if args.connect:
+            sock.connect(addr)
+        else:
+            sock.bind(addr)
+            addr = sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    except zmq.ZMQError as exc:  # port in use, an endpoint libzmq refuses: one line via the CLI
+        raise ValueError(f"--zmq {addr}: {exc}") from None
     print(f"ready: zmq {addr}", flush=True)
     tp = topic("markers", args.actor)
     if args.wait_subscriber > 0 and sock.poll(int(args.wait_subscriber * 1000), zmq.POLLIN):
@@ -118,5 +128,22 @@ def _osc_sender(args, labels):
             sock.sendto(encode_osc_frame(frame, ts, labels, positions, valid), (host, port))
         except OSError:
             pass  # nobody listening yet: UDP is fire-and-forget
+
+    return send
+
+
+def _lsl_sender(args, labels, rate):
+    from transport.lsl import LslMarkerSender
+
+    out = LslMarkerSender(args.lsl, labels, rate, strip=args.strip_labels)
+    print(f"ready: lsl {args.lsl}", flush=True)
+    if args.wait_subscriber > 0:
+        out.wait_for_consumer(args.wait_subscriber)
+
+    def send(frame, ts, positions, valid, n):
+        if frame is None:
+            out.close()
+            return
+        out.send(positions, valid)
 
     return send

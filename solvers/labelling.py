@@ -1,0 +1,400 @@
+"""Labelling unlabelled facial marker clouds against a calibrated shape model.
+
+An optical system hands over each frame's points unordered, with ghosts (reflections) and
+gaps; facial markers sit too close together for its own labeller. Every frame, each label's
+position is predicted from the head pose and the last fitted blendshape weights through the
+marker basis B (the rig is a strong shape model of where the markers can be; Seol et al. 2012
+§3), plus the marker's last residual against that model. Labels and points are then matched
+one-to-one by ``scipy.optimize.linear_sum_assignment`` on squared distance clipped at the gate,
+which is exactly the assignment in which a label may stay unmatched (missing) at the cost of the
+gate and a point may stay unused (ghost). The head pose is re-fitted on the labelled stable
+markers (Kabsch; Arun et al. 1987) and the weights on all labelled ones (ridge least squares,
+clipped to the rig's limits).
+
+Without a track (first frame, or after too many poorly labelled frames) the neutral
+constellation is fitted to the cloud: the principal axes of both give 24 axis-aligned rotation
+candidates, each refined by a similarity ICP whose steps are the same gated assignment
+(Besl & McKay 1992; Umeyama 1991 for the scale), and the best is kept.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from solvers.rigid import kabsch
+
+
+@dataclass(frozen=True)
+class LabellerSettings:
+    gate_mm: float = 6.0  # a label further than this from its prediction stays missing
+    reacquire_growth: float = 0.15  # a missing label's gate grows by this fraction per frame missing
+    reacquire_max: float = 2.0  # ... up to this multiple of gate_mm
+    ridge: float = 1e-3  # shape fit ridge, relative to the basis' mean squared column norm
+    residual_max_mm: float = 4.0  # remembered model residual is clipped to this length (a swap's is larger)
+    residual_decay: float = 0.95  # per-frame decay of a missing marker's remembered model residual
+    min_labelled: float = 0.5  # a frame labelling fewer than this fraction of labels is poor
+    lost_after: int = 3  # consecutive poor frames that end the track (re-initialise)
+    limit_slack: float = 0.5  # the fit's weights may pass the rig's limits by this fraction of their range
+    reject_mm: float = 6.0  # a labelled point this far from the fitted model is dropped (ghost or swap)
+    refine_at: int = 3  # this many labels missing and points unused: re-fit from a wide gate
+    close_pair_mm: float = 15.0  # label pairs this close at rest are watched for meeting (blinks)
+    recheck_frames: int = 6  # frames after two labels' predictions met that get a second opinion
+    init_iterations: int = 20
+    init_gate_mm: float = 25.0  # the ICP's first gate; it shrinks to gate_mm
+    scale_range: tuple[float, float] = (0.8, 1.25)
+
+
+@dataclass
+class LabelFrame:
+    """One frame's labelling: ``index[i]`` is the point given label i, or -1 (missing)."""
+
+    index: np.ndarray  # n int
+    positions: np.ndarray  # n x 3 labelled points (0 where missing)
+    valid: np.ndarray  # n bool
+    initialised: bool  # this frame started a new track
+
+
+def _axis_rotations() -> np.ndarray:
+    """The 24 proper rotations that permute and flip coordinate axes."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            M = np.zeros((3, 3))
+            M[np.arange(3), perm] = signs
+            if np.linalg.det(M) > 0:
+                out.append(M)
+    return np.array(out)
+
+
+_AXIS_ROTATIONS = _axis_rotations()
+_ARANGE = np.arange(4096)
+
+
+def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Kabsch with the fewest numpy calls (the per-frame head re-fit)."""
+    cs = src.mean(0)
+    cd = dst.mean(0)
+    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    R = Vt.T @ U.T
+    if np.linalg.det(R) < 0:
+        Vt[2] = -Vt[2]
+        R = Vt.T @ U.T
+    return R, cd - R @ cs
+
+
+def _principal_axes(p: np.ndarray) -> np.ndarray:
+    c = p - p.mean(0)
+    _, vecs = np.linalg.eigh(c.T @ c)
+    if np.linalg.det(vecs) < 0:
+        vecs[:, 0] = -vecs[:, 0]
+    return vecs
+
+
+def gated_assignment(pred: np.ndarray, points: np.ndarray, gate: float | np.ndarray) -> tuple[np.ndarray, float]:
+    """Label -> point index (-1: missing) minimising the sum of min(d^2, gate^2), and that sum.
+
+    ``gate`` may be one per label. When every label's nearest point within its gate is a
+    different point, that is already optimal (each label at its own minimum cost) and the
+    Hungarian solve is skipped.
+    """
+    n = len(pred)
+    index = np.full(n, -1, dtype=np.int64)
+    g2 = np.full(n, float(gate) ** 2) if np.isscalar(gate) else np.asarray(gate, dtype=np.float64) ** 2
+    if len(points) == 0:
+        return index, float(g2.sum())
+    d = np.einsum("ij,ij->i", pred, pred)[:, None] + np.einsum("ij,ij->i", points, points) - 2.0 * (pred @ points.T)
+    np.minimum(d, g2[:, None], out=d)
+    near = d.argmin(1)
+    best = d[_ARANGE[:n] if n <= len(_ARANGE) else np.arange(n), near]
+    inside = best < g2
+    chosen = near[inside]
+    if len(np.unique(chosen)) == len(chosen):
+        index[inside] = chosen
+        return index, float(best.sum())
+    rows, cols = linear_sum_assignment(d)
+    cost = d[rows, cols]
+    keep = cost < g2[rows]
+    index[rows[keep]] = cols[keep]
+    unmatched = np.ones(n, dtype=bool)
+    unmatched[rows] = False
+    return index, float(cost.sum() + g2[unmatched].sum())
+
+
+def _similarity(src: np.ndarray, dst: np.ndarray, lo: float, hi: float) -> tuple[float, np.ndarray, np.ndarray]:
+    """s, R, t with s R src + t ~ dst, s clamped to [lo, hi] (Umeyama 1991)."""
+    R, _ = kabsch(src, dst)
+    cs, cd = src.mean(0), dst.mean(0)
+    den = float(np.sum((src - cs) ** 2))
+    s = float(np.sum((dst - cd) * ((src - cs) @ R.T)) / den) if den > 0 else 1.0
+    s = min(max(s, lo), hi)
+    return s, R, cd - s * R @ cs
+
+
+class MarkerLabeller:
+    """Streaming labeller: ``step(points)`` per frame; expensive preparation once.
+
+    ``neutral`` (n x 3) and ``basis`` (3n x m) are the calibrated actor's rest markers and marker
+    basis in the head frame; ``stable`` flags the head-stabilisation markers.
+    """
+
+    def __init__(self, neutral: np.ndarray, stable: np.ndarray, basis: np.ndarray, lower: np.ndarray,
+                 upper: np.ndarray, settings: LabellerSettings | None = None) -> None:
+        self.settings = settings or LabellerSettings()
+        self.neutral = np.asarray(neutral, dtype=np.float64)
+        self.n = len(self.neutral)
+        self.stable = np.asarray(stable, dtype=bool)
+        self.basis = np.asarray(basis, dtype=np.float64)
+        span = np.asarray(upper, dtype=np.float64) - np.asarray(lower, dtype=np.float64)
+        self.lower = np.asarray(lower, dtype=np.float64) - self.settings.limit_slack * span
+        self.upper = np.asarray(upper, dtype=np.float64) + self.settings.limit_slack * span
+        m = self.basis.shape[1]
+        gram = self.basis.T @ self.basis
+        lam = self.settings.ridge * float(np.trace(gram)) / max(m, 1)
+        self._fit = np.linalg.solve(gram + lam * np.eye(m), self.basis.T)  # m x 3n
+        self._gram = gram + lam * np.eye(m)
+        rows = self.basis.reshape(self.n, 3, m)
+        self._marker_gram = np.einsum("nki,nkj->nij", rows, rows)  # each marker's share of the gram
+        gap = np.linalg.norm(self.neutral[:, None] - self.neutral[None], axis=-1)
+        self._pairs = np.argwhere(np.triu(gap < self.settings.close_pair_mm, 1)).T  # 2 x p
+        self._zero_w = np.clip(np.zeros(m), lower, upper)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the track: the next frame re-initialises from the neutral."""
+        self.tracking = False
+        self.scale = 1.0
+        self.R = np.eye(3)
+        self.t = np.zeros(3)
+        self.w = self._zero_w.copy()
+        self.residual = np.zeros((self.n, 3))
+        self.poor = 0
+        self.initialisations = 0
+        self.refines = 0
+        self.rejected = 0
+        self.second_opinions = 0
+        self.recheck = 0
+        self._forget: np.ndarray | None = None
+        self.missing_for = np.zeros(self.n)
+
+    # ------------------------------------------------------------------ model
+    def model(self, w: np.ndarray) -> np.ndarray:
+        """Head-frame marker positions for weights ``w`` (n x 3)."""
+        return self.neutral + (self.basis @ w).reshape(self.n, 3)
+
+    def _world(self, local: np.ndarray) -> np.ndarray:
+        return self.scale * local @ self.R.T + self.t
+
+    def _fit_shape(self, points: np.ndarray, index: np.ndarray, predicted_local: np.ndarray) -> np.ndarray:
+        """Weights from the labelled markers (missing ones held at their prediction)."""
+        lab = index >= 0
+        local = predicted_local.copy()
+        local[lab] = ((points[index[lab]] - self.t) @ self.R) / self.scale
+        w = self._fit @ (local - self.neutral).ravel()
+        np.clip(w, self.lower, self.upper, out=w)
+        return w
+
+    def _fit_shape_subset(self, points: np.ndarray, index: np.ndarray) -> np.ndarray:
+        """Weights from the labelled markers alone (no pull towards the prediction of missing ones)."""
+        lab = index >= 0
+        gram = self._gram - self._marker_gram[~lab].sum(0)
+        local = ((points[index[lab]] - self.t) @ self.R) / self.scale
+        rhs = self.basis.reshape(self.n, 3, -1)[lab].reshape(-1, self.basis.shape[1]).T @ (
+            local - self.neutral[lab]).ravel()
+        w = np.linalg.solve(gram, rhs)
+        np.clip(w, self.lower, self.upper, out=w)
+        return w
+
+    def _refine(self, points: np.ndarray, iterations: int, gate: float) -> np.ndarray:
+        """Alternate assignment (wide gate), head pose and shape from the current state: recovers a
+        group of labels whose prediction fell behind (a fast jaw) or a fresh start's expression."""
+        index = np.full(self.n, -1, dtype=np.int64)
+        for _ in range(iterations):
+            local = self.model(self.w)
+            index, _ = gated_assignment(self._world(local), points, gate)
+            if not self._fit_pose(points, index, local):
+                break
+            self.w = self._fit_shape_subset(points, index)
+        return index
+
+    def _fit_pose(self, points: np.ndarray, index: np.ndarray, local: np.ndarray) -> bool:
+        lab = index >= 0
+        use = lab & self.stable
+        if use.sum() < 3:
+            use = lab
+        if use.sum() < 3:
+            return False
+        self.R, self.t = _rigid(self.scale * local[use], points[index[use]])
+        return True
+
+    # ------------------------------------------------------------------ streaming
+    def step(self, points: np.ndarray) -> LabelFrame:
+        """Label one frame's unordered points (k x 3, any k)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        points = points[np.isfinite(points).all(1)]
+        s = self.settings
+        if not self.tracking:
+            index = self.initialise(points)
+            return self._frame(points, index, True)
+        predicted = self._model + self.residual
+        world = self._world(predicted)
+        index, _ = gated_assignment(world, points, s.gate_mm)
+        self._reacquire(world, points, index)
+        lab = index >= 0
+        missing = self.n - int(lab.sum())
+        if missing >= s.refine_at and len(points) - (self.n - missing) >= s.refine_at:
+            self.refines += 1
+            self._refine(points, 3, 2 * s.gate_mm)
+            self.residual[:] = 0.0
+            predicted = self._model = self.model(self.w)
+            index, _ = gated_assignment(self._world(predicted), points, s.gate_mm)
+            lab = index >= 0
+        self.missing_for += 1.0
+        self.missing_for[lab] = 0.0
+        if self._fit_pose(points, index, predicted):
+            self.w = self._fit_shape(points, index, predicted)
+            model = self._model = self.model(self.w)
+            local = ((points[index[lab]] - self.t) @ self.R) / self.scale
+            res = local - model[lab]
+            far = np.einsum("ij,ij->i", res, res) > s.reject_mm ** 2
+            if far.any():
+                self.rejected += int(far.sum())
+                index[np.flatnonzero(lab)[far]] = -1
+                lab = index >= 0
+                res = res[~far]
+                if self._second_opinion(points):
+                    return self._frame(points, self._settle(points), False)
+            elif self._pairs_met(model) and self._second_opinion(points):
+                return self._frame(points, self._settle(points), False)
+            self.residual *= s.residual_decay
+            self.residual[lab] = self._clip(res)
+            if self._forget is not None:
+                self.residual[self._forget] = 0.0
+                self._forget = None
+        if lab.sum() < s.min_labelled * self.n:
+            self.poor += 1
+            if self.poor >= s.lost_after:
+                self.tracking = False
+        else:
+            self.poor = 0
+        return self._frame(points, index, False)
+
+    def _pairs_met(self, model: np.ndarray) -> bool:
+        """True on the frames just after two watched labels' model positions came within the gate."""
+        a, b = self._pairs
+        d = model[a] - model[b]
+        met = np.einsum("ij,ij->i", d, d) < self.settings.gate_mm ** 2
+        if met.any():
+            self.recheck = self.settings.recheck_frames
+            self._forget = np.concatenate([a[met], b[met]])  # their residuals would hold a swap
+            return True
+        elif self.recheck > 0:
+            self.recheck -= 1
+            return True
+        return False
+
+    def _second_opinion(self, points: np.ndarray) -> bool:
+        """After a rejection: the track may carry a consistent swap (two lid markers that met in
+        a blink). Re-fit the shape from the neutral at the current head pose and keep whichever
+        of the two explains the cloud better (gated cost of the model without remembered residuals)."""
+        g = self.settings.gate_mm
+        _, kept = gated_assignment(self._world(self.model(self.w)), points, g)
+        state = (self.w.copy(), self.R.copy(), self.t.copy())
+        self.w = self._zero_w.copy()
+        self._refine(points, 3, g)
+        _, fresh = gated_assignment(self._world(self.model(self.w)), points, g)
+        if fresh < kept:
+            self.second_opinions += 1
+            return True
+        self.w, self.R, self.t = state
+        return False
+
+    def _settle(self, points: np.ndarray) -> np.ndarray:
+        """Labels from the current pose and shape, remembered residuals cleared."""
+        self.residual[:] = 0.0
+        self._model = self.model(self.w)
+        index, _ = gated_assignment(self._world(self._model), points, self.settings.gate_mm)
+        self.missing_for[index >= 0] = 0.0
+        return index
+
+    def _clip(self, r: np.ndarray) -> np.ndarray:
+        norm = np.sqrt(np.einsum("ij,ij->i", r, r))
+        return r * np.minimum(1.0, self.settings.residual_max_mm / np.maximum(norm, 1e-12))[:, None]
+
+    def _reacquire(self, world: np.ndarray, points: np.ndarray, index: np.ndarray) -> None:
+        """Labels missing for a while (their prediction has drifted) may take points nobody took,
+        within a gate that grows with the time they have been missing."""
+        lost = np.flatnonzero((index < 0) & (self.missing_for > 0))
+        if len(lost) == 0 or len(points) <= (index >= 0).sum():
+            return
+        free = np.ones(len(points), dtype=bool)
+        free[index[index >= 0]] = False
+        free = np.flatnonzero(free)
+        s = self.settings
+        gate = s.gate_mm * np.minimum(1.0 + s.reacquire_growth * self.missing_for[lost], s.reacquire_max)
+        sub, _ = gated_assignment(world[lost], points[free], gate)
+        got = sub >= 0
+        index[lost[got]] = free[sub[got]]
+
+    def _frame(self, points: np.ndarray, index: np.ndarray, initialised: bool) -> LabelFrame:
+        valid = index >= 0
+        pos = np.zeros((self.n, 3))
+        pos[valid] = points[index[valid]]
+        return LabelFrame(index, pos, valid, initialised)
+
+    # ------------------------------------------------------------------ (re)initialisation
+    def initialise(self, points: np.ndarray) -> np.ndarray:
+        """Fit the neutral constellation to the cloud (similarity + assignment search), then the
+        shape; starts a track when enough labels are found. Returns the labelling."""
+        s = self.settings
+        index = np.full(self.n, -1, dtype=np.int64)
+        if len(points) < max(3, int(s.min_labelled * self.n)):
+            return index
+        lo, hi = s.scale_range
+        axes_n = _principal_axes(self.neutral)
+        axes_q = _principal_axes(points)
+        spread = np.sqrt(((points - points.mean(0)) ** 2).sum(1).mean()
+                         / ((self.neutral - self.neutral.mean(0)) ** 2).sum(1).mean())
+        scale0 = min(max(float(spread), lo), hi)
+        starts = [(scale0, axes_q @ M @ axes_n.T) for M in _AXIS_ROTATIONS]
+        if self.initialisations > 0:  # a lost track: its last pose is a candidate too
+            starts.append((self.scale, self.R))
+        best = (np.inf, None)
+        for scale, R in starts:
+            t = points.mean(0) - scale * R @ self.neutral.mean(0)
+            fit = self._icp(points, self.neutral, scale, R, t)
+            if fit[0] < best[0]:
+                best = fit
+        _, (self.scale, self.R, self.t) = best
+        # expression: alternate assignment, pose and shape from the best rigid start
+        self.w = self._zero_w.copy()
+        self.residual[:] = 0.0
+        self._refine(points, 5, 2 * s.gate_mm)
+        local = self.model(self.w)
+        index, _ = gated_assignment(self._world(local), points, s.gate_mm)
+        lab = index >= 0
+        self.tracking = lab.sum() >= s.min_labelled * self.n
+        self.initialisations += int(self.tracking)
+        self._model = local
+        self.poor = 0
+        self.missing_for[:] = np.where(lab, 0.0, 1.0)
+        if self.tracking:
+            self.residual[lab] = self._clip(((points[index[lab]] - self.t) @ self.R) / self.scale - local[lab])
+        return index
+
+    def _icp(self, points, local, scale, R, t):
+        s = self.settings
+        lo, hi = s.scale_range
+        gates = np.geomspace(s.init_gate_mm, s.gate_mm, s.init_iterations)
+        cost = np.inf
+        for gate in gates:
+            index, _ = gated_assignment(scale * local @ R.T + t, points, gate)
+            lab = index >= 0
+            if lab.sum() < 3:
+                return np.inf, (scale, R, t)
+            scale, R, t = _similarity(local[lab], points[index[lab]], lo, hi)
+        _, cost = gated_assignment(scale * local @ R.T + t, points, s.gate_mm)
+        return cost, (scale, R, t)

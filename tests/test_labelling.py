@@ -1,0 +1,137 @@
+"""Labelling unlabelled clouds: the gated assignment is the optimal one, the neutral constellation
+is found in any pose, lost tracks come back, and on scrambled takes of both rigs (labels stripped,
+shuffled, 2 ghosts per frame, occlusion bursts to 5 %) the labels are right and the solve keeps its
+accuracy."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial.transform import Rotation
+
+from livecap.calibration.profile import calibrate, estimate_neutral
+from livecap.core.take import Take
+from livecap.demo.performance import PerformanceSettings, perform
+from livecap.demo.unlabelled import faster_larger, score, scramble
+from livecap.live.pipeline import Pipeline
+from livecap.live.unlabelled import LabelledSource, label_take, labeller_for
+from livecap.offline.labelling import labelling_study
+from solvers.labelling import gated_assignment
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 12), st.integers(0, 12), st.floats(0.3, 3.0), st.integers(0, 2**31 - 1))
+def test_gated_assignment_is_the_augmented_optimum(n, k, gate, seed):
+    """Labels may stay missing at gate^2 each, points unused: compared with the Hungarian solve of
+    the explicitly augmented (n) x (k + n) problem."""
+    rng = np.random.default_rng(seed)
+    pred, pts = rng.normal(size=(n, 3)), rng.normal(size=(k, 3))
+    index, cost = gated_assignment(pred, pts, gate)
+    d = ((pred[:, None] - pts[None]) ** 2).sum(-1)
+    aug = np.full((n, k + n), 1e18)
+    aug[:, :k] = d
+    aug[np.arange(n), k + np.arange(n)] = gate**2
+    r, c = linear_sum_assignment(aug)
+    assert cost == pytest.approx(aug[r, c].sum(), rel=1e-9, abs=1e-9)
+    used = index[index >= 0]
+    assert len(set(used.tolist())) == len(used)
+    own = sum(d[i, j] for i, j in enumerate(index) if j >= 0) + gate**2 * (index < 0).sum()
+    assert own == pytest.approx(cost, rel=1e-9, abs=1e-9)
+    assert all(d[i, j] < gate**2 for i, j in enumerate(index) if j >= 0)
+
+
+@pytest.fixture(scope="module")
+def demo_setup(demo):
+    rig, layout = demo
+    perf = perform(rig, layout, PerformanceSettings(seconds=5.0, seed=4))
+    take = perf.take.select(layout.labels)
+    profile = calibrate(rig, layout, estimate_neutral(take, layout.stable, 120))
+    return rig, layout, profile, take, perf.weights
+
+
+@settings(max_examples=6, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_first_frame_finds_the_neutral_in_any_pose(demo_setup, seed):
+    _, _, profile, _, _ = demo_setup
+    rng = np.random.default_rng(seed)
+    R = Rotation.random(random_state=seed).as_matrix()
+    pts = profile.source_neutral @ R.T + rng.uniform(-500, 500, 3) + rng.normal(0, 0.3, (60, 3))
+    keep = rng.random(60) > 0.1
+    cloud = np.vstack([pts[keep], rng.uniform(pts.min(0), pts.max(0), (2, 3))])
+    order = rng.permutation(len(cloud))
+    truth = np.concatenate([np.flatnonzero(keep), [-1, -1]])[order]
+    out = labeller_for(profile).step(cloud[order])
+    assert out.initialised
+    got = np.where(out.valid, truth[np.maximum(out.index, 0)], -2)
+    assert (got[keep] == np.flatnonzero(keep)).all()
+
+
+def test_lost_track_comes_back(demo_setup):
+    _, _, profile, take, _ = demo_setup
+    sc = scramble(take, seed=3)
+    cloud = sc.cloud
+    pos, valid = cloud.positions.copy(), cloud.valid.copy()
+    valid[200:210] = False  # the whole face gone for 10 frames: the track is lost
+    lab = labeller_for(profile)
+    _, columns = label_take(Take(cloud.labels, pos, valid, cloud.rate), profile, labeller=lab)
+    assert lab.initialisations == 2
+    after = score(columns[215:], sc.source[215:])
+    assert after.right > 0.995 and after.longest_swap <= 2
+
+
+def test_scrambled_demo_take(demo_setup):
+    _, _, profile, take, truth = demo_setup
+    st_ = labelling_study(take, profile, truth, seed=2)
+    assert st_.scores.right >= 0.995, st_.scores.line()
+    assert st_.scores.longest_swap <= 2, st_.scores.line()
+    assert st_.rmse_ratio <= 1.05, (st_.rmse_labelled, st_.rmse_unlabelled)
+
+
+def test_scrambled_faster_larger_demo(demo_setup):
+    rig, layout, profile, _, _ = demo_setup
+    take, truth = faster_larger(rig, layout, seconds=4.0)
+    st_ = labelling_study(take, profile, truth, seed=3)
+    assert st_.scores.right >= 0.995, st_.scores.line()
+    assert st_.scores.longest_swap <= 2, st_.scores.line()
+    assert st_.rmse_ratio <= 1.05, (st_.rmse_labelled, st_.rmse_unlabelled)
+
+
+def test_scrambled_ict_take(ict):
+    rig, layout = ict
+    perf = perform(rig, layout, PerformanceSettings(seconds=4.0, seed=6))
+    take = perf.take.select(layout.labels)
+    profile = calibrate(rig, layout, estimate_neutral(take, layout.stable, 120))
+    st_ = labelling_study(take, profile, perf.weights, seed=4)
+    assert st_.scores.right >= 0.995, st_.scores.line()
+    assert st_.scores.longest_swap <= 2, st_.scores.line()
+    assert st_.rmse_ratio <= 1.05, (st_.rmse_labelled, st_.rmse_unlabelled)
+
+
+class Capture:
+    def __init__(self):
+        self.results = []
+
+    def publish(self, r):
+        self.results.append(r)
+
+    def close(self):
+        pass
+
+
+def test_labelled_source_in_the_pipeline(demo_setup):
+    """A live session fed clouds gives, on every frame whose labelling matches the truth, the
+    weights of the same session fed the labelled frames (per-frame solver: no state between them)."""
+    _, _, profile, take, _ = demo_setup
+    sc = scramble(take.slice(0, 240), seed=7, occlusion=0.0)
+    a, b = Capture(), Capture()
+    src = LabelledSource(sc.cloud.frames(), profile)
+    Pipeline(src, [a], profile=profile).run()
+    Pipeline(sc.occluded.frames(), [b], profile=profile).run()
+    assert len(a.results) == len(b.results) == 240
+    same = np.array([np.array_equal(ra.valid, rb.valid) and np.allclose(ra.markers[ra.valid], rb.markers[rb.valid])
+                     for ra, rb in zip(a.results, b.results, strict=True)])
+    assert same.mean() > 0.9
+    np.testing.assert_allclose(np.stack([r.weights for r in a.results])[same],
+                               np.stack([r.weights for r in b.results])[same], atol=1e-9)
+    assert src.initialisations == 1 and src.last_decode_seconds > 0
