@@ -46,10 +46,10 @@ def vendors():
 
 
 @pytest.fixture(scope="session")
-def review_server():
+def review_server(tmp_path_factory):
     """One ``livecap review`` process on the demo take, shared by the review API and browser tests."""
     from tests.review_server import ReviewServer
 
-    server = ReviewServer()
+    server = ReviewServer(tmp_path_factory.mktemp("review"))
     yield server
     server.close()

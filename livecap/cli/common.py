@@ -26,6 +26,14 @@ def load_rig(args: argparse.Namespace) -> tuple[Rig, MarkerLayout]:
     return rig, MarkerLayout.load(mpath, rig)
 
 
+def check_labels(take: Take, layout: MarkerLayout, take_path, rig_path) -> None:
+    """A take that shares no marker label with the rig is a wrong pairing, not a take with gaps: say so."""
+    if not set(take.labels) & set(layout.labels):
+        raise ValueError(f"{take_path}: the take shares none of the {layout.n_markers} marker labels of rig {rig_path} "
+                         f"(take: {', '.join(take.labels[:4])}...; rig: {', '.join(layout.labels[:4])}...); give "
+                         "a markers.json that binds the take's labels to the rig (--markers)")
+
+
 def add_rig_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", required=True, help="rig: OBJ folder (neutral.obj + one OBJ per shape) or .npz")
     p.add_argument("--markers", help="markers.json (default: in the rig folder, or <rig>.markers.json)")
@@ -54,6 +62,7 @@ def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
 def profile_for(args: argparse.Namespace, rig: Rig, layout: MarkerLayout, take: Take) -> Profile:
     """The given profile, or one calibrated on the take's first seconds with its regularisation
     selected from the take itself (livecap.modes.robust.tune_profile)."""
+    check_labels(take, layout, getattr(args, "take", "take"), args.rig)
     if getattr(args, "profile", None):
         return Profile.load(args.profile)
     sel = take.select(layout.labels)

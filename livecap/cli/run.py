@@ -9,6 +9,7 @@ Ctrl-C or SIGTERM stops cleanly: every recorder is flushed and closed.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -18,6 +19,8 @@ from livecap.live.checks import check_overlap, check_profile_rig
 from livecap.live.pipeline import Pipeline
 from livecap.live.session import load_session
 from livecap.modes.registry import DEFAULT_MODE, MODES
+
+log = logging.getLogger(__name__)
 
 _PARSER: argparse.ArgumentParser | None = None
 FIRST_FRAME_GRACE = 10.0  # seconds a session with --idle-timeout waits for its first frame by default
@@ -92,7 +95,9 @@ def register(sub) -> None:
                      help="like --window, but carry on without it when there is no display")
     rec = p.add_argument_group("recorders")
     rec.add_argument("--record-csv", help="weights CSV (Live Link Face layout when the names are ARKit)")
-    rec.add_argument("--csv-layout", default="auto", choices=["auto", "livecap", "livelinkface"])
+    rec.add_argument("--csv-layout", default="auto", choices=["auto", "livecap", "livelinkface"],
+                     help="--record-csv columns: livecap (frame,time,shapes), livelinkface (Live Link Face CSV), "
+                     "auto (livelinkface for an ARKit rig; default)")
     rec.add_argument("--record-jsonl", help="weights as JSON lines")
     rec.add_argument("--record-markers", help="raw incoming markers (.npz or .c3d) for exact replay")
     rec.add_argument("--flush-every", type=float, default=0.1, help="recorder flush interval in seconds")
@@ -277,6 +282,9 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         sinks.append(window)
         described.append(f"window {window.size[0]}x{window.size[1]}")
 
+    if not sinks:
+        log.warning("no output: the solved weights go nowhere (give --zmq-out, --vmc, --livelink, --record-csv, "
+                    "--record-jsonl or --window)")
     calibrator = None
     if profile is None:
         def calibrator(take, rig=rig, layout=layout):
