@@ -63,7 +63,8 @@ def _profile(rig, layout, take_path: Path, folder: Path) -> tuple[Path, float]:
 
     take = read_take(take_path)
     t0 = time.perf_counter()
-    profile = profile_for(argparse.Namespace(profile=None, neutral_seconds=1.0), rig, layout, take)
+    args = argparse.Namespace(profile=None, neutral_seconds=1.0, take=str(take_path), rig="rig")
+    profile = profile_for(args, rig, layout, take)
     seconds = time.perf_counter() - t0
     path = folder / "actor.npz"
     profile.save(path)
