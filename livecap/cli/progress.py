@@ -19,7 +19,7 @@ def _console() -> Console:
 
 
 def _summary(console: Console, description: str, seconds: float, count: str = "") -> None:
-    console.print(f"{description}: {count + ' ' if count else ''}in {seconds:.1f} s", markup=False)
+    console.print(f"{description}: {count + ' ' if count else ''}in {seconds:.1f} s", markup=False, soft_wrap=True)
 
 
 @contextmanager
