@@ -41,6 +41,7 @@ class LabellerSettings:
     limit_slack: float = 0.5  # the fit's weights may pass the rig's limits by this fraction of their range
     reject_mm: float = 6.0  # a labelled point this far from the fitted model is dropped (ghost or swap)
     refine_at: int = 3  # this many labels missing and points unused: re-fit from a wide gate
+    confirm_mm: float = 4.0  # a label coming back is kept when two frames in a row give it points this close
     close_pair_mm: float = 15.0  # label pairs this close at rest are watched for meeting (blinks)
     recheck_frames: int = 6  # frames after two labels' predictions met that get a second opinion
     init_iterations: int = 20
@@ -179,6 +180,9 @@ class MarkerLabeller:
         self.recheck = 0
         self._forget: np.ndarray | None = None
         self.missing_for = np.zeros(self.n)
+        self._candidate = np.zeros((self.n, 3))
+        self._candidate_ok = np.zeros(self.n, dtype=bool)
+        self.tentative = 0
 
     # ------------------------------------------------------------------ model
     def model(self, w: np.ndarray) -> np.ndarray:
@@ -252,6 +256,7 @@ class MarkerLabeller:
             predicted = self._model = self.model(self.w)
             index, _ = gated_assignment(self._world(predicted), points, s.gate_mm)
             lab = index >= 0
+        index, lab = self._confirm(points, index, lab)
         self.missing_for += 1.0
         self.missing_for[lab] = 0.0
         if self._fit_pose(points, index, predicted):
@@ -281,6 +286,26 @@ class MarkerLabeller:
         else:
             self.poor = 0
         return self._frame(points, index, False)
+
+    def _confirm(self, points: np.ndarray, index: np.ndarray, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A label that was missing takes a point only when the frame before offered it one within
+        ``confirm_mm``: a ghost near an occluded marker's prediction rarely comes twice, a marker
+        coming back does (one frame of it is lost)."""
+        fresh = np.flatnonzero(lab & (self.missing_for > 0))
+        had = self._candidate_ok.copy()
+        self._candidate_ok[:] = False
+        if len(fresh) == 0:
+            return index, lab
+        p = points[index[fresh]]
+        d = p - self._candidate[fresh]
+        ok = had[fresh] & (np.einsum("ij,ij->i", d, d) < self.settings.confirm_mm ** 2)
+        self._candidate[fresh] = p
+        self._candidate_ok[fresh] = True
+        if ok.all():
+            return index, lab
+        index[fresh[~ok]] = -1
+        self.tentative += int((~ok).sum())
+        return index, index >= 0
 
     def _pairs_met(self, model: np.ndarray) -> bool:
         """True on the frames just after two watched labels' model positions came within the gate."""

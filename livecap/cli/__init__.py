@@ -25,6 +25,7 @@ COMMANDS = [
     "noise_study",
     "calibrate",
     "rig",
+    "label",
 ]
 
 

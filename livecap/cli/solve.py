@@ -27,6 +27,8 @@ def register(sub) -> None:
     p.add_argument("--basis", choices=["rig", "actor"], default="rig",
                    help="qp: calibrated rig basis, or the actor's own from --keys (Curio 2006)")
     p.add_argument("--out", required=True, help="weights CSV: frame,time,<shape>...")
+    p.add_argument("--unlabelled", action="store_true",
+                   help="the take's points are unlabelled or wrongly named: label them against --profile first")
     add_movement_arguments(p)
     p.set_defaults(func=run)
 
@@ -34,6 +36,10 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     rig, layout = load_rig(args)
     take = read_take(args.take)
+    if args.unlabelled:
+        from livecap.cli.label import labelled_take
+
+        take = labelled_take(args, take)
     profile = profile_for(args, rig, layout, take)
     solver = build_solver(args.mode, profile, {**solver_options(args), "temporal": args.temporal,
                                                "keys": args.keys, "basis": args.basis, **movement_options(args)})
