@@ -93,7 +93,7 @@ def test_labels_from_parameters():
 def test_qtm_source_against_a_protocol_server(tmp_path, unlabelled):
     proc, port = _server(tmp_path, 8)
     try:
-        src = QtmSource("127.0.0.1", port, labels=["C", "A", "Z"], unlabelled=unlabelled, idle_timeout=1.0)
+        src = QtmSource("127.0.0.1", port, labels=["C", "A", "B", "Z"], unlabelled=unlabelled, idle_timeout=1.0)
         frames = list(src)
         src.close()
     finally:
@@ -108,8 +108,8 @@ def test_qtm_source_against_a_protocol_server(tmp_path, unlabelled):
     else:
         assert src.stream_labels == ["A", "B", "C"]
         np.testing.assert_allclose(f1.positions[:2], [[21, 40, 31], [1, 0, 31]])
-        assert f1.valid.tolist() == [True, True, False]
-        assert frames[2].valid.tolist() == [True, True, False]
+        assert f1.valid.tolist() == [True, True, True, False]
+        assert frames[2].valid.tolist() == [True, True, False, False]  # B lost
 
 
 def test_no_qtm_is_one_clear_error():
