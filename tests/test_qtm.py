@@ -120,3 +120,21 @@ def test_no_qtm_is_one_clear_error():
         port = s.getsockname()[1]
     with pytest.raises(QtmError, match="cannot connect"):
         QtmSource("127.0.0.1", port, timeout=1.0)
+
+
+def test_run_qtm_in_names_a_label_mismatch(tmp_path, demo, capsys):
+    """``livecap run --qtm-in``: a QTM whose 3D labels are not the profile's is one clear line."""
+    from livecap.calibration.profile import calibrate, estimate_neutral
+    from livecap.cli import main
+    from livecap.demo.performance import PerformanceSettings, perform
+
+    rig, layout = demo
+    take = perform(rig, layout, PerformanceSettings(seconds=1.0)).take
+    calibrate(rig, layout, estimate_neutral(take, layout.stable, 60)).save(tmp_path / "p.npz")
+    proc, port = _server(tmp_path, 3)
+    try:
+        assert main(["run", "--qtm-in", f"127.0.0.1:{port}", "--profile", str(tmp_path / "p.npz")]) == 1
+    finally:
+        proc.kill()
+        proc.wait()
+    assert "none of the session's labels among QTM's (A, B, C" in capsys.readouterr().err
