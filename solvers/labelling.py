@@ -57,6 +57,8 @@ class LabelFrame:
     positions: np.ndarray  # n x 3 labelled points (0 where missing)
     valid: np.ndarray  # n bool
     initialised: bool  # this frame started a new track
+    late: np.ndarray | None = None  # labels confirmed now whose previous frame's point was withheld
+    late_index: np.ndarray | None = None  # ... that point's index in the previous frame
 
 
 def _axis_rotations() -> np.ndarray:
@@ -182,6 +184,9 @@ class MarkerLabeller:
         self.missing_for = np.zeros(self.n)
         self._candidate = np.zeros((self.n, 3))
         self._candidate_ok = np.zeros(self.n, dtype=bool)
+        self._candidate_index = np.full(self.n, -1, dtype=np.int64)
+        self._late = np.zeros(0, dtype=np.int64)
+        self._late_index = np.zeros(0, dtype=np.int64)
         self.tentative = 0
 
     # ------------------------------------------------------------------ model
@@ -290,16 +295,19 @@ class MarkerLabeller:
     def _confirm(self, points: np.ndarray, index: np.ndarray, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A label that was missing takes a point only when the frame before offered it one within
         ``confirm_mm``: a ghost near an occluded marker's prediction rarely comes twice, a marker
-        coming back does (one frame of it is lost)."""
+        coming back does (live, one frame of it is lost; offline it is put back, see ``late``)."""
         fresh = np.flatnonzero(lab & (self.missing_for > 0))
         had = self._candidate_ok.copy()
         self._candidate_ok[:] = False
+        self._late = self._late_index = np.zeros(0, dtype=np.int64)
         if len(fresh) == 0:
             return index, lab
         p = points[index[fresh]]
         d = p - self._candidate[fresh]
         ok = had[fresh] & (np.einsum("ij,ij->i", d, d) < self.settings.confirm_mm ** 2)
+        self._late, self._late_index = fresh[ok], self._candidate_index[fresh[ok]]
         self._candidate[fresh] = p
+        self._candidate_index[fresh] = index[fresh]
         self._candidate_ok[fresh] = True
         if ok.all():
             return index, lab
@@ -368,7 +376,8 @@ class MarkerLabeller:
         valid = index >= 0
         pos = np.zeros((self.n, 3))
         pos[valid] = points[index[valid]]
-        return LabelFrame(index, pos, valid, initialised)
+        late, self._late = self._late, np.zeros(0, dtype=np.int64)
+        return LabelFrame(index, pos, valid, initialised, late, self._late_index)
 
     # ------------------------------------------------------------------ (re)initialisation
     def initialise(self, points: np.ndarray) -> np.ndarray:
