@@ -43,3 +43,13 @@ def vendors():
     if not VENDORS.is_dir():
         pytest.skip(f"vendor C3D files not found at {VENDORS}")
     return VENDORS
+
+
+@pytest.fixture(scope="session")
+def review_server():
+    """One ``livecap review`` process on the demo take, shared by the review API and browser tests."""
+    from tests.review_server import ReviewServer
+
+    server = ReviewServer()
+    yield server
+    server.close()

@@ -36,7 +36,7 @@ def test_triangle_binding(tmp_path, demo):
 def test_bad_layouts(tmp_path, demo):
     rig, _ = demo
     (tmp_path / "m.json").write_text('{"markers": [{"label": "a", "vertex": 999999}]}')
-    with pytest.raises(LayoutError, match="past the rig"):
+    with pytest.raises(LayoutError, match=r"\['a'\] bound to vertices outside the rig"):
         MarkerLayout.load(tmp_path / "m.json", rig)
     (tmp_path / "m.json").write_text('{"markers": [{"label": "a"}]}')
     with pytest.raises(LayoutError, match="needs 'vertex'"):
@@ -44,3 +44,21 @@ def test_bad_layouts(tmp_path, demo):
     (tmp_path / "m.json").write_text("{")
     with pytest.raises(LayoutError, match="m.json"):
         MarkerLayout.load(tmp_path / "m.json", rig)
+
+
+@pytest.mark.parametrize("text, problem", [
+    ('{"markers": [{"label": "a", "vertex": -3}]}', "vertex must be a non-negative integer"),
+    ('{"markers": [{"label": "a", "triangle": [1, 2, 3], "barycentric": [1, 0, 0]}]}',
+     "triangle must be a non-negative integer"),
+    ('{"markers": [{"label": "a", "vertex": 1}, {"label": "a", "vertex": 2}]}', r"\['a'\] appear more than once"),
+    ('{"markers": {"a": 1}}', "a \"markers\" list"),
+    ('["a"]', "a \"markers\" list"),
+    (b"\xff\xfe{", "cannot read marker layout"),
+])
+def test_hostile_layouts_are_one_error_naming_the_file(tmp_path, demo, text, problem):
+    rig, _ = demo
+    p = tmp_path / "m.json"
+    p.write_bytes(text if isinstance(text, bytes) else text.encode())
+    with pytest.raises(LayoutError, match=problem) as err:
+        MarkerLayout.load(p, rig)
+    assert str(p) in str(err.value)

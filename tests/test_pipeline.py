@@ -86,7 +86,8 @@ def test_bad_input_is_counted_and_the_session_keeps_running(setup):
     cap = Capture()
     stats = Pipeline(src, [cap], profile=profile).run()
     assert [r.frame for r in cap.results] == [0, 1, 3]
-    assert stats["bad_input"] == {"malformed": 1, "duplicate_frame": 1, "stale": 1, "unknown_label": 1, "short": 1}
+    assert stats["bad_input"] == {"malformed": 1, "duplicate_frame": 1, "out_of_order": 1, "unknown_label": 1,
+                                  "short": 1}
     pub.close(0)
     ctx.term()
 

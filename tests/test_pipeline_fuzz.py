@@ -105,7 +105,7 @@ def bad_packets(draw, s):
     if kind == "unknown":
         return good_packet(s, f + 1, [*s["labels"][:5], "not_a_marker"])
     if kind == "stale":
-        return good_packet(s, max(0, f - draw(st.integers(1, 50))))
+        return good_packet(s, max(0, f - draw(st.integers(1, 30))))  # within the reorder window
     return good_packet(s, f)  # "again": the last good frame repeated
 
 

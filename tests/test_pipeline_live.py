@@ -205,14 +205,15 @@ def test_zmq_session_reaches_every_sink(take_dir, tmp_path):
 
     # VMC: every frame's values then Apply, and the head bone
     vmc_out = json.loads((tmp_path / "vmc.json").read_text())
-    assert len(vmc_out["frames"]) == N_SEND and len(vmc_out["heads"]) == N_SEND
+    heads = [h for h in vmc_out["heads"] if h[0] == "Head"]
+    assert len(vmc_out["frames"]) == N_SEND and len(heads) == N_SEND
     assert all(list(f) == profile_names for f in vmc_out["frames"])
     np.testing.assert_allclose([[f[n] for n in profile_names] for f in vmc_out["frames"]], W, atol=1e-6)
-    assert {h[0] for h in vmc_out["heads"]} == {"Head"}
+    assert {h[0] for h in vmc_out["heads"]} <= {"Head", "LeftEye", "RightEye"}
 
     # Live Link Face: decodable packets, one per frame, ARKit order
     llf_out = json.loads((tmp_path / "llf.json").read_text())
-    assert [p["frame"] for p in llf_out] == list(range(N_SEND))
+    assert np.all(np.diff([p["frame"] for p in llf_out]) == 1)  # time-of-day frames, one per frame
     assert {(p["version"], p["count"], p["fps"], len(p["device"])) for p in llf_out} == {(6, 61, 120, 37)}
     from transport.arkit import ARKIT_NAMES
 

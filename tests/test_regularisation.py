@@ -99,9 +99,9 @@ def test_tune_profile_stores_selection_in_settings(demo):
     assert tuned == tune_profile(profile, S, perf.take.valid, perf.take.rate)  # deterministic
     assert 0.4 < tuned["noise_mm"] < 0.9  # 0.5 mm per coordinate, plus head-pose noise after stabilising
     assert tuned["ridge"] in DEFAULT_GRID and tuned["ridge_gcv"] in DEFAULT_GRID
-    assert robust_settings(profile)["ridge"] == tuned["ridge"]
-    assert robust_settings(profile, {"ridge": 3.0})["ridge"] == 3.0
-    assert robust_settings(Profile(**{**vars(profile), "settings": {}}))["ridge"] > 0  # untuned: MAP ridge
+    assert robust_settings(profile).prior_ridge == tuned["ridge"]
+    assert robust_settings(profile, {"ridge": 3.0}).prior_ridge == 3.0
+    assert robust_settings(Profile(**{**vars(profile), "settings": {}})).prior_ridge > 0  # untuned: MAP ridge
 
 
 def sparse_problem(seed=0, frames=300, sigma=0.5):

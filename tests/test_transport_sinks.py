@@ -1,7 +1,6 @@
 """Sinks in one process over real sockets: ZeroMQ (drops, header on join, CurveZMQ), VMC, Live Link Face."""
 
 import socket
-import struct
 import time
 
 import numpy as np
@@ -30,15 +29,19 @@ def result(frame=0, names=NAMES, w=None):
 
 
 def decode_livelink(pkt: bytes) -> dict:
-    """Written from PyLiveLinkFace's published layout, independently of transport.livelink."""
-    version = struct.unpack("<I", pkt[0:4])[0]
-    device = pkt[4:41].decode()
-    n = struct.unpack("!i", pkt[41:45])[0]
-    name = pkt[45:45 + n].decode()
-    frame, sub, fps, den, count = struct.unpack("!if2ib", pkt[45 + n:45 + n + 17])
-    values = struct.unpack("!61f", pkt[45 + n + 17:])
-    return dict(version=version, device=device, name=name, frame=frame, sub=sub, fps=fps, den=den, count=count,
-                values=np.array(values))
+    """Decoded by the PyLiveLinkFace package (PyPI pylivelinkface), not by livecap."""
+    from pylivelinkface import PyLiveLinkFace
+
+    ok, face = PyLiveLinkFace.decode(pkt)
+    assert ok
+    return dict(version=face._version, device=face.uuid, name=face.name, frame=face._frames, sub=face._sub_frame,
+                fps=face.fps, den=face._denominator, count=len(face._blend_shapes), values=np.array(face._blend_shapes))
+
+
+def neutral_then(res: SolveResult) -> SolveResult:
+    """The neutral-pose frame a sink sees first (identity rotation, the same translation)."""
+    return SolveResult(res.frame - 1, res.timestamp - 1 / 120, res.names, res.weights, np.array([0, 0, 0, 1.0]),
+                       np.zeros(3), 0.1, 0.001)
 
 
 def udp_listener():
@@ -50,11 +53,15 @@ def udp_listener():
 
 def test_livelink_packet_decodes_with_published_layout():
     rx = udp_listener()
-    sink = LiveLinkSink("127.0.0.1", rx.getsockname()[1], subject="anna", fps=120)
+    sink = LiveLinkSink("127.0.0.1", rx.getsockname()[1], subject="anna", fps=120, timecode="10:00:00:00")
+    sink.publish(neutral_then(result(42)))
+    first = decode_livelink(rx.recv(4096))
+    assert first["frame"] == 10 * 3600 * 120 and first["sub"] == 0  # frames since midnight at 120 fps
     sink.publish(result(42))
     d = decode_livelink(rx.recv(4096))
-    assert d["version"] == 6 and d["device"].startswith("$") and len(d["device"]) == 37
-    assert d["name"] == "anna" and d["frame"] == 42 and d["fps"] == 120 and d["den"] == 1 and d["count"] == 61
+    assert d["version"] == 6 and d["device"] == first["device"] and d["device"].startswith("$")
+    assert d["name"] == "anna" and d["frame"] == 10 * 3600 * 120 + 1 and d["fps"] == 120 and d["den"] == 1
+    assert d["count"] == 61
     vals = d["values"]
     w = result().weights
     for name, wi in zip(NAMES, w, strict=True):
@@ -91,6 +98,8 @@ def test_ict_rig_names_map_fully(ict):
 def test_vmc_bundle_per_frame_with_apply_last():
     rx = udp_listener()
     sink = VmcSink("127.0.0.1", rx.getsockname()[1])
+    sink.publish(neutral_then(result(3)))
+    rx.recv(65536)
     sink.publish(result(3))
     msgs = list(OscBundle(rx.recv(65536)))
     addrs = [m.address for m in msgs]
@@ -130,7 +139,7 @@ def test_unity_conversion_is_the_x_mirror(q, t, v):
 # ------------------------------------------------------------------------------- ZeroMQ
 def test_zmq_sink_counts_drops_instead_of_blocking():
     ctx = zmq.Context()
-    sink = ZmqSink("inproc://w", hwm=2, context=ctx)
+    sink = ZmqSink("inproc://w", hwm=2, policy="count", context=ctx)
     stuck = ctx.socket(zmq.SUB)
     stuck.setsockopt(zmq.RCVHWM, 2)
     stuck.connect("inproc://w")
@@ -144,9 +153,10 @@ def test_zmq_sink_counts_drops_instead_of_blocking():
     ctx.term()
 
 
-def test_zmq_sink_fair_policy_keeps_feeding_a_reader_next_to_a_stuck_one():
+@pytest.mark.parametrize("policy", ["fair", None])  # None: the default must never let one reader starve another
+def test_zmq_sink_fair_policy_keeps_feeding_a_reader_next_to_a_stuck_one(policy):
     ctx = zmq.Context()
-    sink = ZmqSink("inproc://f", hwm=2, policy="fair", context=ctx)
+    sink = ZmqSink("inproc://f", hwm=2, context=ctx, **({"policy": policy} if policy else {}))
     stuck, reader = ctx.socket(zmq.SUB), ctx.socket(zmq.SUB)
     for s in (stuck, reader):
         s.setsockopt(zmq.RCVHWM, 2)

@@ -202,10 +202,32 @@ def test_mutated_osc_bundles(data):
 
 
 # --------------------------------------------------------------------------- stream checks
-def test_frame_order_counts_duplicates_and_stale():
+def test_frame_order_counts_duplicates_and_out_of_order():
     order = FrameOrder()
-    assert [order.check(f) for f in [1, 2, 2, 1, 5, 3, 6]] == [None, None, "duplicate_frame", "stale", None,
-                                                                "stale", None]
+    assert [order.check(f) for f in [1, 2, 2, 1, 5, 3, 6]] == [None, None, "duplicate_frame", "out_of_order", None,
+                                                                "out_of_order", None]
+
+
+def test_frame_order_a_restarted_sender_is_a_new_stream():
+    order = FrameOrder()
+    assert all(order.check(f, f / 120) is None for f in range(1000, 1400))
+    assert order.check(0, 0.0) is None and order.restarts == 1  # solving resumes at once
+    assert [order.check(f, f / 120) for f in (1, 2, 3)] == [None, None, None]
+
+
+def test_frame_order_a_timestamp_jump_back_is_a_new_stream():
+    order = FrameOrder()
+    assert order.check(100, 50.0) is None and order.check(101, 50.01) is None
+    assert order.check(95, 1.0) is None and order.restarts == 1  # frame only 6 back, but time ran back 49 s
+
+
+def test_frame_order_one_lying_frame_number_is_ignored_not_adopted():
+    order = FrameOrder()
+    assert order.check(10) is None
+    assert order.check(2**40) == "frame_outlier"
+    assert [order.check(f) for f in range(11, 20)] == [None] * 9 and order.restarts == 0
+    # a real jump (the next frame continues from it) is adopted on its second frame
+    assert order.check(10**6) == "frame_outlier" and order.check(10**6 + 1) is None and order.last == 10**6 + 1
 
 
 def test_label_map_reorders_and_rejects_unknown():

@@ -51,6 +51,12 @@ def test_replay_writes_side_by_side_mp4_and_pngs(short_take):
                    "--frames", str(pngs), "--size", "240x180", "--every", "3", "--msaa", "0")
     assert proc.returncode == 0, proc.stderr
     expected = len(range(0, n_frames, 3))
+    import av  # the encoder's own package probes what was written: H.264 in yuv420p, browser-playable
+
+    with av.open(str(out)) as probe:
+        video = probe.streams.video[0]
+        assert (video.codec_context.name, video.codec_context.pix_fmt) == ("h264", "yuv420p")
+        assert probe.format.name.startswith("mov,mp4")
     cap = cv2.VideoCapture(str(out))
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == expected
     assert (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))) == (480, 180)

@@ -3,7 +3,8 @@
 Unreal's Live Link Face, VTuber "perfect sync" avatars and the Live Link Face CSV all speak
 Apple's 52 ARKit blendshapes (ARFaceAnchor.BlendShapeLocation). A rig with other names (ICT
 FaceKit's ``eyeBlink_L``, a studio's own) is mapped automatically where the names agree up to
-case, separators and the side suffix (``_L``/``_R``/``Left``/``Right``); an ARKit shape that
+case, separators and the side suffix (``_L``/``_R``/``Left``/``Right``; ``livecap.core.names``, the
+matcher every name mapping uses); an ARKit shape that
 exists only per side in the rig (ICT's ``browInnerUp_L`` / ``_R`` for ``browInnerUp``) takes
 the mean of the sides. A JSON mapping file overrides or completes the automatic match.
 """
@@ -11,12 +12,13 @@ the mean of the sides. A JSON mapping file overrides or completes the automatic 
 from __future__ import annotations
 
 import json
-import re
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from livecap.core.names import match_names
 
 # The order of the Live Link Face UDP packet (PyLiveLinkFace's FaceBlendShape enum, 0..51).
 ARKIT_NAMES = [
@@ -34,23 +36,6 @@ ARKIT_NAMES = [
 POSE_NAMES = ["HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
               "RightEyeYaw", "RightEyePitch", "RightEyeRoll"]
 
-_SIDE = re.compile(r"[_.\-\s](l|r|left|right)$", re.IGNORECASE)
-
-
-def _key(name: str) -> str:
-    """Normalised name: lower case, no separators, a separated side suffix spelled out
-    (``eyeBlink_L`` -> ``eyeblinkleft``, the same key as ``eyeBlinkLeft``)."""
-    m = _SIDE.search(name)
-    side = ""
-    if m:
-        side = "left" if m.group(1).lower().startswith("l") else "right"
-        name = name[:m.start()]
-    return re.sub(r"[^a-z0-9]", "", name.lower()) + side
-
-
-_ARKIT_KEYS = {_key(n): i for i, n in enumerate(ARKIT_NAMES)}
-
-
 def is_arkit(names: Sequence[str]) -> bool:
     """True when every shape name is an ARKit name (any case): the rig speaks ARKit natively."""
     arkit = {n.lower() for n in ARKIT_NAMES}
@@ -64,15 +49,7 @@ def arkit_matrix(names: Sequence[str], mapping: dict | None = None, where: str =
     match; an ARKit shape with no match stays 0.
     """
     names = list(names)
-    M = np.zeros((len(ARKIT_NAMES), len(names)))
-    by_key: dict[str, list[int]] = {}
-    for j, n in enumerate(names):
-        by_key.setdefault(_key(n), []).append(j)
-    for i, a in enumerate(ARKIT_NAMES):
-        k = _key(a)
-        cols = by_key.get(k) or (by_key.get(k + "left", []) + by_key.get(k + "right", []))
-        for j in cols:
-            M[i, j] = 1.0 / len(cols)
+    M = match_names(names, ARKIT_NAMES).matrix()
     if mapping:
         where_name = {n: j for j, n in enumerate(names)}
         arkit_where = {a.lower(): i for i, a in enumerate(ARKIT_NAMES)}
@@ -95,7 +72,7 @@ def load_mapping(path: str | Path) -> dict:
     p = Path(path)
     try:
         data = json.loads(p.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError) as exc:  # ValueError: JSON and UTF-8 decode errors
         raise ValueError(f"{p}: cannot read ARKit name mapping ({exc})") from None
     if not isinstance(data, dict) or not all(isinstance(v, str | list) for v in data.values()):
         raise ValueError(f"{p}: mapping must be a JSON object of ARKit name -> rig shape name(s)")

@@ -18,7 +18,9 @@ from livecap.core.take import MarkerFrame
 log = logging.getLogger("livecap.input")
 
 KINDS = ("short", "malformed", "version", "nonfinite", "unknown_label", "duplicate_label", "unknown_layout",
-         "duplicate_frame", "stale", "overrun")
+         "layout_mismatch", "oversize", "duplicate_frame", "out_of_order", "frame_outlier", "overrun")
+# Not skips but events, counted beside them: a sender that restarted (its frames are used).
+EVENTS = ("stream_restart",)
 
 
 class BadInput:
@@ -40,6 +42,25 @@ class BadInput:
         else:
             self._suppressed[kind] += 1
 
+    def event(self, kind: str, detail: str) -> None:
+        """Count and log (rate-limited) something that is not a skip, e.g. a sender restart."""
+        self.counts[kind] += 1
+        now = time.monotonic()
+        if now - self._last_log.get(kind, -1e9) >= self.interval:
+            log.warning("%s: %s: %s", self.where, kind, detail)
+            self._last_log[kind] = now
+
+    def in_order(self, order: FrameOrder, frame: int, timestamp: float) -> bool:
+        """Check ``frame`` against ``order``; count and log whatever it was. True: use the frame."""
+        last, restarts = order.last, order.restarts
+        kind = order.check(frame, timestamp)
+        if kind:
+            self.skip(kind, f"frame {frame} after {last}")
+            return False
+        if order.restarts != restarts:
+            self.event("stream_restart", f"frame {frame} after {last}: a new stream, solving it")
+        return True
+
     @property
     def total(self) -> int:
         return sum(self.counts.values())
@@ -49,19 +70,58 @@ class BadInput:
 
 
 class FrameOrder:
-    """Rejects duplicate and stale (older than the newest seen) frame numbers: a stream that
-    goes back in time would make every temporal solver see negative velocities."""
+    """Frame-number bookkeeping that survives a sender restarting and ignores one lying packet.
 
-    def __init__(self) -> None:
+    * a frame number at most ``back`` frames older than the newest is a reordered packet:
+      ``out_of_order`` (a temporal solver must not see time run backwards);
+    * a jump further back, or a timestamp more than ``time_back`` seconds before the newest, is a
+      new stream (the sender restarted): ``stream_restart``, and the frame is used;
+    * a jump more than ``ahead`` frames forward is held as a candidate and counted as
+      ``frame_outlier``; it is adopted only when the next frame continues from it, so a single
+      lie (frame 2**40) cannot make every honest frame look old.
+    """
+
+    def __init__(self, back: int = 30, ahead: int = 12000, time_back: float = 1.0) -> None:
+        self.back = back
+        self.ahead = ahead
+        self.time_back = time_back
         self.last: int | None = None
+        self.last_time: float | None = None
+        self.restarts = 0
+        self._candidate: int | None = None
 
-    def check(self, frame: int) -> str | None:
-        if self.last is not None:
-            if frame == self.last:
-                return "duplicate_frame"
-            if frame < self.last:
-                return "stale"
+    def _accept(self, frame: int, timestamp: float | None) -> None:
         self.last = frame
+        self.last_time = timestamp
+        self._candidate = None
+
+    def check(self, frame: int, timestamp: float | None = None) -> str | None:
+        """None when the frame is to be used; otherwise the bad-input kind to count it under."""
+        if self.last is None:
+            self._accept(frame, timestamp)
+            return None
+        if (timestamp is not None and self.last_time is not None
+                and timestamp < self.last_time - self.time_back and frame != self.last):
+            return self._restart(frame, timestamp)
+        d = frame - self.last
+        if d == 0:
+            return "duplicate_frame"
+        if d < -self.back:
+            return self._restart(frame, timestamp)
+        if d < 0:
+            return "out_of_order"
+        if d > self.ahead:
+            cand = self._candidate
+            if cand is not None and 0 < frame - cand <= self.back:
+                return self._restart(frame, timestamp)
+            self._candidate = frame
+            return "frame_outlier"
+        self._accept(frame, timestamp)
+        return None
+
+    def _restart(self, frame: int, timestamp: float | None) -> None:
+        self.restarts += 1
+        self._accept(frame, timestamp)
         return None
 
 
@@ -81,7 +141,7 @@ class LabelMap:
             unknown = [lab for lab in labels if lab not in self._where]
             hit = f"unknown labels {unknown[:5]}" if unknown else np.array([self._where[lab] for lab in labels],
                                                                           dtype=np.int64)
-            if len(self._cache) < 64:
+            if len(self._cache) < 64 and not isinstance(hit, str):  # never keep a hostile label list
                 self._cache[key] = hit
         if isinstance(hit, str):
             raise KeyError(hit)

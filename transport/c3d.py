@@ -44,7 +44,7 @@ def read_c3d(path: str | Path) -> Take:
     except ValueError as exc:
         raise TakeFileError(f"{path}: POINT:UNITS {exc}") from None
     rate = float(params["RATE"]["value"][0])
-    if not rate > 0:
+    if not (np.isfinite(rate) and rate > 0):
         raise TakeFileError(f"{path}: POINT:RATE is {rate}, not a frame rate")
     xyz = np.transpose(points[:3], (2, 1, 0)) * scale
     residuals = c["data"]["meta_points"]["residuals"][0].T

@@ -39,6 +39,8 @@ def read_csv_take(path: str | Path) -> Take:
         frames = [int(float(r[0])) for r in data]
     except ValueError as exc:
         raise TakeFileError(f"{path}: {exc}") from None
+    if not (np.isfinite(rate) and rate > 0):
+        raise TakeFileError(f"{path}: rate={meta['rate']} is not a positive finite frame rate")
     if arr.ndim != 2 or arr.shape[1] != len(cols):
         raise TakeFileError(f"{path}: rows do not all have {len(cols) + 2} cells")
     xyz = arr.reshape(len(data), len(labels), 3) * scale

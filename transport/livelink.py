@@ -4,8 +4,8 @@ Packet layout as published by the PyLiveLinkFace project (JimWest/PyLiveLinkFace
 ``PyLiveLinkFace.encode``/``decode``); all values big-endian except the first:
 
 ====================  =========================================================
-uint32 little-endian  packet version, 6
-37 bytes              device id: ``$`` + a 36-character UUID (fixed length)
+uint8                 packet version, 6
+int32, 36 bytes       device id: length 36 (``00 00 00 24``), the bare UUID
 int32                 subject name length N
 N bytes               subject name, UTF-8
 int32, float32        frame number, sub-frame
@@ -15,8 +15,13 @@ uint8                 61 (number of values)
                       left eye yaw/pitch/roll, right eye yaw/pitch/roll
 ====================  =========================================================
 
-(Read as Unreal does: byte 6, then a length-prefixed device id of length 37 — the same bytes.)
-Rotations are radians. UDP, fire-and-forget: a send that would block is dropped and counted.
+PyLiveLinkFace writes the same bytes as a little-endian uint32 6 followed by ``$`` + UUID: its
+``$`` is the last byte of the length 36 (0x24). The frame time is a time of day: whole frames
+since midnight at numerator/denominator fps plus the sub-frame (livecap.core.timecode), so
+Unreal's timecode lines up with other sources. The device id is derived from the actor's name,
+so Unreal sees the same device every session. Head angles are relative to the actor's neutral
+head pose (livecap.core.headpose). Rotations are radians. UDP, fire-and-forget: a send that
+would block is dropped and counted.
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from livecap.core.headpose import NeutralWindow
+from livecap.core.timecode import TimecodeClock, frame_rate_fraction, split_frames
 from transport.arkit import ARKIT_NAMES, arkit_matrix, head_angles
 
 VERSION = 6
@@ -35,15 +42,18 @@ N_VALUES = 61
 DEFAULT_PORT = 11111
 
 
-def device_id() -> str:
-    return "$" + str(uuid.uuid4())  # 37 characters, as the app and PyLiveLinkFace send
+def device_id(actor: str | None = None) -> str:
+    """``$`` + a UUID: derived from ``actor`` (the same every session), random without one."""
+    made = uuid.uuid5(uuid.NAMESPACE_URL, f"livecap:actor:{actor}") if actor is not None else uuid.uuid4()
+    return "$" + str(made)
 
 
 def encode_livelink(values61: np.ndarray, frame: int, subject: str = "livecap", device: str | None = None,
                     fps: int = 60, denominator: int = 1, sub_frame: float = 0.0) -> bytes:
     dev = (device or device_id()).encode()
-    if len(dev) != 37:
-        raise ValueError(f"device id must be 37 bytes ('$' + UUID), got {len(dev)}")
+    if len(dev) != 37 or not dev.startswith(b"$"):
+        raise ValueError(f"device id must be '$' + a 36-character UUID (the '$' is Unreal's length byte 36), "
+                         f"got {dev[:40]!r}")
     name = subject.encode()
     vals = np.asarray(values61, dtype=">f4")
     if vals.shape != (N_VALUES,):
@@ -57,13 +67,16 @@ class LiveLinkSink:
     """Send each result as one Live Link Face packet to ``host:port`` (default 127.0.0.1:11111)."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, subject: str = "livecap",
-                 mapping: dict | None = None, fps: float = 60.0, where: str = "mapping") -> None:
+                 mapping: dict | None = None, fps: float = 60.0, where: str = "mapping", timecode: str = "clock",
+                 actor: str | None = None, neutral_frames: int = 1) -> None:
         self.target = (host, port)
         self.subject = subject
-        self.device = device_id()
+        self.device = device_id(subject if actor is None else actor)
         self.mapping = mapping
         self.where = where
-        self.fps = int(round(fps)) or 60
+        self.fps, self.denominator = frame_rate_fraction(fps)
+        self.clock = TimecodeClock(timecode, fps)
+        self.neutral = NeutralWindow(neutral_frames)
         self.sent = 0
         self.drops = 0
         self._names: Sequence[str] | None = None
@@ -77,11 +90,13 @@ class LiveLinkSink:
             self._names = result.names
         out = np.zeros(N_VALUES)
         out[:52] = self._M @ np.asarray(result.weights, dtype=float)
-        out[52:55] = head_angles(result.head_rotation)
+        rotation, _ = self.neutral.relative(result.head_rotation, result.head_translation)
+        out[52:55] = head_angles(rotation)
         return out
 
     def publish(self, result) -> None:
-        pkt = encode_livelink(self.values(result), result.frame, self.subject, self.device, self.fps)
+        frame, sub = split_frames(self.clock.seconds_of_day(result.timestamp), self.fps / self.denominator)
+        pkt = encode_livelink(self.values(result), frame, self.subject, self.device, self.fps, self.denominator, sub)
         try:
             self.sock.sendto(pkt, self.target)
             self.sent += 1

@@ -31,6 +31,8 @@ from transport.wire import WIRE_VERSION
 
 FRAME_ADDRESS = "/livecap/frame"
 MARKER_ADDRESS = "/livecap/marker"
+MAX_DATAGRAM = 65507  # the largest UDP payload over IPv4; a frame of 60 markers is ~3 KB
+DRAIN = 1000  # datagrams decoded per look before the loop checks stop and idle time
 
 
 def encode_osc_frame(frame: int, timestamp: float, labels: Sequence[str], positions: np.ndarray,
@@ -65,8 +67,11 @@ def decode_osc_frame(dgram: bytes, where: dict[str, int]) -> tuple[int, float, n
     (label -> index). Raises :class:`OscDecodeError` with the bad-input kind."""
     if len(dgram) < 16:
         raise OscDecodeError("short", f"{len(dgram)}-byte datagram")
+    if len(dgram) > MAX_DATAGRAM:
+        raise OscDecodeError("oversize", f"{len(dgram)}-byte datagram, more than {MAX_DATAGRAM}")
     if not OscBundle.dgram_is_bundle(dgram):
         raise OscDecodeError("malformed", "not an OSC bundle")
+    _check_framing(dgram)
     try:
         contents = list(OscBundle(dgram))
     except Exception as exc:  # python-osc raises ParseError, IndexError, struct.error... on garbage
@@ -112,6 +117,24 @@ def decode_osc_frame(dgram: bytes, where: dict[str, int]) -> tuple[int, float, n
     return frame, timestamp, positions, valid
 
 
+def _check_framing(dgram: bytes) -> None:
+    """Every bundle element's size prefix must be a multiple of 4 and the elements must fill the
+    datagram exactly (OSC 1.0, "OSC Bundles"). python-osc reads a short last element from fewer
+    bytes than it announced, so a truncated datagram would otherwise decode with a wrong marker."""
+    if len(dgram) % 4:
+        raise OscDecodeError("short", f"{len(dgram)}-byte datagram is not a whole number of 4-byte words")
+    i = 16  # "#bundle\0" and the 8-byte time tag
+    while i < len(dgram):
+        if i + 4 > len(dgram):
+            raise OscDecodeError("short", "bundle element size cut off")
+        size = int.from_bytes(dgram[i:i + 4], "big", signed=True)
+        if size <= 0 or size % 4:
+            raise OscDecodeError("malformed", f"bundle element size {size} is not a positive multiple of 4")
+        i += 4 + size
+        if i > len(dgram):
+            raise OscDecodeError("short", f"bundle element of {size} bytes runs past the datagram end")
+
+
 class OscSource:
     """Listen on ``host:port`` (127.0.0.1 unless told otherwise) for frame bundles.
 
@@ -121,14 +144,18 @@ class OscSource:
     """
 
     def __init__(self, host: str, port: int, labels: list[str], idle_timeout: float | None = None,
+                 first_frame_timeout: float | None = None,
                  poll_s: float = 0.1, queue_size: int = 4096) -> None:
         self.labels = list(labels)
         self._where = {lab: i for i, lab in enumerate(self.labels)}
         self.idle_timeout = idle_timeout
+        # senders usually start after the driver: waiting for the first frame gets its own limit
+        self.first_frame_timeout = first_frame_timeout
         self.last_decode_seconds = 0.0
         self.received = 0
         self._order = FrameOrder()
         self._running = True
+        self._ahead: MarkerFrame | None = None
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
         self.sock.bind((host, port))
@@ -154,8 +181,26 @@ class OscSource:
                 self.bad.skip("overrun", "receive queue full: the solver is behind the stream")
 
     def pending(self) -> bool:
-        """True when another datagram is already waiting (the pipeline then skips a stale frame)."""
-        return not self._queue.empty()
+        """True when another *valid* frame is already waiting (the pipeline then skips a stale
+        frame). Garbage in the queue is decoded and counted here, never taken for a newer frame."""
+        if self._ahead is None:
+            self._ahead = self._next()
+        return self._ahead is not None
+
+    def _next(self, timeout: float = 0.0) -> MarkerFrame | None:
+        """The next good frame received, or None (after at most ``DRAIN`` datagrams or ``timeout``)."""
+        t0 = time.perf_counter()
+        for _ in range(DRAIN):
+            try:
+                dgram = self._queue.get(timeout=timeout) if timeout else self._queue.get_nowait()
+            except queue.Empty:
+                return None
+            self.received += 1
+            frame = self.decode(dgram)
+            if frame is not None:
+                self.last_decode_seconds = time.perf_counter() - t0
+                return frame
+        return None
 
     @property
     def port(self) -> int:
@@ -175,25 +220,20 @@ class OscSource:
         except OscDecodeError as exc:
             self.bad.skip(exc.kind, str(exc))
             return None
-        order = self._order.check(frame)
-        if order:
-            self.bad.skip(order, f"frame {frame} after {self._order.last}")
+        if not self.bad.in_order(self._order, frame, ts):
             return None
         return MarkerFrame(frame, ts, pos, val)
 
     def __iter__(self) -> Iterator[MarkerFrame]:
-        last_good = None
+        last_good = time.monotonic()  # no frame at all ends the session after first_frame_timeout
+        limit = self.first_frame_timeout if self.first_frame_timeout is not None else self.idle_timeout
         while self._running:
-            try:
-                dgram = self._queue.get(timeout=self.poll_s)
-            except queue.Empty:
-                if self.idle_timeout and last_good is not None and time.monotonic() - last_good > self.idle_timeout:
-                    return
-                continue
-            t0 = time.perf_counter()
-            self.received += 1
-            frame = self.decode(dgram)
-            self.last_decode_seconds = time.perf_counter() - t0
+            frame, self._ahead = self._ahead, None
+            if frame is None:
+                frame = self._next(self.poll_s)
             if frame is not None:
                 last_good = time.monotonic()
+                limit = self.idle_timeout
                 yield frame
+            elif limit and time.monotonic() - last_good > limit:
+                return  # checked outside the wait: a flood of garbage does not keep a dead session alive

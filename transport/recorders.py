@@ -8,8 +8,10 @@ with ``fsync=True``, a power cut), so every frame counted in ``flushed`` is read
 ignore a torn last line.
 
 * CSV: ``frame,time,<shape>...`` (what ``livecap solve`` writes), or, when the rig's names are
-  ARKit names, the Live Link Face app's CSV: ``Timecode,BlendShapeCount,EyeBlinkLeft,...,
-  RightEyeRoll`` with ``HH:MM:SS:FF.mmm`` timecodes.
+  ARKit names, the Live Link Face app's CSV, byte for byte as the app writes it:
+  ``Timecode,BlendShapeCount,EyeBlinkLeft,...,RightEyeRoll``, ``\n`` line ends, time-of-day
+  ``HH:MM:SS:FF.mmm`` timecodes with FF 00-59 (60 fps, whatever the stream's rate), values with
+  ten fixed decimals, head angles relative to the neutral head pose.
 * JSONL: a header line ``{"type": "header", "names": [...]}`` then one object per frame.
 * Markers: ``.npz`` (labels, frames, timestamps, positions, valid, rate) or ``.c3d``. Both are
   whole-file formats, so frames go first to an append-only journal ``<path>.partial`` (a JSON
@@ -24,13 +26,16 @@ import json
 import math
 import os
 import struct
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
 import numpy as np
 
+from livecap.core.headpose import NeutralWindow
 from livecap.core.take import MarkerFrame, Take
+from livecap.core.timecode import TimecodeClock, format_timecode
 from transport.arkit import ARKIT_NAMES, POSE_NAMES, arkit_matrix, head_angles, is_arkit
 
 # Column order of the Live Link Face app's CSV (it lists jaw and mouth Right before Left).
@@ -87,6 +92,14 @@ def timecode(seconds: float, rate: float) -> str:
     return f"{s // 3600:02d}:{s // 60 % 60:02d}:{s % 60:02d}:{ff:02d}.{sub:03d}"
 
 
+LLF_CSV_FPS = 60  # the app's CSV timecode counts frames 00-59
+
+
+def _fixed(v: float) -> str:
+    """Ten fixed decimals, as the app writes; never ``-0.0000000000``."""
+    return f"{round(v, 10) + 0.0:.10f}"
+
+
 def parse_timecode(tc: str, rate: float) -> float:
     h, m, s, f = tc.split(":")
     return int(h) * 3600 + int(m) * 60 + int(s) + float(f) / max(1, int(round(rate)))
@@ -97,7 +110,7 @@ class CsvRecorder(_Lines):
     ARKit name), ``livecap`` or ``livelinkface``."""
 
     def __init__(self, path: str | Path, rate: float = 60.0, layout: str = "auto", mapping: dict | None = None,
-                 fsync: bool = False) -> None:
+                 fsync: bool = False, timecode: str = "clock", neutral_frames: int = 1) -> None:
         if layout not in ("auto", "livecap", "livelinkface"):
             raise ValueError(f"unknown CSV layout {layout!r}")
         super().__init__(path, fsync)
@@ -105,6 +118,8 @@ class CsvRecorder(_Lines):
         self.layout = layout
         self.mapping = mapping
         self._writer = csv.writer(self.fh)
+        self.clock = TimecodeClock(timecode, rate)
+        self.neutral = NeutralWindow(neutral_frames)
         self._names = None
         self._M: np.ndarray | None = None
 
@@ -117,6 +132,7 @@ class CsvRecorder(_Lines):
             M = arkit_matrix(names, self.mapping, str(self.path))
             order = [ARKIT_NAMES.index(n[0].lower() + n[1:]) for n in LLF_CSV_SHAPES]
             self._M = M[order]
+            self._writer = csv.writer(self.fh, lineterminator="\n")
             self._writer.writerow(LLF_CSV_HEADER)
         else:
             self.layout = "livecap"
@@ -128,9 +144,9 @@ class CsvRecorder(_Lines):
         w = np.asarray(result.weights, dtype=float)
         if self._M is not None:
             pose = np.zeros(9)
-            pose[:3] = head_angles(result.head_rotation)
-            row = [timecode(result.timestamp, self.rate), 61, *map(repr, (self._M @ w).tolist()),
-                   *map(repr, pose.tolist())]
+            pose[:3] = head_angles(self.neutral.relative(result.head_rotation, result.head_translation)[0])
+            tc = format_timecode(self.clock.seconds_of_day(result.timestamp), LLF_CSV_FPS)
+            row = [tc, 61, *map(_fixed, (self._M @ w).tolist()), *map(_fixed, pose.tolist())]
         else:
             row = [int(result.frame), repr(float(result.timestamp)), *map(repr, w.tolist())]
         self._writer.writerow(row)
@@ -141,7 +157,7 @@ class CsvRecorder(_Lines):
 class WeightsRecording:
     names: list[str]
     frames: np.ndarray  # T (for the Live Link Face layout: round(time * rate))
-    times: np.ndarray  # T seconds
+    times: np.ndarray  # T seconds (Live Link Face layout: from its first row's timecode)
     weights: np.ndarray  # T x m
     layout: str
 
@@ -162,7 +178,8 @@ def read_csv_recording(path: str | Path, rate: float = 60.0) -> WeightsRecording
             frames = np.array([int(r[0]) for r in rows[1:]])
             return WeightsRecording(header[2:], frames, data[:, 0], data[:, 1:], "livecap")
         if header[:2] == ["Timecode", "BlendShapeCount"]:
-            times = np.array([parse_timecode(r[0], rate) for r in rows[1:]])
+            of_day = np.array([parse_timecode(r[0], LLF_CSV_FPS) for r in rows[1:]])
+            times = (of_day - of_day[:1]) % 86400.0 if len(of_day) else of_day
             return WeightsRecording(header[2:], np.round(times * rate).astype(int), times, data[:, 1:],
                                     "livelinkface")
     except ValueError as exc:
@@ -238,6 +255,7 @@ class MarkerRecorder(_Appending):
         if self.fh.closed:
             return
         self.flush()
+        os.fsync(self.fh.fileno())  # the journal is the only copy until the final file is renamed in
         self.fh.close()
         rec = read_marker_journal(self.journal)
         write_marker_recording(rec, self.path)
@@ -267,13 +285,13 @@ def read_marker_journal(path: str | Path) -> MarkerRecording:
         body = fh.read()
     try:
         head = json.loads(head_line)
-        if head.get("magic") != _JOURNAL_MAGIC:
+        if not isinstance(head, dict) or head.get("magic") != _JOURNAL_MAGIC:
             raise ValueError("wrong magic")
         fmt = head["record"]
-        labels, rate = head["labels"], float(head["rate"])
-    except (ValueError, KeyError) as exc:
+        labels, rate = [str(s) for s in head["labels"]], float(head["rate"])
+        size = struct.calcsize(fmt)
+    except (ValueError, KeyError, TypeError, struct.error) as exc:
         raise ValueError(f"{path}: not a livecap marker journal ({exc})") from None
-    size = struct.calcsize(fmt)
     n = len(labels)
     count = len(body) // size
     rec = np.dtype([("frame", "<i8"), ("t", "<f8"), ("pos", "<f8", (n, 3)), ("valid", "u1", (n,))])
@@ -286,16 +304,57 @@ def read_marker_journal(path: str | Path) -> MarkerRecording:
 
 
 def write_marker_recording(rec: MarkerRecording, path: str | Path) -> None:
+    """Write the whole recording atomically: to a temporary name beside ``path``, fsync, rename,
+    fsync the folder. A kill at any point leaves either no final file or a complete one."""
     path = Path(path)
-    if path.suffix.lower() == ".c3d":
-        from transport.c3d import write_c3d
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    try:
+        if path.suffix.lower() == ".c3d":
+            from transport.c3d import write_c3d
 
-        write_c3d(rec.take, path)
+            write_c3d(rec.take, tmp)
+        else:
+            with open(tmp, "wb") as fh:  # np.savez would append .npz to a name without it
+                np.savez_compressed(fh, labels=np.array(rec.take.labels), frames=rec.frames,
+                                    timestamps=rec.timestamps, positions=rec.take.positions, valid=rec.take.valid,
+                                    rate=np.array(rec.take.rate))
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    _fsync_dir(path.parent)
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
         return
-    with open(path, "wb") as fh:  # np.savez would append .npz to a name without it
-        np.savez_compressed(fh, labels=np.array(rec.take.labels), frames=rec.frames, timestamps=rec.timestamps,
-                            positions=rec.take.positions, valid=rec.take.valid,
-                            rate=np.array(rec.take.rate))
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def recover_marker_journal(journal: str | Path, out: str | Path | None = None) -> tuple[Path, int]:
+    """Turn the journal a killed session left into its final recording; returns (path, frames).
+    The journal stays until the final file is safely in place."""
+    journal = Path(journal)
+    if not journal.name.endswith(".partial"):
+        raise ValueError(f"{journal}: not a journal (expected a name ending in .partial)")
+    if not journal.exists():
+        raise ValueError(f"{journal}: no such file")
+    out = Path(out) if out else journal.with_name(journal.name[: -len(".partial")])
+    if out.suffix.lower() not in (".npz", ".c3d"):
+        raise ValueError(f"{out}: raw marker recordings are .npz or .c3d")
+    rec = read_marker_journal(journal)
+    if rec.take.n_frames == 0:
+        raise ValueError(f"{journal}: holds no complete frame")
+    write_marker_recording(rec, out)
+    return out, rec.take.n_frames
 
 
 def read_marker_recording(path: str | Path) -> MarkerRecording:
@@ -309,5 +368,5 @@ def read_marker_recording(path: str | Path) -> MarkerRecording:
         take = Take(labels, z["positions"].astype(np.float64), z["valid"], float(z["rate"]),
                     int(z["frames"][0]) if len(z["frames"]) else 0)
         return MarkerRecording(take, z["frames"], z["timestamps"])
-    except (OSError, KeyError, ValueError) as exc:
+    except (OSError, KeyError, ValueError, IndexError, EOFError, zipfile.BadZipFile) as exc:
         raise ValueError(f"{path}: not a livecap marker recording ({exc})") from None

@@ -96,6 +96,18 @@ class Curve:
             make_client(sock, self.secret, self.server_public)
 
 
+def curve_from_flags(secret: str | None, clients: str | None, server: str | None) -> Curve | None:
+    """The Curve settings from the command-line flags, or None when none is given. Client or
+    server keys without our secret certificate are an error: never plaintext by surprise."""
+    if not secret:
+        given = [f for f, v in (("--curve-clients", clients), ("--curve-server", server)) if v]
+        if given:
+            raise ValueError(f"{' and '.join(given)} given without --curve-secret: CurveZMQ needs our secret "
+                             "certificate (refusing to run in plaintext)")
+        return None
+    return Curve(secret, clients, server)
+
+
 LOOPBACK = "127.0.0.1"
 
 
@@ -114,9 +126,22 @@ def zmq_address(addr: str, interface: str | None = None) -> str:
     if "://" not in addr:
         addr = "tcp://" + addr
     scheme, rest = addr.split("://", 1)
-    if scheme != "tcp":
-        return addr  # ipc://, inproc:// stay on this machine
-    host = rest.rsplit(":", 1)[0] if ":" in rest else rest
+    if scheme in ("ipc", "inproc"):
+        return addr  # stays on this machine
+    if scheme in ("pgm", "epgm", "norm"):
+        if not interface:
+            raise ValueError(f"{addr!r}: {scheme}:// is multicast and leaves this machine; pass --interface to use it")
+        return addr
+    if scheme not in ("tcp", "ws", "wss"):
+        raise ValueError(f"{addr!r}: ZeroMQ endpoints here are tcp://HOST:PORT or ipc://PATH (not {scheme}://)")
+    if scheme != "tcp" and not zmq.has(scheme):
+        raise ValueError(f"{addr!r}: this libzmq build has no {scheme}:// transport")
+    hostport = rest.split("/", 1)[0]
+    if ":" not in hostport:
+        raise ValueError(f"{addr!r}: no port (give HOST:PORT, port 0 or * for any free port)")
+    host, port = hostport.rsplit(":", 1)
+    if port != "*" and not (port.isdigit() and 0 < int(port) < 65536):
+        raise ValueError(f"{addr!r}: port {port!r} is not a number from 1 to 65535 (or 0/* for any)")
     check_host(host, interface)
     return addr
 
@@ -132,6 +157,8 @@ def udp_address(addr: str, default_port: int, interface: str | None = None) -> t
             port = int(p)
         except ValueError:
             raise ValueError(f"{addr!r}: port {p!r} is not a number") from None
+        if not 0 <= port < 65536:
+            raise ValueError(f"{addr!r}: port {port} is not in 0..65535")
     else:
         host, port = addr, default_port
     check_host(host, interface)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from livecap.core.take import Take
 from transport.c3d import read_c3d, write_c3d
 from transport.csv_take import read_csv_take, write_csv_take
@@ -22,6 +24,25 @@ def read_take(path: str | Path) -> Take:
     if reader is None:
         raise TakeFileError(f"{path}: unknown take format (expected one of {sorted(READERS)})")
     return reader(path)
+
+
+FACE_MM = (20.0, 600.0)  # a face's markers span ~100-300 mm; outside this range the units are suspect
+
+
+def size_problem(take: Take) -> str | None:
+    """Why the markers cannot be a face at this scale (e.g. mm data labelled ``units=m``, scaled
+    x1000: a face metres wide), or None when their median span over the take is plausible."""
+    span = []
+    for i in np.linspace(0, take.n_frames - 1, min(take.n_frames, 20)).astype(int):
+        p = take.positions[i][take.valid[i]]
+        if len(p) >= 3:
+            span.append(float(np.linalg.norm(p.max(0) - p.min(0))))
+    if not span:
+        return None
+    size = float(np.median(span))
+    if FACE_MM[0] <= size <= FACE_MM[1]:
+        return None
+    return f"markers span {size:.4g} mm across (a face spans ~100-300 mm): are the file's units right?"
 
 
 def write_take(take: Take, path: str | Path) -> None:

@@ -34,6 +34,8 @@ def read_trc(path: str | Path) -> Take:
         scale = to_mm(1.0, units)
     except (KeyError, ValueError) as exc:
         raise TakeFileError(f"{path}: bad TRC header ({exc})") from None
+    if not (np.isfinite(rate) and rate > 0) or n_markers <= 0:
+        raise TakeFileError(f"{path}: DataRate {rate} / NumMarkers {n_markers} is not a usable take")
     names = [c.strip() for c in lines[3].split("\t")[2:]]
     labels = [c for c in names if c][:n_markers]
     if len(labels) != n_markers:
@@ -54,7 +56,10 @@ def read_trc(path: str | Path) -> Take:
                     row[j] = float(cell)
                 except ValueError:
                     raise TakeFileError(f"{path}:{lineno}: {cell!r} is not a number") from None
-        frames.append(int(float(cells[0])))
+        try:
+            frames.append(int(float(cells[0])))
+        except (ValueError, OverflowError):
+            raise TakeFileError(f"{path}:{lineno}: frame number {cells[0]!r} is not an integer") from None
         rows.append(row)
     if not rows:
         raise TakeFileError(f"{path}: no data rows")

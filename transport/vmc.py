@@ -5,13 +5,19 @@ Per frame, one OSC bundle (split into several when large, ``Apply`` in the last)
     /VMC/Ext/OK        ,i        1                 (a model is loaded)
     /VMC/Ext/T         ,f        time (seconds)
     /VMC/Ext/Bone/Pos  ,sfffffff "Head" px py pz qx qy qz qw
-    /VMC/Ext/Blend/Val ,sf       name value        (one per shape)
+    /VMC/Ext/Bone/Pos  ,sfffffff "LeftEye"/"RightEye" 0 0 0 qx qy qz qw  (rigs with eye-look shapes)
+    /VMC/Ext/Blend/Val ,sf       name value        (one per shape or expression)
     /VMC/Ext/Blend/Apply                            (apply this frame's values)
 
-VMC is Unity's frame: left-handed, metres, +y up, +z forward, +x to the avatar's right.
-livecap's head frame is right-handed millimetres, +y up, +z out of the face, +x to the
-subject's left; so x flips: ``p_unity = (-x, y, z) / 1000`` and for the rotation (a
-reflection through the x = 0 plane) ``q_unity = (qx, -qy, -qz, qw)``.
+Bone values are local (relative to the parent bone) in Unity's frame: left-handed, metres, +y
+up, +z forward. The Head bone carries the head's rotation relative to the actor's neutral head
+pose and its shift from the neutral position (a few cm): a receiver that applies bone positions
+(EVMC4U by default) keeps the head on the neck, one that ignores them loses only the shift. Both
+come from livecap.core.headpose, which also removes the capture's own axes (Z-up volumes).
+
+Shape names: the rig's own; Perfect Sync (the 52 ARKit clips as Perfect Sync avatars name them,
+``EyeBlinkLeft``, matched exactly by receivers such as VMC4B); or VRM 0.x / 1.0 expression
+presets derived from the ARKit weights (transport.vrm).
 """
 
 from __future__ import annotations
@@ -22,7 +28,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from livecap.core.headpose import NeutralWindow
+from livecap.core.headpose import to_unity as _mirror
 from transport.arkit import ARKIT_NAMES, arkit_matrix
+from transport.vrm import VrmExpressions, eye_rotations
+
+PERFECT_SYNC_NAMES = [n[0].upper() + n[1:] for n in ARKIT_NAMES]
+NAME_MODES = ("rig", "perfect-sync", "vrm0", "vrm1")
 
 DEFAULT_PORT = 39539
 MAX_DATAGRAM = 8192  # bundles beyond this are split: stays far below UDP's 64 KB and typical MTU reassembly limits
@@ -60,15 +72,24 @@ def to_unity(translation_mm: np.ndarray, quat_xyzw: np.ndarray) -> tuple[np.ndar
 
 
 class VmcSink:
-    """Send VMC bundles to ``host:port`` (default 127.0.0.1:39539). With ``arkit=True`` the
-    shapes go out under ARKit names (for "perfect sync" avatars) through the name mapping."""
+    """Send VMC bundles to ``host:port`` (default 127.0.0.1:39539). ``names``: ``rig`` (the rig's
+    shape names), ``perfect-sync`` (ARKit, PascalCase, through the name mapping; ``arkit=True`` is
+    the same), ``vrm0`` or ``vrm1`` (VRM expression presets from ``vrm_table``, default
+    transport.vrm.VRM1_TABLE). The head pose is relative to the mean of the first ``neutral_frames``."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, arkit: bool = False,
-                 mapping: dict | None = None, where: str = "mapping") -> None:
+                 mapping: dict | None = None, where: str = "mapping", names: str = "rig",
+                 vrm_table: dict | None = None, neutral_frames: int = 1) -> None:
+        if names not in NAME_MODES:
+            raise ValueError(f"VMC names {names!r}: one of {', '.join(NAME_MODES)}")
         self.target = (host, port)
-        self.arkit = arkit
+        self.mode = "perfect-sync" if arkit and names == "rig" else names
+        self.arkit = self.mode != "rig"
+        self.vrm = VrmExpressions(int(self.mode[3]), vrm_table) if self.mode.startswith("vrm") else None
+        self.neutral = NeutralWindow(neutral_frames)
         self.mapping = mapping
         self.where = where
+        self._eyes_present: list[bool] = []
         self.sent = 0
         self.drops = 0
         self._names: Sequence[str] | None = None
@@ -81,8 +102,9 @@ class VmcSink:
 
     def _prepare(self, names: Sequence[str]) -> None:
         self._names = names
-        out_names = ARKIT_NAMES if self.arkit else list(names)
-        self._M = arkit_matrix(names, self.mapping, self.where) if self.arkit else None
+        out_names = self.vrm.names if self.vrm else PERFECT_SYNC_NAMES if self.arkit else list(names)
+        self._M = arkit_matrix(names, self.mapping, self.where)
+        self._eyes_present = list(self._M.any(axis=1))
         # address, type tags and name are the same every frame: encode them once
         self._prefixes = [osc_string("/VMC/Ext/Blend/Val") + osc_string(",sf") + osc_string(n) for n in out_names]
 
@@ -90,11 +112,17 @@ class VmcSink:
         if result.names is not self._names:
             self._prepare(result.names)
         w = np.asarray(result.weights, dtype=float)
-        if self._M is not None:
-            w = self._M @ w
-        p, q = to_unity(result.head_translation, result.head_rotation)
+        arkit = self._M @ w
+        if self.arkit:
+            w = self.vrm(arkit) if self.vrm else arkit
+        rel_q, shift = self.neutral.relative(result.head_rotation, result.head_translation)
+        q, p = _mirror(rel_q, shift)
         msgs = [self._ok, osc_message("/VMC/Ext/T", "f", float(result.timestamp)),
                 osc_message("/VMC/Ext/Bone/Pos", "sfffffff", "Head", *map(float, p), *map(float, q))]
+        eyes = eye_rotations(arkit, self._eyes_present)
+        if eyes is not None:
+            msgs += [osc_message("/VMC/Ext/Bone/Pos", "sfffffff", bone, 0.0, 0.0, 0.0, *map(float, eq))
+                     for bone, eq in zip(("LeftEye", "RightEye"), eyes, strict=True)]
         vals = np.asarray(w, dtype=">f4").tobytes()
         msgs += [pre + vals[4 * i:4 * i + 4] for i, pre in enumerate(self._prefixes)]
         msgs.append(self._apply)

@@ -14,6 +14,7 @@ they never raise anything else on bytes from the network.
 from __future__ import annotations
 
 import hashlib
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -22,6 +23,10 @@ import numpy as np
 
 WIRE_VERSION = 1
 MAX_MARKERS = 4096  # a sanity bound: anything bigger is a malformed packet, not a face
+# Largest marker message accepted: 4096 markers with 64-character labels fit in ~330 KB.
+MAX_MESSAGE_BYTES = 1 << 20
+LAYOUT_TABLE_SIZE = 16  # layouts remembered per source (LRU); at most 16 x 4096 x 128 characters
+MAX_LABEL_CHARS = 128
 
 
 class WireError(ValueError):
@@ -56,6 +61,35 @@ class DuplicateLabel(WireError):
 
 class UnknownLayout(WireError):
     kind = "unknown_layout"
+
+
+class LayoutMismatch(WireError):
+    kind = "layout_mismatch"
+
+
+class Oversize(WireError):
+    kind = "oversize"
+
+
+class LayoutTable(OrderedDict):
+    """Layout id -> labels, least recently used first, at most ``size`` entries: a sender
+    announcing a new layout per packet cannot grow the receiver's memory."""
+
+    def __init__(self, size: int = LAYOUT_TABLE_SIZE) -> None:
+        super().__init__()
+        self.size = size
+
+    def get_labels(self, lid: str) -> list[str] | None:
+        labels = self.get(lid)
+        if labels is not None:
+            self.move_to_end(lid)
+        return labels
+
+    def learn(self, lid: str, labels: list[str]) -> None:
+        self[lid] = labels
+        self.move_to_end(lid)
+        while len(self) > self.size:
+            self.popitem(last=False)
 
 
 def layout_id(labels: Sequence[str]) -> str:
@@ -100,6 +134,8 @@ def _unpack_map(payload: bytes, expected_type: str) -> dict:
         raise MalformedPacket("payload is not bytes")
     if len(payload) == 0:
         raise ShortPacket("empty payload")
+    if len(payload) > MAX_MESSAGE_BYTES:
+        raise Oversize(f"{len(payload)}-byte payload, more than {MAX_MESSAGE_BYTES}")
     try:
         msg = msgpack.unpackb(payload, raw=False, strict_map_key=False, max_bin_len=1 << 24, max_str_len=1 << 16,
                               max_array_len=1 << 16, max_map_len=64)
@@ -134,7 +170,8 @@ def _number(msg: dict, key: str, kind: type) -> float | int:
 
 def decode_markers(payload: bytes, layouts: dict[str, list[str]] | None = None) -> MarkerPacket:
     """Decode and check one marker payload. ``layouts`` (id -> labels) is consulted for packets
-    that carry only a layout id, and learns the labels of packets that carry both."""
+    that carry only a layout id, and learns the labels of packets that carry both, once the id
+    is checked to be the hash of those labels (a wrong id would re-order every later frame)."""
     msg = _unpack_map(payload, "markers")
     frame = int(_number(msg, "frame", int))
     timestamp = float(_number(msg, "timestamp", float))
@@ -147,20 +184,31 @@ def decode_markers(payload: bytes, layouts: dict[str, list[str]] | None = None) 
     if labels is None:
         if lid is None:
             raise MalformedPacket("neither labels nor a layout id")
-        if layouts is None or lid not in layouts:
+        known = None
+        if layouts is not None:
+            known = layouts.get_labels(lid) if isinstance(layouts, LayoutTable) else layouts.get(lid)
+        if known is None:
             raise UnknownLayout(f"layout id {lid!r} was never announced with its labels")
-        labels = layouts[lid]
+        labels = known
     else:
         if not isinstance(labels, list) or not all(isinstance(s, str) for s in labels):
             raise MalformedPacket("labels is not a list of strings")
         if len(labels) > MAX_MARKERS:
             raise MalformedPacket(f"{len(labels)} labels is more than {MAX_MARKERS}")
+        if any(len(s) > MAX_LABEL_CHARS for s in labels):
+            raise MalformedPacket(f"a label is longer than {MAX_LABEL_CHARS} characters")
         if len(set(labels)) != len(labels):
             seen: set[str] = set()
             dup = next(s for s in labels if s in seen or seen.add(s))
             raise DuplicateLabel(f"label {dup!r} appears twice")
-        if lid is not None and layouts is not None:
-            layouts[lid] = list(labels)
+        if lid is not None:
+            if lid != layout_id(labels):
+                raise LayoutMismatch(f"layout id {lid!r} is not the id of the labels sent with it "
+                                     f"({layout_id(labels)!r})")
+            if isinstance(layouts, LayoutTable):
+                layouts.learn(lid, layouts.get(lid) or list(labels))
+            elif layouts is not None:
+                layouts[lid] = list(labels)
     n = len(labels)
     pos = msg.get("positions")
     val = msg.get("valid", None)
@@ -204,6 +252,10 @@ def encode_weights(result, names_id: str) -> bytes:
         "head_translation": [float(x) for x in result.head_translation],
         "residual": float(result.residual), "solve_time": float(result.solve_time),
     }
+    if result.valid is not None:
+        msg["markers"], msg["valid"] = int(len(result.valid)), int(np.count_nonzero(result.valid))
+    if result.at_bound is not None:
+        msg["at_bound"] = np.asarray(result.at_bound, dtype=np.int8).tobytes()
     return msgpack.packb(msg, use_bin_type=True)
 
 
@@ -217,6 +269,9 @@ class WeightsPacket:
     head_translation: np.ndarray  # 3 mm
     residual: float
     solve_time: float
+    valid: int | None = None  # markers seen this frame (of ``markers``)
+    markers: int | None = None
+    at_bound: np.ndarray | None = None  # m int8: -1 at the lower limit, +1 at the upper, 0 inside
 
 
 def decode_payload(payload: bytes):
@@ -238,4 +293,16 @@ def decode_payload(payload: bytes):
     return WeightsPacket(int(_number(msg, "frame", int)), float(_number(msg, "timestamp", float)),
                          str(msg.get("names_id")), np.frombuffer(w, dtype="<f4").astype(np.float64),
                          np.asarray(rot, dtype=float), np.asarray(tr, dtype=float),
-                         float(msg.get("residual", 0.0)), float(msg.get("solve_time", 0.0)))
+                         float(msg.get("residual", 0.0)), float(msg.get("solve_time", 0.0)),
+                         *_quality(msg, len(w) // 4))
+
+
+def _quality(msg: dict, m: int) -> tuple[int | None, int | None, np.ndarray | None]:
+    """The optional solve-quality keys (valid, markers, at_bound); absent ones are None."""
+    counts = [msg.get(k) for k in ("valid", "markers")]
+    if any(c is not None and (not isinstance(c, int) or c < 0) for c in counts):
+        raise MalformedPacket("valid / markers are not counts")
+    b = msg.get("at_bound")
+    if b is not None and (not isinstance(b, bytes) or len(b) != m):
+        raise MalformedPacket("at_bound is not one int8 per weight")
+    return counts[0], counts[1], None if b is None else np.frombuffer(b, dtype=np.int8).copy()

@@ -4,11 +4,12 @@ An XPUB socket, so the sink sees each subscriber join and re-sends the shape-nam
 it at once (and every ``header_every`` seconds for anyone who missed it). Sends never block
 the solver:
 
-* ``policy="count"`` (default): XPUB_NODROP + non-blocking sends. When a subscriber's queue
-  (send high-water mark) is full the frame is not sent and :attr:`drops` counts it. Caveat of
+* ``policy="fair"`` (default): plain PUB semantics; libzmq drops frames only for the slow
+  subscriber, silently (nothing to count), and the others keep receiving every frame. The
+  default because one dead or slow client must never cost another anything (issue 17).
+* ``policy="count"``: XPUB_NODROP + non-blocking sends. When a subscriber's queue (send
+  high-water mark) is full the frame is not sent and :attr:`drops` counts it. Caveat of
   ZeroMQ's fan-out: while one subscriber is stuck, every subscriber misses those frames.
-* ``policy="fair"``: plain PUB semantics; libzmq drops frames only for the slow subscriber,
-  silently (nothing to count), and the others keep receiving every frame.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from transport.wire import encode_header, encode_weights, layout_id, topic
 
 
 class ZmqSink:
-    def __init__(self, address: str, actor: str = "actor", hwm: int = 100, policy: str = "count",
+    def __init__(self, address: str, actor: str = "actor", hwm: int = 100, policy: str = "fair",
                  header_every: float = 1.0, curve: Curve | None = None, bind: bool = True,
                  rate: float | None = None, sndbuf: int | None = None, context: zmq.Context | None = None) -> None:
         if policy not in ("count", "fair"):

@@ -16,29 +16,37 @@ import zmq
 from livecap.core.take import MarkerFrame
 from transport.badinput import BadInput, FrameOrder, LabelMap
 from transport.security import Curve
-from transport.wire import WireError, decode_markers, layout_id, topic
+from transport.wire import MAX_MESSAGE_BYTES, LayoutTable, WireError, decode_markers, layout_id, topic
+
+DRAIN = 1000  # messages decoded per look before the loop checks stop and idle time
 
 
 class ZmqSource:
     def __init__(self, address: str, labels: list[str], actor: str = "actor", bind: bool = False,
-                 curve: Curve | None = None, idle_timeout: float | None = None, poll_ms: int = 100,
+                 curve: Curve | None = None, idle_timeout: float | None = None,
+                 first_frame_timeout: float | None = None, poll_ms: int = 100,
                  context: zmq.Context | None = None) -> None:
         self.address = address
         self.labels = list(labels)
         self.topic = topic("markers", actor)
         self.bad = BadInput(f"zmq {address}")
         self.idle_timeout = idle_timeout
+        # senders usually start after the driver: waiting for the first frame gets its own limit
+        self.first_frame_timeout = first_frame_timeout
         self.poll_ms = poll_ms
         self.last_decode_seconds = 0.0
         self.received = 0
         self._map = LabelMap(self.labels)
         self._order = FrameOrder()
-        self._layouts = {layout_id(self.labels): self.labels}
+        self._layouts = LayoutTable()
+        self._layouts.learn(layout_id(self.labels), self.labels)
         self._running = True
+        self._ahead: MarkerFrame | None = None
         self._ctx = context or zmq.Context.instance()
         self.sock = self._ctx.socket(zmq.SUB)
         self.sock.setsockopt(zmq.LINGER, 0)
         self.sock.setsockopt(zmq.RCVHWM, 10000)
+        self.sock.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES + 4096)  # libzmq drops the peer that sends more
         if curve is not None:
             curve.apply(self.sock, server=bind)
         self.sock.setsockopt(zmq.SUBSCRIBE, self.topic)
@@ -48,8 +56,27 @@ class ZmqSource:
             self.sock.connect(address)
 
     def pending(self) -> bool:
-        """True when another message is already waiting (the pipeline then skips a stale frame)."""
-        return bool(self.sock.getsockopt(zmq.EVENTS) & zmq.POLLIN)
+        """True when another *valid* frame is already waiting (the pipeline then skips a stale
+        frame). Garbage in the queue is decoded and counted here, so it never makes a real frame
+        look stale."""
+        if self._ahead is None:
+            self._ahead = self._next()
+        return self._ahead is not None
+
+    def _next(self) -> MarkerFrame | None:
+        """The next good frame already received, or None (after at most ``DRAIN`` messages)."""
+        t0 = time.perf_counter()
+        for _ in range(DRAIN):
+            try:
+                parts = self.sock.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                return None
+            self.received += 1
+            frame = self.decode(parts)
+            if frame is not None:
+                self.last_decode_seconds = time.perf_counter() - t0
+                return frame
+        return None
 
     def stop(self) -> None:
         self._running = False
@@ -74,30 +101,24 @@ class ZmqSource:
         except KeyError as exc:
             self.bad.skip("unknown_label", str(exc.args[0]))
             return None
-        order = self._order.check(frame.frame)
-        if order:
-            self.bad.skip(order, f"frame {frame.frame} after {self._order.last}")
+        if not self.bad.in_order(self._order, frame.frame, frame.timestamp):
             return None
         return frame
 
     def __iter__(self) -> Iterator[MarkerFrame]:
-        last_good = None
+        last_good = time.monotonic()  # no frame at all ends the session after first_frame_timeout
+        limit = self.first_frame_timeout if self.first_frame_timeout is not None else self.idle_timeout
         poller = zmq.Poller()
         poller.register(self.sock, zmq.POLLIN)
         while self._running:
-            if not poller.poll(self.poll_ms):
-                if self.idle_timeout and last_good is not None and time.monotonic() - last_good > self.idle_timeout:
-                    return
+            frame, self._ahead = self._ahead, None
+            if frame is None:
+                frame = self._next()
+            if frame is not None:
+                last_good = time.monotonic()
+                limit = self.idle_timeout
+                yield frame
                 continue
-            while self._running:
-                try:
-                    parts = self.sock.recv_multipart(zmq.NOBLOCK)
-                except zmq.Again:
-                    break
-                t0 = time.perf_counter()
-                self.received += 1
-                frame = self.decode(parts)
-                self.last_decode_seconds = time.perf_counter() - t0
-                if frame is not None:
-                    last_good = time.monotonic()
-                    yield frame
+            if limit and time.monotonic() - last_good > limit:
+                return  # checked outside the poll: a flood of garbage does not keep a dead session alive
+            poller.poll(self.poll_ms)

@@ -12,7 +12,9 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -84,11 +86,38 @@ class Profile:
             names = [str(s) for s in z["names"]]
             warp = ProportionWarp.from_arrays(z, "warp_") if "warp_centres" in z else None
             mrig = _rig_from_arrays(z, "mr_", names) if "mr_neutral" in z else None
-            return cls([str(s) for s in z["labels"]], names, z["source_neutral"],
-                       z["stable"], z["basis"], z["lower"], z["upper"], z["target_sites"],
-                       json.loads(str(z["settings"])), warp, mrig)
-        except (OSError, KeyError, ValueError) as exc:
+            profile = cls([str(s) for s in z["labels"]], names, z["source_neutral"],
+                          z["stable"], z["basis"], z["lower"], z["upper"], z["target_sites"],
+                          json.loads(str(z["settings"])), warp, mrig)
+        except (OSError, KeyError, ValueError, TypeError, EOFError, zipfile.BadZipFile) as exc:
             raise CalibrationError(f"{path}: not a livecap profile ({exc})") from None
+        profile.check(str(path))
+        return profile
+
+    def check(self, where: str = "profile") -> None:
+        """Refuse a profile a session could only solve badly with: shapes that do not match,
+        NaN/inf in the basis or neutral (every weight would be NaN and nothing published)."""
+        n, m = len(self.labels), len(self.names)
+        if n == 0 or m == 0:
+            raise CalibrationError(f"{where}: profile has {n} markers and {m} shapes")
+        if len(set(self.labels)) != n:
+            raise CalibrationError(f"{where}: profile has duplicate marker labels")
+        if np.shape(self.basis) != (3 * n, m) or np.shape(self.source_neutral) != (n, 3):
+            raise CalibrationError(f"{where}: profile basis {np.shape(self.basis)} / neutral "
+                                   f"{np.shape(self.source_neutral)} do not fit {n} markers and {m} shapes")
+        for name in ("basis", "source_neutral", "target_sites", "lower", "upper"):
+            if not np.isfinite(np.asarray(getattr(self, name), dtype=float)).all():
+                raise CalibrationError(f"{where}: profile {name} holds NaN or infinite values")
+        if int(np.count_nonzero(self.stable)) < 3:
+            raise CalibrationError(f"{where}: profile has fewer than 3 stable markers (head motion cannot be removed)")
+
+
+def rig_fingerprint(rig: Rig) -> str:
+    """A short id of a rig's shape names and neutral mesh (to 0.01 mm): a profile stores the id
+    of the rig it was calibrated against, so ``livecap run --rig`` can refuse another rig's profile."""
+    h = hashlib.sha1("\n".join(rig.names).encode())
+    h.update(np.round(np.asarray(rig.neutral, dtype=np.float64), 2).astype("<f8").tobytes())
+    return h.hexdigest()[:16]
 
 
 def _rig_arrays(rig: Rig, p: str) -> dict[str, np.ndarray]:
@@ -142,7 +171,9 @@ def neutral_from_frames(positions: np.ndarray, valid: np.ndarray, stable: np.nda
     counts = val.sum(0)
     if (counts == 0).any():
         missing = [labels[i] if labels else str(i) for i in np.flatnonzero(counts == 0)]
-        raise CalibrationError(f"markers never seen in the neutral span: {missing[:8]}")
+        hint = " (none was seen: wrong take or marker labels?)" if len(missing) == len(counts) else ""
+        raise CalibrationError(f"{len(missing)} of {len(counts)} markers never seen in the neutral span: "
+                               f"{missing[:8]}{hint}")
     n = pos.shape[1]
     first = int(np.argmax(val[:, stable].sum(1) * (n + 1) + val.sum(1)))
     ref, ref_valid = np.where(val[first][:, None], pos[first], 0.0), val[first]
@@ -234,6 +265,7 @@ def calibrate(rig: Rig, layout: MarkerLayout, neutral: np.ndarray, settings: dic
     mrig = warp_rig(sites_rig, d)
     basis = mrig.deltas.reshape(rig.n_shapes, -1).T.copy()
     fit_mm = float(np.sqrt(np.mean(np.sum((mrig.neutral - neutral_rig) ** 2, axis=1))))
-    info = {"warp": warp, "scale": d.mean_scale, "warp_fit_rms_mm": fit_mm, "frame": "rig", "smoothing": smoothing}
+    info = {"warp": warp, "scale": d.mean_scale, "warp_fit_rms_mm": fit_mm, "frame": "rig", "smoothing": smoothing,
+            "rig_fingerprint": rig_fingerprint(rig)}
     return Profile(list(layout.labels), list(rig.names), neutral_rig, layout.stable.copy(), basis,
                    rig.lower.copy(), rig.upper.copy(), sites, {**info, **(settings or {})}, d, mrig)

@@ -25,6 +25,12 @@ COMMANDS = [
     "noise_study",
     "calibrate",
     "rig",
+    "batch",
+    "export",
+    "recover",
+    "review",
+    "pose",
+    "realeval",
     "label",
 ]
 

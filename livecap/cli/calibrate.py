@@ -31,7 +31,8 @@ def register(sub) -> None:
                    help="offline head-pose smoothing window in seconds (default "
                         f"{DEFAULT_POSE_SMOOTHING_SECONDS}; 0 = off)")
     p.add_argument("--tune", metavar="TAKE", help="a take of the actor performing (e.g. a range-of-motion take): "
-                   "select the noise level and regularisation from it and store them in the profile")
+                   "select the noise level and regularisation from it and store them in the profile "
+                   "(default: from the neutral take)")
     p.add_argument("--plain-stabilise", action="store_true", help="plain Kabsch instead of the robust fit")
     p.set_defaults(func=run_calibrate)
 
@@ -60,17 +61,21 @@ def run_calibrate(args: argparse.Namespace) -> int:
     sel = take.select(layout.labels)
     absent = [lab for lab, seen in zip(layout.labels, sel.valid.any(0), strict=True) if not seen]
     if absent:
-        raise ValueError(f"{args.neutral}: markers of {args.rig} never seen in the neutral take: {absent[:8]}")
+        shared = len(set(take.labels) & set(layout.labels))
+        hint = f"; the take shares only {shared} of {layout.n_markers} labels: wrong take?" \
+            if shared < layout.n_markers / 2 else ""
+        raise ValueError(f"{args.neutral}: {len(absent)} markers of {args.rig} never seen in the neutral take: "
+                         f"{absent[:8]}{hint}")
     frames = max(1, int(round(args.seconds * take.rate))) if args.seconds else None
     neutral = estimate_neutral(sel, layout.stable, frames)
     settings = {"max_gap_seconds": args.max_gap, "robust_stabilise": not args.plain_stabilise,
                 "pose_smoothing_seconds": args.pose_smoothing,
                 "neutral_take": str(args.neutral), "neutral_frames": frames or take.n_frames}
     profile = calibrate(rig, layout, neutral, settings, warp=args.warp, smoothing=args.smoothing)
-    if args.tune:
-        tuned = tune_on_take(profile, read_take(args.tune))
-        print(f"tuned     on {args.tune}: noise {tuned['noise_mm']:.3f} mm, ridge {tuned['ridge']:.3g} "
-              f"({tuned['criterion']})")
+    tune_path = args.tune or args.neutral  # every profile carries the noise estimate every mode needs
+    tuned = tune_on_take(profile, read_take(args.tune) if args.tune else take)
+    print(f"tuned     on {tune_path}: noise {tuned['noise_mm']:.3f} mm, ridge {tuned['ridge']:.3g} "
+          f"({tuned['criterion']})")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     profile.save(args.out)
     local, _, _ = profile.stabiliser().stabilise(sel.positions[:frames], sel.valid[:frames])

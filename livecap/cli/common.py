@@ -79,11 +79,13 @@ def solver_options(args: argparse.Namespace) -> dict:
 
 @contextmanager
 def progress_bar(description: str, total: int):
-    """A rich progress bar; yields ``update(done, total)``."""
+    """A rich progress bar on stderr, only on a terminal (piped output stays clean); yields ``update(done, total)``."""
+    from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
+    console = Console(stderr=True)
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                  TimeRemainingColumn(), transient=True) as prog:
+                  TimeRemainingColumn(), transient=True, console=console, disable=not console.is_terminal) as prog:
         task = prog.add_task(description, total=total)
 
         def update(done: int, total_: int) -> None:

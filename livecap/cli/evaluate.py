@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import logging
 import tempfile
 import time
 from pathlib import Path
@@ -20,7 +21,14 @@ from livecap.cli.common import add_calibration_arguments, load_rig, profile_for,
 from livecap.demo import DEMO_RIG, DEMO_TAKE, truth_path
 from livecap.demo.performance import GroundTruth, PerformanceSettings
 from livecap.modes.registry import MODES, build_solver
-from livecap.offline.metrics import jitter, vertex_error, weight_rmse
+from livecap.offline.metrics import (
+    jitter,
+    peak_retention,
+    shape_bias,
+    shape_indices,
+    vertex_error_stats,
+    weight_rmse,
+)
 from livecap.offline.solve import prepare_targets
 from transport.takefile import read_take
 
@@ -77,6 +85,19 @@ def evaluate_mode(solver, targets: np.ndarray, valid: np.ndarray, progress=None)
     return W, times
 
 
+def _ratio(x: float) -> str:
+    return f"{'-':>5s}" if np.isnan(x) else f"{x:5.2f}"
+
+
+def _print_bias(table: list[dict], top: int = 3) -> None:
+    """Per mode, the shapes with the largest mean signed error (positive: over-driven)."""
+    print("largest per-shape bias (mean solved - true weight):")
+    for row in table:
+        if "bias" in row:
+            worst = sorted(row["bias"].items(), key=lambda kv: -abs(kv[1]))[:top]
+            print(f"  {row['mode']:18s} " + "  ".join(f"{n} {b:+.3f}" for n, b in worst))
+
+
 def run(args: argparse.Namespace) -> int:
     demo = args.take is None
     take_path = Path(args.take) if args.take else RECORDINGS / DEMO_TAKE
@@ -93,8 +114,8 @@ def run(args: argparse.Namespace) -> int:
         take = take.slice(0, args.frames)
     W_true = truth.weights[: take.n_frames]
     profile = profile_for(args, rig, layout, take)
-    _, targets, _, _ = prepare_targets(take, profile)
-    valid = take.select(profile.labels).valid
+    sel, targets, _, _ = prepare_targets(take, profile)
+    valid = sel.valid  # the gap-filled mask, exactly what `livecap solve` hands the solver
     options: dict = {}
     keys_path = args.keys or (_demo_keys(rig, layout) if demo else None)
     if keys_path:
@@ -110,27 +131,40 @@ def run(args: argparse.Namespace) -> int:
     print(f"take {take_path.name}: {take.n_frames} frames at {take.rate:g} Hz, {take.n_markers} markers, "
           f"{(~take.valid).mean() * 100:.1f}% missing; rig {rig.n_shapes} shapes, {rig.n_vertices} vertices"
           + (f"; keys {Path(keys_path).name} ({len(options['keys'].names)} keys)" if keys_path else ""))
-    header = f"{'mode':18s} {'weight RMSE':>11s} {'vertex mm':>9s} {'max mm':>8s} {'jitter x':>8s} " \
-             f"{'ms/frame':>9s} {'p99 ms':>8s}"
+    header = f"{'mode':18s} {'weight RMSE':>11s} {'vertex mm':>9s} {'p95 mm':>7s} {'max mm':>7s} {'jitter x':>8s} " \
+             f"{'blink':>5s} {'jaw':>5s} {'ms/frame':>8s} {'p99 ms':>7s}"
     print(header)
     table = []
+    blinks, jaws = shape_indices(rig.names, "blink"), shape_indices(rig.names, "jawopen")
+    quiet = logging.getLogger("livecap.modes")
     for label, mode, extra in rows:
+        level, quiet.level = quiet.level, logging.WARNING  # mode build notes would break the table
         try:
             solver = build_solver(mode, profile, {**options, **extra})
         except (ValueError, OSError, KeyError) as exc:
             print(f"{label:18s} unavailable: {exc}")
             table.append({"mode": label, "error": str(exc)})
             continue
+        finally:
+            quiet.setLevel(level)
         with progress_bar(f"{label}", take.n_frames) as update:
             W, times = evaluate_mode(solver, targets, valid, update)
-        mean_mm, max_mm = vertex_error(rig, W, W_true)
-        row = {"mode": label, "weight_rmse": weight_rmse(W, W_true), "vertex_mm": mean_mm, "vertex_max_mm": max_mm,
-               "jitter_ratio": jitter(W) / truth_jitter, "ms_per_frame": float(np.mean(times)) * 1e3,
+        vert = vertex_error_stats(rig, W, W_true)
+        bias = shape_bias(W, W_true)
+        row = {"mode": label, "weight_rmse": weight_rmse(W, W_true), "vertex_mm": vert["mean"],
+               "vertex_p95_mm": vert["p95"], "vertex_max_mm": vert["max"], "jitter_ratio": jitter(W) / truth_jitter,
+               "blink_peak": peak_retention(W, W_true, blinks), "jaw_peak": peak_retention(W, W_true, jaws),
+               "bias": dict(zip(rig.names, bias.tolist(), strict=True)),
+               "ms_per_frame": float(np.mean(times)) * 1e3,
                "p99_ms": float(np.percentile(times, 99)) * 1e3 if len(times) > 1 else None}
         table.append(row)
-        p99 = f"{row['p99_ms']:8.3f}" if row["p99_ms"] is not None else f"{'-':>8s}"
-        print(f"{label:18s} {row['weight_rmse']:11.4f} {mean_mm:9.3f} {max_mm:8.3f} {row['jitter_ratio']:8.2f} "
-              f"{row['ms_per_frame']:9.3f} {p99}")
+        p99 = f"{row['p99_ms']:7.3f}" if row["p99_ms"] is not None else f"{'-':>7s}"
+        print(f"{label:18s} {row['weight_rmse']:11.4f} {vert['mean']:9.3f} {vert['p95']:7.3f} {vert['max']:7.3f} "
+              f"{row['jitter_ratio']:8.2f} {_ratio(row['blink_peak'])} {_ratio(row['jaw_peak'])} "
+              f"{row['ms_per_frame']:8.3f} {p99}")
+    _print_bias(table)
+    print("(vertex p95: 95th percentile over frames of each frame's worst vertex; blink / jaw: solved peak over "
+          "true peak, mean over true peaks >= half the largest; bias: mean solved - true weight)")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"take": str(take_path), "frames": take.n_frames, "rows": table},

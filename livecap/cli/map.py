@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 import numpy as np
 
@@ -19,7 +20,10 @@ def register(sub) -> None:
     p.add_argument("--config", help="mapping config (.toml or .json): per-channel source, gain, offset, clamp")
     p.add_argument("--pairs", nargs=2, metavar=("SOURCE_POSES", "TARGET_POSES"),
                    help="two weights CSVs whose rows are corresponding poses: fit E (v = E w) and apply it")
-    p.add_argument("--ridge", type=float, default=0.0, help="ridge for the cloning fit (fewer pairs than shapes)")
+    p.add_argument("--ridge", type=float, default=0.0,
+                   help="ridge for the cloning fit, needed with fewer pairs than shapes (default 0)")
+    p.add_argument("--allow-unmatched", action="store_true",
+                   help="write the output even when most target channels have no source (default: error)")
     p.set_defaults(func=run)
 
 
@@ -44,8 +48,23 @@ def run(args: argparse.Namespace) -> int:
             out_names = list(names)
         cmap = by_name(names, out_names, load_config(args.config) if args.config else None)
         V = cmap.apply(W)
-        if cmap.unmapped:
-            print(f"target channels with no source ({len(cmap.unmapped)}): {', '.join(cmap.unmapped)}")
+        report_unmatched(cmap, args)
     write_weights_csv(args.out, out_names, V, rate)
     print(f"{args.out}: {len(V)} frames x {len(out_names)} channels")
     return 0
+
+
+def report_unmatched(cmap, args: argparse.Namespace) -> None:
+    """Say which channels found no partner; most target channels unmatched is an error unless allowed."""
+    n, k = len(cmap.unmapped), len(cmap.target_names)
+    print(f"matched {k - n} of {k} target channels by name")
+    if cmap.unmapped:
+        print(f"target channels with no source ({n}, stay 0): {', '.join(cmap.unmapped)}")
+    if cmap.unused:
+        print(f"source channels not used ({len(cmap.unused)}): {', '.join(cmap.unused)}")
+    if 2 * n > k:
+        msg = (f"{args.weights}: {n} of {k} target channels have no source channel; name their sources in a "
+               "--config mapping (docs/modes.md, 'Mapping between rigs')")
+        if not args.allow_unmatched:
+            raise ValueError(msg + " or pass --allow-unmatched")
+        print(f"warning: {msg}", file=sys.stderr)

@@ -4,20 +4,22 @@ from __future__ import annotations
 
 import argparse
 
+from livecap.modes.movement import MovementSettings as D
+from livecap.modes.robust import RobustSettings
 from transport.weights_csv import read_weights_csv
 
 
 def add_movement_arguments(p: argparse.ArgumentParser, stream: bool = True) -> None:
     g = p.add_argument_group("movement matching (--mode movement, Seol et al. 2012)")
-    g.add_argument("--alpha", type=float, help="weight of the PCA prior (default 1.0; 0 disables it)")
-    g.add_argument("--beta", type=float, help="weight of the position (Sobolev) term (default 0.1)")
+    g.add_argument("--alpha", type=float, help=f"weight of the PCA prior (default {D.alpha}; 0 disables it)")
+    g.add_argument("--beta", type=float, help=f"weight of the position (Sobolev) term (default {D.beta})")
     g.add_argument("--prior", help="prior training data: 'shapes' (default: the rig's shapes and the neutral), "
                    "'none', or a weights CSV of plausible target animation")
     g.add_argument("--prior-threshold", type=float, help="drop PCA eigenvalues below this fraction of the "
-                   "largest (default 1e-6)")
+                   f"largest (default {D.prior_threshold:g})")
     g.add_argument("--start", choices=["neutral", "free", "fit"], help="boundary at the first frame "
-                   "(default neutral)")
-    g.add_argument("--end", choices=["neutral", "free", "fit"], help="boundary at the last frame (default neutral)")
+                   f"(default {D.start})")
+    g.add_argument("--end", choices=["neutral", "free", "fit"], help=f"boundary at the last frame (default {D.end})")
     g.add_argument("--missing", choices=["fill", "exact"], help="missing markers offline: fill gaps from the "
                    "rig's fit (default, fast) or drop their rows exactly (slower)")
     g.add_argument("--limits", choices=["none", "clip", "bound"], help="rig weight limits: offline 'bound' "
@@ -26,18 +28,19 @@ def add_movement_arguments(p: argparse.ArgumentParser, stream: bool = True) -> N
     g.add_argument("--plain", action="store_true", help="offline: the plain Seol solve even on a profile with a "
                    "noise estimate (default there: the noise-robust solve, docs/robustness.md)")
     g.add_argument("--trend", type=float, help="noise-robust offline solve: l1 trend filter penalty on the weight "
-                   "curves, in weight-noise sds per shape (default 10; 0 turns it off; docs/robustness.md)")
+                   f"curves, in weight-noise sds per shape (default {RobustSettings.trend:g}; 0 turns it off; "
+                   "docs/robustness.md)")
     g.add_argument("--marker-weight", action="append", metavar="LABEL=W", default=[],
                    help="per-marker weight of the position term (glob patterns allowed; repeatable)")
     if stream:
         g.add_argument("--stream", action="store_true", help="run the take through the sliding-window "
                        "streaming solver instead of the offline solve")
-        g.add_argument("--window", type=int, help="streaming window K in frames (default 24)")
-        g.add_argument("--lookahead", type=int, help="streaming lookahead L < K in frames (default 0)")
+        g.add_argument("--window", type=int, help=f"streaming window K in frames (default {D.window})")
+        g.add_argument("--lookahead", type=int, help=f"streaming lookahead L < K in frames (default {D.lookahead})")
 
 
 def movement_options(args: argparse.Namespace) -> dict:
-    """Options for livecap.modes.registry' movement factory; unset flags fall back to its defaults."""
+    """Options for the movement factory (livecap.modes.movement); unset flags keep MovementSettings' defaults."""
     opts = {k: getattr(args, k, None) for k in ("alpha", "beta", "prior_threshold", "start", "end", "missing",
                                                 "limits", "window", "lookahead", "trend")}
     if getattr(args, "stream", False):

@@ -32,7 +32,7 @@ from livecap.modes.robust import (
     sparse_fit,
     tune_profile,
 )
-from livecap.offline.metrics import jitter, vertex_error, weight_rmse
+from livecap.offline.metrics import jitter, peak_retention, shape_indices, vertex_error, weight_rmse
 from livecap.offline.solve import prepare_targets
 from solvers.filters import FilteredSolver, OneEuroFilter
 from solvers.sparse_fit import SPARSE_GRID
@@ -44,8 +44,8 @@ def register(sub) -> None:
     add_rig_arguments(p)
     p.add_argument("--noise-mm", type=float, default=0.5, help="marker noise sigma in mm (default 0.5)")
     p.add_argument("--occlusion", type=float, default=0.05, help="fraction of marker-frames missing (default 0.05)")
-    p.add_argument("--seconds", type=float, default=20.0)
-    p.add_argument("--rate", type=float, default=120.0)
+    p.add_argument("--seconds", type=float, default=20.0, help="length of the generated take (default 20)")
+    p.add_argument("--rate", type=float, default=120.0, help="frame rate of the generated take in Hz (default 120)")
     p.add_argument("--seed", type=int, default=1, help="performance seed (curves, head motion, noise)")
     p.add_argument("--modes", nargs="*", help="only these modes (default: all registered, + filtered variants)")
     p.add_argument("--no-sweep", action="store_true", help="skip the ridge sweep and the jitter/lag/blink trade-off")
@@ -76,20 +76,18 @@ def lag_frames(solved: np.ndarray, truth: np.ndarray, max_lag: int = 30) -> floa
     return float(lags[i] + off)
 
 
+def percent(ratio: float) -> str:
+    """A peak ratio as a percentage; "n/a" when the take has no true peak to compare with."""
+    return "n/a" if np.isnan(ratio) else f"{ratio * 100:.0f}%"
+
+
 def blink_indices(names: list[str]) -> list[int]:
-    return [i for i, n in enumerate(names) if "blink" in n.lower()]
+    return shape_indices(names, "blink")
 
 
 def blink_amplitude(solved: np.ndarray, truth: np.ndarray, names: list[str], window: int = 6) -> float:
     """Mean ratio of the solved peak (within +-window frames) to the true eyeBlink peak (peaks >= 0.5)."""
-    from scipy.signal import find_peaks
-
-    ratios = []
-    for k in blink_indices(names):
-        peaks, _ = find_peaks(truth[:, k], height=0.5, distance=10)
-        for p in peaks:
-            ratios.append(solved[max(0, p - window):p + window + 1, k].max() / truth[p, k])
-    return float(np.mean(ratios)) if ratios else float("nan")
+    return peak_retention(solved, truth, blink_indices(names), 0.5, window)
 
 
 @dataclass
@@ -105,7 +103,7 @@ class Row:
 
     def line(self) -> str:
         return (f"{self.mode:22s} {self.kind:10s} {self.rmse:8.4f} {self.vertex_mm:8.3f} {self.jitter_ratio:9.2f} "
-                f"{self.lag:7.2f} {self.blink:6.2f} {self.ms_per_frame:7.3f}")
+                f"{self.lag:7.2f} {percent(self.blink):>6s} {self.ms_per_frame:7.3f}")
 
 
 HEADER = (f"{'mode':22s} {'kind':10s} {'RMSE':>8s} {'vert mm':>8s} {'jitter x':>9s} {'lag fr':>7s} "
@@ -197,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
               "(1€ min_cutoff Hz, beta; IMM move-model acceleration sd /s^2):")
         for r in trade:
             print(f"  {r['filter']:22s} jitter {r['jitter_ratio']:7.2f} x  lag {r['lag']:5.2f} fr  "
-                  f"blink {r['blink'] * 100:4.0f}%  RMSE {r['rmse']:.4f}")
+                  f"blink {percent(r['blink']):>4s}  RMSE {r['rmse']:.4f}")
     if args.plot:
         plot(args.plot, rig.names, truth, curves, take.rate)
         print(f"plot: {args.plot}")
@@ -219,7 +217,7 @@ def summarise(rows: list[Row]) -> dict:
         out.update(baseline=base.mode, best_streaming=best.mode, rmse_ratio=best.rmse / base.rmse)
         out["lines"].append(
             f"best streaming (lag <= 1 frame): {best.mode}: RMSE {best.rmse:.4f} = {best.rmse / base.rmse:.2f} x lsq; "
-            f"jitter {best.jitter_ratio:.2f} x truth; lag {best.lag:.2f} frames; blinks {best.blink * 100:.0f}%")
+            f"jitter {best.jitter_ratio:.2f} x truth; lag {best.lag:.2f} frames; blinks {percent(best.blink)}")
     smooth = [r for r in rows if r.kind == "streaming" and r.jitter_ratio <= 1.5]
     if smooth:
         r = min(smooth, key=lambda r: r.lag)
@@ -253,7 +251,7 @@ def tradeoff(profile, targets, valid, truth, names, rate: float, truth_jitter: f
     ('move' model acceleration sd, weight units / s^2): how far jitter falls for how much lag and
     blink amplitude (the causal marker filter and sparse fit run once; the filters after)."""
     s = robust_settings(profile, {"rate": rate})
-    markers = marker_filter(rate, float(s["marker_window"]))
+    markers = marker_filter(rate, float(s.marker_window))
     fit = FilteredSolver(sparse_fit(profile, {"rate": rate}, markers.noise_gain), marker_filter=markers)
     W0, _ = run_solver(fit, targets, valid, True)
     out = []

@@ -13,12 +13,14 @@ import sys
 from pathlib import Path
 
 from livecap.calibration.profile import Profile, calibrate, estimate_neutral
-from livecap.cli.common import load_rig
+from livecap.cli.common import load_rig, tune_on_take
+from livecap.live.checks import check_overlap, check_profile_rig
 from livecap.live.pipeline import Pipeline
 from livecap.live.session import load_session
 from livecap.modes.registry import DEFAULT_MODE, MODES
 
 _PARSER: argparse.ArgumentParser | None = None
+FIRST_FRAME_GRACE = 10.0  # seconds a session with --idle-timeout waits for its first frame by default
 
 
 def register(sub) -> None:
@@ -44,6 +46,9 @@ def register(sub) -> None:
     src.add_argument("--rate", type=float, default=120.0, help="stream frame rate for network sources (default 120)")
     src.add_argument("--idle-timeout", type=float,
                      help="end the session after this many seconds without a frame (network sources)")
+    src.add_argument("--first-frame-timeout", type=float,
+                     help="end the session when no frame came this many seconds after start (default: with "
+                          "--idle-timeout, the larger of it and 10 s: senders often start after the driver)")
     src.add_argument("--skip-stale", action=argparse.BooleanOptionalAction, default=None,
                      help="when the solver falls behind, solve only the newest waiting frame and count the skipped "
                           "ones as stale, so latency stays bounded (default: on for --zmq-in/--osc-in, off for "
@@ -65,14 +70,23 @@ def register(sub) -> None:
     out = p.add_argument_group("sinks")
     out.add_argument("--zmq-out", help="ZeroMQ address to publish weights.<actor> on (binds; port 0 or * = any)")
     out.add_argument("--zmq-hwm", type=int, default=100, help="send high-water mark in messages (default 100)")
-    out.add_argument("--zmq-policy", default="count", choices=["count", "fair"],
-                     help="count: drop and count when a subscriber is full; fair: libzmq drops per subscriber")
+    out.add_argument("--zmq-policy", default="fair", choices=["count", "fair"],
+                     help="fair (default): libzmq drops only for a full subscriber, the others get every frame; "
+                          "count: drop for everyone and count it when any subscriber is full")
     out.add_argument("--header-every", type=float, default=1.0, help="re-send the shape names every S seconds")
     out.add_argument("--lsl-out", help="Lab Streaming Layer outlet name for weights and head pose")
     out.add_argument("--vmc", help="[HOST:]PORT to send VMC (OSC) to (VMC's port is 39539)")
-    out.add_argument("--vmc-arkit", action="store_true", help="send VMC shapes under ARKit names")
+    out.add_argument("--vmc-arkit", action="store_true", help="same as --vmc-perfect-sync")
+    out.add_argument("--vmc-perfect-sync", action="store_true",
+                     help="send VMC shapes under Perfect Sync names (the 52 ARKit shapes as EyeBlinkLeft, ...)")
+    out.add_argument("--vmc-vrm", type=int, choices=[0, 1],
+                     help="send VMC VRM expression presets (VRM 0.x: A, Blink_L, Joy...; 1.0: aa, blinkLeft, happy...)")
+    out.add_argument("--vrm-map", help="JSON table VRM 1.0 expression -> {ARKit term: coefficient} (docs/protocol.md)")
     out.add_argument("--livelink", help="[HOST:]PORT to send Live Link Face UDP to (Unreal's port is 11111)")
-    out.add_argument("--livelink-subject", default="livecap", help="Live Link subject name")
+    out.add_argument("--livelink-subject", help="Live Link subject name (default: --actor)")
+    out.add_argument("--timecode", default="clock",
+                     help="Live Link / CSV timecode: 'clock' (system time of day, default), HH:MM:SS:FF (start "
+                          "there) or 'take' (the take's own timestamps)")
     out.add_argument("--arkit-map", help="JSON mapping ARKit name -> rig shape name(s), for non-ARKit rigs")
     out.add_argument("--window", action="store_true", help="live preview window of the solve (needs a display and "
                      "--rig; drops frames, never slows the solver)")
@@ -123,11 +137,9 @@ def _apply_session(args: argparse.Namespace) -> dict:
 
 
 def _curve(args):
-    from transport.security import Curve
+    from transport.security import curve_from_flags
 
-    if not args.curve_secret:
-        return None
-    return Curve(args.curve_secret, args.curve_clients, args.curve_server)
+    return curve_from_flags(args.curve_secret, args.curve_clients, args.curve_server)
 
 
 def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
@@ -147,8 +159,9 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     if args.profile:
         profile = Profile.load(args.profile)
         labels = profile.labels
-        if want_window:
+        if want_window or args.rig:
             rig, layout = load_rig(args)
+            check_profile_rig(profile, rig, args.profile, args.rig)
     elif args.rig:
         rig, layout = load_rig(args)
         labels = list(layout.labels)
@@ -158,10 +171,21 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     described = []
     rate = args.rate
     if args.replay:
-        from transport.replay import ReplaySource
+        from transport.replay import ReplaySource, open_take
+        from transport.takefile import size_problem
 
-        source = ReplaySource.open(args.replay, None if args.unlabelled else labels, speed=args.speed,
-                                   fast=args.fast, loop=args.loop, start=args.start, end=args.end)
+        if args.unlabelled:
+            source = ReplaySource.open(args.replay, None, speed=args.speed,
+                                       fast=args.fast, loop=args.loop, start=args.start, end=args.end)
+        else:
+            take, frames, timestamps = open_take(args.replay)
+            stable = profile.stable if profile is not None else layout.stable
+            check_overlap(take.labels, labels, stable, args.replay, args.profile or args.rig)
+            problem = size_problem(take.select(labels))
+            if problem:
+                raise ValueError(f"{args.replay}: {problem}")
+            source = ReplaySource(take, labels, speed=args.speed, fast=args.fast, loop=args.loop, start=args.start,
+                                  end=args.end, frames=frames, timestamps=timestamps)
         rate = source.rate
         described.append(f"replay {args.replay}")
     elif args.zmq_in:
@@ -169,7 +193,7 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
 
         addr = zmq_address(args.zmq_in, args.interface)
         source = ZmqSource(addr, labels, args.actor, bind=args.zmq_in_bind, curve=curve,
-                           idle_timeout=args.idle_timeout)
+                           idle_timeout=args.idle_timeout, first_frame_timeout=_first_frame_timeout(args))
         described.append(f"zmq-in {addr}")
     elif args.lsl_in:
         from transport.lsl import LslMarkerSource
@@ -188,7 +212,8 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         from transport.osc_source import OscSource
 
         host, port = udp_address(args.osc_in, 0, args.interface)
-        source = OscSource(host, port, labels, idle_timeout=args.idle_timeout)
+        source = OscSource(host, port, labels, idle_timeout=args.idle_timeout,
+                           first_frame_timeout=_first_frame_timeout(args))
         described.append(f"osc-in {host}:{source.port}")
     if args.unlabelled:
         from livecap.live.unlabelled import LabelledSource
@@ -202,6 +227,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
 
         mapping = load_mapping(args.arkit_map)
     sinks: list = []
+    neutral_frames = max(1, int(round(args.neutral_seconds * rate)))
+    if args.timecode not in ("clock", "take"):
+        from livecap.core.timecode import parse_timecode
+
+        parse_timecode(args.timecode, rate)
     if args.zmq_out:
         from transport.zmq_sink import ZmqSink
 
@@ -219,18 +249,27 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         from transport.vmc import DEFAULT_PORT, VmcSink
 
         host, port = udp_address(args.vmc, DEFAULT_PORT, args.interface)
-        sinks.append(VmcSink(host, port, arkit=args.vmc_arkit, mapping=mapping, where=str(args.arkit_map)))
+        from transport.vrm import load_vrm_table
+
+        names = f"vrm{args.vmc_vrm}" if args.vmc_vrm is not None else (
+            "perfect-sync" if args.vmc_perfect_sync or args.vmc_arkit else "rig")
+        table = load_vrm_table(args.vrm_map) if args.vrm_map else None
+        sinks.append(VmcSink(host, port, mapping=mapping, where=str(args.arkit_map), names=names, vrm_table=table,
+                             neutral_frames=neutral_frames))
         described.append(f"vmc {host}:{port}")
     if args.livelink:
         from transport.livelink import DEFAULT_PORT, LiveLinkSink
 
         host, port = udp_address(args.livelink, DEFAULT_PORT, args.interface)
-        sinks.append(LiveLinkSink(host, port, args.livelink_subject, mapping, fps=rate, where=str(args.arkit_map)))
+        sinks.append(LiveLinkSink(host, port, args.livelink_subject or args.actor, mapping, fps=rate,
+                                  where=str(args.arkit_map), timecode=args.timecode, actor=args.actor,
+                                  neutral_frames=neutral_frames))
         described.append(f"livelink {host}:{port}")
     from transport.recorders import CsvRecorder, JsonlRecorder, MarkerRecorder
 
     if args.record_csv:
-        sinks.append(CsvRecorder(args.record_csv, rate, args.csv_layout, mapping, fsync=args.fsync))
+        sinks.append(CsvRecorder(args.record_csv, rate, args.csv_layout, mapping, fsync=args.fsync,
+                                 timecode=args.timecode, neutral_frames=neutral_frames))
         described.append(f"csv {args.record_csv}")
     if args.record_jsonl:
         sinks.append(JsonlRecorder(args.record_jsonl, fsync=args.fsync))
@@ -249,6 +288,7 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     if profile is None:
         def calibrator(take, rig=rig, layout=layout):
             calibrated = calibrate(rig, layout, estimate_neutral(take, layout.stable))
+            tune_on_take(calibrated, take)  # what every calibration path stores: the noise estimate
             if window is not None:  # the window shows the actor's markers from now on
                 window.set_profile(calibrated)
             return calibrated
@@ -260,6 +300,12 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
                         stats_every=args.stats_every,
                         skip_stale=(not args.replay) if args.skip_stale is None else args.skip_stale)
     return pipeline, described
+
+
+def _first_frame_timeout(args: argparse.Namespace) -> float | None:
+    if args.first_frame_timeout is not None:
+        return args.first_frame_timeout
+    return max(args.idle_timeout, FIRST_FRAME_GRACE) if args.idle_timeout else None
 
 
 def _window(args: argparse.Namespace, rig, layout, profile):
@@ -278,6 +324,8 @@ def _window(args: argparse.Namespace, rig, layout, profile):
 def run(args: argparse.Namespace) -> int:
     import signal
 
+    import zmq
+
     from viewer.errors import NoDisplay
 
     if hasattr(signal, "SIGUSR1"):  # a report request while sockets come up must not kill the session
@@ -287,6 +335,9 @@ def run(args: argparse.Namespace) -> int:
     except NoDisplay as exc:  # --window without a display: one line, exit 2 (a usage problem, not a bad file)
         print(f"livecap run: {exc}", file=sys.stderr)
         return 2
+    except zmq.ZMQError as exc:  # port in use, endpoint libzmq refuses: one line, no traceback
+        print(f"livecap run: error: ZeroMQ: {exc}", file=sys.stderr)
+        return 1
     pipeline.install_signal_handlers()
     print("ready: " + "; ".join(described), flush=True)
     pipeline.run()

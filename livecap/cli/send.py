@@ -75,20 +75,24 @@ def run(args: argparse.Namespace) -> int:
 def _zmq_sender(args, labels):
     import zmq
 
-    from transport.security import Curve, zmq_address
+    from transport.security import curve_from_flags, zmq_address
     from transport.wire import encode_markers, layout_id, topic
 
     ctx = zmq.Context.instance()
     sock = ctx.socket(zmq.XPUB)
     sock.setsockopt(zmq.SNDHWM, 100000)
-    if args.curve_secret:
-        Curve(args.curve_secret, args.curve_clients, args.curve_server).apply(sock, server=not args.connect)
+    curve = curve_from_flags(args.curve_secret, args.curve_clients, args.curve_server)
+    if curve is not None:
+        curve.apply(sock, server=not args.connect)
     addr = zmq_address(args.zmq, args.interface)
-    if args.connect:
-        sock.connect(addr)
-    else:
-        sock.bind(addr)
-        addr = sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    try:
+        if args.connect:
+            sock.connect(addr)
+        else:
+            sock.bind(addr)
+            addr = sock.getsockopt(zmq.LAST_ENDPOINT).decode()
+    except zmq.ZMQError as exc:  # port in use, an endpoint libzmq refuses: one line via the CLI
+        raise ValueError(f"--zmq {addr}: {exc}") from None
     print(f"ready: zmq {addr}", flush=True)
     tp = topic("markers", args.actor)
     if args.wait_subscriber > 0 and sock.poll(int(args.wait_subscriber * 1000), zmq.POLLIN):

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+import numpy as np
 
 from livecap.cli.common import (
     add_take_solve_arguments,
@@ -12,8 +15,12 @@ from livecap.cli.common import (
     solver_options,
 )
 from livecap.cli.movement_args import add_movement_arguments, movement_options
+from livecap.core.headpose import NeutralPose
+from livecap.core.rig import Rig
+from livecap.modes.per_frame import QPSettings
 from livecap.modes.registry import build_solver
-from livecap.offline.solve import solve_take
+from livecap.offline.solve import SolvedTake, solve_take
+from transport.gltf import write_glb
 from transport.takefile import read_take
 from transport.weights_csv import write_weights_csv
 
@@ -22,15 +29,22 @@ def register(sub) -> None:
     p = sub.add_parser("solve", help="solve a take (C3D/TRC/CSV) for rig weights, write a weights CSV",
                        description="Solve every frame of a recorded take for the rig's blendshape weights.")
     add_take_solve_arguments(p)
-    p.add_argument("--temporal", type=float, default=0.0, help="qp: weight gamma of |w - w_prev|^2")
+    p.add_argument("--temporal", type=float, help=f"qp: weight gamma of |w - w_prev|^2 (default {QPSettings.temporal})")
     p.add_argument("--keys", help="keys file (labelled ROM take or explicit key pairs): rbf keys, qp actor basis")
     p.add_argument("--basis", choices=["rig", "actor"], default="rig",
                    help="qp: calibrated rig basis, or the actor's own from --keys (Curio 2006)")
-    p.add_argument("--out", required=True, help="weights CSV: frame,time,<shape>...")
+    p.add_argument("--out", required=True, help="weights CSV: frame,time,<shape>...; or a .glb (glTF 2.0: mesh, "
+                   "morph targets, weight and head-pose animation)")
     p.add_argument("--unlabelled", action="store_true",
                    help="the take's points are unlabelled or wrongly named: label them against --profile first")
     add_movement_arguments(p)
     p.set_defaults(func=run)
+
+
+def solve_options(args: argparse.Namespace) -> dict:
+    """The solver options ``livecap solve``'s flags give (``livecap batch`` builds its solvers from them too)."""
+    return {**solver_options(args), "temporal": args.temporal, "keys": args.keys, "basis": args.basis,
+            **movement_options(args)}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -41,11 +55,21 @@ def run(args: argparse.Namespace) -> int:
 
         take = labelled_take(args, take)
     profile = profile_for(args, rig, layout, take)
-    solver = build_solver(args.mode, profile, {**solver_options(args), "temporal": args.temporal,
-                                               "keys": args.keys, "basis": args.basis, **movement_options(args)})
+    solver = build_solver(args.mode, profile, solve_options(args))
     with progress_bar(f"solving ({args.mode})", take.n_frames) as update:
         solved = solve_take(take, profile, solver, progress=update)
-    write_weights_csv(args.out, solved.names, solved.weights, solved.rate, solved.first_frame)
+    if Path(args.out).suffix.lower() == ".glb":
+        write_solved_glb(args.out, rig, solved, max(1, int(args.neutral_seconds * solved.rate)))
+    else:
+        write_weights_csv(args.out, solved.names, solved.weights, solved.rate, solved.first_frame)
     print(f"{args.out}: {take.n_frames} frames x {len(solved.names)} shapes "
           f"({solved.solve_seconds * 1e3 / take.n_frames:.3f} ms/frame)")
     return 0
+
+
+def write_solved_glb(path: str, rig: Rig, solved: SolvedTake, neutral_frames: int) -> None:
+    """The .glb of a solve; the head pose relative to its mean over the neutral window (first frames)."""
+    neutral = NeutralPose.mean_of(solved.head_rotation[:neutral_frames], solved.head_translation[:neutral_frames])
+    rotation, shift = neutral.relative(solved.head_rotation, solved.head_translation)
+    times = np.arange(len(solved.weights)) / solved.rate
+    write_glb(path, rig, solved.names, times, solved.weights, rotation, shift)

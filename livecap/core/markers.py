@@ -56,27 +56,34 @@ class MarkerLayout:
         path = Path(path)
         try:
             data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
+        except (OSError, ValueError) as exc:  # ValueError: JSON and UTF-8 decode errors
             raise LayoutError(f"{path}: cannot read marker layout ({exc})") from None
+        if not isinstance(data, dict) or not isinstance(data.get("markers", []), list):
+            raise LayoutError(f"{path}: a marker layout is a JSON object with a \"markers\" list")
         units = data.get("units", "mm")
         if units not in MM_PER_UNIT:
             raise LayoutError(f"{path}: unknown units {units!r}")
         labels, verts, bary, stable = [], [], [], []
         for i, m in enumerate(data.get("markers", [])):
+            if not isinstance(m, dict):
+                raise LayoutError(f"{path}: marker #{i} is not a JSON object")
             where = f"{path}: marker #{i} ({m.get('label', '?')})"
             if "label" not in m:
                 raise LayoutError(f"{where}: no label")
             if "vertex" in m:
-                v = int(m["vertex"])
+                v = _index(m["vertex"], where, "vertex")
                 verts.append((v, v, v))
                 bary.append((1.0, 0.0, 0.0))
             elif "triangle" in m and "barycentric" in m:
                 if rig is None:
                     raise LayoutError(f"{where}: triangle bindings need the rig to resolve")
-                t = int(m["triangle"])
+                t = _index(m["triangle"], where, "triangle")
                 if not 0 <= t < len(rig.triangles):
                     raise LayoutError(f"{where}: triangle {t} out of range")
-                b = np.asarray(m["barycentric"], dtype=float)
+                try:
+                    b = np.asarray(m["barycentric"], dtype=float)
+                except (TypeError, ValueError):
+                    raise LayoutError(f"{where}: barycentric must be 3 numbers summing to 1") from None
                 if b.shape != (3,) or abs(b.sum() - 1.0) > 1e-6:
                     raise LayoutError(f"{where}: barycentric must be 3 numbers summing to 1")
                 verts.append(tuple(rig.triangles[t]))
@@ -87,6 +94,9 @@ class MarkerLayout:
             stable.append(bool(m.get("stable", False)))
         if not labels:
             raise LayoutError(f"{path}: no markers")
+        dups = sorted({lab for lab in labels if labels.count(lab) > 1})
+        if dups:
+            raise LayoutError(f"{path}: marker labels {dups[:5]} appear more than once")
         layout = cls(labels, verts, bary, stable, units)
         if rig is not None:
             layout.check(rig, str(path))
@@ -106,8 +116,9 @@ class MarkerLayout:
 
     def check(self, rig: Rig, where: str = "layout") -> None:
         if self.vertices.max() >= rig.n_vertices or self.vertices.min() < 0:
-            bad = [lab for lab, v in zip(self.labels, self.vertices, strict=True) if v.max() >= rig.n_vertices]
-            raise LayoutError(f"{where}: markers {bad[:5]} bound past the rig's {rig.n_vertices} vertices")
+            bad = [lab for lab, v in zip(self.labels, self.vertices, strict=True)
+                   if v.max() >= rig.n_vertices or v.min() < 0]
+            raise LayoutError(f"{where}: markers {bad[:5]} bound to vertices outside the rig's 0..{rig.n_vertices - 1}")
 
     # ------------------------------------------------------------------ sampling the rig
     def sampling_matrix(self, n_vertices: int) -> sp.csr_matrix:
@@ -128,3 +139,10 @@ class MarkerLayout:
 
     def stable_labels(self) -> list[str]:
         return [lab for lab, s in zip(self.labels, self.stable, strict=True) if s]
+
+
+def _index(value, where: str, what: str) -> int:
+    """A non-negative integer index from JSON, or a LayoutError naming the marker."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value) or value < 0:
+        raise LayoutError(f"{where}: {what} must be a non-negative integer index, got {value!r}")
+    return int(value)

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+BOUND_TOL = 1e-6  # a weight this close to its lower/upper limit sits at the bound
+
 
 @dataclass
 class SolveResult:
@@ -19,3 +21,4 @@ class SolveResult:
     solve_time: float = 0.0  # seconds spent in the solver for this frame
     markers: np.ndarray | None = None  # n x 3 stabilised markers (head frame, mm), for previews
     valid: np.ndarray | None = None  # n bool
+    at_bound: np.ndarray | None = None  # m int8: -1 at the lower limit, +1 at the upper, 0 inside

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -298,7 +299,7 @@ class Rig:
                    for s, d in zip(z["co_shapes"], z["co_delta"], strict=True)]
             return cls(z["neutral"], z["triangles"], [str(n) for n in z["names"]], z["deltas"],
                        z["lower"], z["upper"], ibs, cos)
-        except (KeyError, ValueError, OSError) as exc:
+        except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
             raise RigError(f"{path}: not a livecap rig file ({exc})") from None
 
 

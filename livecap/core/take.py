@@ -36,7 +36,7 @@ class Take:
         self.positions = np.where(self.valid[..., None], self.positions, 0.0)
         if self.positions.shape[:2] != self.valid.shape or self.positions.shape[1] != len(self.labels):
             raise ValueError("take arrays do not match its labels")
-        if not self.rate > 0:
+        if not 0 < self.rate < float("inf"):
             raise ValueError(f"take rate must be positive, got {self.rate}")
 
     @property

@@ -39,7 +39,7 @@ import numpy as np
 
 from livecap.calibration.profile import CalibrationError, Profile
 from livecap.calibration.stabilise import to_quaternion
-from livecap.core.result import SolveResult
+from livecap.core.result import BOUND_TOL, SolveResult
 from livecap.core.take import MarkerFrame, Take
 from livecap.modes.registry import build_solver
 
@@ -116,6 +116,8 @@ class Pipeline:
         self._stabiliser = profile.stabiliser()
         self._neutral = np.asarray(profile.source_neutral, dtype=float)
         self._basis = np.asarray(profile.basis, dtype=float)
+        self._bounds = (np.asarray(profile.lower, dtype=float) + BOUND_TOL, np.asarray(profile.upper, dtype=float)
+                        - BOUND_TOL)
         self._solver = build_solver(self.mode, profile, self.options)
 
     def _calibrate(self) -> bool:
@@ -202,8 +204,9 @@ class Pipeline:
         rms = float(np.sqrt(np.einsum("ij,ij->i", miss, miss)[valid].mean() / 3.0)) if valid.any() else 0.0
         solve_time = time.perf_counter() - t0
         self.timing["solve"].add(solve_time)
+        at_bound = (w >= self._bounds[1]).astype(np.int8) - (w <= self._bounds[0])
         return SolveResult(frame.frame, frame.timestamp, self._names, w, to_quaternion(R), t,
-                           rms, solve_time, local, valid)
+                           rms, solve_time, local, valid, at_bound)
 
     def publish(self, result: SolveResult) -> None:
         t0 = time.perf_counter()

@@ -1,7 +1,8 @@
-"""Movement-matching solvers built from a Profile and plain options (used by modes.py and the CLI).
+"""Movement-matching solvers built from a Profile and plain options (used by the registry and the CLI).
 
-Defaults (alpha 1, beta 0.1, prior from the rig's shapes plus the neutral; the rig's limits by
-clipping: offline the solved take, streaming the published frame) were chosen on the demo take
+Every tunable is a field of :class:`MovementSettings`, resolved by :func:`movement_settings`.
+Defaults (alpha 1, beta 0.1, prior from the rig's shapes plus the neutral; the rig's limits by clipping:
+offline the solved take, streaming the published frame) were chosen on the demo take
 and a synthetic take (docs/movement.md lists the measurements); every one is an option.
 
 Offline on a profile that carries a noise estimate (``settings["robust"]``, stored by
@@ -16,11 +17,13 @@ from __future__ import annotations
 import fnmatch
 import logging
 from collections.abc import Mapping
+from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import numpy as np
 
 from livecap.calibration.profile import Profile
-from livecap.modes.robust import robust_settings
+from livecap.modes.robust import robust_settings, warn_untuned
 from livecap.modes.robust_movement import BOUND_TOL, RobustMovement, smoother_beta
 from solvers.blocks import IllPosedError
 from solvers.movement import MovementMatching
@@ -29,8 +32,51 @@ from solvers.streaming import StreamingMovement
 
 log = logging.getLogger(__name__)
 
-DEFAULTS = {"alpha": 1.0, "beta": 0.1, "prior": "shapes", "prior_threshold": 1e-6, "ridge": 0.0,
-            "start": "neutral", "end": "neutral", "missing": "fill", "window": 24, "lookahead": 0}
+
+@dataclass(frozen=True)
+class MovementSettings:
+    """Every tunable of the movement modes (Seol et al. 2012), with its default. Build with
+    :func:`movement_settings`; on a profile with a noise estimate the offline defaults change to
+    the noise-robust solve's (alpha 0, beta from the smoother, bounded limits)."""
+
+    alpha: float = 1.0  # PCA prior weight (§5; 0 disables it)
+    beta: float = 0.1  # position (Sobolev) term weight (§7.1)
+    prior: Any = "shapes"  # "shapes" (rig shapes + neutral), "none", a T x m animation or {"names", "weights"}
+    prior_threshold: float = 1e-6  # PCA eigenvalues below this fraction of the largest are dropped
+    ridge: float = 0.0  # Tikhonov term on the weights (0: none; a tiny one is added if the system is singular)
+    start: str = "neutral"  # boundary at the first frame: neutral, free or fit
+    end: str = "neutral"  # boundary at the last frame
+    missing: str = "fill"  # offline missing markers: fill from the rig's fit, or drop their rows exactly
+    window: int = 24  # streaming window K, frames
+    lookahead: int = 0  # streaming lookahead L < K, frames
+    limits: str | None = None  # none, clip or bound (None: clip; streaming clips the published frame)
+    bound_options: Mapping | None = None  # ADMM settings of limits="bound"
+    marker_weights: Mapping[str, float] | None = None  # {label or glob: weight} of the position term
+    stream: bool = False  # the sliding-window streaming solver instead of the offline solve
+    robust: bool = False  # offline noise-robust solve (resolved: the profile has a noise estimate, not --plain)
+    noise_mm: float | None = None  # the profile's marker noise estimate, mm (None: never tuned)
+    lag: int = 4  # noise-robust solve: marker smoother half-width, frames (RobustSettings.lag)
+    trend: float = 10.0  # noise-robust solve: weight trend filter penalty, weight-noise sds (0: none)
+    reweight: int = 0  # noise-robust solve: reweighted-L1 re-solves (Candes et al. 2008)
+
+
+_FIELDS = frozenset(f.name for f in fields(MovementSettings))
+
+
+def movement_settings(profile: Profile, options: Mapping | None = None) -> MovementSettings:
+    """The one place the movement modes' settings are resolved: defaults (plain, or noise-robust on a
+    profile with a noise estimate unless ``robust: false`` or ``stream``), then ``options`` (None ignored)."""
+    given = {k: v for k, v in (options or {}).items() if v is not None}
+    noise = profile.settings.get("robust", {}).get("noise_mm")
+    robust = noise is not None and not given.get("stream") and bool(given.get("robust", True))
+    rs = robust_settings(profile, given)  # lag and trend: the robust defaults, the tuned profile, then options
+    base = MovementSettings(noise_mm=None if noise is None else float(noise), lag=int(rs.lag),
+                            trend=float(rs.trend), robust=robust)
+    if robust:
+        base = replace(base, alpha=0.0, beta=smoother_beta(base.lag), limits="bound",
+                       bound_options={"tol": BOUND_TOL})
+    resolved = ("robust", "noise_mm", "lag", "trend")  # from the profile and robust_settings above
+    return replace(base, **{k: v for k, v in given.items() if k in _FIELDS and k not in resolved})
 
 
 def marker_weights(labels: list[str], spec: Mapping[str, float] | None) -> np.ndarray | None:
@@ -66,7 +112,7 @@ def build_prior(profile: Profile, spec, threshold: float) -> PCAPrior | None:
     return PCAPrior.from_animation(profile.basis, np.asarray(spec, dtype=np.float64), threshold)
 
 
-def build_movement(profile: Profile, options: Mapping | None = None):
+def build_movement(profile: Profile, options: Mapping | MovementSettings | None = None):
     """Offline :class:`MovementMatching` (with ``step`` for live use), or with ``stream`` the
     :class:`StreamingMovement` sliding-window solver.
 
@@ -74,39 +120,34 @@ def build_movement(profile: Profile, options: Mapping | None = None):
     film-scale rigs) and no ridge was asked for, a ridge of 1e-6 of the basis's mean column
     energy makes it well posed instead of failing.
     """
-    given = {k: v for k, v in (options or {}).items() if v is not None}
-    noise = profile.settings.get("robust", {}).get("noise_mm")
-    robust = noise is not None and not given.get("stream") and bool(given.get("robust", True))
-    settings = robust_settings(profile, given)  # the robust defaults, the tuned profile, then the options
-    lag = int(settings["lag"])
-    base = {**DEFAULTS, "alpha": 0.0, "beta": smoother_beta(lag), "limits": "bound",
-            "bound_options": {"tol": BOUND_TOL}} if robust else DEFAULTS
-    o = {**base, **given}
+    s = options if isinstance(options, MovementSettings) else movement_settings(profile, options)
+    plain_asked = isinstance(options, Mapping) and options.get("robust") is False
+    if not s.stream and s.noise_mm is None and not plain_asked:
+        warn_untuned(profile, "movement", "it runs the plain Seol solve, not the noise-robust one")
     try:
-        inner = _build(profile, o)
+        inner = _build(profile, s)
     except IllPosedError:
-        if float(o["ridge"]) > 0:
+        if float(s.ridge) > 0:
             raise
         ridge = 1e-6 * float(np.mean(np.sum(profile.basis**2, axis=0)))
         log.info("movement system singular; adding ridge %.3g", ridge)
-        inner = _build(profile, {**o, "ridge": ridge})
-    if not robust:
+        inner = _build(profile, replace(s, ridge=ridge))
+    if not s.robust:
         return inner
-    return RobustMovement(inner, float(noise), lag=lag, trend=float(settings["trend"]),
-                          reweight=int(given.get("reweight", 0)))
+    return RobustMovement(inner, float(s.noise_mm), lag=s.lag, trend=s.trend, reweight=int(s.reweight))
 
 
-def _build(profile: Profile, o: dict):
-    alpha = float(o["alpha"])
-    prior = build_prior(profile, o["prior"], float(o["prior_threshold"])) if alpha > 0 else None
+def _build(profile: Profile, s: MovementSettings):
+    alpha = float(s.alpha)
+    prior = build_prior(profile, s.prior, float(s.prior_threshold)) if alpha > 0 else None
     if prior is None:
         alpha = 0.0
-    common = dict(alpha=alpha, prior=prior, beta=float(o["beta"]), ridge=float(o["ridge"]),
-                  marker_weights=marker_weights(profile.labels, o.get("marker_weights")))
-    if o.get("stream"):
-        return StreamingMovement(profile.basis, profile.lower, profile.upper, window=int(o["window"]),
-                                 lookahead=int(o["lookahead"]),
-                                 limits="clip" if o.get("limits") in (None, "bound") else o["limits"], **common)
-    return MovementMatching(profile.basis, profile.lower, profile.upper, start=o["start"], end=o["end"],
-                            missing=o["missing"], limits=o.get("limits") or "clip", window=int(o["window"]),
-                            lookahead=int(o["lookahead"]), bound_options=o.get("bound_options"), **common)
+    common = dict(alpha=alpha, prior=prior, beta=float(s.beta), ridge=float(s.ridge),
+                  marker_weights=marker_weights(profile.labels, s.marker_weights))
+    if s.stream:
+        return StreamingMovement(profile.basis, profile.lower, profile.upper, window=int(s.window),
+                                 lookahead=int(s.lookahead),
+                                 limits="clip" if s.limits in (None, "bound") else s.limits, **common)
+    return MovementMatching(profile.basis, profile.lower, profile.upper, start=s.start, end=s.end,
+                            missing=s.missing, limits=s.limits or "clip", window=int(s.window),
+                            lookahead=int(s.lookahead), bound_options=s.bound_options, **common)

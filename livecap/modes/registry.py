@@ -1,4 +1,9 @@
-"""Solver modes by name: the one place that builds a solver from a calibrated Profile."""
+"""Solver modes by name: the one place that builds a solver from a calibrated Profile.
+
+Each family's tunables are one frozen dataclass in its module, built from the profile and the options
+by one function: ``movement.MovementSettings`` (``movement_settings``), ``robust.RobustSettings``
+(``robust_settings``), ``per_frame.LSQSettings`` / ``QPSettings`` / ``RBFSettings`` (``from_options``).
+"""
 
 from __future__ import annotations
 
@@ -6,21 +11,15 @@ from collections.abc import Callable
 
 from livecap.calibration.profile import Profile
 from livecap.modes.movement import build_movement
-from livecap.modes.per_frame import qp_mode, rbf_mode
+from livecap.modes.per_frame import lsq_mode, qp_mode, rbf_mode
 from livecap.modes.robust import ROBUST_MODES
-from solvers.least_squares import BoundedLeastSquares
-
-
-def _lsq(profile: Profile, options: dict):
-    return BoundedLeastSquares(profile.basis, profile.lower, profile.upper, options.get("ridge", 0.0))
-
 
 # The streaming mode a user gets without choosing: the most accurate one that runs per frame
 # with at most a frame of latency (docs/robustness.md; `livecap evaluate` compares them all).
 DEFAULT_MODE = "robust"
 
 MODES: dict[str, Callable] = {
-    "lsq": _lsq,
+    "lsq": lsq_mode,
     "movement": build_movement,  # Seol 2012 movement matching; options {"stream": True, "window", "lookahead"}
     "movement-stream": lambda profile, options: build_movement(profile, {**options, "stream": True}),
     "qp": qp_mode,

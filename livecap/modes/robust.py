@@ -1,7 +1,11 @@
-"""Noise-robust solving: regularisation selected from data, observability-aware priors, filters.
+"""Noise-robust solving: regularisation selected from data, noise-floor rest pull, filters.
 
 This module wires ``solvers.sparse_fit``, ``solvers.regularisation``, ``solvers.observability``
 and ``solvers.filters`` to Profiles and modes:
+
+* ``RobustSettings``: every knob of these modes in one frozen dataclass with its default;
+  ``robust_settings(profile, options)`` is the one place it is resolved (defaults, what tuning
+  stored in the profile, then options);
 
 * ``tune_profile(profile, targets, valid, rate)`` estimates the marker noise, selects the ridge
   of the plain prior fit by held-out-marker cross-validation (GCV alongside) and the ridge of the
@@ -16,57 +20,91 @@ and ``solvers.filters`` to Profiles and modes:
   ``weight_filter: "1e"`` gives the earlier 1€ stage);
 * ``smooth_solver`` is ``robust-lag``: the same sparse fit on markers smoothed by a centred
   quadratic over ``2 lag + 1`` frames, streamed with ``lag`` frames of latency; offline (zero
-  phase) the weight curves are then smoothed by a centred quartic over ``6 lag + 1`` frames;
+  phase) the weight curves are then l1-trend-filtered (``trend``);
 * ``filtered(factory)`` wraps any registered mode's factory with the 1€ weight filter, so modes
   that arrive later (QP, movement, RBF) get a filtered variant for free.
 """
 
 from __future__ import annotations
 
+import logging
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
 from livecap.calibration.profile import Profile
 from solvers.filters import CausalPolyFilter, FilteredSolver, FixedLagSmoother, OneEuroFilter, savgol_weights
-from solvers.observability import noise_floor, observability, tying_prior
+from solvers.observability import noise_floor
 from solvers.regularisation import PriorLeastSquares, estimate_noise, gcv_ridge, holdout_ridge
 from solvers.sparse_fit import HysteresisSparseFit, holdout_sparse_ridge, l1_weights, universal_threshold
 from solvers.tracking import IMMFilter, dwna_variance
 from solvers.trend import TrendFilter
 
-# Defaults, used when a profile was never tuned (documented in docs/robustness.md).
-DEFAULTS = {
-    "noise_mm": 0.5,  # marker noise sigma per coordinate, mm
-    "prior_sd": 0.3,  # untuned ridge: the MAP ridge (noise / prior_sd)^2 of a N(0, prior_sd^2) weight prior
-    "rest_pull": 1.0,  # prior fit: shapes stay at rest until their evidence exceeds this many noise-floor sds
-    "tie": 0.0,  # strength of the tying prior on nearly indistinguishable pairs (x ridge)
-    "sparse_ridge": 1.0,  # sparse fit's ridge when untuned
-    "z_enter": 0.0,  # sparse fit: a resting shape enters above this many noise sds (0: sqrt(2 ln m))
-    "z_stay": 2.0,  # ... and an active one stays active above this many
-    "marker_window": 0.1,  # causal quadratic marker filter span, seconds (12 frames at 120 Hz)
-    "min_cutoff": 1.0,  # 1€ filter on weights, Hz
-    "beta": 30.0,  # 1€ speed coefficient, per (weight unit / s)
-    "d_cutoff": 1.0,  # 1€ derivative cutoff, Hz
-    "lag": 4,  # fixed-lag smoother latency, frames
-    "trend": 10.0,  # offline l1 trend filter on the weight curves, in weight-noise sds per shape (0: none)
-    "weight_filter": "imm",  # robust mode's weight stage: "imm" (hold/move Kalman) or "1e" (One Euro)
-    "hold_accel": 0.5,  # IMM 'hold' model: acceleration sd, weight units / s^2
-    "move_accel": 80.0,  # IMM 'move' model: acceleration sd, weight units / s^2
-    "sojourn": 0.8,  # IMM mean time in a mode, seconds (Markov switching probability 1 / (sojourn rate))
-    "weight_noise": "fit",  # IMM measurement variance per shape: "fit" or "marginal" (see weight_noise)
-}
+log = logging.getLogger(__name__)
 
 
-def robust_settings(profile: Profile, options: dict | None = None) -> dict:
-    """Tuned values from the profile, overridden by ``options``, falling back to DEFAULTS."""
-    out = dict(DEFAULTS)
-    out.update(profile.settings.get("robust", {}))
-    out.update({k: v for k, v in (options or {}).items() if k in DEFAULTS or k in ("ridge", "rate")})
-    if "ridge" not in out:
-        out["ridge"] = (out["noise_mm"] / out["prior_sd"]) ** 2
-    return out
+@dataclass(frozen=True)
+class RobustSettings:
+    """Every tunable of the robust modes, with the defaults used when a profile was never tuned
+    (docs/robustness.md has the measurements behind them). Build with :func:`robust_settings`."""
+
+    noise_mm: float = 0.5  # marker noise sigma per coordinate, mm (tuned: estimated from a take)
+    prior_sd: float = 0.3  # untuned prior-fit ridge: the MAP ridge (noise / prior_sd)^2 of N(0, prior_sd^2) weights
+    ridge: float | None = None  # prior fit's ridge (tuned: held-out markers; None: the MAP ridge above)
+    rest_pull: float = 1.0  # prior fit: shapes stay at rest until their evidence exceeds this many noise-floor sds
+    sparse_ridge: float = 1.0  # sparse fit's ridge (tuned: held-out markers; option ``ridge`` overrides)
+    z_enter: float = 0.0  # sparse fit: a resting shape enters above this many noise sds (0: sqrt(2 ln m))
+    z_stay: float = 2.0  # ... and an active one stays active above this many
+    marker_window: float = 0.1  # causal quadratic marker filter span, seconds (12 frames at 120 Hz)
+    min_cutoff: float = 1.0  # 1€ filter on weights, Hz
+    euro_beta: float = 30.0  # 1€ speed coefficient, per (weight unit / s) (key ``beta`` in profiles before 2026-12)
+    d_cutoff: float = 1.0  # 1€ derivative cutoff, Hz
+    lag: int = 4  # fixed-lag smoother latency, frames
+    trend: float = 10.0  # offline l1 trend filter on the weight curves, in weight-noise sds per shape (0: none)
+    weight_filter: str = "imm"  # robust mode's weight stage: "imm" (hold/move Kalman) or "1e" (One Euro)
+    hold_accel: float = 0.5  # IMM 'hold' model: acceleration sd, weight units / s^2
+    move_accel: float = 80.0  # IMM 'move' model: acceleration sd, weight units / s^2
+    sojourn: float = 0.8  # IMM mean time in a mode, seconds (Markov switching probability 1 / (sojourn rate))
+    weight_noise: str = "fit"  # IMM measurement variance per shape: "fit" or "marginal" (see weight_noise)
+    rate: float = 120.0  # frame rate, Hz (tuned: the tuning take's)
+
+    @property
+    def prior_ridge(self) -> float:
+        """The prior fit's ridge: the tuned/given one, else the MAP ridge of the untuned prior."""
+        return (self.noise_mm / self.prior_sd) ** 2 if self.ridge is None else float(self.ridge)
+
+
+KNOBS = frozenset(f.name for f in fields(RobustSettings))
+
+
+def robust_settings(profile: Profile, options: Mapping | RobustSettings | None = None) -> RobustSettings:
+    """The one place the robust modes' settings are resolved: defaults, then what tuning stored in
+    ``profile.settings["robust"]``, then ``options`` (unset ones, None, ignored). Option ``ridge``
+    sets both fits' ridges, as ``--ridge`` always did."""
+    if isinstance(options, RobustSettings):
+        return options
+    stored = dict(profile.settings.get("robust", {}))
+    if "beta" in stored:  # the 1€ speed coefficient's old key (it clashed with movement's beta)
+        stored.setdefault("euro_beta", stored.pop("beta"))
+    given = {k: v for k, v in (options or {}).items() if v is not None and k in KNOBS}
+    s = replace(RobustSettings(), **{**{k: v for k, v in stored.items() if k in KNOBS}, **given})
+    if "ridge" in given:
+        s = replace(s, sparse_ridge=float(given["ridge"]))
+    return s
+
+
+def untuned(profile: Profile) -> bool:
+    """True when calibration stored no noise estimate (profiles written before every path tuned)."""
+    return profile.settings.get("robust", {}).get("noise_mm") is None
+
+
+def warn_untuned(profile: Profile, mode: str, fallback: str) -> None:
+    """One warning per solver build: the mode falls back because the profile carries no noise estimate."""
+    if untuned(profile):
+        log.warning("mode %s: the profile has no noise estimate, so %s; re-run 'livecap calibrate' "
+                    "(it stores one) or give the take to tune on with --tune", mode, fallback)
 
 
 def tune_profile(profile: Profile, targets: np.ndarray, valid: np.ndarray, rate: float) -> dict:
@@ -80,7 +118,7 @@ def tune_profile(profile: Profile, targets: np.ndarray, valid: np.ndarray, rate:
     tuned = {"noise_mm": noise, "ridge": held.value, "ridge_gcv": gcv.value, "rate": float(rate),
              "criterion": held.criterion}
     # the sparse fit sees markers through the causal filter: select its ridge on what it will see
-    filt = marker_filter(float(rate), DEFAULTS["marker_window"])
+    filt = marker_filter(float(rate), RobustSettings.marker_window)
     smoothed = filt.filter(targets, np.broadcast_to(np.asarray(valid, bool)[..., None], np.shape(targets)))
     z = universal_threshold(profile.basis.shape[1])
     sparse = holdout_sparse_ridge(profile.basis, smoothed, valid, noise * np.sqrt(filt.noise_gain), z,
@@ -97,41 +135,33 @@ def marker_filter(rate: float, seconds: float) -> CausalPolyFilter:
     return CausalPolyFilter(max(4, int(round(seconds * rate))), order=2)
 
 
-def _rate(profile: Profile, options: dict | None) -> float:
-    return float((options or {}).get("rate", profile.settings.get("robust", {}).get("rate", 120.0)))
-
-
-def sparse_fit(profile: Profile, options: dict | None, gain: float) -> HysteresisSparseFit:
+def sparse_fit(profile: Profile, options: Mapping | RobustSettings | None, gain: float) -> HysteresisSparseFit:
     """The sparse fit for markers whose noise variance was scaled by ``gain`` by a filter."""
     s = robust_settings(profile, options)
     B = profile.basis
-    sigma = float(s["noise_mm"]) * np.sqrt(gain)
-    z_enter = float(s["z_enter"]) or universal_threshold(B.shape[1])
-    z_stay = min(float(s["z_stay"]), z_enter)
-    ridge = float((options or {}).get("ridge", s["sparse_ridge"]))
-    return HysteresisSparseFit(B, profile.lower, profile.upper, ridge, enter=l1_weights(B, sigma, z_enter),
-                               stay=l1_weights(B, sigma, z_stay))
+    sigma = float(s.noise_mm) * np.sqrt(gain)
+    z_enter = float(s.z_enter) or universal_threshold(B.shape[1])
+    z_stay = min(float(s.z_stay), z_enter)
+    return HysteresisSparseFit(B, profile.lower, profile.upper, float(s.sparse_ridge),
+                               enter=l1_weights(B, sigma, z_enter), stay=l1_weights(B, sigma, z_stay))
 
 
-def prior_solver(profile: Profile, options: dict | None = None) -> PriorLeastSquares:
-    """The per-frame fit: selected ridge, noise-floor rest-pull, optional tying prior."""
+def prior_solver(profile: Profile, options: Mapping | RobustSettings | None = None) -> PriorLeastSquares:
+    """The per-frame fit: selected ridge and a noise-floor rest-pull."""
     s = robust_settings(profile, options)
     B = profile.basis
-    ridge = float(s["ridge"])
+    ridge = s.prior_ridge
     H = B.T @ B + ridge * np.eye(B.shape[1])
-    pull = 2.0 * float(s["rest_pull"]) * noise_floor(B, float(s["noise_mm"]), ridge) * np.diag(H)
-    prior = None
-    if s["tie"] > 0:
-        prior = tying_prior(observability(B, profile.names, float(s["noise_mm"])), float(s["tie"]) * ridge)
-    return PriorLeastSquares(B, profile.lower, profile.upper, ridge, prior=prior, rest_pull=pull)
+    pull = 2.0 * float(s.rest_pull) * noise_floor(B, float(s.noise_mm), ridge) * np.diag(H)
+    return PriorLeastSquares(B, profile.lower, profile.upper, ridge, rest_pull=pull)
 
 
-def one_euro(profile: Profile, options: dict | None = None) -> OneEuroFilter:
+def one_euro(profile: Profile, options: Mapping | RobustSettings | None = None) -> OneEuroFilter:
     s = robust_settings(profile, options)
-    return OneEuroFilter(_rate(profile, options), s["min_cutoff"], s["beta"], s["d_cutoff"])
+    return OneEuroFilter(float(s.rate), s.min_cutoff, s.euro_beta, s.d_cutoff)
 
 
-def weight_noise(profile: Profile, options: dict | None, gain: float) -> np.ndarray:
+def weight_noise(profile: Profile, options: Mapping | RobustSettings | None, gain: float) -> np.ndarray:
     """Per-shape variance of a fitted weight under the (filtered) marker noise.
 
     ``weight_noise: "fit"`` (default): ``sigma^2 gain / |b_k|^2``, the noise of ``b_k^T s / |b_k|^2``,
@@ -140,10 +170,10 @@ def weight_noise(profile: Profile, options: dict | None, gain: float) -> np.ndar
     of the full least-squares fit, larger for shapes that other shapes can mimic (smooths them more).
     """
     s = robust_settings(profile, options)
-    sigma, B = float(s["noise_mm"]), profile.basis
-    kind = str(s["weight_noise"]).lower()
+    sigma, B = float(s.noise_mm), profile.basis
+    kind = str(s.weight_noise).lower()
     if kind == "marginal":
-        ridge = float((options or {}).get("ridge", s["sparse_ridge"]))
+        ridge = float(s.sparse_ridge)
         return sigma**2 * float(gain) * np.diag(np.linalg.inv(B.T @ B + max(ridge, 1e-9) * np.eye(B.shape[1])))
     if kind != "fit":
         raise ValueError(f"unknown weight noise model {kind!r} (choose fit or marginal)")
@@ -151,40 +181,47 @@ def weight_noise(profile: Profile, options: dict | None, gain: float) -> np.ndar
     return sigma**2 * float(gain) / norms**2
 
 
-def imm_filter(profile: Profile, options: dict | None, gain: float) -> IMMFilter:
+def imm_filter(profile: Profile, options: Mapping | RobustSettings | None, gain: float) -> IMMFilter:
     """The IMM weight stage: 'hold' and 'move' constant-velocity models (acceleration sd in weight units
     per s^2, converted to per-frame DWNA variances at the stream's rate), R per shape from the noise."""
-    s, rate = robust_settings(profile, options), _rate(profile, options)
-    return IMMFilter(dwna_variance(float(s["hold_accel"]), rate), dwna_variance(float(s["move_accel"]), rate),
-                     weight_noise(profile, options, gain), sojourn_frames=max(2.0, float(s["sojourn"]) * rate))
+    s = robust_settings(profile, options)
+    rate = float(s.rate)
+    return IMMFilter(dwna_variance(float(s.hold_accel), rate), dwna_variance(float(s.move_accel), rate),
+                     weight_noise(profile, s, gain), sojourn_frames=max(2.0, float(s.sojourn) * rate))
 
 
-def weight_filter(profile: Profile, options: dict | None = None, gain: float = 1.0) -> IMMFilter | OneEuroFilter:
+def weight_filter(profile: Profile, options: Mapping | RobustSettings | None = None,
+                  gain: float = 1.0) -> IMMFilter | OneEuroFilter:
     """The robust mode's weight stage, per the ``weight_filter`` setting ("imm" or "1e")."""
-    kind = str(robust_settings(profile, options)["weight_filter"]).lower()
+    s = robust_settings(profile, options)
+    kind = str(s.weight_filter).lower()
     if kind in ("1e", "one-euro", "oneeuro"):
-        return one_euro(profile, options)
+        return one_euro(profile, s)
     if kind != "imm":
         raise ValueError(f"unknown weight filter {kind!r} (choose imm or 1e)")
-    return imm_filter(profile, options, gain)
+    return imm_filter(profile, s, gain)
 
 
-def robust_solver(profile: Profile, options: dict | None = None) -> FilteredSolver:
+def robust_solver(profile: Profile, options: Mapping | RobustSettings | None = None) -> FilteredSolver:
     """Streaming: causal quadratic marker filter -> sparse fit -> IMM (or 1€) on the weights (no fixed latency)."""
     s = robust_settings(profile, options)
-    markers = marker_filter(_rate(profile, options), float(s["marker_window"]))
-    return FilteredSolver(sparse_fit(profile, options, markers.noise_gain), marker_filter=markers,
-                          weight_filter=weight_filter(profile, options, markers.noise_gain))
+    if not isinstance(options, RobustSettings):
+        warn_untuned(profile, "robust", f"it assumes {s.noise_mm:g} mm marker noise")
+    markers = marker_filter(float(s.rate), float(s.marker_window))
+    return FilteredSolver(sparse_fit(profile, s, markers.noise_gain), marker_filter=markers,
+                          weight_filter=weight_filter(profile, s, markers.noise_gain))
 
 
-def smooth_solver(profile: Profile, options: dict | None = None) -> LookaheadSolver:
+def smooth_solver(profile: Profile, options: Mapping | RobustSettings | None = None) -> LookaheadSolver:
     """Lookahead / offline: centred quadratic marker smoothing over 2 lag + 1 frames -> sparse fit;
     ``latency_frames`` = lag when streamed, none offline."""
     s = robust_settings(profile, options)
-    lag, trend = int(s["lag"]), float(s["trend"])
+    if not isinstance(options, RobustSettings):
+        warn_untuned(profile, "robust-lag", f"it assumes {s.noise_mm:g} mm marker noise")
+    lag, trend = int(s.lag), float(s.trend)
     gain = float(np.sum(savgol_weights(lag) ** 2))
-    offline = TrendFilter.for_basis(profile.basis, float(s["noise_mm"]) * np.sqrt(gain), trend) if trend > 0 else None
-    return LookaheadSolver(sparse_fit(profile, options, gain), FixedLagSmoother(lag), offline)
+    offline = TrendFilter.for_basis(profile.basis, float(s.noise_mm) * np.sqrt(gain), trend) if trend > 0 else None
+    return LookaheadSolver(sparse_fit(profile, s, gain), FixedLagSmoother(lag), offline)
 
 
 class LookaheadSolver:

@@ -29,7 +29,7 @@ stores in ``profile.settings["robust"]`` (sigma per coordinate, mm):
    (docs/robustness.md has both measured);
 6. the solved curves l1-trend-filtered (``solvers.trend``, Kim, Koh, Boyd & Gorinevsky 2009 §2):
    ``min |w - x|^2 / 2 + lam_k |D2 x|_1`` per shape with ``lam_k = trend * s_k``, ``s_k = sigma' /
-   |b_k|`` the shape's weight noise sd and ``trend`` 10 (``livecap.modes.robust.DEFAULTS``):
+   |b_k|`` the shape's weight noise sd and ``trend`` 10 (``livecap.modes.robust.RobustSettings``):
    piecewise-linear curves whose kinks are where the data put them, so the noise's second
    differences go while blink onsets and peaks stay (a quadratic smoother of that strength shaves
    peaks); fixed frames restored afterwards.
@@ -44,7 +44,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from livecap.modes.robust import DEFAULTS
+from livecap.modes.robust import RobustSettings
 from solvers.filters import FixedLagSmoother, savgol_weights
 from solvers.movement import Edit, MovementMatching, edit_region
 from solvers.sparse_fit import l1_weights, universal_threshold
@@ -70,8 +70,8 @@ class RobustMovement:
     streaming solver).
     """
 
-    def __init__(self, inner: MovementMatching, noise_mm: float, lag: int = 4, trend: float = DEFAULTS["trend"],
-                 z: float | None = None, reweight: int = 0) -> None:
+    def __init__(self, inner: MovementMatching, noise_mm: float, lag: int = RobustSettings.lag,
+                 trend: float = RobustSettings.trend, z: float | None = None, reweight: int = 0) -> None:
         self.inner = inner
         self.lower, self.upper = inner.lower, inner.upper
         self.lag = int(lag)

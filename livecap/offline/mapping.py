@@ -12,8 +12,10 @@
       offset = 0.0
       clamp = [0.0, 1.0]
 
-  Target channels not listed are copied from the same-named source channel (identity); target
-  channels with no source stay at their offset (0) and are reported.
+  Target channels not listed are copied from the source channel of the same name as
+  ``livecap.core.names`` matches them (case, separators, ``_L``/``Left``; a side-less target from
+  the mean of a source's two sides); target channels with no source stay at their offset (0) and
+  are reported.
 * Linear expression cloning: from p >= n corresponding pose pairs, the least-squares matrix E
   with v ~ E w (Lewis §5.3: E = V W' (W W')^-1; Lewis write the map in the other direction,
   W = E V, but the construction is the same).
@@ -28,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from livecap.core.names import match_names
+
 
 class MappingError(ValueError):
     pass
@@ -35,11 +39,12 @@ class MappingError(ValueError):
 
 @dataclass
 class ChannelMap:
-    """target[t] = clip(gain[t] * source[index[t]] + offset[t], lo[t], hi[t]); index -1: no source."""
+    """target = clip(gain * (M @ source) + offset, lo, hi); a row of M is the mean of the target's
+    matched source channels, all zero when it has none."""
 
     source_names: list[str]
     target_names: list[str]
-    index: np.ndarray
+    matrix: np.ndarray
     gain: np.ndarray
     offset: np.ndarray
     lo: np.ndarray
@@ -47,13 +52,17 @@ class ChannelMap:
 
     @property
     def unmapped(self) -> list[str]:
-        return [n for n, i in zip(self.target_names, self.index, strict=True) if i < 0]
+        return [n for n, row in zip(self.target_names, self.matrix, strict=True) if not row.any()]
+
+    @property
+    def unused(self) -> list[str]:
+        """Source channels no target channel reads."""
+        return [n for n, col in zip(self.source_names, self.matrix.T, strict=True) if not col.any()]
 
     def apply(self, weights: np.ndarray) -> np.ndarray:
         """Source weights (m_s,) or (T, m_s) -> target weights (m_t,) or (T, m_t)."""
         w = np.asarray(weights, dtype=np.float64)
-        src = np.take(w, np.maximum(self.index, 0), axis=-1) * (self.index >= 0)
-        return np.clip(self.gain * src + self.offset, self.lo, self.hi)
+        return np.clip(self.gain * (w @ self.matrix.T) + self.offset, self.lo, self.hi)
 
 
 def by_name(source_names: list[str], target_names: list[str], config: dict | None = None) -> ChannelMap:
@@ -69,14 +78,19 @@ def by_name(source_names: list[str], target_names: list[str], config: dict | Non
         raise MappingError(f"mapping names target channels the target lacks: {unknown[:5]}")
     src_index = {n: i for i, n in enumerate(source_names)}
     k = len(target_names)
-    index, gain, offset = np.full(k, -1), np.ones(k), np.zeros(k)
+    M = match_names(source_names, target_names).matrix()
+    gain, offset = np.ones(k), np.zeros(k)
     lo, hi = np.full(k, -np.inf), np.full(k, np.inf)
     for t, name in enumerate(target_names):
         ch = {**defaults, **channels.get(name, {})}
-        src = ch.get("source", name)
-        if src not in src_index and name in channels and "source" in channels[name]:
-            raise MappingError(f"channel {name!r}: source {src!r} is not a source channel")
-        index[t] = src_index.get(src, -1)
+        if "source" in ch:
+            src = ch["source"]
+            if src not in src_index:
+                if name in channels and "source" in channels[name]:
+                    raise MappingError(f"channel {name!r}: source {src!r} is not a source channel")
+            else:
+                M[t] = 0.0
+                M[t, src_index[src]] = 1.0
         try:
             gain[t] = float(ch.get("gain", 1.0))
             offset[t] = float(ch.get("offset", 0.0))
@@ -86,7 +100,7 @@ def by_name(source_names: list[str], target_names: list[str], config: dict | Non
             raise MappingError(f"channel {name!r}: bad gain/offset/clamp ({exc})") from None
         if lo[t] > hi[t]:
             raise MappingError(f"channel {name!r}: clamp lower bound above upper")
-    return ChannelMap(list(source_names), list(target_names), index, gain, offset, lo, hi)
+    return ChannelMap(list(source_names), list(target_names), M, gain, offset, lo, hi)
 
 
 def load_config(path: str | Path) -> dict:

@@ -82,3 +82,44 @@ def vertex_error(rig: Rig, weights: np.ndarray, truth: np.ndarray, chunk: int = 
         count += d.size
         worst = max(worst, float(d.max()))
     return total / max(count, 1), worst
+
+
+def vertex_error_stats(rig: Rig, weights: np.ndarray, truth: np.ndarray, chunk: int = 256) -> dict[str, float]:
+    """Vertex error (mm) of the rig posed by ``weights`` against ``truth``: ``mean`` over all vertices and
+    frames, ``max``, and ``p95`` — the 95th percentile over frames of each frame's worst vertex, i.e. how
+    bad the worst 5 % of frames look (users judge a solve by its worst frames)."""
+    total, count, worst = 0.0, 0, []
+    for i in range(0, len(weights), chunk):
+        d = np.linalg.norm(rig.evaluate(weights[i:i + chunk]) - rig.evaluate(truth[i:i + chunk]), axis=2)
+        total += float(d.sum())
+        count += d.size
+        worst.append(d.max(axis=1))
+    w = np.concatenate(worst) if worst else np.zeros(1)
+    return {"mean": total / max(count, 1), "p95": float(np.percentile(w, 95)), "max": float(w.max())}
+
+
+def shape_indices(names: list[str], word: str) -> list[int]:
+    """Shapes whose name contains ``word`` (any case): ``blink`` finds eyeBlinkLeft and eyeBlink_L."""
+    return [i for i, n in enumerate(names) if word in n.lower()]
+
+
+def peak_retention(solved: np.ndarray, truth: np.ndarray, indices: list[int], height: float | None = None,
+                   window: int = 6) -> float:
+    """Mean ratio of the solved peak (highest within +-``window`` frames) to each true peak >= ``height``
+    of the given shapes (default: half the shapes' largest true value, at least 0.1): 1 keeps blinks
+    closing and the jaw opening fully, < 1 shaves them. NaN when the truth has no such peak."""
+    from scipy.signal import find_peaks
+
+    if height is None:
+        height = max(0.5 * float(np.max(truth[:, indices], initial=0.0)), 0.1)
+    ratios = []
+    for k in indices:
+        peaks, _ = find_peaks(truth[:, k], height=height, distance=10)
+        for p in peaks:
+            ratios.append(solved[max(0, p - window):p + window + 1, k].max() / truth[p, k])
+    return float(np.mean(ratios)) if ratios else float("nan")
+
+
+def shape_bias(solved: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Mean signed error per shape (solved - truth): a shape the solve systematically over- or under-drives."""
+    return np.mean(np.asarray(solved) - np.asarray(truth), axis=0)

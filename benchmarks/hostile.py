@@ -1,0 +1,211 @@
+"""A live session under attack (issue 17), across real processes on loopback.
+
+Flood: benchmarks/hostile_traffic.py streams valid frames at 120 Hz to ``livecap run`` with about
+10^5 malformed messages interleaved (ZeroMQ and OSC), or 400 packets each announcing a new 40 KB
+layout (ZeroMQ); the baseline row streams the same valid frames alone, in the same run. Reported:
+valid frames solved, stale skips, what was counted, and the driver's resident memory (VmRSS)
+sampled after the first second and at the end of the stream.
+
+Subscribers: ``livecap send --clock monotonic`` -> ``livecap run --zmq-out`` -> a healthy
+subscriber that measures latency (receive time - send time) beside a dead one (SIGSTOPped) and
+a slow one (one message per 50 ms), for each ``--zmq-policy``; the baseline is the healthy
+subscriber alone.
+
+    python -m benchmarks.hostile [--quick]
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import tempfile
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.processes import first_line, free_port, spawn
+from benchmarks.timing import suite_main, table
+
+RATE = 120.0
+
+SUBSCRIBER = """
+import json, sys, time, msgpack, zmq
+addr, out, idle, delay = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4])
+s = zmq.Context().socket(zmq.SUB)
+s.setsockopt(zmq.RCVHWM, 100)
+if delay:  # a small kernel buffer: the stuck/slow reader's backlog reaches the driver's high-water mark
+    s.setsockopt(zmq.RCVBUF, 4096)
+s.connect(addr)
+s.setsockopt(zmq.SUBSCRIBE, b"")
+time.sleep(0.5)
+print("ready", flush=True)
+lat, last = [], None
+while True:
+    if not s.poll(int(idle * 1000)):
+        if last is not None:
+            break
+        continue
+    parts = s.recv_multipart()
+    now = time.monotonic()
+    msg = msgpack.unpackb(parts[-1])
+    last = now
+    if msg.get("type") == "weights":
+        lat.append(now - msg["timestamp"])
+    if delay:
+        time.sleep(delay)
+json.dump(lat, open(out, "w"))
+"""
+
+
+def _rss_mb(pid: int) -> float:
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
+
+
+class RssSampler(threading.Thread):
+    """VmRSS of a process every 0.1 s: the value one second after start, the last, the peak."""
+
+    def __init__(self, pid: int) -> None:
+        super().__init__(daemon=True)
+        self.pid, self.samples, self.done = pid, [], threading.Event()
+
+    def run(self) -> None:
+        t0 = time.monotonic()
+        while not self.done.wait(0.1):
+            r = _rss_mb(self.pid)
+            if np.isfinite(r):
+                self.samples.append((time.monotonic() - t0, r))
+
+    def summary(self) -> dict:
+        after1 = [r for t, r in self.samples if t >= 1.0] or [r for _, r in self.samples]
+        return {"rss_start_mb": after1[0], "rss_end_mb": after1[-1], "rss_peak_mb": max(after1)}
+
+
+def flood(work: Path, kind: str, valid: int, garbage: int, layout_flood: int = 0, skip_stale: bool = True) -> dict:
+    """One session under one attack. ``skip_stale`` off: every valid frame must be solved, so
+    ``solved`` shows whether garbage starved any; on (the live default): ``stale`` counts only
+    valid frames skipped because a newer valid one was waiting (the machine's load decides how many)."""
+    port = free_port()
+    prof = work / "profile.npz"
+    take = work / "demo_take.c3d"
+    stats = work / f"{kind}-{garbage}-{layout_flood}-{skip_stale}.json"
+    src = ["--zmq-in", f"tcp://127.0.0.1:{port}"] if kind == "zmq" else ["--osc-in", f"127.0.0.1:{port}"]
+    addr = f"tcp://127.0.0.1:{port}" if kind == "zmq" else f"127.0.0.1:{port}"
+    if kind == "zmq":  # the sender binds; the driver connects
+        sender = spawn(["-m", "benchmarks.hostile_traffic", kind, addr, take, "--valid", valid, "--rate", RATE,
+                        "--garbage", garbage, "--layout-flood", layout_flood])
+        first_line(sender)
+    run = spawn(["-m", "livecap", "run", *src, "--profile", prof, "--idle-timeout", 2.0, "--stats-file", stats,
+                 "--skip-stale" if skip_stale else "--no-skip-stale"])
+    first_line(run)
+    sampler = RssSampler(run.pid)
+    sampler.start()
+    if kind == "osc":
+        sender = spawn(["-m", "benchmarks.hostile_traffic", kind, addr, take, "--valid", valid, "--rate", RATE,
+                        "--garbage", garbage])
+        first_line(sender)
+    out, err = sender.communicate(timeout=valid / RATE + 300)
+    sent = json.loads(out.strip().splitlines()[-1])
+    run.communicate(timeout=120)
+    sampler.done.set()
+    sampler.join()
+    st = json.loads(stats.read_text())
+    bad = st["bad_input"]
+    attack = "none" if not garbage and not layout_flood else (
+        f"{sent['garbage']} malformed" if garbage else f"{sent.get('layouts', 0)} x 40 KB layouts")
+    return {"source": kind, "attack": attack, "skip_stale": "on" if skip_stale else "off",
+            "valid_sent": sent["valid"], "received": st["frames_in"], "solved": st["frames_out"],
+            "solved_pct": 100.0 * st["frames_out"] / sent["valid"], "stale": st["stale"],
+            "bad_counted": sum(v for k, v in bad.items() if k != "stream_restart"), **sampler.summary()}
+
+
+def subscribers(work: Path, policy: str, frames: int, others: bool) -> dict:
+    port = free_port()
+    run = spawn(["-m", "livecap", "run", "--zmq-in", f"tcp://127.0.0.1:{port}", "--zmq-out", "0", "--zmq-policy",
+                 policy, "--profile", work / "profile.npz", "--idle-timeout", 2.0, "--stats-file",
+                 work / f"sub-{policy}-{others}.stats.json"])
+    out_addr = re.search(r"zmq-out ([^;\s]+)", first_line(run)).group(1)
+    sub = textwrap.dedent(SUBSCRIBER)
+    healthy = spawn(["-c", sub, out_addr, work / "healthy.json", 3.0, 0.0])
+    procs = [healthy]
+    if others:
+        dead = spawn(["-c", sub, out_addr, work / "dead.json", 3.0, 1.0])
+        slow = spawn(["-c", sub, out_addr, work / "slow.json", 3.0, 0.05])
+        procs += [dead, slow]
+    for p in procs:
+        first_line(p)
+    if others:
+        os.kill(dead.pid, signal.SIGSTOP)
+    sender = spawn(["-m", "livecap", "send", work / "demo_take.c3d", "--zmq", f"tcp://127.0.0.1:{port}", "--loop",
+                    "--clock", "monotonic", "--frames", frames, "--labels-every", 0])
+    sender.communicate(timeout=frames / RATE + 120)
+    healthy.communicate(timeout=60)
+    run.communicate(timeout=60)
+    if others:
+        for p in (dead, slow):
+            os.kill(p.pid, signal.SIGCONT)
+            p.kill()
+            p.communicate()
+    lat = np.asarray(json.loads((work / "healthy.json").read_text())) * 1e3
+    st = json.loads((work / f"sub-{policy}-{others}.stats.json").read_text())
+    p50, p99 = np.percentile(lat, [50, 99]) if len(lat) else (float("nan"), float("nan"))
+    return {"policy": policy, "beside": "dead + slow" if others else "alone", "published": st["frames_out"],
+            "healthy_received": int(len(lat)), "healthy_pct": 100.0 * len(lat) / max(st["frames_out"], 1),
+            "p50_ms": float(p50), "p99_ms": float(p99),
+            "sink_drops": sum(s.get("drops", 0) for s in st["sinks"].values())}
+
+
+def run(quick: bool = False) -> dict:
+    """Measure; ``quick`` streams 5 s per row instead of 20 s."""
+    from livecap.calibration.profile import calibrate, estimate_neutral
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
+    from livecap.demo import DEMO_TAKE, generate
+    from livecap.demo.performance import PerformanceSettings
+    from transport.takefile import read_take
+
+    valid = int((5 if quick else 20) * RATE)
+    per_frame = int(np.ceil(1e5 / valid))  # about 10^5 malformed messages per flood row
+    load = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        generate(work, 0, PerformanceSettings(seconds=10, rate=RATE, seed=1))
+        rig = Rig.load(work / "demo_rig.npz")
+        layout = MarkerLayout.load(work / "demo_rig.markers.json", rig)
+        take = read_take(work / DEMO_TAKE).select(layout.labels)
+        calibrate(rig, layout, estimate_neutral(take, layout.stable, 120)).save(work / "profile.npz")
+        if DEMO_TAKE != "demo_take.c3d":
+            (work / "demo_take.c3d").symlink_to(work / DEMO_TAKE)
+        floods = []
+        for kind in ("zmq", "osc"):
+            for garbage, skip in ((0, False), (per_frame, False), (0, True), (per_frame, True)):
+                floods.append(flood(work, kind, valid, garbage, skip_stale=skip))
+        floods.append(flood(work, "zmq", valid, 0, layout_flood=400, skip_stale=False))
+        subs = [subscribers(work, policy, valid, others) for policy in ("fair", "count") for others in (False, True)]
+    out = {"rate_hz": RATE, "valid_frames": valid, "floods": floods, "subscribers": subs,
+           "machine": f"{os.cpu_count()} CPUs (shared VM), load average {load:.2f} at start, "
+                      f"{os.getloadavg()[0]:.2f} at the end",
+           "data": "livecap generate seed 0: 60 markers, 43 shapes, 10 s take looped, --profile, mode lsq"}
+    print(table(floods, ["source", "attack", "skip_stale", "valid_sent", "received", "solved", "solved_pct", "stale",
+                         "bad_counted",
+                         "rss_start_mb", "rss_end_mb", "rss_peak_mb"], f"flood at {RATE:g} Hz ({out['machine']})"))
+    print(table(subs, ["policy", "beside", "published", "healthy_received", "healthy_pct", "p50_ms", "p99_ms",
+                       "sink_drops"], "healthy subscriber beside a dead (SIGSTOP) and a slow (20 msg/s) one"))
+    return out
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(suite_main(run, __doc__))

@@ -1,0 +1,86 @@
+"""From the command line and manifests to jobs: defaults, per-actor profiles calibrated once."""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import logging
+from pathlib import Path
+
+from livecap.batch.jobs import RECORDS, Job, expand_takes, read_manifest
+from livecap.batch.worker import cli_parser, one_line, solve_parser
+
+log = logging.getLogger(__name__)
+
+
+def calibrated_profile(neutral: str, rig: str, markers: str | None, out_dir: str | Path) -> str:
+    """The profile ``livecap calibrate NEUTRAL --rig RIG`` writes, made once on the client and kept in
+    the output folder (remade only when the neutral take or the rig is newer)."""
+    from livecap.cli import calibrate
+
+    tag = hashlib.sha1(f"{Path(neutral).resolve()}|{Path(rig).resolve()}|{markers}".encode()).hexdigest()[:10]
+    path = Path(out_dir) / RECORDS / "profiles" / f"{Path(neutral).stem}-{tag}.npz"
+    sources = [Path(p) for p in (neutral, rig, markers) if p]
+    if path.is_file() and all(path.stat().st_mtime_ns > p.stat().st_mtime_ns for p in sources if p.exists()):
+        return str(path)
+    parser = cli_parser("calibrate")
+    argv = ["calibrate", neutral, "--rig", rig, "--out", str(path)] + (["--markers", markers] if markers else [])
+    args = parser.parse_args(argv)
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        calibrate.run_calibrate(args)
+    log.info("calibrated %s from %s", path, neutral)
+    return str(path)
+
+
+def plan_jobs(takes: list[str], manifests: list[str], *, rig: str | None, out_dir: str, mode: str, fmt: str,
+              profile: str | None = None, calibrate_from: str | None = None, markers: str | None = None,
+              neutral_seconds: float = 1.0, options: tuple[str, ...] = ()) -> list[Job]:
+    """Jobs for the takes given on the command line (command-line settings) and for every manifest row
+    (its own actor, profile or neutral take, mode, options, rig; the command line's where it says nothing).
+    Raises ValueError for a bad manifest or solve option, or two takes that would write one output."""
+    rows = [{"take": str(p)} for p in expand_takes(takes)]
+    for m in manifests:
+        rows += read_manifest(m)
+    if not rows:
+        raise ValueError("no takes: give take files, folders or globs, or --manifest")
+    profiles: dict[tuple, tuple[str | None, str]] = {}
+    parser = solve_parser()
+    jobs: list[Job] = []
+    for row in rows:
+        row_rig = row.get("rig", rig)
+        if not row_rig:
+            raise ValueError(f"{row['take']}: no rig (give --rig or a rig column)")
+        row_markers = row.get("markers", markers)
+        prof = row.get("profile")
+        neutral = row.get("calibrate_from")
+        if not prof and not neutral:
+            prof, neutral = profile, calibrate_from
+        error = ""
+        if neutral and not prof:
+            key = (neutral, row_rig, row_markers)
+            if key not in profiles:
+                try:
+                    profiles[key] = calibrated_profile(neutral, row_rig, row_markers, out_dir), ""
+                except Exception as exc:  # this actor's takes fail; the others go on
+                    profiles[key] = None, f"calibration from {neutral} failed: {one_line(exc)}"
+            prof, error = profiles[key]
+        for take in expand_takes([row["take"]]):
+            job = Job(take=str(take), rig=row_rig, out_dir=out_dir, mode=row.get("mode", mode), fmt=fmt,
+                      profile=prof, markers=row_markers, actor=row.get("actor", ""), neutral_seconds=neutral_seconds,
+                      options=tuple(row.get("options", ())) or options, error=error)
+            if error:
+                jobs.append(job)
+                continue
+            try:
+                parser.parse_args(["solve", *job.solve_argv()])
+            except ValueError as exc:
+                raise ValueError(f"{take}: {exc}") from None
+            jobs.append(job)
+    seen: dict[str, str] = {}
+    for job in jobs:
+        other = seen.setdefault(job.output.name, job.take)
+        if other != job.take:
+            raise ValueError(f"{job.take} and {other} would both write {job.output} (rename one)")
+    return jobs

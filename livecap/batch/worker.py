@@ -1,0 +1,198 @@
+"""What runs on a Dask worker: a per-worker cache of rigs, profiles and prepared solvers (a worker
+plugin), and the solve of one take, written by the worker to the output folder."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import threading
+import time
+from pathlib import Path
+
+from distributed.diagnostics.plugin import WorkerPlugin
+
+from livecap.batch.jobs import Job
+from livecap.batch.outputs import write_output
+from livecap.batch.stats import take_stats
+from livecap.cli.common import load_rig, profile_for
+from livecap.modes.registry import build_solver
+from livecap.offline.solve import solve_take
+from transport.takefile import read_take
+
+PLUGIN_NAME = "livecap-batch-cache"
+MAX_ERROR_CHARS = 300
+
+
+class _Raising(argparse.ArgumentParser):
+    def error(self, message: str):
+        raise ValueError(f"solve options: {message}")
+
+
+def cli_parser(*commands: str) -> argparse.ArgumentParser:
+    """The ``livecap`` parser of these subcommands, raising ValueError instead of exiting: a batch job's
+    options mean what they mean to ``livecap solve`` (and ``livecap calibrate``)."""
+    import importlib
+
+    parser = _Raising(prog="livecap")
+    sub = parser.add_subparsers(dest="command")
+    for name in commands:
+        importlib.import_module(f"livecap.cli.{name}").register(sub)
+    return parser
+
+
+def solve_parser() -> argparse.ArgumentParser:
+    return cli_parser("solve")
+
+
+class SolverCache(WorkerPlugin):
+    """Rigs, profiles and prepared solvers, built once per worker (per thread for solvers, which hold
+    state) and reused across takes; a solver is ``reset()`` before each take, which gives the same
+    numbers as a fresh one (tested against ``livecap solve``)."""
+
+    name = PLUGIN_NAME
+
+    def __init__(self) -> None:
+        self.parser = None
+        self.rigs: dict = {}
+        self.profiles: dict = {}
+        self.solvers: dict = {}
+        self.built = 0
+        self._lock = threading.Lock()
+
+    def setup(self, worker=None) -> None:
+        self.rigs.clear()
+        self.profiles.clear()
+        self.solvers.clear()
+
+    def __getstate__(self) -> dict:  # travels to the workers empty
+        return {}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__()
+
+    def args(self, job: Job) -> argparse.Namespace:
+        with self._lock:
+            if self.parser is None:
+                self.parser = solve_parser()
+            return self.parser.parse_args(["solve", *job.solve_argv()])
+
+    def rig(self, args: argparse.Namespace):
+        key = (args.rig, args.markers)
+        with self._lock:
+            if key not in self.rigs:
+                self.rigs[key] = load_rig(args)
+            return self.rigs[key]
+
+    def profile(self, path: str):
+        from livecap.calibration.profile import Profile
+
+        key = (path, os.stat(path).st_mtime_ns)
+        with self._lock:
+            if key not in self.profiles:
+                self.profiles[key] = Profile.load(path)
+            return key, self.profiles[key]
+
+    def solver(self, job: Job, profile_key, profile, options: dict):
+        key = (profile_key, job.mode, job.options, threading.get_ident())
+        solver = self.solvers.get(key)
+        if solver is None or not hasattr(solver, "reset"):
+            solver = build_solver(job.mode, profile, options)
+            self.built += 1
+            self.solvers[key] = solver
+        else:
+            solver.reset()
+        return solver
+
+
+_LOCAL = SolverCache()  # in-process use (no Dask worker), e.g. the benchmark's loop
+
+
+def _cache() -> SolverCache:
+    try:
+        from distributed import get_worker
+
+        return get_worker().plugins[PLUGIN_NAME]
+    except (ValueError, KeyError):
+        return _LOCAL
+
+
+class _Warnings(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.thread == threading.get_ident():
+            self.lines.append(record.getMessage())
+
+
+def one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= MAX_ERROR_CHARS else text[: MAX_ERROR_CHARS - 3] + "..."
+
+
+def _check_labels(path: str, take_labels, profile_labels) -> list[str]:
+    have = set(take_labels)
+    lacking = [lab for lab in profile_labels if lab not in have]
+    if len(lacking) * 2 > len(profile_labels):
+        raise ValueError(f"{path}: wrong labels: lacks {len(lacking)} of the rig's {len(profile_labels)} markers "
+                         f"(e.g. {', '.join(lacking[:4])})")
+    return [f"labels absent from the take: {', '.join(lacking[:8])}"] if lacking else []
+
+
+def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
+    """Solve one take exactly as ``livecap solve`` would and write its output and record; never raises:
+    a failure comes back as a row with ``status`` "failed" and a one-line ``error``."""
+    cache = cache or _cache()
+    start = time.perf_counter()
+    row: dict = {"take": job.take, "stem": job.stem, "actor": job.actor, "mode": job.mode,
+                 "profile": job.profile or "", "output": str(job.output), "status": "failed", "error": "",
+                 "worker": os.getpid()}
+    if job.error:
+        row["error"] = job.error
+        row["seconds"] = 0.0
+        return row
+    handler = _Warnings()
+    logging.getLogger().addHandler(handler)
+    try:
+        from livecap.cli.solve import solve_options
+
+        args = cache.args(job)
+        rig, layout = cache.rig(args)
+        take = read_take(job.take)
+        notes = _check_labels(job.take, take.labels, layout.labels)
+        options = solve_options(args)
+        if args.profile:
+            profile_key, profile = cache.profile(args.profile)
+            solver = cache.solver(job, profile_key, profile, options)
+        else:
+            profile = profile_for(args, rig, layout, take)
+            solver = build_solver(args.mode, profile, options)
+        solved = solve_take(take, profile, solver)
+        stats = take_stats(take, solved, profile)
+        write_output(job, solved, stats["frame_residual_mm"], rig)
+        row.update(stats)
+        row["warnings"] = notes + stats.pop("flags") + handler.lines
+        row["status"] = "ok"
+    except Exception as exc:  # a bad take must not stop the batch: it comes back as a failed row
+        row["error"] = one_line(exc)
+    finally:
+        logging.getLogger().removeHandler(handler)
+    row.pop("frame_residual_mm", None)
+    row["seconds"] = time.perf_counter() - start
+    if row["status"] == "ok":
+        job.record.parent.mkdir(parents=True, exist_ok=True)
+        tmp = job.record.with_name(job.record.name + ".partial")
+        tmp.write_text(json.dumps(row))
+        os.replace(tmp, job.record)
+    else:
+        job.record.unlink(missing_ok=True)  # an old success must not stand in for this failure
+    return row
+
+
+def load_record(job: Job) -> dict:
+    row = json.loads(Path(job.record).read_text())
+    row["status"] = "skipped"
+    return row

@@ -1,0 +1,127 @@
+"""``livecap realeval``: every mode on takes driven by real performances, against the oracle.
+
+For each rig, noise level and Live Link Face CSV: a take of a new actor performing the CSV's
+curves (livecap.demo.curves_take), plain calibration on its neutral take, each mode's solve, and
+the per-frame bounded least-squares oracle with the true actor basis and pose
+(livecap.offline.real_eval). Printed per take and summarised over the files as ratios to the oracle.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+REALDATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "realdata"
+DEFAULT_MODES = ["robust", "robust-lag", "movement"]
+
+
+def _realdata() -> Path:
+    import os
+
+    env = os.environ.get("LIVECAP_SHARED")
+    return Path(env) / "realdata" if env else REALDATA.resolve()
+
+
+def register(sub) -> None:
+    p = sub.add_parser("realeval", help="accuracy on takes driven by real performances, as ratios to the oracle",
+                       description="Weight RMSE and vertex p95 as ratios to the true-basis, true-pose oracle, "
+                                   "jitter x truth and blink peak retention, per take and over the files.")
+    p.add_argument("--curves", nargs="+", help="Live Link Face CSVs (default: every CSV in "
+                   "$LIVECAP_SHARED/realdata/performance or ../shared/realdata/performance)")
+    p.add_argument("--rig", nargs="+", default=["ict", "demo"],
+                   help="rigs: 'ict' (../shared/realdata/ict-face), 'demo' (bundled), or a rig path with its "
+                        "markers.json (default: ict demo)")
+    p.add_argument("--mapping", help="ARKit name mapping JSON for rigs whose names are not ARKit's")
+    p.add_argument("--noise", type=float, nargs="+", default=[0.2, 0.5], help="marker noise sigma(s), mm")
+    p.add_argument("--occlusion", type=float, default=0.05, help="fraction of marker-frames missing (bursts)")
+    p.add_argument("--seconds", type=float, default=20.0, help="length of each take (default 20 s)")
+    p.add_argument("--start", type=float, default=10.0, help="seconds into each CSV (clamped to fit; default 10)")
+    p.add_argument("--modes", nargs="+", default=DEFAULT_MODES, help=f"modes (default {' '.join(DEFAULT_MODES)})")
+    p.add_argument("--json", help="write every row as JSON")
+    p.set_defaults(func=run)
+
+
+def _rig(name: str):
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
+    from livecap.demo import DEMO_MARKERS, DEMO_RIG
+
+    if name == "demo":
+        rec = Path(__file__).resolve().parents[2] / "recordings"
+        rig = Rig.load(rec / DEMO_RIG)
+        return rig, MarkerLayout.load(rec / DEMO_MARKERS, rig)
+    path = _realdata() / "ict-face" if name == "ict" else Path(name)
+    if not path.exists():
+        raise ValueError(f"{path}: rig not found")
+    rig = Rig.load(path)
+    mpath = path / "markers.json" if path.is_dir() else path.with_name(path.stem + ".markers.json")
+    if not mpath.exists():
+        raise ValueError(f"{mpath}: no markers.json for rig {path}")
+    return rig, MarkerLayout.load(mpath, rig)
+
+
+def run(args: argparse.Namespace) -> int:
+    from livecap.demo.curves_take import CurveTakeSettings, curves_take
+    from livecap.offline.real_eval import evaluate_curve_take
+    from transport.arkit import load_mapping
+    from transport.llf_csv import read_llf_csv
+
+    files = [Path(c) for c in args.curves] if args.curves else sorted((_realdata() / "performance").glob("*.csv"))
+    if not files:
+        raise ValueError(f"{_realdata() / 'performance'}: no Live Link Face CSVs (give --curves)")
+    mapping = load_mapping(args.mapping) if args.mapping else None
+    out = []
+    for rig_name in args.rig:
+        rig, layout = _rig(rig_name)
+        for noise in args.noise:
+            for f in files:
+                length = read_llf_csv(f).times[-1]
+                start = max(0.0, min(args.start, length - args.seconds))
+                s = CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise, occlusion=args.occlusion)
+                t0 = time.perf_counter()
+                ct = curves_take(rig, layout, f, s, mapping)
+                rows = evaluate_curve_take(rig, layout, ct, args.modes)
+                oracle = rows[0]
+                took = time.perf_counter() - t0
+                print(f"{rig_name} {noise:g} mm {f.name} ({ct.take.n_frames} frames, {took:.0f} s): "
+                      f"oracle RMSE {oracle.rmse:.3f} p95 {oracle.p95_mm:.2f} mm")
+                for r in rows:
+                    rec = {"rig": rig_name, "noise_mm": noise, "file": f.name, **vars(r),
+                           "rmse_x": r.rmse / oracle.rmse, "p95_x": r.p95_mm / oracle.p95_mm}
+                    out.append(rec)
+                    print(f"  {r.mode:12s} RMSE {r.rmse:.3f} ({rec['rmse_x']:.2f}x)  p95 {r.p95_mm:.2f} mm "
+                          f"({rec['p95_x']:.2f}x)  jitter {r.jitter_x:7.2f}x  blink {r.blink:.2f}")
+    print(summary_table(out))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps({"machine": platform.node(), "date": time.strftime("%Y-%m-%d"),
+                                               "seconds": args.seconds, "occlusion": args.occlusion,
+                                               "rows": out}, indent=1))
+    return 0
+
+
+def summary_table(rows: list[dict]) -> str:
+    """Markdown: per rig, noise and mode, the mean over files (oracle's absolute figures beside)."""
+    lines = ["| rig | noise mm | mode | weight RMSE (x oracle) | vertex p95 mm (x oracle) | jitter x truth "
+             "| blink kept |",
+             "|---|---|---|---|---|---|---|"]
+    keys = []
+    for r in rows:
+        k = (r["rig"], r["noise_mm"], r["mode"])
+        if k not in keys:
+            keys.append(k)
+    for k in keys:
+        sel = [r for r in rows if (r["rig"], r["noise_mm"], r["mode"]) == k]
+
+        def mean(field: str, sel=sel) -> float:
+            vals = np.array([r[field] for r in sel], dtype=float)
+            return float(np.mean(vals[np.isfinite(vals)])) if np.isfinite(vals).any() else float("nan")
+
+        lines.append(f"| {k[0]} | {k[1]:g} | {k[2]} | {mean('rmse'):.3f} ({mean('rmse_x'):.2f}) | "
+                     f"{mean('p95_mm'):.2f} ({mean('p95_x'):.2f}) | {mean('jitter_x'):.2f} | {mean('blink'):.2f} |")
+    return "\n".join(lines)

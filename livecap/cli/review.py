@@ -1,0 +1,72 @@
+"""``livecap review``: review and edit a solved take in the browser (docs/review.md).
+
+Scrub the take, compare the solve with ground truth, make spacetime edits (Seol §6), drag points
+of the face (direct manipulation, Lewis & Anjyo 2010) and reduce the curves to keys (Lewis §5.4).
+"""
+
+from __future__ import annotations
+
+import argparse
+import webbrowser
+
+from livecap.cli.common import add_calibration_arguments, add_rig_arguments
+
+
+def register(sub) -> None:
+    p = sub.add_parser("review", help="review and edit a solved take in the browser (scrub, edit, drag, keys)",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("take", help="marker take: .c3d, .trc or .csv")
+    add_rig_arguments(p)
+    add_calibration_arguments(p)
+    p.add_argument("--weights", help="solved weights CSV (default: solve the take in --mode)")
+    p.add_argument("--mode", default="movement", help="solver mode when no --weights (default movement)")
+    p.add_argument("--truth", help="ground truth .npz (default: <take>.truth.npz when present)")
+    p.add_argument("--port", type=int, default=8765, help="port (default 8765; 0 picks a free one)")
+    p.add_argument("--interface", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
+    p.add_argument("--pull", type=float, default=1.0, help="direct manipulation: pull towards the current weights")
+    p.add_argument("--no-browser", action="store_true", help="only print the URL")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import asyncio
+    import socket
+
+    from livecap.review.load import open_session
+    from livecap.review.server import make_app
+    from transport.gltf_keys import rig_glb
+
+    session = open_session(args.take, args.rig, args.markers, args.profile, args.weights, args.truth, args.mode,
+                           args.neutral_seconds, args.pull)
+    app = make_app(session, rig_glb(session.rig, session.names))
+    sock = socket.socket(socket.AF_INET6 if ":" in args.interface else socket.AF_INET)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((args.interface, args.port))
+    except OSError as exc:
+        raise OSError(f"--port {args.port}: cannot listen on {args.interface} ({exc.strerror})") from None
+    sock.listen(128)  # connections queue from here on, before the URL is printed
+    host, port = sock.getsockname()[:2]
+    url = f"http://{'[' + host + ']' if ':' in host else host}:{port}/"
+    print(f"livecap review: {session.n_frames} frames x {len(session.names)} shapes at {url}", flush=True)
+    if not args.no_browser:
+        try:
+            webbrowser.open(url)
+        except webbrowser.Error:
+            pass
+    asyncio.run(_serve(app, sock))
+    return 0
+
+
+async def _serve(app, sock) -> None:
+    import asyncio
+
+    from aiohttp import web
+
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    await web.SockSite(runner, sock).start()
+    try:
+        await asyncio.Event().wait()
+    finally:
+        await runner.cleanup()

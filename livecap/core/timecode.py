@@ -1,0 +1,98 @@
+"""Time-of-day timecode for the frames a session publishes, so its streams line up with other
+timecoded sources (the Live Link Face app stamps its packets and CSV rows with the phone's time of
+day, SMPTE-style ``HH:MM:SS:FF``).
+
+A :class:`TimecodeClock` maps the stream's own timestamps to a time of day, so frames stay evenly
+spaced whatever the solve's jitter:
+
+* ``"clock"`` (default): the system clock's local time of day. The offset between timestamps and
+  the clock is the smallest seen so far (the least-delayed frame is the closest to its capture):
+  frames published late in a burst (the calibration window, a stall) do not push the stream's
+  timecode late; once frames flow, the timecode is the clock's less the solve latency. The
+  frames of a burst itself may run ahead by up to its length, once.
+* ``"HH:MM:SS:FF"``: that start timecode for the first frame (frames at the stream's rate);
+* ``"take"``: the take's own timestamps as the time of day.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import re
+from dataclasses import dataclass, field
+
+SECONDS_PER_DAY = 86400.0
+_TC = re.compile(r"^(\d{1,2}):(\d{2}):(\d{2})[:;](\d{1,3})$")
+
+
+def frame_rate_fraction(rate: float) -> tuple[int, int]:
+    """Frame rate as numerator / denominator: NTSC rates (29.97, 59.94, 23.976, 119.88) are
+    ``n*1000/1001``, whole rates ``n/1``."""
+    if rate <= 0 or not math.isfinite(rate):
+        raise ValueError(f"frame rate must be positive, got {rate}")
+    if abs(rate - round(rate)) < 1e-3:
+        return int(round(rate)), 1
+    ntsc = round(rate * 1.001)
+    if abs(ntsc * 1000 / 1001 - rate) < 5e-3:
+        return ntsc * 1000, 1001
+    return int(round(rate * 1000)), 1000
+
+
+def parse_timecode(text: str, rate: float) -> float:
+    """Seconds of day of ``HH:MM:SS:FF`` at ``rate`` frames per second."""
+    m = _TC.match(text.strip())
+    if not m:
+        raise ValueError(f"--timecode {text!r}: expected HH:MM:SS:FF, 'clock' or 'take'")
+    h, mi, s, f = (int(g) for g in m.groups())
+    nominal = max(1, int(round(rate)))
+    if h > 23 or mi > 59 or s > 59 or f >= nominal:
+        raise ValueError(f"--timecode {text!r}: out of range (frames 0-{nominal - 1} at {rate:g} fps)")
+    return h * 3600 + mi * 60 + s + f / nominal
+
+
+def now_of_day() -> float:
+    """The system clock's local time of day, seconds."""
+    now = _dt.datetime.now()
+    return now.hour * 3600 + now.minute * 60 + now.second + now.microsecond * 1e-6
+
+
+@dataclass
+class TimecodeClock:
+    """Time of day (seconds) of each published frame; see the module doc for ``start``."""
+
+    start: str = "clock"
+    rate: float = 60.0
+    _offset: float | None = field(default=None, init=False)
+
+    def __post_init__(self) -> None:
+        if self.start not in ("clock", "take"):
+            parse_timecode(self.start, self.rate)  # a bad start fails before the session runs
+
+    def seconds_of_day(self, timestamp: float) -> float:
+        ts = float(timestamp)
+        if self.start == "take":
+            return ts % SECONDS_PER_DAY
+        if self.start == "clock":
+            offset = now_of_day() - ts
+            if self._offset is None or offset < self._offset:
+                self._offset = offset
+        elif self._offset is None:
+            self._offset = parse_timecode(self.start, self.rate) - ts
+        return (self._offset + ts) % SECONDS_PER_DAY
+
+
+def split_frames(seconds_of_day: float, fps: float) -> tuple[int, float]:
+    """Whole frames since midnight at ``fps`` and the sub-frame fraction in [0, 1)."""
+    total = seconds_of_day * fps
+    whole = math.floor(total + 1e-6)
+    return int(whole), min(max(total - whole, 0.0), 0.999999)
+
+
+def format_timecode(seconds_of_day: float, fps: int = 60, sub_digits: int = 3) -> str:
+    """``HH:MM:SS:FF.mmm``: frames FF at ``fps`` (00 to fps-1), then the sub-frame in thousandths
+    (the Live Link Face app's CSV timecode, written at 60 fps)."""
+    whole, sub = split_frames(seconds_of_day, fps)
+    scale = 10**sub_digits
+    sub_i = min(int(sub * scale), scale - 1)
+    s, ff = divmod(whole, fps)
+    return f"{s // 3600 % 24:02d}:{s // 60 % 60:02d}:{s % 60:02d}:{ff:02d}.{sub_i:0{sub_digits}d}"

@@ -1,0 +1,102 @@
+"""Accuracy on takes driven by real performances, measured against what is possible (issue 15).
+
+The reference is the *oracle*: per-frame bounded least squares with the actor's true marker basis
+and the true head pose, which only the generator knows. A mode's weight RMSE and vertex p95 are
+reported as ratios to the oracle's on the same take, beside jitter as a multiple of the truth's and
+blink peak retention (how much of each real blink's peak the solve keeps).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import lsq_linear
+from scipy.signal import find_peaks
+from scipy.spatial.transform import Rotation
+
+from livecap.calibration.profile import Profile, calibrate, estimate_neutral
+from livecap.core.markers import MarkerLayout
+from livecap.core.rig import Rig
+from livecap.demo.curves_take import CurveTake
+from livecap.modes.registry import build_solver
+from livecap.offline.metrics import jitter, weight_rmse
+from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS, prepare_targets
+
+
+def oracle_weights(ct: CurveTake, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Per-frame bounded least squares with the true actor basis and the true head pose."""
+    take = ct.take
+    R = Rotation.from_quat(ct.head_rotation).as_matrix()
+    local = np.einsum("tji,tnj->tni", R, take.positions - ct.head_translation[:, None, :]) - ct.actor_neutral
+    B = ct.actor_basis.reshape(len(ct.names), -1).T  # 3n x m
+    W = np.zeros((take.n_frames, len(ct.names)))
+    for i in range(take.n_frames):
+        rows = np.repeat(take.valid[i], 3)
+        W[i] = lsq_linear(B[rows], local[i].reshape(-1)[rows], bounds=(lower, upper), method="bvls").x
+    return W
+
+
+def vertex_p95(rig: Rig, weights: np.ndarray, truth: np.ndarray, stride: int = 3) -> float:
+    """95th percentile over (frame, vertex) of the distance between the rig posed by both (mm)."""
+    d = []
+    for i in range(0, len(weights), 64 * stride):
+        sl = slice(i, i + 64 * stride, stride)
+        d.append(np.linalg.norm(rig.evaluate(weights[sl]) - rig.evaluate(truth[sl]), axis=2).ravel())
+    return float(np.percentile(np.concatenate(d), 95))
+
+
+def blink_retention(names: list[str], weights: np.ndarray, truth: np.ndarray, rate: float) -> float:
+    """Median over real blinks (truth peaks above 0.5) of the solved peak / the true peak."""
+    ratios = []
+    for k, n in enumerate(names):
+        if "blink" not in n.lower():
+            continue
+        peaks, _ = find_peaks(truth[:, k], height=0.5, distance=max(1, int(0.2 * rate)))
+        for p in peaks:
+            ratios.append(weights[max(0, p - 2):p + 3, k].max() / truth[p, k])
+    return float(np.median(ratios)) if ratios else float("nan")
+
+
+def plain_profile(rig: Rig, layout: MarkerLayout, ct: CurveTake) -> Profile:
+    """What plain ``livecap calibrate NEUTRAL`` stores (robust stabiliser, default gap and pose settings)."""
+    sel = ct.neutral.select(layout.labels)
+    neutral = estimate_neutral(sel, layout.stable, None)
+    settings = {"max_gap_seconds": DEFAULT_MAX_GAP_SECONDS, "robust_stabilise": True,
+                "pose_smoothing_seconds": DEFAULT_POSE_SMOOTHING_SECONDS}
+    return calibrate(rig, layout, neutral, settings)
+
+
+@dataclass
+class Row:
+    mode: str
+    rmse: float
+    p95_mm: float
+    jitter_x: float
+    blink: float
+    ms_per_frame: float
+
+
+def score(label: str, rig: Rig, ct: CurveTake, W: np.ndarray, seconds: float) -> Row:
+    truth = ct.weights
+    return Row(label, weight_rmse(W, truth), vertex_p95(rig, W, truth),
+               jitter(W) / max(jitter(truth), 1e-12), blink_retention(ct.names, W, truth, ct.take.rate),
+               seconds * 1e3 / max(len(W), 1))
+
+
+def evaluate_curve_take(rig: Rig, layout: MarkerLayout, ct: CurveTake, modes: list[str]) -> list[Row]:
+    """The oracle and every mode in ``modes`` (plain profile from the neutral take) on one take."""
+    t0 = time.perf_counter()
+    rows = [score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), time.perf_counter() - t0)]
+    profile = plain_profile(rig, layout, ct)
+    take, targets, _, _ = prepare_targets(ct.take, profile)
+    for mode in modes:
+        solver = build_solver(mode, profile, {})
+        t0 = time.perf_counter()
+        if hasattr(solver, "solve"):
+            W = np.asarray(solver.solve(targets, take.valid))
+        else:
+            W = np.stack([solver.step(targets[i], take.valid[i]) for i in range(take.n_frames)])
+        rows.append(score(mode, rig, ct, W, time.perf_counter() - t0))
+    return rows

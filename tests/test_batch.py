@@ -1,0 +1,205 @@
+"""``livecap batch`` on a real 2-worker LocalCluster (processes), and through a ``dask scheduler`` and
+``dask worker`` started as real processes: outputs equal ``livecap solve``'s bytes, bad takes are
+reported and counted, finished takes are skipped on resume, a manifest mixes actors, profiles and modes."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from livecap.batch.jobs import Job
+from livecap.batch.plan import plan_jobs
+from livecap.batch.runner import dask_client, exit_code, run_batch
+from livecap.batch.worker import PLUGIN_NAME, SolverCache, solve_job
+from livecap.cli import main
+from transport.recorders import read_jsonl_recording
+from transport.takefile import read_take, write_take
+from transport.weights_csv import read_weights_csv
+
+ROOT = Path(__file__).resolve().parents[1]
+RIG = str(ROOT / "recordings" / "demo_rig.npz")
+NEUTRAL = str(ROOT / "recordings" / "demo_neutral.c3d")
+FRAMES = 120  # 1 s takes keep the batch tests short
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory) -> dict:
+    """Three short takes, an unreadable one, one with wrong labels, and a calibrated profile."""
+    root = tmp_path_factory.mktemp("library")
+    takes = root / "takes"
+    takes.mkdir()
+    full = read_take(ROOT / "recordings" / "demo_take.c3d")
+    for i in range(3):
+        write_take(full.slice(400 * i + 100, 400 * i + 100 + FRAMES), takes / f"take{i}.c3d")
+    (takes / "broken.c3d").write_bytes(b"this is not a C3D file")
+    wrong = full.slice(0, FRAMES)
+    write_take(type(wrong)([f"X{i}" for i in range(len(wrong.labels))], wrong.positions, wrong.valid, wrong.rate,
+                           wrong.first_frame), takes / "wrong_labels.c3d")
+    profile = root / "actor.npz"
+    assert main(["calibrate", NEUTRAL, "--rig", RIG, "--out", str(profile)]) == 0
+    return {"root": root, "takes": takes, "profile": str(profile)}
+
+
+@pytest.fixture(scope="module")
+def client():
+    with dask_client(workers=2) as c:
+        yield c
+
+
+def _solve(take: Path, out: Path, *flags: str) -> bytes:
+    assert main(["solve", str(take), "--rig", RIG, "--out", str(out), *flags]) == 0
+    return out.read_bytes()
+
+
+def test_local_cluster_equals_solve_and_reports_bad_takes(library, client, tmp_path):
+    out = tmp_path / "out"
+    jobs = plan_jobs([str(library["takes"])], [], rig=RIG, out_dir=str(out), mode="robust", fmt="csv",
+                     profile=library["profile"])
+    rows, meta = run_batch(jobs, out, client)
+    status = {r["stem"]: r["status"] for r in rows}
+    assert status == {"broken": "failed", "take0": "ok", "take1": "ok", "take2": "ok", "wrong_labels": "failed"}
+    assert exit_code(rows) == 2 and meta["workers"] == 2
+    errors = {r["stem"]: r["error"] for r in rows if r["status"] == "failed"}
+    assert "broken.c3d" in errors["broken"] and "not a readable C3D" in errors["broken"]
+    assert "wrong labels" in errors["wrong_labels"]
+    for stem in ("take0", "take2"):  # bit for bit what livecap solve writes
+        solo = _solve(library["takes"] / f"{stem}.c3d", tmp_path / f"{stem}.solo.csv", "--profile", library["profile"])
+        assert (out / f"{stem}.csv").read_bytes() == solo
+    # the prepared solver is built once per worker, not once per take
+    built = client.run(lambda dask_worker: dask_worker.plugins[PLUGIN_NAME].built)
+    assert 1 <= sum(built.values()) <= 2
+    summary = json.loads((out / "summary.json").read_text())
+    ok = [t for t in summary["takes"] if t["status"] == "ok"]
+    assert summary["failed"] == 2 and len(ok) == 3
+    for t in ok:
+        assert t["frames"] == FRAMES and 0 < t["residual_p50_mm"] <= t["residual_p95_mm"] < 5
+        assert 0 <= t["missing_share"] < 0.2 and len(t["weight_max"]) == len(t["names"]) == 43
+    assert (out / "summary.csv").read_text().count("\n") == 6
+    assert "data:image/png;base64," in (out / "summary.html").read_text()
+
+
+def test_resume_skips_finished_takes_and_force_redoes_them(library, client, tmp_path):
+    out = tmp_path / "out"
+    takes = tmp_path / "takes"
+    shutil.copytree(library["takes"], takes)
+    (takes / "broken.c3d").unlink()
+    (takes / "wrong_labels.c3d").unlink()
+
+    def batch(force: bool = False) -> dict:
+        jobs = plan_jobs([str(takes / "*.c3d")], [], rig=RIG, out_dir=str(out), mode="qp", fmt="csv",
+                         profile=library["profile"])
+        rows, _ = run_batch(jobs, out, client, force=force)
+        return {r["stem"]: r["status"] for r in rows}
+
+    assert batch() == {"take0": "ok", "take1": "ok", "take2": "ok"}
+    first = (out / "take1.csv").read_bytes()
+    assert batch() == {"take0": "skipped", "take1": "skipped", "take2": "skipped"}
+    assert (out / "summary.csv").read_text().count(",skipped,") == 3  # skipped takes keep their figures
+    later = time.time() + 5
+    os.utime(takes / "take1.c3d", (later, later))  # an input newer than its output
+    assert batch() == {"take0": "skipped", "take1": "ok", "take2": "skipped"}
+    assert (out / "take1.csv").read_bytes() == first
+    assert batch(force=True) == {"take0": "ok", "take1": "ok", "take2": "ok"}
+    assert len(json.loads((out / "summary.json").read_text())["takes"]) == 3
+
+
+def test_manifest_mixes_actors_profiles_and_modes(library, client, tmp_path):
+    takes = library["takes"]
+    manifest = tmp_path / "day1.toml"
+    manifest.write_text(f"""
+[defaults]
+rig = "{RIG}"
+
+[[take]]
+take = "{takes / 'take0.c3d'}"
+actor = "anna"
+profile = "{library['profile']}"
+mode = "robust"
+
+[[take]]
+take = "{takes / 'take1.c3d'}"
+actor = "ben"
+calibrate_from = "{NEUTRAL}"
+mode = "qp"
+options = {{ ridge = 0.01 }}
+""")
+    out = tmp_path / "out"
+    jobs = plan_jobs([], [str(manifest)], rig=None, out_dir=str(out), mode="robust", fmt="csv")
+    rows, _ = run_batch(jobs, out, client)
+    assert [(r["actor"], r["mode"], r["status"]) for r in rows] == [("anna", "robust", "ok"), ("ben", "qp", "ok")]
+    ben = _solve(takes / "take1.c3d", tmp_path / "ben.csv", "--profile", jobs[1].profile, "--mode", "qp",
+                 "--ridge", "0.01")
+    assert (out / "take1.csv").read_bytes() == ben
+    other = _solve(takes / "take1.c3d", tmp_path / "ben_robust.csv", "--profile", jobs[1].profile)
+    assert other != ben  # the manifest's mode and options did reach the solve
+
+
+def test_manifest_errors_name_the_file(tmp_path):
+    bad = tmp_path / "m.csv"
+    bad.write_text("take,actress\nx.c3d,anna\n")
+    with pytest.raises(ValueError, match=r"m\.csv row 1: unknown column\(s\) \['actress'\]"):
+        plan_jobs([], [str(bad)], rig=RIG, out_dir=str(tmp_path), mode="qp", fmt="csv")
+    with pytest.raises(ValueError, match="solve options"):
+        plan_jobs([str(tmp_path / "x.c3d")], [], rig=RIG, out_dir=str(tmp_path), mode="qp", fmt="csv",
+                  options=("--no-such-flag",))
+
+
+def test_glb_and_jsonl_outputs(library, tmp_path):
+    """In process (no cluster): the .glb is livecap solve's bytes, the JSONL holds the CSV's weights."""
+    take = library["takes"] / "take2.c3d"
+    cache = SolverCache()
+    for fmt in ("glb", "jsonl", "csv"):
+        row = solve_job(Job(str(take), RIG, str(tmp_path), "qp", fmt, profile=library["profile"]), cache)
+        assert row["status"] == "ok", row["error"]
+    assert cache.built == 1
+    (tmp_path / "solo").mkdir()
+    assert (tmp_path / "take2.glb").read_bytes() == _solve(take, tmp_path / "solo" / "take2.glb", "--profile",
+                                                           library["profile"], "--mode", "qp")
+    names, frames = read_jsonl_recording(tmp_path / "take2.jsonl")
+    csv_names, W, _ = read_weights_csv(tmp_path / "take2.csv")
+    assert names == csv_names and len(frames) == FRAMES
+    np.testing.assert_allclose([f["weights"] for f in frames], W, atol=5e-7)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_explicit_scheduler_with_dask_processes(library, tmp_path):
+    """``dask scheduler`` and ``dask worker`` as real processes; ``livecap batch --scheduler`` as a third."""
+    dask = Path(sys.executable).with_name("dask")
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1],
+                               "--no-dashboard"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        procs.append(subprocess.Popen([dask, "worker", address, "--nworkers", "1", "--nthreads", "1",
+                                       "--no-dashboard"], env=env, stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.DEVNULL))
+        out = tmp_path / "out"
+        done = subprocess.run([sys.executable, "-m", "livecap", "batch", str(library["takes"] / "take0.c3d"),
+                               str(library["takes"] / "broken.c3d"), "--rig", RIG, "--profile", library["profile"],
+                               "--out", str(out), "--scheduler", address], env=env, capture_output=True,
+                              text=True, timeout=120)
+        assert done.returncode == 1, done.stderr[-2000:]
+        assert "broken.c3d" in done.stdout and "not a readable C3D" in done.stdout
+        solo = _solve(library["takes"] / "take0.c3d", tmp_path / "solo.csv", "--profile", library["profile"])
+        assert (out / "take0.csv").read_bytes() == solo
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["scheduler"] == address and summary["workers"] == 1
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            p.wait(timeout=30)

@@ -1,0 +1,101 @@
+"""Takes driven by real Live Link Face curves (issue 15): reader, name mapping, ground truth, oracle."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from livecap.cli import main
+from livecap.core.rig import Rig
+from livecap.demo import truth_path
+from livecap.demo.curves_take import CurveTakeSettings, arkit_to_rig, curves_take
+from livecap.demo.performance import GroundTruth
+from livecap.offline.real_eval import blink_retention, oracle_weights
+from tests.conftest import SHARED
+from transport.arkit import ARKIT_NAMES
+from transport.llf_csv import read_llf_csv
+from transport.recorders import LLF_CSV_HEADER
+from transport.takefile import read_take
+
+SHORT = SHARED / "realdata" / "performance" / "MySlate_3_Jason_Millers_iPhone.csv"
+
+
+@pytest.fixture
+def short_csv():
+    if not SHORT.exists():
+        pytest.skip(f"real performances not found at {SHORT.parent} (../shared/realdata is not beside this checkout)")
+    return SHORT
+
+
+def _write_llf(path, rows, header=LLF_CSV_HEADER):
+    lines = [",".join(header)] + [",".join(r) for r in rows]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_reader_maps_by_header_name_and_drops_lost_rows(tmp_path):
+    n = len(LLF_CSV_HEADER) - 2
+    jaw_right = LLF_CSV_HEADER.index("JawRight") - 2
+    vals = ["0"] * n
+    vals[jaw_right] = "0.7"
+    rows = [["00:00:01:00.000", "61", *vals], ["00:00:01:02.000", "0"], ["00:00:01:04.000", "61", *vals]]
+    _write_llf(tmp_path / "a.csv", rows)
+    c = read_llf_csv(tmp_path / "a.csv")
+    assert c.lost == 1 and c.head is None
+    assert np.allclose(c.times, [0.0, 4 / 60])
+    assert c.weights[0, ARKIT_NAMES.index("jawRight")] == pytest.approx(0.7)
+    assert c.weights[0, ARKIT_NAMES.index("jawLeft")] == 0.0
+
+
+@pytest.mark.parametrize("text,msg", [("frame,x\n1,2\n", "no Timecode header"),
+                                      ("Timecode,BlendShapeCount,EyeBlinkLeft\n", "fewer than 10")])
+def test_reader_rejects_bad_files_with_their_name(tmp_path, text, msg):
+    (tmp_path / "bad.csv").write_text(text)
+    with pytest.raises(ValueError, match=f"bad.csv: .*{msg}"):
+        read_llf_csv(tmp_path / "bad.csv")
+
+
+def test_arkit_to_rig_sides_and_mapping_file():
+    A = arkit_to_rig(["browInnerUp_L", "browInnerUp_R", "eyeBlink_L", "mystery"])
+    bi, bl = ARKIT_NAMES.index("browInnerUp"), ARKIT_NAMES.index("eyeBlinkLeft")
+    assert A[0, bi] == A[1, bi] == 1.0 and A[2, bl] == 1.0 and not A[3].any()
+    A = arkit_to_rig(["mouth-corner-puller"], {"mouthSmileLeft": "mouth-corner-puller",
+                                               "mouthSmileRight": "mouth-corner-puller"})
+    assert A[0, ARKIT_NAMES.index("mouthSmileLeft")] == A[0, ARKIT_NAMES.index("mouthSmileRight")] == 0.5
+
+
+def test_oracle_recovers_truth_without_noise_and_degrades_with_it(ict, short_csv):
+    rig, layout = ict
+    W = {}
+    for noise in (0.0, 0.5):
+        ct = curves_take(rig, layout, short_csv, CurveTakeSettings(seconds=1.0, noise_mm=noise, occlusion=0.05))
+        assert (ct.weights > 0.05).sum(1).mean() > 10  # real acting is dense
+        W[noise] = np.sqrt(np.mean((oracle_weights(ct, rig.lower, rig.upper) - ct.weights) ** 2))
+    assert W[0.0] < 0.02 < W[0.5]
+
+
+def test_blink_retention_sees_a_halved_blink():
+    t = np.zeros((60, 2))
+    t[20:31, 0] = np.hanning(11)
+    assert blink_retention(["eyeBlinkLeft", "jawOpen"], 0.5 * t, t, 60.0) == pytest.approx(0.5)
+
+
+def test_generate_curves_cli_writes_take_truth_and_neutral(tmp_path, short_csv, capsys):
+    assert main(["generate", "--curves", str(short_csv), "--seconds", "2", "--out", str(tmp_path)]) == 0
+    take = read_take(tmp_path / f"{short_csv.stem}.c3d")
+    truth = GroundTruth.load(truth_path(tmp_path / f"{short_csv.stem}.c3d"))
+    rig = Rig.load("recordings/demo_rig.npz")
+    assert take.n_frames == 120 and truth.names == list(rig.names) and truth.weights.shape == (120, rig.n_shapes)
+    assert np.load(truth_path(tmp_path / f"{short_csv.stem}.c3d"))["actor_basis"].shape == (rig.n_shapes, 60, 3)
+    assert read_take(tmp_path / f"{short_csv.stem}_neutral.c3d").valid.all()
+
+
+def test_realeval_cli_reports_ratios_to_the_oracle(tmp_path, short_csv, capsys):
+    out = tmp_path / "r.json"
+    assert main(["realeval", "--rig", "demo", "--noise", "0.5", "--seconds", "3", "--curves", str(short_csv),
+                 "--modes", "robust", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["mode"] for r in rows] == ["oracle", "robust"]
+    assert rows[0]["rmse_x"] == 1.0 and np.isfinite(rows[1]["rmse_x"]) and rows[1]["p95_mm"] > 0
+    assert "| demo | 0.5 | robust |" in capsys.readouterr().out

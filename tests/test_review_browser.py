@@ -1,0 +1,165 @@
+"""The review page in a real browser (Debian's chromium through chromedriver): load the demo take,
+scrub, one spacetime edit and one drag; results checked through the API and the canvas pixels,
+which are compared with the offscreen renderer's frame of the same weights (face silhouettes)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.review_server import ROOT
+
+CHROMIUM, DRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
+pytestmark = pytest.mark.skipif(not (CHROMIUM.exists() and DRIVER.exists()),
+                                reason="Debian chromium + chromium-driver not installed (./dev test installs them)")
+
+
+@pytest.fixture(scope="module")
+def page(review_server):
+    if not (ROOT / "livecap/review/static/app.js").exists():
+        pytest.fail("the review page is not built (./dev builds it: npm run build in livecap/review/web)")
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    server = review_server
+    profile = tempfile.mkdtemp(prefix="livecap-chromium-")
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = str(CHROMIUM)
+    for a in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+              "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-quic",
+              "--enable-unsafe-swiftshader", "--use-angle=swiftshader", f"--user-data-dir={profile}",
+              "--window-size=1400,1000", "--force-device-scale-factor=1"):
+        opts.add_argument(a)
+    driver = webdriver.Chrome(options=opts, service=Service(str(DRIVER)))
+    try:
+        driver.get(server.url)
+        wait(driver, "return window.review && window.review.ready", what="the page to load the take")
+        yield driver, server
+    finally:
+        driver.quit()
+        shutil.rmtree(profile, ignore_errors=True)
+
+
+def wait(driver, script, timeout=30.0, what="the page"):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        v = driver.execute_script(script)
+        if v:
+            return v
+        time.sleep(0.1)
+    status = driver.find_element("id", "status").text
+    raise AssertionError(f"timed out waiting for {what} (status: {status!r})")
+
+
+def api(server, path):
+    with urllib.request.urlopen(server.url.rstrip("/") + path, timeout=30) as r:
+        return json.loads(r.read())
+
+
+def face_mask(png: bytes) -> np.ndarray:
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    bg = np.array([0.14, 0.12, 0.11]) * 255  # BGR of the shared background
+    return np.abs(img.astype(float) - bg).max(axis=2) > 25
+
+
+def offscreen_mask(weights_by_name: dict) -> np.ndarray:
+    import cv2
+
+    from livecap.core.rig import Rig
+    from viewer.renderer import Renderer
+
+    rig = Rig.load(ROOT / "recordings/demo_rig.npz")
+    w = np.zeros(rig.n_shapes)
+    for n, v in weights_by_name.items():
+        w[rig.index(n)] = v
+    r = Renderer(rig, None, (640, 480))
+    try:
+        img = r.render(w, show_sites=False)
+    finally:
+        r.release()
+    return face_mask(cv2.imencode(".png", img)[1].tobytes())
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def test_scrub_edit_drag(page):
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.support.ui import Select
+
+    driver, server = page
+    meta = api(server, "/api/meta")
+    names = meta["names"]
+    for box in ("show-pose", "show-markers"):  # compare the bare face with the offscreen renderer's
+        driver.find_element("id", box).click()
+
+    # scrub: a click at 3/4 of the timeline shows that frame, with the server's weights
+    tl = driver.find_element("id", "timeline")
+    width = tl.size["width"]
+    x = 40 + 0.75 * (width - 44)
+    ActionChains(driver).move_to_element_with_offset(tl, int(x - width / 2), 0).click().perform()
+    expect = round(0.75 * (meta["n_frames"] - 1))
+    frame = wait(driver, "return window.review.current && window.review.current.frame", what="the scrub")
+    assert abs(frame - expect) <= 3
+    shown = driver.execute_script("return window.review.current.weights")
+    served = api(server, f"/api/frame/{frame}")["weights"]
+    np.testing.assert_allclose(shown, served, atol=1e-9)
+    canvas = driver.find_element("id", "face")
+    before_png = canvas.screenshot_as_png
+    ref = offscreen_mask(dict(zip(names, served, strict=True)))
+    assert iou(face_mask(before_png), ref) > 0.9
+
+    # spacetime edit: jawOpen to 0.95 at this frame, propagated over +-20 frames
+    Select(driver.find_element("id", "edit-shape")).select_by_visible_text("jawOpen")
+    driver.execute_script("const s = document.getElementById('edit-value'); s.value = 0.95;"
+                          "s.dispatchEvent(new Event('input'));")
+    for box, v in (("edit-a", frame - 20), ("edit-b", frame + 20)):
+        el = driver.find_element("id", box)
+        el.clear()
+        el.send_keys(str(v))
+    driver.find_element("id", "edit-apply").click()
+    wait(driver, "return window.review.lastEdit", what="the edit")
+    curves = api(server, "/api/curves")
+    j = names.index("jawOpen")
+    assert curves["weights"][j][frame] == pytest.approx(0.95, abs=1e-4)
+    assert curves["undo"] == 1
+    edited = api(server, f"/api/frame/{frame}")["weights"]
+    after_edit = face_mask(canvas.screenshot_as_png)
+    assert iou(after_edit, offscreen_mask(dict(zip(names, edited, strict=True)))) > 0.9
+    assert after_edit.sum() > face_mask(before_png).sum()  # the open jaw shows more face
+
+    # drag: the chin up by 60 px; the commit's weights come back through the API
+    from livecap.core.rig import Rig
+    from viewer.renderer import Renderer
+
+    rig = Rig.load(ROOT / "recordings/demo_rig.npz")
+    w = np.zeros(rig.n_shapes)
+    w[[rig.index(n) for n in names]] = edited
+    pos = rig.evaluate(w)
+    front = pos[:, 2] > np.percentile(pos[:, 2], 60)
+    centre = np.abs(pos[:, 0] - np.median(pos[:, 0])) < 5
+    v = int(np.flatnonzero(front & centre)[np.argmin(pos[front & centre, 1])])  # the chin
+    r = Renderer(rig, None, (640, 480))
+    px = r.project(pos[v:v + 1])[0]
+    r.release()
+    ActionChains(driver).move_to_element_with_offset(canvas, int(px[0] - 320), int(px[1] - 240) - 3) \
+        .click_and_hold().move_by_offset(0, -30).move_by_offset(0, -30).release().perform()
+    commit = wait(driver, "return window.review.lastCommit", what="the drag")
+    assert commit["server_ms"] < 50
+    dragged = api(server, f"/api/frame/{frame}")["weights"]
+    np.testing.assert_allclose(dragged, commit["weights"], atol=1e-9)
+    assert dragged[j] < edited[j] - 0.05  # dragging the chin up closes the jaw
+    assert api(server, "/api/curves")["undo"] == 2
+    wait(driver, f"return window.review.current && window.review.current.weights[{j}] === {dragged[j]!r}",
+         what="the page to show the committed drag")
+    assert iou(face_mask(canvas.screenshot_as_png), offscreen_mask(dict(zip(names, dragged, strict=True)))) > 0.9
