@@ -79,11 +79,13 @@ _ARANGE = np.arange(4096)
 
 def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Kabsch with the fewest numpy calls (the per-frame head re-fit)."""
-    cs = src.mean(0)
-    cd = dst.mean(0)
+    inv = 1.0 / len(src)
+    cs = src.sum(0) * inv
+    cd = dst.sum(0) * inv
     U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
     R = Vt.T @ U.T
-    if np.linalg.det(R) < 0:
+    a, b, c = R.tolist()
+    if a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0]) + a[2] * (b[0] * c[1] - b[1] * c[0]) < 0:
         Vt[2] = -Vt[2]
         R = Vt.T @ U.T
     return R, cd - R @ cs
@@ -115,7 +117,7 @@ def gated_assignment(pred: np.ndarray, points: np.ndarray, gate: float | np.ndar
     best = d[_ARANGE[:n] if n <= len(_ARANGE) else np.arange(n), near]
     inside = best < g2
     chosen = near[inside]
-    if len(np.unique(chosen)) == len(chosen):
+    if not len(chosen) or np.bincount(chosen).max() <= 1:
         index[inside] = chosen
         return index, float(best.sum())
     rows, cols = linear_sum_assignment(d)
