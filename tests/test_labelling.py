@@ -44,7 +44,7 @@ def test_gated_assignment_is_the_augmented_optimum(n, k, gate, seed):
 @pytest.fixture(scope="module")
 def demo_setup(demo):
     rig, layout = demo
-    perf = perform(rig, layout, PerformanceSettings(seconds=5.0, seed=4))
+    perf = perform(rig, layout, PerformanceSettings(seconds=3.0, seed=4))
     take = perf.take.select(layout.labels)
     profile = calibrate(rig, layout, estimate_neutral(take, layout.stable, 120))
     return rig, layout, profile, take, perf.weights
