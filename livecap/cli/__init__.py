@@ -31,6 +31,7 @@ COMMANDS = [
     "review",
     "pose",
     "realeval",
+    "label",
     "prior",
 ]
 

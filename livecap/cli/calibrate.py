@@ -10,6 +10,7 @@ import numpy as np
 
 from livecap.calibration.profile import WARPS, Profile, calibrate, estimate_neutral
 from livecap.cli.common import add_rig_arguments, check_labels, load_rig, progress_bar, tune_on_take
+from livecap.cli.progress import stage
 from livecap.modes.registry import DEFAULT_MODE, MODES
 from livecap.modes.robust import ROBUST_MODES
 from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS
@@ -77,7 +78,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
                 "neutral_take": str(args.neutral), "neutral_frames": frames or take.n_frames}
     profile = calibrate(rig, layout, neutral, settings, warp=args.warp, smoothing=args.smoothing)
     tune_path = args.tune or args.neutral  # every profile carries the noise estimate every mode needs
-    tuned = tune_on_take(profile, read_take(args.tune) if args.tune else take)
+    with stage(f"tuning on {tune_path}"):
+        tuned = tune_on_take(profile, read_take(args.tune) if args.tune else take)
     print(f"tuned     on {tune_path}: noise {tuned['noise_mm']:.3f} mm, ridge {tuned['ridge']:.3g} "
           f"({tuned['criterion']})")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-from contextlib import contextmanager
 from pathlib import Path
 
 from livecap.calibration.profile import Profile, calibrate, estimate_neutral
+from livecap.cli import progress
 from livecap.core.markers import MarkerLayout
 from livecap.core.rig import Rig
 from livecap.core.take import Take
@@ -66,9 +66,10 @@ def profile_for(args: argparse.Namespace, rig: Rig, layout: MarkerLayout, take: 
     if getattr(args, "profile", None):
         return Profile.load(args.profile)
     sel = take.select(layout.labels)
-    neutral = estimate_neutral(sel, layout.stable, max(1, int(args.neutral_seconds * take.rate)))
-    profile = calibrate(rig, layout, neutral)
-    tune_on_take(profile, take)
+    with progress.stage("calibrating and tuning on the take (give --profile to skip)"):
+        neutral = estimate_neutral(sel, layout.stable, max(1, int(args.neutral_seconds * take.rate)))
+        profile = calibrate(rig, layout, neutral)
+        tune_on_take(profile, take)
     return profile
 
 
@@ -86,19 +87,4 @@ def solver_options(args: argparse.Namespace) -> dict:
     return {} if ridge is None else {"ridge": ridge}
 
 
-@contextmanager
-def progress_bar(description: str, total: int):
-    """A rich progress bar on stderr, only on a terminal (piped output stays clean); yields ``update(done, total)``."""
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
-    console = Console(stderr=True)
-    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                  TimeRemainingColumn(), transient=True, console=console, disable=not console.is_terminal) as prog:
-        task = prog.add_task(description, total=total)
-
-        def update(done: int, total_: int) -> None:
-            if done % 16 == 0 or done == total_:
-                prog.update(task, completed=done)
-
-        yield update
+progress_bar = progress.progress_bar  # kept here for the commands that import it from common

@@ -37,6 +37,8 @@ def register(sub) -> None:
     src.add_argument("--osc-in", help="[HOST:]PORT to receive OSC frame bundles on")
     src.add_argument("--replay", help="take to replay at its own pace (.c3d, .trc, .csv, raw .npz recording)")
     src.add_argument("--lsl-in", help="Lab Streaming Layer marker stream name (labels from its description)")
+    src.add_argument("--qtm-in", help="Qualisys QTM RT server HOST[:PORT] (3D, or 3D-no-labels with --unlabelled)")
+    src.add_argument("--natnet-in", help="OptiTrack Motive NatNet server HOST[:PORT] (unicast; metres)")
     src.add_argument("--unlabelled", action="store_true",
                      help="the source's points are unlabelled (or wrongly named): label them against --profile")
     src.add_argument("--speed", type=float, default=1.0, help="replay speed factor (default 1)")
@@ -150,11 +152,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     from transport.security import udp_address, zmq_address
 
     options = _apply_session(args)
-    sources = [x for x in (args.zmq_in, args.osc_in, args.replay, args.lsl_in) if x]
+    sources = [x for x in (args.zmq_in, args.osc_in, args.replay, args.lsl_in, args.qtm_in, args.natnet_in) if x]
     if len(sources) != 1:
-        raise ValueError("give exactly one source: --zmq-in, --osc-in, --replay or --lsl-in")
-    if args.unlabelled and not (args.profile and (args.replay or args.lsl_in)):
-        raise ValueError("--unlabelled needs --profile and --replay or --lsl-in (ZeroMQ/OSC frames carry labels)")
+        raise ValueError("give exactly one source: --zmq-in, --osc-in, --replay, --lsl-in, --qtm-in or --natnet-in")
+    if args.unlabelled and not (args.profile and not (args.zmq_in or args.osc_in)):
+        raise ValueError("--unlabelled needs --profile and a source other than --zmq-in/--osc-in (they carry labels)")
     profile = rig = layout = None
     want_window = args.window or args.window_optional
     if want_window and not args.rig:
@@ -206,6 +208,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
             raise ValueError(f"LSL stream {args.lsl_in!r} has no marker labels: give --unlabelled and --profile")
         rate = source.rate or rate
         described.append(f"lsl-in {args.lsl_in}")
+    elif args.qtm_in or args.natnet_in:
+        from transport.capture import capture_source
+
+        source, what = capture_source(args.qtm_in, args.natnet_in, labels, args.unlabelled, args.idle_timeout)
+        described.append(what)
     else:
         from transport.osc_source import OscSource
 

@@ -36,6 +36,8 @@ def register(sub) -> None:
                    help="qp: calibrated rig basis, or the actor's own from --keys (Curio 2006)")
     p.add_argument("--out", required=True, help="weights CSV: frame,time,<shape>...; or a .glb (glTF 2.0: mesh, "
                    "morph targets, weight and head-pose animation)")
+    p.add_argument("--unlabelled", action="store_true",
+                   help="the take's points are unlabelled or wrongly named: label them against --profile first")
     add_movement_arguments(p)
     p.set_defaults(func=run)
 
@@ -50,6 +52,10 @@ def run(args: argparse.Namespace) -> int:
     check_keys(args.mode, {"keys": args.keys, "basis": args.basis})
     rig, layout = load_rig(args)
     take = read_take(args.take)
+    if args.unlabelled:
+        from livecap.cli.label import labelled_take
+
+        take = labelled_take(args, take)
     profile = profile_for(args, rig, layout, take)
     solver = build_solver(args.mode, profile, solve_options(args))
     with progress_bar(f"solving ({args.mode})", take.n_frames) as update:

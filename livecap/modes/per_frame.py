@@ -26,7 +26,7 @@ def check_keys(mode: str, options: Mapping) -> None:
     """Argument check before any work: the modes that learn from keys need a keys file."""
     if options.get("keys") is None and (mode == "rbf" or (mode == "qp" and options.get("basis") == "actor")):
         what = "mode rbf" if mode == "rbf" else "qp with basis=actor"
-        raise ValueError(f"{what} needs --keys: {KEYS_HINT}")
+        raise ValueError(f"{what} needs key pairs (--keys): {KEYS_HINT}")
 
 
 def _given(cls, options: Mapping | None) -> dict:
