@@ -12,6 +12,20 @@ settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
 
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """In CI every tool and data set a test needs is installed (./dev test) or laid beside the checkout
+    (../shared), so a skip there means a missing install step: it fails instead of hiding."""
+    outcome = yield
+    report = outcome.get_result()
+    if os.environ.get("CI") and report.skipped and not hasattr(report, "wasxfail"):
+        reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+        report.outcome = "failed"
+        report.longrepr = f"skipped in CI, where nothing may be missing: {reason}"
+
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("LIVECAP_SHARED") or ROOT.parent / "shared")  # override for git worktrees
 ICT = SHARED / "realdata" / "ict-face"
