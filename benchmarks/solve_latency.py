@@ -1,4 +1,4 @@
-"""Per-frame solve latency of every registered mode at film-rig scales (54x50, 72x150, 72x1000).
+"""Per-frame solve latency of every registered mode at film-rig scales (54x50, 72x150, 72x1000, 120x1000).
 
 Each mode is timed on the same synthetic stream (benchmarks/synthetic.py) through its ``step``
 (what the live pipeline calls); the ratio column compares its p99 with plain unconstrained least
@@ -21,16 +21,17 @@ first frames, from tracemalloc (off while timing).
 from __future__ import annotations
 
 import os
+import sys
 import time
 import tracemalloc
 
 import numpy as np
 
 from benchmarks.synthetic import rom_keys, synthetic_profile, synthetic_stream
-from benchmarks.timing import table, time_calls
+from benchmarks.timing import suite_main, table, time_calls
 from livecap.modes.registry import MODES, build_solver
 
-SIZES = [(54, 50), (72, 150), (72, 1000)]
+SIZES = [(54, 50), (72, 150), (72, 1000), (120, 1000)]
 SLOW_LIMIT_S = 1.0
 NOT_PER_FRAME = {"movement": "offline whole-take mode: per-frame path timed as movement-stream; "
                              "offline figures in the movement suite"}
@@ -87,7 +88,8 @@ def time_mode(mode: str, profile, targets, valid, count: int, warmup: int = 50) 
     return {**out, **res}
 
 
-def run(quick: bool = False) -> dict:
+def run(quick: bool = False, modes: tuple[str, ...] = ()) -> dict:
+    """``modes``: only these (default every registered mode)."""
     rows = []
     n_frames = 300 if quick else 3000
     count = 300 if quick else 3000
@@ -98,7 +100,7 @@ def run(quick: bool = False) -> dict:
         base = _baseline(profile, targets, 3 * count)
         size = f"{n}x{m}"
         rows.append({"mode": "pinv (baseline)", "size": size, **base, "ratio_p99": 1.0})
-        for mode in sorted(MODES):
+        for mode in sorted(m for m in MODES if m in modes or not any(modes)):
             try:
                 res = time_mode(mode, profile, targets, valid, count)
             except Exception as exc:  # a mode that cannot be built or run is reported, not hidden
@@ -112,3 +114,7 @@ def run(quick: bool = False) -> dict:
                 f"product; load average {load:.2f} at start, {os.getloadavg()[0]:.2f} at end"))
     return {"rows": rows, "load_start": load, "load_end": os.getloadavg()[0],
             "data": "benchmarks/synthetic.py: Gaussian-patch bases, 40 moving shapes, 0.3 mm noise"}
+
+
+if __name__ == "__main__":
+    sys.exit(suite_main(run, __doc__, modes=""))

@@ -220,32 +220,36 @@ class CausalPolyFilter:
     latency_frames = 0  # exact on polynomials of degree <= order
 
     def reset(self) -> None:
-        self._buf: np.ndarray | None = None  # window x channels
-        self._ok: np.ndarray | None = None
+        self._ring: np.ndarray | None = None  # 2 window x channels: each sample written twice, so
+        self._ring_ok: np.ndarray | None = None  # the last window is one contiguous slice (no roll)
+        self._pos = 0
         self._last: np.ndarray | None = None
 
     def step(self, x: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         x = np.asarray(x, dtype=np.float64)
         ok = np.ones(x.shape, bool) if valid is None else np.broadcast_to(np.asarray(valid, bool), x.shape)
         flat, okf = x.reshape(-1), ok.reshape(-1)
-        if self._buf is None:
-            self._buf = np.zeros((self.window, flat.size))
-            self._ok = np.zeros((self.window, flat.size), bool)
+        W = self.window
+        if self._ring is None:
+            self._ring = np.zeros((2 * W, flat.size))
+            self._ring_ok = np.zeros((2 * W, flat.size), bool)
             self._last = np.where(okf, flat, 0.0)
-        self._buf = np.roll(self._buf, -1, axis=0)
-        self._ok = np.roll(self._ok, -1, axis=0)
-        self._buf[-1], self._ok[-1] = flat, okf
-        full = self._ok.all(axis=0)
+        p = self._pos
+        self._ring[p] = self._ring[p + W] = flat
+        self._ring_ok[p] = self._ring_ok[p + W] = okf
+        self._pos = (p + 1) % W
+        buf, okw = self._ring[p + 1:p + 1 + W], self._ring_ok[p + 1:p + 1 + W]  # oldest .. newest
+        full = okw.all(axis=0)
         out = np.where(okf, flat, self._last)
         if full.all():
-            out = self._h @ self._buf
+            out = self._h @ buf
         else:
-            out[full] = self._h @ self._buf[:, full]
-            part = ~full & (self._ok.sum(axis=0) > self.order)
+            out[full] = self._h @ buf[:, full]
+            part = ~full & (okw.sum(axis=0) > self.order)
             if part.any():
-                w = self._ok[:, part].astype(np.float64)
+                w = okw[:, part].astype(np.float64)
                 G = np.einsum("wc,wi,wj->cij", w, self._V, self._V)
-                r = np.einsum("wc,wi,wc->ci", w, self._V, self._buf[:, part])
+                r = np.einsum("wc,wi,wc->ci", w, self._V, buf[:, part])
                 coef = np.linalg.solve(G, r[..., None])[..., 0]
                 out[part] = coef @ self._V[-1]
         self._last = np.where(okf, out, self._last)

@@ -13,6 +13,7 @@ bound always holds. Everything is per shape and independent.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -40,20 +41,32 @@ def hermite_basis(s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np
     return 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
 
 
-def _fit_segment(t: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+@lru_cache(maxsize=4096)
+def _uniform_basis(n: int) -> tuple[np.ndarray, ...]:
+    """Hermite basis at n evenly spaced samples of [0, 1] and its 2 x 2 Gram entries (inner samples)."""
+    h00, h10, h01, h11 = hermite_basis(np.linspace(0.0, 1.0, n))
+    a, b = h10[1:-1], h11[1:-1]
+    return h00, h10, h01, h11, np.array([a @ a, a @ b, b @ b])
+
+
+def _fit_segment(t: np.ndarray, y: np.ndarray, uniform: bool = False) -> tuple[float, float, float]:
     """Slopes (out of the left key, into the right key) and max error of one segment's fit."""
     dt = t[-1] - t[0]
-    s = (t - t[0]) / dt
-    h00, h10, h01, h11 = hermite_basis(s)
-    base = h00 * y[0] + h01 * y[-1]
     if len(t) <= 2:
         slope = (y[-1] - y[0]) / dt
         return slope, slope, 0.0
+    if uniform:
+        h00, h10, h01, h11, gram = _uniform_basis(len(t))
+        aa, ab, bb = gram * dt * dt
+    else:
+        h00, h10, h01, h11 = hermite_basis((t - t[0]) / dt)
+        aa, ab, bb = dt * dt * np.array([h10[1:-1] @ h10[1:-1], h10[1:-1] @ h11[1:-1], h11[1:-1] @ h11[1:-1]])
+    base = h00 * y[0] + h01 * y[-1]
     a, b, r = dt * h10[1:-1], dt * h11[1:-1], y[1:-1] - base[1:-1]
-    aa, ab, bb = a @ a, a @ b, b @ b
     det = aa * bb - ab * ab  # 2 x 2 normal equations; singular only for one inner sample
+    ar, br = a @ r, b @ r
     if det > 1e-12 * aa * bb:
-        m0, m1 = (bb * (a @ r) - ab * (b @ r)) / det, (aa * (b @ r) - ab * (a @ r)) / det
+        m0, m1 = (bb * ar - ab * br) / det, (aa * br - ab * ar) / det
     else:  # rank one: the least-norm slopes
         (m0, m1), *_ = np.linalg.lstsq(np.stack([a, b], axis=1), r, rcond=None)
     err = float(np.max(np.abs(base + dt * (h10 * m0 + h11 * m1) - y)))
@@ -67,15 +80,17 @@ def reduce_curve(times: np.ndarray, values: np.ndarray, settings: KeySettings | 
     n = len(y)
     if n == 0:
         raise ValueError("key reduction needs at least one frame")
+    d = np.diff(t)
+    uniform = bool(len(d)) and bool(np.all(np.abs(d - d[0]) <= 1e-9 * abs(d[0])))
     frames, outs, ins = [0], [], []
     a = 0
     while a < n - 1:
         best = a + 1
-        fit = _fit_segment(t[a:best + 1], y[a:best + 1])
+        fit = _fit_segment(t[a:best + 1], y[a:best + 1], uniform)
         step, bad = 2, None
         while best < n - 1:  # doubling: the first end that fails the bound
             b = min(a + step, n - 1)
-            f = _fit_segment(t[a:b + 1], y[a:b + 1])
+            f = _fit_segment(t[a:b + 1], y[a:b + 1], uniform)
             if f[2] > tol:
                 bad = b
                 break
@@ -85,7 +100,7 @@ def reduce_curve(times: np.ndarray, values: np.ndarray, settings: KeySettings | 
             lo_end, hi_end = best, bad
             while hi_end - lo_end > 1:
                 mid = (lo_end + hi_end) // 2
-                f = _fit_segment(t[a:mid + 1], y[a:mid + 1])
+                f = _fit_segment(t[a:mid + 1], y[a:mid + 1], uniform)
                 if f[2] <= tol:
                     lo_end, fit = mid, f
                 else:

@@ -41,6 +41,7 @@ class LabellerSettings:
     limit_slack: float = 0.5  # the fit's weights may pass the rig's limits by this fraction of their range
     reject_mm: float = 6.0  # a labelled point this far from the fitted model is dropped (ghost or swap)
     refine_at: int = 3  # this many labels missing and points unused: re-fit from a wide gate
+    confirm_mm: float = 4.0  # a label coming back is kept when two frames in a row give it points this close
     close_pair_mm: float = 15.0  # label pairs this close at rest are watched for meeting (blinks)
     recheck_frames: int = 6  # frames after two labels' predictions met that get a second opinion
     init_iterations: int = 20
@@ -56,6 +57,8 @@ class LabelFrame:
     positions: np.ndarray  # n x 3 labelled points (0 where missing)
     valid: np.ndarray  # n bool
     initialised: bool  # this frame started a new track
+    late: np.ndarray | None = None  # labels confirmed now whose previous frame's point was withheld
+    late_index: np.ndarray | None = None  # ... that point's index in the previous frame
 
 
 def _axis_rotations() -> np.ndarray:
@@ -76,11 +79,13 @@ _ARANGE = np.arange(4096)
 
 def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Kabsch with the fewest numpy calls (the per-frame head re-fit)."""
-    cs = src.mean(0)
-    cd = dst.mean(0)
+    inv = 1.0 / len(src)
+    cs = src.sum(0) * inv
+    cd = dst.sum(0) * inv
     U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
     R = Vt.T @ U.T
-    if np.linalg.det(R) < 0:
+    a, b, c = R.tolist()
+    if a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0]) + a[2] * (b[0] * c[1] - b[1] * c[0]) < 0:
         Vt[2] = -Vt[2]
         R = Vt.T @ U.T
     return R, cd - R @ cs
@@ -112,7 +117,7 @@ def gated_assignment(pred: np.ndarray, points: np.ndarray, gate: float | np.ndar
     best = d[_ARANGE[:n] if n <= len(_ARANGE) else np.arange(n), near]
     inside = best < g2
     chosen = near[inside]
-    if len(np.unique(chosen)) == len(chosen):
+    if not len(chosen) or np.bincount(chosen).max() <= 1:
         index[inside] = chosen
         return index, float(best.sum())
     rows, cols = linear_sum_assignment(d)
@@ -179,6 +184,12 @@ class MarkerLabeller:
         self.recheck = 0
         self._forget: np.ndarray | None = None
         self.missing_for = np.zeros(self.n)
+        self._candidate = np.zeros((self.n, 3))
+        self._candidate_ok = np.zeros(self.n, dtype=bool)
+        self._candidate_index = np.full(self.n, -1, dtype=np.int64)
+        self._late = np.zeros(0, dtype=np.int64)
+        self._late_index = np.zeros(0, dtype=np.int64)
+        self.tentative = 0
 
     # ------------------------------------------------------------------ model
     def model(self, w: np.ndarray) -> np.ndarray:
@@ -252,6 +263,7 @@ class MarkerLabeller:
             predicted = self._model = self.model(self.w)
             index, _ = gated_assignment(self._world(predicted), points, s.gate_mm)
             lab = index >= 0
+        index, lab = self._confirm(points, index, lab)
         self.missing_for += 1.0
         self.missing_for[lab] = 0.0
         if self._fit_pose(points, index, predicted):
@@ -281,6 +293,29 @@ class MarkerLabeller:
         else:
             self.poor = 0
         return self._frame(points, index, False)
+
+    def _confirm(self, points: np.ndarray, index: np.ndarray, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A label that was missing takes a point only when the frame before offered it one within
+        ``confirm_mm``: a ghost near an occluded marker's prediction rarely comes twice, a marker
+        coming back does (live, one frame of it is lost; offline it is put back, see ``late``)."""
+        fresh = np.flatnonzero(lab & (self.missing_for > 0))
+        had = self._candidate_ok.copy()
+        self._candidate_ok[:] = False
+        self._late = self._late_index = np.zeros(0, dtype=np.int64)
+        if len(fresh) == 0:
+            return index, lab
+        p = points[index[fresh]]
+        d = p - self._candidate[fresh]
+        ok = had[fresh] & (np.einsum("ij,ij->i", d, d) < self.settings.confirm_mm ** 2)
+        self._late, self._late_index = fresh[ok], self._candidate_index[fresh[ok]]
+        self._candidate[fresh] = p
+        self._candidate_index[fresh] = index[fresh]
+        self._candidate_ok[fresh] = True
+        if ok.all():
+            return index, lab
+        index[fresh[~ok]] = -1
+        self.tentative += int((~ok).sum())
+        return index, index >= 0
 
     def _pairs_met(self, model: np.ndarray) -> bool:
         """True on the frames just after two watched labels' model positions came within the gate."""
@@ -343,7 +378,8 @@ class MarkerLabeller:
         valid = index >= 0
         pos = np.zeros((self.n, 3))
         pos[valid] = points[index[valid]]
-        return LabelFrame(index, pos, valid, initialised)
+        late, self._late = self._late, np.zeros(0, dtype=np.int64)
+        return LabelFrame(index, pos, valid, initialised, late, self._late_index)
 
     # ------------------------------------------------------------------ (re)initialisation
     def initialise(self, points: np.ndarray) -> np.ndarray:

@@ -95,9 +95,9 @@ class FrameQP:
         Bv = self.basis[rows]
         H = Bv.T @ (Bv * self._row_w[rows, None]) + self._const
         floor = 0.0
-        try:
-            np.linalg.cholesky(H)
-            if np.linalg.cond(H) > 1e12:
+        try:  # (max / min Cholesky diagonal)^2 bounds cond(H) from below: no SVD per new pattern
+            d = np.diagonal(np.linalg.cholesky(H))
+            if d.min() <= 0 or (d.max() / d.min()) ** 2 > 1e12:
                 raise np.linalg.LinAlgError
         except np.linalg.LinAlgError:
             floor = self._floor

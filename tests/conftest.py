@@ -12,6 +12,20 @@ settings.register_profile("ci", derandomize=True, print_blob=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
 
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """In CI every tool and data set a test needs is installed (./dev test) or laid beside the checkout
+    (../shared), so a skip there means a missing install step: it fails instead of hiding."""
+    outcome = yield
+    report = outcome.get_result()
+    if os.environ.get("CI") and report.skipped and not hasattr(report, "wasxfail"):
+        reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+        report.outcome = "failed"
+        report.longrepr = f"skipped in CI, where nothing may be missing: {reason}"
+
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("LIVECAP_SHARED") or ROOT.parent / "shared")  # override for git worktrees
 ICT = SHARED / "realdata" / "ict-face"
@@ -46,10 +60,10 @@ def vendors():
 
 
 @pytest.fixture(scope="session")
-def review_server():
+def review_server(tmp_path_factory):
     """One ``livecap review`` process on the demo take, shared by the review API and browser tests."""
     from tests.review_server import ReviewServer
 
-    server = ReviewServer()
+    server = ReviewServer(tmp_path_factory.mktemp("review"))
     yield server
     server.close()

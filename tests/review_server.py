@@ -12,11 +12,16 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 class ReviewServer:
-    """``livecap review`` on the demo take (qp solve: the fastest start), killed on close."""
+    """``livecap review`` on the demo take (a neutral-take profile and the qp solve: the fastest start),
+    killed on close."""
 
-    def __init__(self, *extra: str) -> None:
-        cmd = [sys.executable, "-m", "livecap", "review", str(ROOT / "recordings/demo_take.c3d"),
-               "--rig", str(ROOT / "recordings/demo_rig.npz"), "--mode", "qp", "--port", "0", "--no-browser", *extra]
+    def __init__(self, workdir: Path, *extra: str) -> None:
+        rig = str(ROOT / "recordings/demo_rig.npz")
+        profile = workdir / "actor.npz"  # calibrated on the neutral take: no tuning on the take at start-up
+        subprocess.run([sys.executable, "-m", "livecap", "calibrate", str(ROOT / "recordings/demo_neutral.c3d"),
+                        "--rig", rig, "--out", str(profile)], check=True, capture_output=True, timeout=300)
+        cmd = [sys.executable, "-m", "livecap", "review", str(ROOT / "recordings/demo_take.c3d"), "--rig", rig,
+               "--profile", str(profile), "--mode", "qp", "--port", "0", "--no-browser", *extra]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                      env={**os.environ, "PYTHONUNBUFFERED": "1"})
         start = time.monotonic()

@@ -45,3 +45,16 @@ def test_concurrency_helpers():
     assert _cpu_seconds(os.getpid()) > 0
     s = _stats([0.001, 0.002, 0.003], 4)
     assert s["received"] == 3 and s["sent"] == 4 and np.isclose(s["p50_ms"], 2.0)
+
+
+def test_offline_suite_runs_a_whole_take_file_end_to_end(tmp_path, demo):
+    from benchmarks.offline import _profile, _take, gap_fill_baseline, solve_end_to_end
+
+    rig, layout = demo
+    take_path, truth = _take(rig, layout, 1.5, 0.05, tmp_path)
+    profile_path, calib_s = _profile(rig, layout, take_path, tmp_path)
+    r = solve_end_to_end("qp", take_path, profile_path, tmp_path / "w.csv", truth)
+    assert r["frames"] == len(truth) and (tmp_path / "w.csv").exists() and 0 < r["weight_rmse"] < 1
+    assert r["total_s"] >= r["solve_s"] > 0 and calib_s > 0
+    g = gap_fill_baseline(take_path, profile_path)
+    assert g["max_difference_mm"] < 50 and g["per_gap_spline_s"] > 0

@@ -80,3 +80,49 @@ def test_offline_solve_fills_gaps_and_no_nan_reaches_the_solver(demo):
     solved = solve_take(take, profile, Recorder())
     assert all(seen) and len(seen) == take.n_frames
     assert solved.valid.sum() == filled.valid.sum()
+
+
+def _performance_tracks(seconds=2.5, noise=0.5):
+    """Demo-rig marker tracks in the head frame (no head motion), clean and with sensor noise."""
+    from livecap.demo.face import demo_rig
+    from livecap.demo.performance import PerformanceSettings, perform
+
+    rig, layout = demo_rig(0)
+    kw = dict(seconds=seconds, occlusion=0.0, head_degrees=0, head_mm=0, stable_dropout=0, seed=3)
+    clean = perform(rig, layout, PerformanceSettings(noise_mm=0.0, **kw)).take.positions[:, ::6]
+    noisy = perform(rig, layout, PerformanceSettings(noise_mm=noise, **kw)).take.positions[:, ::6]
+    return clean, noisy
+
+
+def test_banded_fill_is_as_accurate_as_the_per_gap_spline_on_gaps_of_1_to_60_frames():
+    from livecap.calibration.gaps_spline import fill_gaps_per_gap
+
+    clean, noisy = _performance_tracks()
+    T, n = clean.shape[:2]
+    rng = np.random.default_rng(4)
+    for length in (1, 3, 8, 20, 40, 60):
+        valid = np.ones((T, n), bool)
+        for j in range(n):
+            a = rng.integers(70, T - 70 - length)
+            valid[a:a + length, j] = False
+        pos = np.where(valid[..., None], noisy, np.nan)
+        new, ok_new = fill_gaps(pos, valid, 60)
+        ref, ok_ref = fill_gaps_per_gap(pos, valid, 60)
+        np.testing.assert_array_equal(ok_new, ok_ref)
+        gap = ~valid
+        err_new = np.sqrt(np.mean(np.sum((new[gap] - clean[gap]) ** 2, -1)))
+        err_ref = np.sqrt(np.mean(np.sum((ref[gap] - clean[gap]) ** 2, -1)))
+        assert err_new <= 1.05 * err_ref, (length, err_new, err_ref)
+
+
+def test_straight_tracks_are_filled_exactly_and_gaps_next_to_each_other_are_all_filled():
+    T, n = 200, 3
+    t = np.arange(T, dtype=float)[:, None, None]
+    pos = 2.0 + 0.3 * t * np.array([1.0, -2.0, 0.5]) + np.arange(n)[None, :, None]
+    valid = np.ones((T, n), bool)
+    valid[10:12, 0] = valid[13:40, 0] = valid[41:42, 0] = False  # gaps one sample apart
+    valid[1:61, 1] = False  # one seen sample before a 60-frame gap
+    valid[190:199, 2] = False
+    out, ok = fill_gaps(np.where(valid[..., None], pos, 0.0), valid, 60)
+    assert ok.all()
+    np.testing.assert_allclose(out, pos, atol=1e-6)  # a line has no second difference: nothing to smooth

@@ -78,7 +78,7 @@ def test_oracle_recovers_truth_without_noise_and_degrades_with_it(ict, short_csv
 def test_blink_retention_sees_a_halved_blink():
     t = np.zeros((60, 2))
     t[20:31, 0] = np.hanning(11)
-    assert blink_retention(["eyeBlinkLeft", "jawOpen"], 0.5 * t, t, 60.0) == pytest.approx(0.5)
+    assert blink_retention([0], 0.5 * t, t, 60.0) == pytest.approx(0.5)
 
 
 def test_generate_curves_cli_writes_take_truth_and_neutral(tmp_path, short_csv, capsys):

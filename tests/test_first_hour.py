@@ -94,3 +94,55 @@ def test_evaluate_reports_worst_frames_peaks_and_bias(short_take, profile_path, 
     assert robust["vertex_mm"] < robust["vertex_p95_mm"] <= robust["vertex_max_mm"]
     assert 0.7 < robust["jaw_peak"] < 1.3 and 0.7 < robust["blink_peak"] < 1.3
     assert abs(qp["bias"]["jawOpen"]) < 0.2 and "largest per-shape bias" in out
+
+
+@pytest.mark.parametrize("extra", [["--mode", "rbf"], ["--mode", "qp", "--basis", "actor"]])
+def test_keys_are_checked_before_any_work(extra, tmp_path, capsys):
+    """Finding 4: the missing --keys is reported first (the take here does not even exist) and says where keys
+    come from."""
+    assert main(["solve", str(tmp_path / "absent.c3d"), "--rig", RIG, "--out", str(tmp_path / "w.csv"), *extra]) == 1
+    err = capsys.readouterr().err
+    assert "--keys" in err and "livecap rom" in err and "absent.c3d" not in err
+
+
+def test_calibration_report_defaults_and_layout(short_take, capsys):
+    """Finding 5: the default solver's mode, identical rows folded, full row labels, no leading blank lines."""
+    from livecap.calibration.report import VARIANTS
+    from livecap.cli import build_parser
+    from livecap.modes.registry import DEFAULT_MODE
+
+    assert build_parser().parse_args(["calibration-report", "t.c3d", "--rig", RIG]).mode == DEFAULT_MODE
+    assert main(["calibration-report", str(short_take), "--rig", RIG, "--stride", "8", "--mode", "qp"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("take ") and "\n\n\n" not in out
+    for v in VARIANTS:
+        assert f"  {v.name} " in out
+    width = max(len(v.name) for v in VARIANTS)
+    fit = out.split("per-frame marker fit")[1].splitlines()[1:len(VARIANTS) + 1]
+    figures = [line[width + 2:] for line in fit if "identical to" not in line]
+    assert len(figures) == len(set(figures)), "two variants print the same figures"
+
+
+def test_output_clutter_is_gone(short_take, profile_path, tmp_path, caplog):
+    """Finding 7: no blank first line from solve (piped), run without a sink warns, noise-study prints no nan."""
+    import subprocess
+    import sys
+
+    from livecap.cli.noise_study import percent
+
+    r = subprocess.run([sys.executable, "-m", "livecap", "solve", str(short_take), "--rig", RIG, "--profile",
+                        profile_path, "--mode", "qp", "--out", str(tmp_path / "w.csv")],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and r.stdout.startswith(str(tmp_path / "w.csv")), repr(r.stdout[:80])
+    with caplog.at_level(logging.WARNING):
+        assert main(["run", "--replay", str(short_take), "--fast", "--max-frames", "10", "--rig", RIG,
+                     "--profile", profile_path]) == 0
+    assert any("no output" in rec.getMessage() for rec in caplog.records)
+    assert percent(float("nan")) == "n/a" and percent(0.92) == "92%"
+
+
+def test_a_take_of_another_rig_says_it_shares_no_labels(vendors, capsys):
+    """Finding 7: a Vicon take on the demo rig is a wrong pairing, said in one line, not 8 missing labels."""
+    assert main(["calibrate", str(vendors / "Vicon.c3d"), "--rig", RIG, "--out", "unused.npz"]) == 1
+    err = capsys.readouterr().err
+    assert "shares none of the 60 marker labels" in err and "Vicon.c3d" in err

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from livecap.core.headpose import NeutralPose, to_unity
 from livecap.core.rig import Rig
 from tests.conftest import ROOT
-from tests.gltf_validator import animation_warnings, validate
+from tests.gltf_validator import animation_warnings, three_load, validate
 from transport.gltf import glb_bytes, write_glb
 from transport.takefile import read_take, write_take
 from transport.weights_csv import write_weights_csv
@@ -90,6 +90,11 @@ def test_solve_and_export_write_valid_glb(tmp_path):
     subprocess.run(cmd, check=True, capture_output=True, timeout=300)
     report = validate(glb)
     assert report["issues"]["numErrors"] == 0 and animation_warnings(report) == [], report["issues"]
+    three = three_load(glb)  # as a browser viewer loads it
+    assert three["vertices"] == Rig.load(DEMO_RIG).n_vertices and three["targets"] == Rig.load(DEMO_RIG).names
+    assert {t["name"]: t["times"] for t in three["tracks"]} == {
+        "head.morphTargetInfluences": 180, "head.quaternion": 180, "head.position": 180}
+    assert three["duration"] == pytest.approx(179 / 120, abs=1e-4)
     doc = pygltflib.GLTF2.load(str(glb))
     anim = doc.animations[0]
     rot = next(anim.samplers[c.sampler] for c in anim.channels if c.target.path == "rotation")

@@ -85,7 +85,9 @@ def test_flood_poison_and_outlier_do_not_starve_or_corrupt_the_solve(d, tmp_path
     assert bad["layout_mismatch"] == 1 and bad["frame_outlier"] == 1
     assert bad.get("malformed", 0) + bad.get("short", 0) + bad.get("version", 0) == 18000, bad
     assert st["frames_in"] == 300 and st["frames_out"] + st["stale"] == 300
-    assert st["frames_out"] >= 0.95 * 300, st  # garbage never makes a valid frame look stale
+    # garbage never makes a valid frame look stale (before: 60 queued garbage messages behind every valid
+    # frame made nearly all of them stale); the margin is for the shared machine's load (docs/performance.md)
+    assert st["frames_out"] >= 0.8 * 300, st
     assert residuals(tmp_path / "w.jsonl").max() < 5.0  # a poisoned order gives ~58 mm
 
 
@@ -94,14 +96,31 @@ def test_restarted_sender_is_solved_again(d, tmp_path):
     is a new stream, counted, and solved."""
     port = free_port()
     run = spawn("-m", "livecap", "run", "--zmq-in", f"tcp://127.0.0.1:{port}", "--profile", d / "profile.npz",
-                "--idle-timeout", 6, "--stats-file", tmp_path / "s.json")
+                "--stats-file", tmp_path / "s.json")
+    assert run.stdout.readline().startswith("ready")
     for _ in range(2):
         send = spawn("-m", "livecap", "send", d / "demo_take.c3d", "--zmq", f"127.0.0.1:{port}", "--frames", 120,
                      "--speed", 2)
         finish(send)
+    time.sleep(1.0)
+    run.send_signal(signal.SIGTERM)  # the second sender may take long to start on a loaded machine
     finish(run)
     st = json.loads((tmp_path / "s.json").read_text())
     assert st["frames_in"] == 240 and st["bad_input"].get("stream_restart") == 1, st
+
+
+def test_stream_sharing_no_labels_with_the_profile_is_one_error_line(d, tmp_path):
+    take = read_take(d / "demo_take.c3d")
+    take.labels = [f"other_{lab}" for lab in take.labels]
+    write_take(take, tmp_path / "other.c3d")
+    port = free_port()
+    send = spawn("-m", "livecap", "send", tmp_path / "other.c3d", "--zmq", f"127.0.0.1:{port}", "--frames", 240)
+    run = spawn("-m", "livecap", "run", "--zmq-in", f"tcp://127.0.0.1:{port}", "--profile", d / "profile.npz")
+    _, err = run.communicate(timeout=60)
+    send.kill()
+    send.communicate()
+    lines = [e for e in err.strip().splitlines() if not e.startswith("WARNING ")]
+    assert run.returncode == 1 and len(lines) == 1 and "wrong --profile or --rig" in lines[0], err
 
 
 def test_truncated_osc_bundles_are_counted_and_never_solved(d, tmp_path):

@@ -8,10 +8,11 @@ from solvers.keyreduce import KeySettings, evaluate_keys, reduce_curve, reduce_c
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 10_000), tol=st.sampled_from([0.001, 0.01, 0.05]), n=st.integers(1, 400))
-def test_bound_holds_on_noisy_curves(seed, tol, n):
+@given(seed=st.integers(0, 10_000), tol=st.sampled_from([0.001, 0.01, 0.05]), n=st.integers(1, 400),
+       uneven=st.booleans())
+def test_bound_holds_on_noisy_curves(seed, tol, n, uneven):
     rng = np.random.default_rng(seed)
-    t = np.arange(n) / 120.0
+    t = np.cumsum(rng.uniform(0.5, 1.5, n)) / 120.0 if uneven else np.arange(n) / 120.0
     y = np.clip(np.cumsum(rng.normal(0, 0.02, n)) + rng.normal(0, 0.005, n), -1, 2)
     k = reduce_curve(t, y, KeySettings(tol))
     assert k.frames[0] == 0 and k.frames[-1] == n - 1

@@ -44,7 +44,7 @@ def test_gated_assignment_is_the_augmented_optimum(n, k, gate, seed):
 @pytest.fixture(scope="module")
 def demo_setup(demo):
     rig, layout = demo
-    perf = perform(rig, layout, PerformanceSettings(seconds=5.0, seed=4))
+    perf = perform(rig, layout, PerformanceSettings(seconds=3.0, seed=4))
     take = perf.take.select(layout.labels)
     profile = calibrate(rig, layout, estimate_neutral(take, layout.stable, 120))
     return rig, layout, profile, take, perf.weights
@@ -90,7 +90,7 @@ def test_scrambled_demo_take(demo_setup):
 
 def test_scrambled_faster_larger_demo(demo_setup):
     rig, layout, profile, _, _ = demo_setup
-    take, truth = faster_larger(rig, layout, seconds=4.0)
+    take, truth = faster_larger(rig, layout, seconds=3.0)
     st_ = labelling_study(take, profile, truth, seed=3)
     assert st_.scores.right >= 0.995, st_.scores.line()
     assert st_.scores.longest_swap <= 2, st_.scores.line()
@@ -99,7 +99,7 @@ def test_scrambled_faster_larger_demo(demo_setup):
 
 def test_scrambled_ict_take(ict):
     rig, layout = ict
-    perf = perform(rig, layout, PerformanceSettings(seconds=4.0, seed=6))
+    perf = perform(rig, layout, PerformanceSettings(seconds=3.0, seed=6))
     take = perf.take.select(layout.labels)
     profile = calibrate(rig, layout, estimate_neutral(take, layout.stable, 120))
     st_ = labelling_study(take, profile, perf.weights, seed=4)

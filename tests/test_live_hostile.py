@@ -180,3 +180,37 @@ def test_final_recording_appears_atomically_or_not_at_all(tmp_path, monkeypatch)
     monkeypatch.undo()
     out, n = recorders.recover_marker_journal(recorders.journal_path(path))
     assert out == path and n == 30 and recorders.read_marker_recording(path).take.n_frames == 30
+
+
+def test_osc_garbage_cannot_fill_the_queue_and_push_out_valid_frames():
+    src = OscSource("127.0.0.1", 0, LABELS, idle_timeout=0.5, queue_size=8)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    for _ in range(100):
+        tx.sendto(b"garbage that is not an OSC bundle", src.address)
+    tx.sendto(encode_osc_frame(7, 0.0, LABELS, POS, VALID), src.address)
+    assert [f.frame for f in src] == [7]
+    assert src.bad.counts["malformed"] == 100 and src.bad.counts["overrun"] == 0
+    tx.close()
+    src.close()
+
+
+def test_a_stream_sharing_no_labels_with_the_profile_is_an_error(zmq_pair):
+    from transport.badinput import MISMATCH_PACKETS, LabelMismatch
+
+    pub, src = zmq_pair
+    other = [f"x{i}" for i in range(len(LABELS))]
+    for f in range(MISMATCH_PACKETS + 5):
+        pub.send_multipart([TP, good(f, labels=other)])
+    with pytest.raises(LabelMismatch, match="wrong --profile or --rig"):
+        list(src)
+
+
+def test_unknown_labels_after_good_frames_are_only_counted(zmq_pair):
+    from transport.badinput import MISMATCH_PACKETS
+
+    pub, src = zmq_pair
+    pub.send_multipart([TP, good(0)])
+    other = [f"x{i}" for i in range(len(LABELS))]
+    for f in range(1, MISMATCH_PACKETS + 5):
+        pub.send_multipart([TP, good(f, labels=other)])
+    assert [f.frame for f in src] == [0] and src.bad.counts["unknown_label"] == MISMATCH_PACKETS + 4

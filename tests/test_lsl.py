@@ -133,6 +133,8 @@ def test_run_lsl_unlabelled_against_send_strip_labels(tmp_path):
     _, ref = read_jsonl_recording(tmp_path / "labelled.jsonl")
     W, R = np.array([r["weights"] for r in live]), np.array([r["weights"] for r in ref])
     assert W.shape == R.shape == (n, len(profile.names))
-    assert np.abs(W - R).max() < 1e-3 and np.ptp(W, axis=0).max() > 0.2  # float32 on the LSL wire
+    # live, a marker coming back after a gap is withheld one frame (docs/capture.md): close, not equal
+    rms = np.sqrt(np.mean((W - R) ** 2))
+    assert rms < 0.003 and np.abs(W - R).max() < 0.05 and np.ptp(W, axis=0).max() > 0.2, rms
     assert len(got) == n and len(got[0]) == len(profile.names) + 7
     np.testing.assert_allclose(np.array(got)[:, :len(profile.names)], W, atol=1e-5)

@@ -61,7 +61,7 @@ def test_edit_undo_redo(server):
     assert after[j, 500] == pytest.approx(0.9, abs=1e-5)
     np.testing.assert_array_equal(after[:, :450], before[:, :450])
     np.testing.assert_array_equal(after[:, 550:], before[:, 550:])
-    assert np.abs(after[j, 470] - before[j, 470]) > 1e-3  # the edit propagated
+    assert np.abs(after[j, 495] - before[j, 495]) > 1e-3 and np.abs(after[j, 505] - before[j, 505]) > 1e-3
     post(server, "/api/undo", {})
     np.testing.assert_array_equal(np.array(get(server, "/api/curves")["weights"]), before)
     post(server, "/api/redo", {})
@@ -89,10 +89,15 @@ def test_drag_over_websocket_moves_the_site_towards_the_goal(server):
 
     async def drag():
         async with aiohttp.ClientSession() as s, s.ws_connect(server.url + "ws") as ws:
+            await ws.send_str("{not json")
+            bad = await ws.receive_json(timeout=30)
+            await ws.send_json({"frame": 300, "pins": [{"marker": "noSuchMarker", "goal": [0, 0, 0]}]})
+            unknown = await ws.receive_json(timeout=30)
             await ws.send_json({"frame": 300, "pins": [{"marker": meta["labels"][i], "goal": goal.tolist()}]})
-            return await ws.receive_json(timeout=30)
+            return bad, unknown, await ws.receive_json(timeout=30)
 
-    r = asyncio.run(drag())
+    bad, unknown, r = asyncio.run(drag())
+    assert "error" in bad and "noSuchMarker" in unknown["error"] and unknown["skipped"] == bad["skipped"] + 1
     w = np.array(r["weights"])
     assert np.all(w >= np.array(meta["lower"]) - 1e-12) and np.all(w <= np.array(meta["upper"]) + 1e-12)
     assert r["server_ms"] < 50
@@ -107,7 +112,7 @@ def test_drag_over_websocket_moves_the_site_towards_the_goal(server):
     assert np.linalg.norm(moved - goal) < np.linalg.norm(site - goal) - 1.0
 
 
-def test_keys_hold_the_bound_and_export(server):
+def test_keys_hold_the_bound_and_export(server, tmp_path):
     rep = get(server, "/api/keys?max_error=0.05")
     assert rep["worst"] <= 0.05 and all(s["error"] <= 0.05 for s in rep["shapes"].values())
     text = get(server, "/export/keys.csv?max_error=0.05").decode()
@@ -115,15 +120,30 @@ def test_keys_hold_the_bound_and_export(server):
     assert len(rows) == rep["keys"] and set(rows[0]) == {"shape", "frame", "time", "value", "in_tangent", "out_tangent"}
     import pygltflib
 
-    glb = pygltflib.GLTF2.load_from_bytes(get(server, "/export/keys.glb?max_error=0.05"))
+    data = get(server, "/export/keys.glb?max_error=0.05")
+    glb = pygltflib.GLTF2.load_from_bytes(data)
     prim = glb.meshes[0].primitives[0]
     assert len(prim.targets) == 43
     sampler = glb.animations[0].samplers[0]
     assert sampler.interpolation == "CUBICSPLINE"
     n_keys = glb.accessors[sampler.input].count
     assert glb.accessors[sampler.output].count == 3 * n_keys * 43
+    from tests.gltf_validator import validate
+
+    path = tmp_path / "keys.glb"
+    path.write_bytes(data)
+    report = validate(path)
+    assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:3]
     wcsv = get(server, "/export/weights.csv").decode().splitlines()
     assert wcsv[0].startswith("frame,time,browDownLeft") and len(wcsv) == 2401
+
+
+def test_review_refuses_a_busy_port(server):
+    port = server.url.rstrip("/").rsplit(":", 1)[1]
+    r = subprocess.run([sys.executable, "-m", "livecap", "review", str(ROOT / "recordings/demo_take.c3d"),
+                        "--rig", str(ROOT / "recordings/demo_rig.npz"), "--port", port, "--no-browser"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1 and f"--port {port}" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
 def test_pose_command_reaches_a_pinned_vertex(tmp_path):

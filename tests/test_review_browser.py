@@ -100,6 +100,7 @@ def test_scrub_edit_drag(page):
     driver, server = page
     meta = api(server, "/api/meta")
     names = meta["names"]
+    undo0 = api(server, "/api/curves")["undo"]  # the server is shared with the API tests
     for box in ("show-pose", "show-markers"):  # compare the bare face with the offscreen renderer's
         driver.find_element("id", box).click()
 
@@ -132,7 +133,7 @@ def test_scrub_edit_drag(page):
     curves = api(server, "/api/curves")
     j = names.index("jawOpen")
     assert curves["weights"][j][frame] == pytest.approx(0.95, abs=1e-4)
-    assert curves["undo"] == 1
+    assert curves["undo"] == undo0 + 1
     edited = api(server, f"/api/frame/{frame}")["weights"]
     after_edit = face_mask(canvas.screenshot_as_png)
     assert iou(after_edit, offscreen_mask(dict(zip(names, edited, strict=True)))) > 0.9
@@ -155,11 +156,13 @@ def test_scrub_edit_drag(page):
     ActionChains(driver).move_to_element_with_offset(canvas, int(px[0] - 320), int(px[1] - 240) - 3) \
         .click_and_hold().move_by_offset(0, -30).move_by_offset(0, -30).release().perform()
     commit = wait(driver, "return window.review.lastCommit", what="the drag")
+    live = wait(driver, "return window.review.lastDrag", what="a live drag solve over the WebSocket")
+    assert live["frame"] == frame and len(live["weights"]) == len(names)
     assert commit["server_ms"] < 50
     dragged = api(server, f"/api/frame/{frame}")["weights"]
     np.testing.assert_allclose(dragged, commit["weights"], atol=1e-9)
     assert dragged[j] < edited[j] - 0.05  # dragging the chin up closes the jaw
-    assert api(server, "/api/curves")["undo"] == 2
+    assert api(server, "/api/curves")["undo"] == undo0 + 2
     wait(driver, f"return window.review.current && window.review.current.weights[{j}] === {dragged[j]!r}",
          what="the page to show the committed drag")
     assert iou(face_mask(canvas.screenshot_as_png), offscreen_mask(dict(zip(names, dragged, strict=True)))) > 0.9

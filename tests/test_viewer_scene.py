@@ -70,3 +70,20 @@ def test_cpu_deformer_matches_reference_normals(demo):
 def test_top_shapes_orders_by_either_set():
     assert list(top_shapes(np.array([0.1, 0.9, 0.0, 0.5]), 2)) == [1, 3]
     assert list(top_shapes(np.array([0.1, 0.2, 0.0]), 2, also=np.array([0.0, 0.0, 0.8]))) == [2, 1]
+
+
+def test_weight_bar_labels_are_whole():
+    """Issue 21 finding 7: the longest ARKit names (19 letters) fit their column, also in a small frame."""
+    import cv2
+    import numpy as np
+
+    from viewer.compose import bar_label_layout, weight_bars
+
+    names = ["mouthLowerDownRight", "jawOpen", "eyeBlinkLeft"]
+    for width, k in ((640, 1.0), (320, 0.5)):
+        fs, name_w = bar_label_layout(names, width, k)
+        assert all(cv2.getTextSize(n, cv2.FONT_HERSHEY_SIMPLEX, fs, 1)[0][0] <= name_w for n in names)
+        assert name_w <= 0.4 * width + 6 * k
+    img = np.zeros((480, 640, 3), np.uint8)
+    weight_bars(img, names, np.array([0.5, 1.0, 0.2]), np.arange(3))
+    assert img.any()

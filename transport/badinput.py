@@ -8,6 +8,7 @@ flood the log or slow the solver.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import Counter
 
@@ -23,6 +24,13 @@ KINDS = ("short", "malformed", "version", "nonfinite", "unknown_label", "duplica
 EVENTS = ("stream_restart",)
 
 
+MISMATCH_PACKETS = 120  # packets naming unknown markers, before any good frame, that end a session
+
+
+class LabelMismatch(ValueError):
+    """The stream's markers are not the session's: every packet names labels the profile/rig lacks."""
+
+
 class BadInput:
     def __init__(self, where: str = "input", interval: float = 2.0) -> None:
         self.where = where
@@ -30,9 +38,11 @@ class BadInput:
         self.counts: Counter[str] = Counter()
         self._last_log: dict[str, float] = {}
         self._suppressed: Counter[str] = Counter()
+        self._lock = threading.Lock()  # a source's reader thread counts too
 
     def skip(self, kind: str, detail: str) -> None:
-        self.counts[kind] += 1
+        with self._lock:
+            self.counts[kind] += 1
         now = time.monotonic()
         if now - self._last_log.get(kind, -1e9) >= self.interval:
             extra = f" ({self._suppressed[kind]} more since last report)" if self._suppressed[kind] else ""
@@ -41,6 +51,13 @@ class BadInput:
             self._suppressed[kind] = 0
         else:
             self._suppressed[kind] += 1
+
+    def check_labels_match(self, seen_good: bool, detail: str) -> None:
+        """Raise :class:`LabelMismatch` when the first :data:`MISMATCH_PACKETS` packets all named
+        unknown labels: a wrong --profile/--rig, which would otherwise publish nothing, silently."""
+        if not seen_good and self.counts["unknown_label"] >= MISMATCH_PACKETS:
+            raise LabelMismatch(f"{self.where}: the first {self.counts['unknown_label']} packets name markers the "
+                                f"profile/rig does not have ({detail}): wrong --profile or --rig for this stream?")
 
     def event(self, kind: str, detail: str) -> None:
         """Count and log (rate-limited) something that is not a skip, e.g. a sender restart."""

@@ -67,8 +67,11 @@ def _check(rig: Rig, names: list[str], times: np.ndarray, weights: np.ndarray,
 
 def glb_bytes(rig: Rig, names: list[str], times: np.ndarray, weights: np.ndarray,
               head_rotation: np.ndarray | None = None, head_translation: np.ndarray | None = None,
-              name: str = "livecap take") -> bytes:
+              name: str = "livecap take", tangents: tuple[np.ndarray, np.ndarray] | None = None) -> bytes:
     """The .glb of a solved take.
+
+    ``tangents`` (in, out; each T x len(names), per second): the weights are keys of a CUBICSPLINE
+    sampler (glTF 2.0 Appendix C: in-tangent, value, out-tangent per key) instead of LINEAR samples.
 
     ``times`` (T, seconds from the take's start), ``weights`` (T x len(names)), ``head_rotation``
     (T x 4 unit quaternions x, y, z, w) and ``head_translation`` (T x 3, metres) in the rig's axes,
@@ -88,8 +91,12 @@ def glb_bytes(rig: Rig, names: list[str], times: np.ndarray, weights: np.ndarray
     doc.nodes = [g.Node(name="head", mesh=0)]
 
     time_acc = blob.add(times, g.SCALAR, _FLOAT, bounds=True)
-    samplers = [g.AnimationSampler(input=time_acc, output=blob.add(w.reshape(-1), g.SCALAR, _FLOAT),
-                                   interpolation=g.ANIM_LINEAR)]
+    interpolation, out = g.ANIM_LINEAR, w
+    if tangents is not None:
+        ins, outs = (_check(rig, list(names), times, np.asarray(a, dtype=np.float64), None, None) for a in tangents)
+        interpolation, out = g.ANIM_CUBICSPLINE, np.stack([ins, w, outs], axis=1)
+    samplers = [g.AnimationSampler(input=time_acc, output=blob.add(out.reshape(-1), g.SCALAR, _FLOAT),
+                                   interpolation=interpolation)]
     channels = [g.AnimationChannel(sampler=0, target=g.AnimationChannelTarget(node=0, path=g.WEIGHTS))]
     if head_rotation is not None:
         q = np.asarray(head_rotation, dtype=np.float64)

@@ -80,8 +80,9 @@ class LslMarkerSource:
         found = pylsl.resolve_byprop("name", name, 1, resolve_timeout)
         if not found:
             raise LslError(f"LSL stream {name!r}: not found on the network within {resolve_timeout:g} s")
-        self.inlet = pylsl.StreamInlet(found[0], max_buflen=2, recover=True)
+        self.inlet = pylsl.StreamInlet(found[0], max_buflen=10, recover=True)
         info = self.inlet.info(timeout=resolve_timeout)
+        self.inlet.open_stream(timeout=resolve_timeout)  # samples buffer from now on, not from the first pull
         self.name = name
         self.channels = info.channel_count()
         if self.channels < 3 or self.channels % 3:

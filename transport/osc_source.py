@@ -65,13 +65,7 @@ class OscDecodeError(ValueError):
 def decode_osc_frame(dgram: bytes, where: dict[str, int]) -> tuple[int, float, np.ndarray, np.ndarray]:
     """Frame number, timestamp, positions (n x 3) and valid (n) in the order of ``where``
     (label -> index). Raises :class:`OscDecodeError` with the bad-input kind."""
-    if len(dgram) < 16:
-        raise OscDecodeError("short", f"{len(dgram)}-byte datagram")
-    if len(dgram) > MAX_DATAGRAM:
-        raise OscDecodeError("oversize", f"{len(dgram)}-byte datagram, more than {MAX_DATAGRAM}")
-    if not OscBundle.dgram_is_bundle(dgram):
-        raise OscDecodeError("malformed", "not an OSC bundle")
-    _check_framing(dgram)
+    _check_datagram(dgram)
     try:
         contents = list(OscBundle(dgram))
     except Exception as exc:  # python-osc raises ParseError, IndexError, struct.error... on garbage
@@ -117,6 +111,17 @@ def decode_osc_frame(dgram: bytes, where: dict[str, int]) -> tuple[int, float, n
     return frame, timestamp, positions, valid
 
 
+def _check_datagram(dgram: bytes) -> None:
+    """Size, bundle and framing checks: no parsing, cheap enough for the reader thread."""
+    if len(dgram) < 16:
+        raise OscDecodeError("short", f"{len(dgram)}-byte datagram")
+    if len(dgram) > MAX_DATAGRAM:
+        raise OscDecodeError("oversize", f"{len(dgram)}-byte datagram, more than {MAX_DATAGRAM}")
+    if not OscBundle.dgram_is_bundle(dgram):
+        raise OscDecodeError("malformed", "not an OSC bundle")
+    _check_framing(dgram)
+
+
 def _check_framing(dgram: bytes) -> None:
     """Every bundle element's size prefix must be a multiple of 4 and the elements must fill the
     datagram exactly (OSC 1.0, "OSC Bundles"). python-osc reads a short last element from fewer
@@ -141,6 +146,8 @@ class OscSource:
     A reader thread drains the socket into a bounded queue at once: the kernel's UDP buffer
     holds only a few dozen 3 KB bundles, and a solver hiccup must not turn into lost frames.
     When the queue itself is full, the newest datagram is dropped and counted as ``overrun``.
+    Datagrams that fail the framing checks are counted and dropped by the reader, so a flood of
+    garbage cannot fill the queue and push valid frames out.
     """
 
     def __init__(self, host: str, port: int, labels: list[str], idle_timeout: float | None = None,
@@ -156,6 +163,7 @@ class OscSource:
         self._order = FrameOrder()
         self._running = True
         self._ahead: MarkerFrame | None = None
+        self._seen_good = False
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
         self.sock.bind((host, port))
@@ -175,6 +183,12 @@ class OscSource:
                 continue
             except OSError:
                 return  # socket closed
+            try:  # cheap framing checks here, so garbage never takes a valid frame's place in the queue
+                _check_datagram(dgram)
+            except OscDecodeError as exc:
+                self.received += 1
+                self.bad.skip(exc.kind, str(exc))
+                continue
             try:
                 self._queue.put_nowait(dgram)
             except queue.Full:
@@ -219,9 +233,12 @@ class OscSource:
             frame, ts, pos, val = decode_osc_frame(dgram, self._where)
         except OscDecodeError as exc:
             self.bad.skip(exc.kind, str(exc))
+            if exc.kind == "unknown_label":
+                self.bad.check_labels_match(self._seen_good, str(exc))
             return None
         if not self.bad.in_order(self._order, frame, ts):
             return None
+        self._seen_good = True
         return MarkerFrame(frame, ts, pos, val)
 
     def __iter__(self) -> Iterator[MarkerFrame]:

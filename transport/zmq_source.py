@@ -42,6 +42,7 @@ class ZmqSource:
         self._layouts.learn(layout_id(self.labels), self.labels)
         self._running = True
         self._ahead: MarkerFrame | None = None
+        self._seen_good = False
         self._ctx = context or zmq.Context.instance()
         self.sock = self._ctx.socket(zmq.SUB)
         self.sock.setsockopt(zmq.LINGER, 0)
@@ -100,9 +101,11 @@ class ZmqSource:
             return None
         except KeyError as exc:
             self.bad.skip("unknown_label", str(exc.args[0]))
+            self.bad.check_labels_match(self._seen_good, str(exc.args[0]))
             return None
         if not self.bad.in_order(self._order, frame.frame, frame.timestamp):
             return None
+        self._seen_good = True
         return frame
 
     def __iter__(self) -> Iterator[MarkerFrame]:

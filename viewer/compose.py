@@ -57,12 +57,25 @@ def top_shapes(weights: np.ndarray, k: int = 8, also: np.ndarray | None = None) 
     return np.argsort(-w, kind="stable")[:k]
 
 
+def bar_label_layout(labels: list[str], width: int, k: float) -> tuple[float, int]:
+    """Font scale and name-column width (px) that show every label whole: the column is as wide as the
+    longest label, and the font shrinks when that would take more than 40 % of the frame's width."""
+    fs = 0.36 * k
+    widest = max((cv2.getTextSize(lab, cv2.FONT_HERSHEY_SIMPLEX, fs, 1)[0][0] for lab in labels), default=0)
+    room = 0.4 * width
+    if widest > room:
+        fs *= room / widest
+        widest = max(cv2.getTextSize(lab, cv2.FONT_HERSHEY_SIMPLEX, fs, 1)[0][0] for lab in labels)
+    return fs, int(widest + 6 * k)
+
+
 def weight_bars(img: np.ndarray, names: list[str], weights: np.ndarray, order: np.ndarray,
                 upper: np.ndarray | None = None, reference: np.ndarray | None = None) -> None:
     """A panel of bars (right side) for the shapes in ``order``; ``reference`` adds a white tick."""
     k = _scale(img)
     h, w = img.shape[:2]
-    row, bar_w, name_w = int(19 * k), int(80 * k), int(112 * k)
+    row, bar_w = int(19 * k), int(80 * k)
+    fs, name_w = bar_label_layout([names[i] for i in order], w, k)
     x0 = w - bar_w - name_w - int(12 * k)
     y0 = int(12 * k)
     panel = img[y0 - int(4 * k): y0 + row * len(order) + int(2 * k), x0 - int(6 * k): w - int(4 * k)]
@@ -71,8 +84,7 @@ def weight_bars(img: np.ndarray, names: list[str], weights: np.ndarray, order: n
         y = y0 + r * row
         top = 1.0 if upper is None or upper[i] <= 0 else float(upper[i])
         val = float(weights[i])
-        cv2.putText(img, names[i][:16], (x0, y + int(12 * k)), cv2.FONT_HERSHEY_SIMPLEX, 0.36 * k, TEXT, 1,
-                    cv2.LINE_AA)
+        cv2.putText(img, names[i], (x0, y + int(12 * k)), cv2.FONT_HERSHEY_SIMPLEX, fs, TEXT, 1, cv2.LINE_AA)
         bx, by, bh = x0 + name_w, y + int(3 * k), int(11 * k)
         cv2.rectangle(img, (bx, by), (bx + bar_w, by + bh), (70, 70, 70), 1)
         fill = int(round(np.clip(val / top, 0, 1) * bar_w))

@@ -31,6 +31,8 @@ COMMANDS = [
     "review",
     "pose",
     "realeval",
+    "label",
+    "prior",
 ]
 
 

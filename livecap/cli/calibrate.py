@@ -9,7 +9,10 @@ from pathlib import Path
 import numpy as np
 
 from livecap.calibration.profile import WARPS, Profile, calibrate, estimate_neutral
-from livecap.cli.common import add_rig_arguments, load_rig, progress_bar, tune_on_take
+from livecap.cli.common import add_rig_arguments, check_labels, load_rig, progress_bar, tune_on_take
+from livecap.cli.progress import stage
+from livecap.modes.registry import DEFAULT_MODE, MODES
+from livecap.modes.robust import ROBUST_MODES
 from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS
 from transport.takefile import read_take
 
@@ -48,9 +51,10 @@ def register(sub) -> None:
     r.add_argument("--neutral-seconds", type=float, default=1.0,
                    help="neutral span at the start of the take when neither --neutral nor --profile (default 1)")
     r.add_argument("--truth", help="ground truth .npz (default: <take>.truth.npz when present)")
-    r.add_argument("--mode", default="lsq", help="solver mode (default lsq)")
-    r.add_argument("--ridge", type=float, default=0.0, help="ridge weight for per-frame modes")
-    r.add_argument("--stride", type=int, default=1, help="solve every STRIDE-th frame only (quicker)")
+    r.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES),
+                   help=f"solver mode (default {DEFAULT_MODE}, as for solve; lsq is the unregularised baseline)")
+    r.add_argument("--ridge", type=float, help="ridge weight (default: the mode's, or the one tuning selected)")
+    r.add_argument("--stride", type=int, default=1, help="solve every STRIDE-th frame only (quicker; default 1)")
     r.add_argument("--per-frame", help="write per-frame errors of every variant to this CSV")
     r.set_defaults(func=run_report)
 
@@ -58,6 +62,7 @@ def register(sub) -> None:
 def run_calibrate(args: argparse.Namespace) -> int:
     rig, layout = load_rig(args)
     take = read_take(args.neutral)
+    check_labels(take, layout, args.neutral, args.rig)
     sel = take.select(layout.labels)
     absent = [lab for lab, seen in zip(layout.labels, sel.valid.any(0), strict=True) if not seen]
     if absent:
@@ -73,7 +78,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
                 "neutral_take": str(args.neutral), "neutral_frames": frames or take.n_frames}
     profile = calibrate(rig, layout, neutral, settings, warp=args.warp, smoothing=args.smoothing)
     tune_path = args.tune or args.neutral  # every profile carries the noise estimate every mode needs
-    tuned = tune_on_take(profile, read_take(args.tune) if args.tune else take)
+    with stage(f"tuning on {tune_path}"):
+        tuned = tune_on_take(profile, read_take(args.tune) if args.tune else take)
     print(f"tuned     on {tune_path}: noise {tuned['noise_mm']:.3f} mm, ridge {tuned['ridge']:.3g} "
           f"({tuned['criterion']})")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
@@ -106,6 +112,19 @@ def _load_truth(args: argparse.Namespace):
         raise ValueError(f"{path}: not a ground-truth file ({exc})") from None
 
 
+def _same_as(results) -> dict:
+    """Variants whose solve equals an earlier variant's in every frame (to 1e-9) (e.g. plain Kabsch on a take where
+    the robust stabiliser never needed its refit), by id: printed as one line naming the other, not as a copy."""
+    out = {}
+    for i, r in enumerate(results):
+        for prev in results[:i]:
+            if id(prev) not in out and np.allclose(r.solved.weights, prev.solved.weights, rtol=0, atol=1e-9) \
+                    and np.allclose(r.solved.head_rotation, prev.solved.head_rotation, rtol=0, atol=1e-9):
+                out[id(r)] = prev.variant.name
+                break
+    return out
+
+
 def _stats(a: np.ndarray) -> str:
     return f"{np.mean(a):7.3f} {np.median(a):7.3f} {np.percentile(a, 95):7.3f} {np.max(a):7.3f}"
 
@@ -132,34 +151,48 @@ def run_report(args: argparse.Namespace) -> int:
     if truth is not None and stride > 1:
         truth = replace(truth, weights=truth.weights[::stride], head_rotation=truth.head_rotation[::stride],
                         head_translation=truth.head_translation[::stride])
-    results = compare(take, rig, layout, neutral, lambda p: build_solver(args.mode, p, {"ridge": args.ridge}),
-                      truth, progress=progress_bar)
+    tuned: dict[int, dict] = {}
+
+    def make_solver(p: Profile):  # each variant's profile tuned on the take for the modes that read the noise
+        if id(p) not in tuned and args.mode in ("movement", *ROBUST_MODES):
+            tuned[id(p)] = tune_on_take(p, take)
+        return build_solver(args.mode, p, {} if args.ridge is None else {"ridge": args.ridge})
+
+    results = compare(take, rig, layout, neutral, make_solver, truth, progress=progress_bar)
+    width = max(len(r.variant.name) for r in results)
+    same = _same_as(results)
     print(f"take {args.take}: {take.n_frames} frames{f' (every {stride}th)' if stride > 1 else ''}, "
           f"{take.n_markers} markers, {(~take.valid).mean() * 100:.1f}% missing; neutral from {origin}; "
-          f"mode {args.mode}" + (f" ridge {args.ridge:g}" if args.ridge else ""))
+          f"mode {args.mode}" + (f" ridge {args.ridge:g}" if args.ridge is not None else ""))
     base = results[0]
     if truth is not None:
-        print("\nper-frame weight error (RMS over shapes)         mean  median     p95     max   RMSE  "
+        print(f"\n{'per-frame weight error (RMS over shapes)':{width + 2}s}    mean  median     p95     max   RMSE  "
               "better  model@truth  systematic")
         for r in results:
             won = "" if r is base else f"{np.mean(base.frame_weight_error < r.frame_weight_error) * 100:5.0f}%"
-            print(f"  {r.variant.name:44s} {_stats(r.frame_weight_error)} {r.weight_rmse:6.4f}  {won:>6s}"
+            if id(r) in same:
+                print(f"  {r.variant.name:{width}s} identical to '{same[id(r)]}' (no weight differs by 1e-9)")
+                continue
+            print(f"  {r.variant.name:{width}s} {_stats(r.frame_weight_error)} {r.weight_rmse:6.4f}  {won:>6s}"
                   f"  {r.model_error_mm:8.3f} mm  " + ("    n/a" if np.isnan(r.systematic_mm) else
                                                       f"{r.systematic_mm:7.3f} mm"))
         print("  (better: frames where the calibrated pipeline's weight error is lower; model@truth: RMS marker error"
               " of the\n   variant's model at the true weights; systematic: its part the true weights predict,"
               " i.e. calibration error)")
-    print("\nper-frame marker fit of the solve (mm RMS)        mean  median     p95     max")
+    print(f"\n{'per-frame marker fit of the solve (mm RMS)':{width + 2}s}    mean  median     p95     max")
     for r in results:
-        print(f"  {r.variant.name:44s} {_stats(r.frame_marker_error)}")
+        if id(r) in same:
+            print(f"  {r.variant.name:{width}s} identical to '{same[id(r)]}'")
+            continue
+        print(f"  {r.variant.name:{width}s} {_stats(r.frame_marker_error)}")
     if truth is not None:
-        print("\nhead pose vs ground truth                        mean  median     p95     max")
+        print(f"\n{'head pose vs ground truth':{width + 17}s}    mean  median     p95     max")
         for r in results:
             if r.variant.stabilise == "off" or (r is not base and r.variant.stabilise == base.variant.stabilise):
                 continue
-            print(f"  {r.variant.name[:30]:30s} rotation (deg) {_stats(r.rotation_deg)}")
-            print(f"  {'':30s} relative (deg) {_stats(r.relative_rotation_deg)}")
-            print(f"  {'':30s} translation mm {_stats(r.translation_mm)}")
+            print(f"  {r.variant.name:{width}s} rotation (deg) {_stats(r.rotation_deg)}")
+            print(f"  {'':{width}s} relative (deg) {_stats(r.relative_rotation_deg)}")
+            print(f"  {'':{width}s} translation mm {_stats(r.translation_mm)}")
         dropped = ~take.select(layout.labels).valid[:, layout.stable].all(1)
         if dropped.any():
             print(f"  frames with a stable marker missing: {int(dropped.sum())}; calibrated rotation error there "

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-from contextlib import contextmanager
 from pathlib import Path
 
 from livecap.calibration.profile import Profile, calibrate, estimate_neutral
+from livecap.cli import progress
 from livecap.core.markers import MarkerLayout
 from livecap.core.rig import Rig
 from livecap.core.take import Take
@@ -24,6 +24,14 @@ def load_rig(args: argparse.Namespace) -> tuple[Rig, MarkerLayout]:
     if not mpath.exists():
         raise ValueError(f"{mpath}: no markers.json for rig {args.rig} (give --markers)")
     return rig, MarkerLayout.load(mpath, rig)
+
+
+def check_labels(take: Take, layout: MarkerLayout, take_path, rig_path) -> None:
+    """A take that shares no marker label with the rig is a wrong pairing, not a take with gaps: say so."""
+    if not set(take.labels) & set(layout.labels):
+        raise ValueError(f"{take_path}: the take shares none of the {layout.n_markers} marker labels of rig {rig_path} "
+                         f"(take: {', '.join(take.labels[:4])}...; rig: {', '.join(layout.labels[:4])}...); give "
+                         "a markers.json that binds the take's labels to the rig (--markers)")
 
 
 def add_rig_arguments(p: argparse.ArgumentParser) -> None:
@@ -54,12 +62,14 @@ def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
 def profile_for(args: argparse.Namespace, rig: Rig, layout: MarkerLayout, take: Take) -> Profile:
     """The given profile, or one calibrated on the take's first seconds with its regularisation
     selected from the take itself (livecap.modes.robust.tune_profile)."""
+    check_labels(take, layout, getattr(args, "take", "take"), args.rig)
     if getattr(args, "profile", None):
         return Profile.load(args.profile)
     sel = take.select(layout.labels)
-    neutral = estimate_neutral(sel, layout.stable, max(1, int(args.neutral_seconds * take.rate)))
-    profile = calibrate(rig, layout, neutral)
-    tune_on_take(profile, take)
+    with progress.stage("calibrating and tuning on the take (give --profile to skip)"):
+        neutral = estimate_neutral(sel, layout.stable, max(1, int(args.neutral_seconds * take.rate)))
+        profile = calibrate(rig, layout, neutral)
+        tune_on_take(profile, take)
     return profile
 
 
@@ -77,19 +87,4 @@ def solver_options(args: argparse.Namespace) -> dict:
     return {} if ridge is None else {"ridge": ridge}
 
 
-@contextmanager
-def progress_bar(description: str, total: int):
-    """A rich progress bar on stderr, only on a terminal (piped output stays clean); yields ``update(done, total)``."""
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
-    console = Console(stderr=True)
-    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                  TimeRemainingColumn(), transient=True, console=console, disable=not console.is_terminal) as prog:
-        task = prog.add_task(description, total=total)
-
-        def update(done: int, total_: int) -> None:
-            if done % 16 == 0 or done == total_:
-                prog.update(task, completed=done)
-
-        yield update
+progress_bar = progress.progress_bar  # kept here for the commands that import it from common

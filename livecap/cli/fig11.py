@@ -51,7 +51,8 @@ def register(sub) -> None:
     p.add_argument("--rig", help=f"your rig (default: the retargeting scenario; with --take only: {DEMO_RIG})")
     p.add_argument("--markers", help="markers.json (default: beside the rig)")
     p.add_argument("--profile", help="calibrated profile (default: calibrate on the take's first second)")
-    p.add_argument("--neutral-seconds", type=float, default=1.0)
+    p.add_argument("--neutral-seconds", type=float, default=1.0,
+                   help="neutral span at the start of --take when no --profile (default 1)")
     g = p.add_argument_group("retargeting scenario (without --take/--rig)")
     g.add_argument("--seconds", type=float, default=20.0, help="length of the performance (default 20)")
     g.add_argument("--rate", type=float, default=120.0, help="capture rate in Hz (default 120)")

@@ -23,6 +23,8 @@ def register(sub) -> None:
                    "with --curves 0.05)")
     p.add_argument("--head-degrees", type=float, help="head rotation amplitude (default 20; with --curves 15)")
     p.add_argument("--head-mm", type=float, help="head shift amplitude (default 30; with --curves 20)")
+    p.add_argument("--obj-rig", metavar="DIR", help="also write the rig as an OBJ folder (neutral.obj, one OBJ per "
+                   "shape, rig.json, markers.json): the layout your own rig needs (docs/quickstart.md)")
     c = p.add_argument_group("real curves")
     c.add_argument("--curves", help="Live Link Face CSV whose ARKit curves drive --rig")
     c.add_argument("--rig", help="rig (folder or .npz) to drive (default: the bundled demo rig)")
@@ -42,6 +44,13 @@ def run(args: argparse.Namespace) -> int:
                             head_mm=30.0 if args.head_mm is None else args.head_mm, seed=args.seed + 1)
     for path in generate(args.out, args.seed, s):
         print(path)
+    if args.obj_rig:
+        from livecap.demo.face import demo_rig
+
+        rig, layout = demo_rig(args.seed)
+        rig.save_obj_folder(args.obj_rig)
+        layout.save(Path(args.obj_rig) / "markers.json")
+        print(f"{args.obj_rig}/: neutral.obj + {rig.n_shapes} shape OBJs, rig.json, markers.json")
     return 0
 
 

@@ -48,7 +48,7 @@ def movement_options(args: argparse.Namespace) -> dict:
     if getattr(args, "plain", False):
         opts["robust"] = False
     prior = getattr(args, "prior", None)
-    if prior is not None and prior not in ("shapes", "none"):
+    if prior is not None and prior not in ("shapes", "none") and not prior.endswith(".npz"):  # .npz: prior build
         names, weights, _ = read_weights_csv(prior)
         prior = {"names": names, "weights": weights}
     opts["prior"] = prior

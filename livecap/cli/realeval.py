@@ -36,6 +36,8 @@ def register(sub) -> None:
     p.add_argument("--rig", nargs="+", default=["ict", "demo"],
                    help="rigs: 'ict' (../shared/realdata/ict-face), 'demo' (bundled), or a rig path with its "
                         "markers.json (default: ict demo)")
+    p.add_argument("--markers", help="markers.json for a rig given by path that has none beside it "
+                   "(e.g. the one 'livecap rig transfer' wrote)")
     p.add_argument("--mapping", help="ARKit name mapping JSON for rigs whose names are not ARKit's")
     p.add_argument("--noise", type=float, nargs="+", default=[0.2, 0.5], help="marker noise sigma(s), mm")
     p.add_argument("--occlusion", type=float, default=0.05, help="fraction of marker-frames missing (bursts)")
@@ -43,10 +45,12 @@ def register(sub) -> None:
     p.add_argument("--start", type=float, default=10.0, help="seconds into each CSV (clamped to fit; default 10)")
     p.add_argument("--modes", nargs="+", default=DEFAULT_MODES, help=f"modes (default {' '.join(DEFAULT_MODES)})")
     p.add_argument("--json", help="write every row as JSON")
+    p.add_argument("--no-prior", action="store_true", help="modes that take a prior (kalman) get none; by default "
+                   "they get one built from the other files (leave one file out)")
     p.set_defaults(func=run)
 
 
-def _rig(name: str):
+def _rig(name: str, markers: str | None = None):
     from livecap.core.markers import MarkerLayout
     from livecap.core.rig import Rig
     from livecap.demo import DEMO_MARKERS, DEMO_RIG
@@ -60,6 +64,7 @@ def _rig(name: str):
         raise ValueError(f"{path}: rig not found")
     rig = Rig.load(path)
     mpath = path / "markers.json" if path.is_dir() else path.with_name(path.stem + ".markers.json")
+    mpath = Path(markers) if markers and not mpath.exists() else mpath
     if not mpath.exists():
         raise ValueError(f"{mpath}: no markers.json for rig {path}")
     return rig, MarkerLayout.load(mpath, rig)
@@ -77,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     mapping = load_mapping(args.mapping) if args.mapping else None
     out = []
     for rig_name in args.rig:
-        rig, layout = _rig(rig_name)
+        rig, layout = _rig(rig_name, args.markers)
         for noise in args.noise:
             for f in files:
                 length = read_llf_csv(f).times[-1]
@@ -85,7 +90,13 @@ def run(args: argparse.Namespace) -> int:
                 s = CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise, occlusion=args.occlusion)
                 t0 = time.perf_counter()
                 ct = curves_take(rig, layout, f, s, mapping)
-                rows = evaluate_curve_take(rig, layout, ct, args.modes)
+                options = {}
+                others = [o for o in files if o != f]
+                if not args.no_prior and others and "kalman" in args.modes:
+                    from livecap.calibration.animation_prior import build_prior
+
+                    options["kalman"] = {"prior": build_prior(others, rig.names, rig.lower, rig.upper, mapping)}
+                rows = evaluate_curve_take(rig, layout, ct, args.modes, options)
                 oracle = rows[0]
                 took = time.perf_counter() - t0
                 print(f"{rig_name} {noise:g} mm {f.name} ({ct.take.n_frames} frames, {took:.0f} s): "

@@ -20,6 +20,7 @@ from livecap.cli.common import (
     progress_bar,
     solver_options,
 )
+from livecap.cli.progress import stage
 from livecap.demo import truth_path
 from livecap.modes.registry import build_solver
 from livecap.offline.solve import prepare_targets
@@ -100,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
     profile = profile_for(args, rig, layout, take)
     solver = build_solver(args.mode, profile, solver_options(args))
     sel, targets, R, t = prepare_targets(take, profile)
-    W, latency = _solve(solver, targets, sel.valid)
+    with stage(f"solving {take.n_frames} frames ({args.mode})"):
+        W, latency = _solve(solver, targets, sel.valid)
     quats = to_quaternion(R)
     stabilised = targets + profile.source_neutral
     truth = _load_truth(args, Path(args.take), rig, profile)

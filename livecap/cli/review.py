@@ -32,19 +32,22 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
     import socket
 
+    import numpy as np
+
     from livecap.review.load import open_session
     from livecap.review.server import make_app
-    from transport.gltf_keys import rig_glb
+    from transport.gltf import glb_bytes
 
-    session = open_session(args.take, args.rig, args.markers, args.profile, args.weights, args.truth, args.mode,
-                           args.neutral_seconds, args.pull)
-    app = make_app(session, rig_glb(session.rig, session.names))
     sock = socket.socket(socket.AF_INET6 if ":" in args.interface else socket.AF_INET)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
         sock.bind((args.interface, args.port))
     except OSError as exc:
         raise OSError(f"--port {args.port}: cannot listen on {args.interface} ({exc.strerror})") from None
+    session = open_session(args.take, args.rig, args.markers, args.profile, args.weights, args.truth, args.mode,
+                           args.neutral_seconds, args.pull)
+    rest = np.zeros((1, len(session.names)))
+    app = make_app(session, glb_bytes(session.rig, session.names, np.zeros(1), rest, name="rig"))
     sock.listen(128)  # connections queue from here on, before the URL is printed
     host, port = sock.getsockname()[:2]
     url = f"http://{'[' + host + ']' if ':' in host else host}:{port}/"

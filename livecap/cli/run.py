@@ -9,6 +9,7 @@ Ctrl-C or SIGTERM stops cleanly: every recorder is flushed and closed.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -18,6 +19,8 @@ from livecap.live.checks import check_overlap, check_profile_rig
 from livecap.live.pipeline import Pipeline
 from livecap.live.session import load_session
 from livecap.modes.registry import DEFAULT_MODE, MODES
+
+log = logging.getLogger(__name__)
 
 _PARSER: argparse.ArgumentParser | None = None
 FIRST_FRAME_GRACE = 10.0  # seconds a session with --idle-timeout waits for its first frame by default
@@ -34,6 +37,8 @@ def register(sub) -> None:
     src.add_argument("--osc-in", help="[HOST:]PORT to receive OSC frame bundles on")
     src.add_argument("--replay", help="take to replay at its own pace (.c3d, .trc, .csv, raw .npz recording)")
     src.add_argument("--lsl-in", help="Lab Streaming Layer marker stream name (labels from its description)")
+    src.add_argument("--qtm-in", help="Qualisys QTM RT server HOST[:PORT] (3D, or 3D-no-labels with --unlabelled)")
+    src.add_argument("--natnet-in", help="OptiTrack Motive NatNet server HOST[:PORT] (unicast; metres)")
     src.add_argument("--unlabelled", action="store_true",
                      help="the source's points are unlabelled (or wrongly named): label them against --profile")
     src.add_argument("--speed", type=float, default=1.0, help="replay speed factor (default 1)")
@@ -92,7 +97,9 @@ def register(sub) -> None:
                      help="like --window, but carry on without it when there is no display")
     rec = p.add_argument_group("recorders")
     rec.add_argument("--record-csv", help="weights CSV (Live Link Face layout when the names are ARKit)")
-    rec.add_argument("--csv-layout", default="auto", choices=["auto", "livecap", "livelinkface"])
+    rec.add_argument("--csv-layout", default="auto", choices=["auto", "livecap", "livelinkface"],
+                     help="--record-csv columns: livecap (frame,time,shapes), livelinkface (Live Link Face CSV), "
+                     "auto (livelinkface for an ARKit rig; default)")
     rec.add_argument("--record-jsonl", help="weights as JSON lines")
     rec.add_argument("--record-markers", help="raw incoming markers (.npz or .c3d) for exact replay")
     rec.add_argument("--flush-every", type=float, default=0.1, help="recorder flush interval in seconds")
@@ -145,11 +152,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     from transport.security import udp_address, zmq_address
 
     options = _apply_session(args)
-    sources = [x for x in (args.zmq_in, args.osc_in, args.replay, args.lsl_in) if x]
+    sources = [x for x in (args.zmq_in, args.osc_in, args.replay, args.lsl_in, args.qtm_in, args.natnet_in) if x]
     if len(sources) != 1:
-        raise ValueError("give exactly one source: --zmq-in, --osc-in, --replay or --lsl-in")
-    if args.unlabelled and not (args.profile and (args.replay or args.lsl_in)):
-        raise ValueError("--unlabelled needs --profile and --replay or --lsl-in (ZeroMQ/OSC frames carry labels)")
+        raise ValueError("give exactly one source: --zmq-in, --osc-in, --replay, --lsl-in, --qtm-in or --natnet-in")
+    if args.unlabelled and not (args.profile and not (args.zmq_in or args.osc_in)):
+        raise ValueError("--unlabelled needs --profile and a source other than --zmq-in/--osc-in (they carry labels)")
     profile = rig = layout = None
     want_window = args.window or args.window_optional
     if want_window and not args.rig:
@@ -201,6 +208,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
             raise ValueError(f"LSL stream {args.lsl_in!r} has no marker labels: give --unlabelled and --profile")
         rate = source.rate or rate
         described.append(f"lsl-in {args.lsl_in}")
+    elif args.qtm_in or args.natnet_in:
+        from transport.capture import capture_source
+
+        source, what = capture_source(args.qtm_in, args.natnet_in, labels, args.unlabelled, args.idle_timeout)
+        described.append(what)
     else:
         from transport.osc_source import OscSource
 
@@ -277,6 +289,9 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         sinks.append(window)
         described.append(f"window {window.size[0]}x{window.size[1]}")
 
+    if not sinks:
+        log.warning("no output: the solved weights go nowhere (give --zmq-out, --vmc, --livelink, --record-csv, "
+                    "--record-jsonl or --window)")
     calibrator = None
     if profile is None:
         def calibrator(take, rig=rig, layout=layout):

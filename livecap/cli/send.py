@@ -25,10 +25,10 @@ def register(sub) -> None:
     p.add_argument("--strip-labels", action="store_true",
                    help="LSL: no channel labels, markers shuffled every frame (an unlabelled cloud)")
     p.add_argument("--connect", action="store_true", help="ZeroMQ: connect instead of binding")
-    p.add_argument("--actor", default="actor")
-    p.add_argument("--speed", type=float, default=1.0)
+    p.add_argument("--actor", default="actor", help="actor name in the topic markers.<actor> (default actor)")
+    p.add_argument("--speed", type=float, default=1.0, help="pace factor against the take's rate (default 1)")
     p.add_argument("--fast", action="store_true", help="as fast as possible")
-    p.add_argument("--loop", action="store_true")
+    p.add_argument("--loop", action="store_true", help="start again at the end (default: stop)")
     p.add_argument("--start", type=int, help="first frame number")
     p.add_argument("--end", type=int, help="frame number to stop before")
     p.add_argument("--frames", type=int, help="stop after sending this many frames (with --loop: a duration)")

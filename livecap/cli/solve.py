@@ -17,7 +17,7 @@ from livecap.cli.common import (
 from livecap.cli.movement_args import add_movement_arguments, movement_options
 from livecap.core.headpose import NeutralPose
 from livecap.core.rig import Rig
-from livecap.modes.per_frame import QPSettings
+from livecap.modes.per_frame import QPSettings, check_keys
 from livecap.modes.registry import build_solver
 from livecap.offline.solve import SolvedTake, solve_take
 from transport.gltf import write_glb
@@ -30,11 +30,14 @@ def register(sub) -> None:
                        description="Solve every frame of a recorded take for the rig's blendshape weights.")
     add_take_solve_arguments(p)
     p.add_argument("--temporal", type=float, help=f"qp: weight gamma of |w - w_prev|^2 (default {QPSettings.temporal})")
-    p.add_argument("--keys", help="keys file (labelled ROM take or explicit key pairs): rbf keys, qp actor basis")
+    p.add_argument("--keys", help="keys JSON (what 'livecap rom' writes beside its range-of-motion take, or explicit "
+                   "key pairs; docs/modes.md): required by --mode rbf and --basis actor")
     p.add_argument("--basis", choices=["rig", "actor"], default="rig",
                    help="qp: calibrated rig basis, or the actor's own from --keys (Curio 2006)")
     p.add_argument("--out", required=True, help="weights CSV: frame,time,<shape>...; or a .glb (glTF 2.0: mesh, "
                    "morph targets, weight and head-pose animation)")
+    p.add_argument("--unlabelled", action="store_true",
+                   help="the take's points are unlabelled or wrongly named: label them against --profile first")
     add_movement_arguments(p)
     p.set_defaults(func=run)
 
@@ -46,8 +49,13 @@ def solve_options(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_keys(args.mode, {"keys": args.keys, "basis": args.basis})
     rig, layout = load_rig(args)
     take = read_take(args.take)
+    if args.unlabelled:
+        from livecap.cli.label import labelled_take
+
+        take = labelled_take(args, take)
     profile = profile_for(args, rig, layout, take)
     solver = build_solver(args.mode, profile, solve_options(args))
     with progress_bar(f"solving ({args.mode})", take.n_frames) as update:

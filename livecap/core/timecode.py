@@ -6,10 +6,11 @@ A :class:`TimecodeClock` maps the stream's own timestamps to a time of day, so f
 spaced whatever the solve's jitter:
 
 * ``"clock"`` (default): the system clock's local time of day. The offset between timestamps and
-  the clock is the smallest seen so far (the least-delayed frame is the closest to its capture):
-  frames published late in a burst (the calibration window, a stall) do not push the stream's
-  timecode late; once frames flow, the timecode is the clock's less the solve latency. The
-  frames of a burst itself may run ahead by up to its length, once.
+  the clock follows the smallest seen (the least-delayed frame is the closest to its capture), so
+  frames published late in a burst (the calibration window, a stall) do not keep the stream's
+  timecode late; once frames flow, the timecode is the clock's less the solve latency. The offset
+  comes down by at most half of each frame step (``SLEW``), so the timecode never repeats or runs
+  backwards: after the 1 s calibration burst it is back on the clock within about 2 s.
 * ``"HH:MM:SS:FF"``: that start timecode for the first frame (frames at the stream's rate);
 * ``"take"``: the take's own timestamps as the time of day.
 """
@@ -22,6 +23,7 @@ import re
 from dataclasses import dataclass, field
 
 SECONDS_PER_DAY = 86400.0
+SLEW = 0.5  # the clock offset comes down by at most this fraction of each frame step
 _TC = re.compile(r"^(\d{1,2}):(\d{2}):(\d{2})[:;](\d{1,3})$")
 
 
@@ -63,6 +65,7 @@ class TimecodeClock:
     start: str = "clock"
     rate: float = 60.0
     _offset: float | None = field(default=None, init=False)
+    _last: float | None = field(default=None, init=False)
 
     def __post_init__(self) -> None:
         if self.start not in ("clock", "take"):
@@ -74,8 +77,11 @@ class TimecodeClock:
             return ts % SECONDS_PER_DAY
         if self.start == "clock":
             offset = now_of_day() - ts
-            if self._offset is None or offset < self._offset:
+            if self._offset is None:
                 self._offset = offset
+            elif offset < self._offset and self._last is not None and ts > self._last:
+                self._offset = max(offset, self._offset - SLEW * (ts - self._last))
+            self._last = ts if self._last is None else max(self._last, ts)
         elif self._offset is None:
             self._offset = parse_timecode(self.start, self.rate) - ts
         return (self._offset + ts) % SECONDS_PER_DAY

@@ -87,6 +87,7 @@ class CurveTake:
     actor_basis: np.ndarray  # m x n x 3 the actor's marker displacement per unit weight (linearised)
     source: str
     unmapped: list[str]  # rig shapes no ARKit curve drives (always 0)
+    blinks: list[int]  # rig shapes the ARKit blinks drive
 
     def save_truth(self, path: str | Path) -> None:
         np.savez_compressed(
@@ -123,8 +124,10 @@ def curves_take(rig: Rig, layout: MarkerLayout, csv_path: str | Path, settings: 
     n_neutral = max(2, int(round(s.neutral_seconds * s.rate)))
     nq, nt = head_motion(n_neutral, s.rate, s.head_degrees / 3, s.head_mm / 3, rng)
     neutral = _markers(np.repeat(actor_neutral[None], n_neutral, 0), nq, nt, s, layout, rng, 0.0, 0.0)
+    blinks = sorted(set(np.flatnonzero(A[:, [ARKIT_NAMES.index("eyeBlinkLeft"),
+                                             ARKIT_NAMES.index("eyeBlinkRight")]].any(1)).tolist()))
     return CurveTake(take, neutral, W, list(rig.names), quat, trans, actor_neutral, actor_basis,
-                     Path(csv_path).name, unmapped)
+                     Path(csv_path).name, unmapped, blinks)
 
 
 def _markers(actor: np.ndarray, quat: np.ndarray, trans: np.ndarray, s: CurveTakeSettings, layout: MarkerLayout,

@@ -50,15 +50,17 @@ def rom_take(rig: Rig, layout: MarkerLayout, settings: PerformanceSettings | Non
 
 
 def generate_rom(out_dir: str | Path, rig: Rig, layout: MarkerLayout,
-                 settings: PerformanceSettings | None = None) -> list[Path]:
-    """Write ``demo_rom.c3d``, its ground truth and ``demo_rom.keys.json`` (labelled ranges)."""
+                 settings: PerformanceSettings | None = None, name: str = "demo_rom") -> list[Path]:
+    """Write ``<name>.c3d`` (its first second neutral), its ground truth and ``<name>.keys.json``
+    (labelled ranges)."""
     from livecap.demo import truth_path
     from transport.takefile import write_take
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     perf, specs = rom_take(rig, layout, settings)
-    write_take(perf.take, out / DEMO_ROM)
-    perf.save_truth(truth_path(out / DEMO_ROM))
-    write_key_file(out / DEMO_ROM_KEYS, specs, take=DEMO_ROM)
-    return [out / DEMO_ROM, truth_path(out / DEMO_ROM), out / DEMO_ROM_KEYS]
+    take, keys = out / f"{name}.c3d", out / f"{name}.keys.json"
+    write_take(perf.take, take)
+    perf.save_truth(truth_path(take))
+    write_key_file(keys, specs, take=take.name)
+    return [take, truth_path(take), keys]

@@ -27,7 +27,7 @@ import tomllib
 from pathlib import Path
 
 PATH_KEYS = {"profile", "rig", "markers", "replay", "record_csv", "record_jsonl", "record_markers", "arkit_map",
-             "curve_secret", "curve_clients", "curve_server", "stats_file"}
+             "curve_secret", "curve_clients", "curve_server", "stats_file", "vrm_map"}
 
 
 class SessionError(ValueError):

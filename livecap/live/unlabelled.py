@@ -65,9 +65,16 @@ def label_take(cloud: Take, profile: Profile, settings: LabellerSettings | None 
     pos = np.zeros((cloud.n_frames, n, 3))
     valid = np.zeros((cloud.n_frames, n), dtype=bool)
     columns = np.full((cloud.n_frames, n), -1, dtype=np.int64)
+    prev_cols = np.zeros(0, dtype=np.int64)
     for f in range(cloud.n_frames):
         cols = np.flatnonzero(cloud.valid[f])
         out = lab.step(cloud.positions[f, cols])
         pos[f], valid[f] = out.positions, out.valid
         columns[f, out.valid] = cols[out.index[out.valid]]
+        if f > 0 and out.late is not None and len(out.late):  # offline: a confirmed return starts a frame earlier
+            c = prev_cols[out.late_index]
+            pos[f - 1, out.late] = cloud.positions[f - 1, c]
+            valid[f - 1, out.late] = True
+            columns[f - 1, out.late] = c
+        prev_cols = cols
     return Take(list(profile.labels), pos, valid, cloud.rate, cloud.first_frame), columns

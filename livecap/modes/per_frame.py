@@ -22,6 +22,13 @@ KEYS_HINT = ("a keys file: the keys JSON that 'livecap rom --rig RIG --out DIR' 
              "take, or explicit key pairs (docs/calibration.md)")
 
 
+def check_keys(mode: str, options: Mapping) -> None:
+    """Argument check before any work: the modes that learn from keys need a keys file."""
+    if options.get("keys") is None and (mode == "rbf" or (mode == "qp" and options.get("basis") == "actor")):
+        what = "mode rbf" if mode == "rbf" else "qp with basis=actor"
+        raise ValueError(f"{what} needs key pairs (--keys): {KEYS_HINT}")
+
+
 def _given(cls, options: Mapping | None) -> dict:
     names = {f.name for f in fields(cls)}
     return {k: v for k, v in (options or {}).items() if v is not None and k in names}

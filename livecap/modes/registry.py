@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from livecap.calibration.profile import Profile
+from livecap.modes.marker_kalman import kalman_mode
 from livecap.modes.movement import build_movement
 from livecap.modes.per_frame import lsq_mode, qp_mode, rbf_mode
 from livecap.modes.robust import ROBUST_MODES
@@ -24,6 +25,7 @@ MODES: dict[str, Callable] = {
     "movement-stream": lambda profile, options: build_movement(profile, {**options, "stream": True}),
     "qp": qp_mode,
     "rbf": rbf_mode,
+    "kalman": kalman_mode,  # marker-space Kalman filter / RTS smoother -> bounded QP (issue 15)
 }
 MODES.update(ROBUST_MODES)  # noise-robust modes (livecap/modes/robust.py, docs/robustness.md)
 

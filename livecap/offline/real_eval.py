@@ -47,12 +47,10 @@ def vertex_p95(rig: Rig, weights: np.ndarray, truth: np.ndarray, stride: int = 3
     return float(np.percentile(np.concatenate(d), 95))
 
 
-def blink_retention(names: list[str], weights: np.ndarray, truth: np.ndarray, rate: float) -> float:
-    """Median over real blinks (truth peaks above 0.5) of the solved peak / the true peak."""
+def blink_retention(blinks: list[int], weights: np.ndarray, truth: np.ndarray, rate: float) -> float:
+    """Median over real blinks (truth peaks above 0.5 on the ``blinks`` shapes) of the solved peak / the true peak."""
     ratios = []
-    for k, n in enumerate(names):
-        if "blink" not in n.lower():
-            continue
+    for k in blinks:
         peaks, _ = find_peaks(truth[:, k], height=0.5, distance=max(1, int(0.2 * rate)))
         for p in peaks:
             ratios.append(weights[max(0, p - 2):p + 3, k].max() / truth[p, k])
@@ -81,22 +79,30 @@ class Row:
 def score(label: str, rig: Rig, ct: CurveTake, W: np.ndarray, seconds: float) -> Row:
     truth = ct.weights
     return Row(label, weight_rmse(W, truth), vertex_p95(rig, W, truth),
-               jitter(W) / max(jitter(truth), 1e-12), blink_retention(ct.names, W, truth, ct.take.rate),
+               jitter(W) / max(jitter(truth), 1e-12), blink_retention(ct.blinks, W, truth, ct.take.rate),
                seconds * 1e3 / max(len(W), 1))
 
 
-def evaluate_curve_take(rig: Rig, layout: MarkerLayout, ct: CurveTake, modes: list[str]) -> list[Row]:
-    """The oracle and every mode in ``modes`` (plain profile from the neutral take) on one take."""
+def evaluate_curve_take(rig: Rig, layout: MarkerLayout, ct: CurveTake, modes: list[str],
+                        options: dict[str, dict] | None = None) -> list[Row]:
+    """The oracle and every mode in ``modes`` (plain profile from the neutral take) on one take;
+    ``options`` per mode (e.g. a prior trained on the other files)."""
     t0 = time.perf_counter()
     rows = [score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), time.perf_counter() - t0)]
     profile = plain_profile(rig, layout, ct)
     take, targets, _, _ = prepare_targets(ct.take, profile)
     for mode in modes:
-        solver = build_solver(mode, profile, {})
-        t0 = time.perf_counter()
-        if hasattr(solver, "solve"):
-            W = np.asarray(solver.solve(targets, take.valid))
-        else:
+        solver = build_solver(mode, profile, (options or {}).get(mode, {}))
+        if hasattr(solver, "step"):  # streamed frame by frame; output aligned by the mode's latency
+            t0 = time.perf_counter()
             W = np.stack([solver.step(targets[i], take.valid[i]) for i in range(take.n_frames)])
-        rows.append(score(mode, rig, ct, W, time.perf_counter() - t0))
+            lag = int(getattr(solver, "latency_frames", 0))
+            W = np.concatenate([W[lag:], np.repeat(W[-1:], lag, 0)]) if lag else W
+            label = f"{mode} stream" if hasattr(solver, "solve") else mode
+            rows.append(score(label, rig, ct, W, time.perf_counter() - t0))
+        if hasattr(solver, "solve"):
+            t0 = time.perf_counter()
+            W = np.asarray(solver.solve(targets, take.valid))
+            label = f"{mode} offline" if hasattr(solver, "step") else mode
+            rows.append(score(label, rig, ct, W, time.perf_counter() - t0))
     return rows

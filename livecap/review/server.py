@@ -40,6 +40,7 @@ def _pins(body: dict) -> list[Pin]:
 def make_app(session: ReviewSession, rig_glb: bytes) -> web.Application:
     routes = web.RouteTableDef()
     camera = _camera(session)
+    skipped = {"ws": 0}  # bad WebSocket messages, counted and logged
 
     def bad(exc: Exception) -> web.Response:
         return web.json_response({"error": str(exc)}, status=400)
@@ -125,10 +126,11 @@ def make_app(session: ReviewSession, rig_glb: bytes) -> web.Application:
             if msg.type != WSMsgType.TEXT:
                 continue
             try:
-                await sock.send_json({"id": None, **pose(json.loads(msg.data))})
+                await sock.send_json(pose(json.loads(msg.data)))
             except (ValueError, KeyError, TypeError) as exc:
-                log.info("ws: bad drag message skipped: %s", exc)
-                await sock.send_json({"error": str(exc)})
+                skipped["ws"] += 1
+                log.warning("ws: bad drag message skipped (%d so far): %s", skipped["ws"], exc)
+                await sock.send_json({"error": str(exc), "skipped": skipped["ws"]})
         return sock
 
     @routes.get("/api/keys")

@@ -224,10 +224,10 @@ class ReviewSession:
         return "\n".join(lines) + "\n"
 
     def keys_glb(self, max_error: float) -> bytes:
-        from transport.gltf_keys import rig_glb
+        from transport.gltf import glb_bytes
 
         frames, values, ins, outs = shared_keys(self.keys(max_error), self.times)
-        return rig_glb(self.rig, self.names, self.times[frames], values, ins, outs)
+        return glb_bytes(self.rig, self.names, self.times[frames], values, name="keys", tangents=(ins, outs))
 
     def weights_csv(self) -> str:
         head = "frame,time," + ",".join(self.names)

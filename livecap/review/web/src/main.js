@@ -51,10 +51,10 @@ function setPoints(p, pts, valid) {
   a.needsUpdate = true;
 }
 
-function setWeights(mesh, w) {
+function setWeights(mesh, w) { // by name: the glTF's targets are in the rig's order, w in the solve's
   if (!mesh) return;
-  const inf = mesh.morphTargetInfluences;
-  for (let j = 0; j < w.length; j++) inf[j] = w[j];
+  const inf = mesh.morphTargetInfluences, dict = mesh.morphTargetDictionary;
+  state.names.forEach((n, j) => { if (n in dict) inf[dict[n]] = w[j]; });
 }
 
 function render() { renderer.render(scene, camera); }
@@ -77,14 +77,26 @@ async function loadRig() {
   head.add(sitesPts); head.add(obsPts); head.add(pinPts);
   const c = state.meta.camera;
   camera.fov = c.fov_y; camera.near = c.near * MM; camera.far = c.far * MM;
-  camera.position.set(c.eye[0] * MM, c.eye[1] * MM, c.eye[2] * MM);
-  camera.up.set(0, 1, 0);
-  camera.lookAt(c.target[0] * MM, c.target[1] * MM, c.target[2] * MM);
-  camera.updateProjectionMatrix();
-  sun.position.copy(camera.position);
   const box = new THREE.Box3().setFromObject(face);
   state.centre = box.getCenter(new THREE.Vector3());
   truthFace.position.x = -(box.max.x - box.min.x) * 1.1;
+  aim(false);
+}
+
+function aim(both) { // the preview's camera; with the truth face beside, back off to frame both
+  const c = state.meta.camera;
+  const eye = new THREE.Vector3(...c.eye).multiplyScalar(MM), target = new THREE.Vector3(...c.target).multiplyScalar(MM);
+  if (both) {
+    const shift = new THREE.Vector3(truthFace.position.x / 2, 0, 0);
+    eye.sub(target).multiplyScalar(1.6).add(target).add(shift);
+    target.add(shift);
+    camera.far = c.far * MM * 2;
+  }
+  camera.position.copy(eye);
+  camera.up.set(0, 1, 0);
+  camera.lookAt(target);
+  camera.updateProjectionMatrix();
+  sun.position.copy(camera.position);
 }
 
 async function showFrame(i) {
@@ -111,6 +123,7 @@ async function showFrame(i) {
   setPoints(sitesPts, f.sites);
   setPoints(obsPts, f.observed, f.valid);
   truthFace.visible = $('show-truth').checked && f.truth !== null;
+  aim(truthFace.visible);
   if (f.truth) setWeights(truthFace, f.truth);
   setPoints(pinPts, state.pins.map((p) => p.goal));
   render();
@@ -293,6 +306,7 @@ $('keys').addEventListener('click', async () => {
 // ---------------------------------------------------------------- start
 async function main() {
   state.meta = await api('/api/meta');
+  state.names = state.meta.names;
   await refreshCurves();
   const names = state.meta.names;
   for (const id of ['shapes', 'edit-shape']) {

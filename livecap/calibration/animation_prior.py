@@ -1,0 +1,63 @@
+"""A Gaussian prior on a rig's weights learned from real animation (Lewis et al. 2014 §7.8-7.9).
+
+Live Link Face performances are mapped onto the rig's shapes (livecap.demo.curves_take.arkit_to_rig)
+and their frames give a mean and a full covariance, and the covariance's principal axes give the
+PCA subspace (Seol et al. 2012 §5 build theirs from the rig's animation the same way). Shapes the
+curves never drive get a variance floor so the covariance is invertible.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from livecap.demo.curves_take import arkit_to_rig
+from transport.llf_csv import read_llf_csv
+
+VARIANCE_FLOOR = 1e-4  # (0.01)^2: a shape no curve moves may still move a little
+
+
+@dataclass(frozen=True)
+class AnimationPrior:
+    names: tuple[str, ...]
+    mean: np.ndarray  # m
+    cov: np.ndarray  # m x m
+    frames: int
+    sources: tuple[str, ...]
+
+    def pca(self, energy: float = 0.99) -> tuple[np.ndarray, np.ndarray]:
+        """Principal axes (m x k) and variances keeping ``energy`` of the total variance."""
+        var, axes = np.linalg.eigh(self.cov)
+        var, axes = var[::-1], axes[:, ::-1]
+        k = int(np.searchsorted(np.cumsum(var) / var.sum(), energy) + 1)
+        return axes[:, :k], var[:k]
+
+    def root_precision(self) -> np.ndarray:
+        """``L`` with ``L.T @ L`` = the inverse covariance (rows = whitened prior residuals)."""
+        var, axes = np.linalg.eigh(self.cov)
+        return (axes / np.sqrt(np.maximum(var, VARIANCE_FLOOR))).T
+
+    def save(self, path: str | Path) -> None:
+        np.savez_compressed(path, names=np.array(self.names), mean=self.mean, cov=self.cov, frames=self.frames,
+                            sources=np.array(self.sources))
+
+    @classmethod
+    def load(cls, path: str | Path) -> AnimationPrior:
+        try:
+            z = np.load(path, allow_pickle=False)
+            return cls(tuple(str(n) for n in z["names"]), z["mean"], z["cov"], int(z["frames"]),
+                       tuple(str(s) for s in z["sources"]))
+        except (OSError, KeyError, ValueError) as exc:
+            raise ValueError(f"{path}: not an animation prior ({exc})") from None
+
+
+def build_prior(curves: Sequence[str | Path], names: Sequence[str], lower: np.ndarray, upper: np.ndarray,
+                mapping: dict | None = None, rate: float = 60.0) -> AnimationPrior:
+    """Mean and full covariance of the curves' frames, mapped onto ``names`` and clipped to the limits."""
+    A = arkit_to_rig(list(names), mapping)
+    W = np.concatenate([np.clip(read_llf_csv(c).resample(rate)[0] @ A.T, lower, upper) for c in curves])
+    cov = np.cov(W, rowvar=False) + VARIANCE_FLOOR * np.eye(len(names))
+    return AnimationPrior(tuple(names), W.mean(0), cov, len(W), tuple(Path(c).name for c in curves))

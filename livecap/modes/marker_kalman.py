@@ -1,0 +1,103 @@
+"""``kalman``: constant-velocity Kalman filtering of the markers, then a bounded fit under a prior.
+
+Issue 15 measured that, on real acting, the per-frame solve's error is marker noise that a filter
+on the *weights* cannot remove; filtering the *markers* with a constant-velocity model whose noise
+comes from the take's own innovation likelihood (solvers.marker_kalman) removes it. Streamed with
+one frame of latency (fixed-lag smoothing); offline by the RTS smoother. The fit is the per-frame
+bounded QP (Curio et al. 2006 §2.3) with a Gaussian prior on the weights — learned from real
+animation (``--prior``, livecap.calibration.animation_prior; Lewis et al. 2014 §7.8-7.9) or, without
+one, a ridge — whose strength is chosen by held-out markers on the take (solvers.prior_strength).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from livecap.calibration.animation_prior import AnimationPrior
+from livecap.calibration.profile import Profile
+from solvers.marker_kalman import KalmanSettings, StreamingMarkerKalman, smooth_take
+from solvers.pose_refine import refit_pose
+from solvers.prior_strength import HeldOutStrength
+from solvers.qp import FrameQP
+
+STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it balances)
+STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
+STREAM_POSE_REFITS = 1  # per frame, on the filtered markers
+POSE_REFITS = 2  # offline pose/expression alternations (issue 15: ICT 0.2 mm vertex p95 0.66 -> 0.43 -> 0.35 mm)
+
+
+class MarkerKalmanSolver:
+    """``step``: filtered markers of frame t - 1 -> weights (``latency_frames`` = 1);
+    ``solve``: the whole take RTS-smoothed -> weights per frame."""
+
+    latency_frames = 1
+
+    def __init__(self, profile: Profile, mean: np.ndarray, precision: np.ndarray, settings: KalmanSettings) -> None:
+        self.profile, self.mean, self.precision, self.settings = profile, mean, precision, settings
+        self.lower, self.upper = profile.lower, profile.upper
+        self.filter = StreamingMarkerKalman(profile.n_markers, settings, lag=self.latency_frames)
+        self.chosen: dict = {}
+        self.reset()
+
+    def _selector(self, decay: float) -> HeldOutStrength:
+        return HeldOutStrength(self.profile.basis, self.lower, self.upper, self.mean, self.precision, STRENGTHS,
+                               decay=decay)
+
+    def _fit(self, k: int) -> FrameQP:
+        if k not in self._fits:
+            self._fits[k] = FrameQP(self.profile.basis, self.lower, self.upper, prior=(self.mean, self.precision),
+                                    prior_weight=float(STRENGTHS[k]))
+        return self._fits[k]
+
+    def reset(self) -> None:
+        self.filter.reset()
+        self.selector = self._selector(0.5 ** (1.0 / STREAM_HALF_LIFE_FRAMES))
+        self._fits: dict[int, FrameQP] = {}
+        for k in range(len(STRENGTHS)):  # build every workspace now, not on the first frames
+            self._fit(k).step(np.zeros(3 * self.profile.n_markers), np.ones(self.profile.n_markers, bool))
+            self._fits[k].reset()
+
+    def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        x, ok = self.filter.step(target, valid)
+        self.selector.observe(x, ok)
+        fit, p = self._fit(self.selector.best), self.profile
+        w = fit.step(x, ok)
+        for _ in range(STREAM_POSE_REFITS):  # pose re-fitted to the stable markers this expression predicts
+            x = refit_pose(x[None], ok[None], w[None], p.source_neutral, p.stable, p.basis)[0]
+            w = fit.step(x, ok)
+        return w
+
+    def solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """RTS-smoothed markers -> prior fit; then POSE_REFITS times: head pose re-fitted to the
+        stable markers the expression predicts (solvers.pose_refine) and solved again."""
+        p = self.profile
+        d = np.asarray(targets, float)
+        for i in range(POSE_REFITS + 1):
+            W = self._solve_once(d, valid)
+            if i < POSE_REFITS:
+                d = refit_pose(d, np.asarray(valid, bool), W, p.source_neutral, p.stable, p.basis)
+        return W
+
+    def _solve_once(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        smoothed, ok, self.chosen = smooth_take(targets, valid, self.settings)
+        sel = self._selector(1.0)
+        for t in range(len(targets)):
+            sel.observe(smoothed[t], ok[t])
+        self.chosen["prior_weight"] = float(STRENGTHS[sel.best])
+        fit = self._fit(sel.best)
+        fit.reset()
+        return np.array([fit.step(smoothed[t], ok[t]) for t in range(len(targets))])
+
+def kalman_mode(profile: Profile, options: Mapping | None = None) -> MarkerKalmanSolver:
+    prior = (options or {}).get("prior")
+    if isinstance(prior, str):
+        prior = AnimationPrior.load(prior)
+    if prior is None:
+        mean, precision = np.zeros(len(profile.names)), np.eye(len(profile.names))
+    else:
+        if list(prior.names) != list(profile.names):
+            raise ValueError("prior was built for another rig's shapes (livecap prior build --rig)")
+        mean, precision = prior.mean, np.linalg.inv(prior.cov)
+    return MarkerKalmanSolver(profile, mean, precision, KalmanSettings())

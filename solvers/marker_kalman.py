@@ -1,0 +1,197 @@
+"""Constant-velocity Kalman filtering of marker coordinates, its noise chosen by the data's own likelihood.
+
+Each coordinate of each stabilised marker is a white-noise-acceleration model (state: position and
+velocity per frame; Bar-Shalom, Li & Kirubarajan 2001 §6.2.2), observed with noise variance ``r``.
+Process noise ``q`` differs per marker (the mouth moves more than the forehead) and is chosen per
+marker from a grid by the innovation log-likelihood of the take itself (prediction-error
+decomposition, Harvey 1989 §3.4); ``r`` is shared. Offline: forward filter + Rauch-Tung-Striebel
+smoother. Streaming: a bank of filters, one per (r, q), selected per marker by exponentially
+discounted likelihood, with an optional one-frame fixed-lag smoothing step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class KalmanSettings:
+    r_grid: tuple[float, ...] = tuple(np.round(np.array([0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0]) ** 2, 6))
+    q_grid: tuple[float, ...] = tuple(np.logspace(-6, 1, 15))
+    half_life_frames: float = 600.0  # streaming: likelihood memory
+    max_gap_frames: int = 15  # a marker unseen longer than this is reported missing
+
+
+class _Bank:
+    """K filters (rows) over N coordinates (columns), vectorised; ``r``, ``q`` per row (K,) or per cell (K, N)."""
+
+    def __init__(self, r: np.ndarray, q: np.ndarray, n: int) -> None:
+        self.r, self.q = (r, q) if np.ndim(r) == 2 else (r[:, None], q[:, None])
+        k = len(self.r)
+        self.x = np.zeros((k, n))
+        self.v = np.zeros((k, n))
+        self.p00 = np.full((k, n), 1e6)
+        self.p01 = np.zeros((k, n))
+        self.p11 = np.full((k, n), 1e2)
+        self.started = np.zeros(n, dtype=bool)
+
+    def predict(self) -> None:
+        self.x = self.x + self.v
+        p00 = self.p00 + 2 * self.p01 + self.p11 + self.q / 3
+        p01 = self.p01 + self.p11 + self.q / 2
+        self.p00, self.p01, self.p11 = p00, p01, self.p11 + self.q
+
+    def update(self, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
+        """Update with ``z`` where ``seen``; returns the innovation log-likelihood (K x N, 0 where unseen)."""
+        first = seen & ~self.started
+        if first.any():  # start at the first sighting, velocity unknown
+            self.x[:, first] = z[first]
+            self.v[:, first] = 0.0
+            self.p00[:, first] = np.broadcast_to(self.r, self.x.shape)[:, first]
+            self.p01[:, first] = 0.0
+            self.p11[:, first] = 1e2
+            self.started |= first
+        upd = seen & ~first
+        e = np.where(upd, z - self.x, 0.0)
+        s = self.p00 + self.r
+        k0, k1 = self.p00 / s, self.p01 / s
+        k0, k1 = np.where(upd, k0, 0.0), np.where(upd, k1, 0.0)
+        self.x = self.x + k0 * e
+        self.v = self.v + k1 * e
+        p01 = self.p01
+        self.p00 = self.p00 - k0 * self.p00
+        self.p01 = p01 - k0 * p01
+        self.p11 = self.p11 - k1 * p01
+        return np.where(upd, -0.5 * (np.log(s) + e * e / s), 0.0)
+
+
+def _grid(s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
+    r, q = np.meshgrid(np.asarray(s.r_grid), np.asarray(s.q_grid), indexing="ij")
+    return r.ravel(), q.ravel()
+
+
+def _choose(loglik: np.ndarray, n_markers: int, n_r: int) -> tuple[int, np.ndarray]:
+    """Shared r, per-marker q: K x 3n log-likelihoods -> (r index, per-marker filter index)."""
+    per_marker = loglik.reshape(n_r, -1, n_markers, 3).sum(3)  # r x q x n
+    best_q = per_marker.argmax(1)  # r x n
+    total = np.take_along_axis(per_marker, best_q[:, None, :], 1)[:, 0].sum(1)
+    ri = int(total.argmax())
+    return ri, ri * per_marker.shape[1] + best_q[ri]
+
+
+def smooth_take(targets: np.ndarray, valid: np.ndarray, settings: KalmanSettings | None = None
+                ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """RTS-smoothed targets (T x n x 3), the validity after gap bridging, and the chosen noise."""
+    s = settings or KalmanSettings()
+    T, n, _ = targets.shape
+    z = targets.reshape(T, -1)
+    seen = np.repeat(np.asarray(valid, bool), 3, axis=1)
+    r, q = _grid(s)
+    bank = _Bank(r, q, 3 * n)
+    ll = np.zeros((len(r), 3 * n))
+    for t in range(T):
+        if t:
+            bank.predict()
+        ll += bank.update(z[t], seen[t])
+    ri, pick = _choose(ll, n, len(s.r_grid))
+    cols = np.repeat(pick, 3)
+    chosen = _Bank(r[cols][None], q[cols][None], 3 * n)  # one filter per coordinate, its own (r, q)
+    xs, ps, xp, pp = [], [], [], []
+    for t in range(T):
+        if t:
+            chosen.predict()
+        xp.append(np.stack([chosen.x[0], chosen.v[0]]))
+        pp.append(np.stack([chosen.p00[0], chosen.p01[0], chosen.p11[0]]))
+        chosen.update(z[t], seen[t])
+        xs.append(np.stack([chosen.x[0], chosen.v[0]]))
+        ps.append(np.stack([chosen.p00[0], chosen.p01[0], chosen.p11[0]]))
+    out = _rts(np.array(xs), np.array(ps), np.array(xp), np.array(pp))
+    return out.reshape(T, n, 3), bridged(valid, s.max_gap_frames), {
+        "noise_mm": float(np.sqrt(s.r_grid[ri])), "q_per_marker": q[pick]}
+
+
+def _rts(xs: np.ndarray, ps: np.ndarray, xp: np.ndarray, pp: np.ndarray) -> np.ndarray:
+    """Rauch-Tung-Striebel backward pass over filtered (xs, ps) and predicted (xp, pp) 2-states."""
+    T = len(xs)
+    x, v = xs[-1, 0].copy(), xs[-1, 1].copy()
+    out = np.empty((T, xs.shape[2]))
+    out[-1] = x
+    for t in range(T - 2, -1, -1):
+        f00, f01, f11 = ps[t]
+        a00, a01, a11 = pp[t + 1]
+        det = a00 * a11 - a01 * a01
+        i00, i01, i11 = a11 / det, -a01 / det, a00 / det
+        # J = Pf F^T Pp^-1, F^T = [[1, 0], [1, 1]]
+        b00, b01, b10, b11 = f00 + f01, f01, f01 + f11, f11
+        j00, j01 = b00 * i00 + b01 * i01, b00 * i01 + b01 * i11
+        j10, j11 = b10 * i00 + b11 * i01, b10 * i01 + b11 * i11
+        dx, dv = x - xp[t + 1, 0], v - xp[t + 1, 1]
+        x = xs[t, 0] + j00 * dx + j01 * dv
+        v = xs[t, 1] + j10 * dx + j11 * dv
+        out[t] = x
+    return out
+
+
+def bridged(valid: np.ndarray, max_gap: int) -> np.ndarray:
+    """Valid, plus interior gaps of at most ``max_gap`` frames (the smoother bridges them)."""
+    v = np.asarray(valid, bool).copy()
+    T = len(v)
+    for j in range(v.shape[1]):
+        idx = np.flatnonzero(v[:, j])
+        if len(idx) < 2:
+            continue
+        gaps = np.diff(idx)
+        for a, g in zip(idx[:-1], gaps, strict=True):
+            if 1 < g <= max_gap + 1:
+                v[a + 1:a + g, j] = True
+    return v[:T]
+
+
+class StreamingMarkerKalman:
+    """Per-frame marker filter: all (r, q) filters run; each marker follows the filter with the best
+    discounted likelihood (r shared). ``lag`` 1 returns frame t - 1 smoothed with frame t."""
+
+    def __init__(self, n_markers: int, settings: KalmanSettings | None = None, lag: int = 1) -> None:
+        self.s = settings or KalmanSettings()
+        self.n, self.lag = n_markers, lag
+        self.r, self.q = _grid(self.s)
+        self.reset()
+
+    def reset(self) -> None:
+        self.bank = _Bank(self.r, self.q, 3 * self.n)
+        self.ll = np.zeros((len(self.r), 3 * self.n))
+        self.decay = 0.5 ** (1.0 / self.s.half_life_frames)
+        self.unseen = np.zeros(self.n, dtype=int)
+        self.prev: tuple | None = None
+        self.t = 0
+
+    def step(self, target: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Filtered (lag 0) or one-frame-smoothed (lag 1) markers n x 3 and their validity."""
+        valid = np.asarray(valid, bool)
+        seen = np.repeat(valid, 3)
+        b = self.bank
+        if self.t:
+            before = (b.x.copy(), b.v.copy(), b.p00.copy(), b.p01.copy(), b.p11.copy())
+            b.predict()
+            pred = (b.x.copy(), b.v.copy(), b.p00.copy(), b.p01.copy(), b.p11.copy())
+        self.ll = self.decay * self.ll + b.update(np.asarray(target, float).reshape(-1), seen)
+        self.unseen = np.where(valid, 0, self.unseen + 1)
+        _, pick = _choose(self.ll, self.n, len(self.s.r_grid))
+        cols = np.repeat(pick, 3)
+        idx = np.arange(3 * self.n)
+        ok = self.bank.started.reshape(self.n, 3).all(1) & (self.unseen <= self.s.max_gap_frames)
+        if self.lag == 0 or not self.t:
+            self.t += 1
+            return b.x[cols, idx].reshape(self.n, 3), ok
+        self.t += 1
+        fx, fv, f00, f01, f11 = (a[cols, idx] for a in before)
+        px, pv, a00, a01, a11 = (a[cols, idx] for a in pred)
+        det = a00 * a11 - a01 * a01
+        j00 = ((f00 + f01) * a11 - f01 * a01) / det
+        j01 = (-(f00 + f01) * a01 + f01 * a00) / det
+        x = fx + j00 * (b.x[cols, idx] - px) + j01 * (b.v[cols, idx] - pv)
+        prev_ok = self.prev if self.prev is not None else ok
+        self.prev = ok
+        return x.reshape(self.n, 3), prev_ok

@@ -1,0 +1,78 @@
+"""Marker-space Kalman filter / RTS smoother, held-out prior strength, animation prior (issue 15)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from livecap.calibration.animation_prior import AnimationPrior
+from livecap.cli import main
+from solvers.marker_kalman import StreamingMarkerKalman, bridged, smooth_take
+from solvers.prior_strength import HeldOutStrength
+from tests.test_curves_take import short_csv  # noqa: F401 - fixture
+
+
+def _walk(T: int, n: int, noise: float, seed: int):
+    rng = np.random.default_rng(seed)
+    acc = rng.normal(0, 0.02, (T, n, 3))
+    truth = np.cumsum(np.cumsum(acc, 0), 0)
+    return truth, truth + rng.normal(0, noise, truth.shape)
+
+
+@settings(max_examples=10, deadline=None)
+@given(x0=st.floats(-50, 50), v=st.floats(-2, 2))
+def test_rts_reproduces_constant_velocity_exactly(x0, v):
+    t = np.arange(40, dtype=float)
+    targets = np.broadcast_to((x0 + v * t)[:, None, None], (40, 2, 3)).copy()
+    out, ok, _ = smooth_take(targets, np.ones((40, 2), bool))
+    assert np.allclose(out, targets, atol=1e-6 * (1 + abs(x0))) and ok.all()
+
+
+def test_smoother_and_filter_cut_noise_and_likelihood_finds_it():
+    truth, noisy = _walk(400, 4, 0.5, 1)
+    valid = np.ones((400, 4), bool)
+    valid[100:110, 0] = False
+    out, ok, chosen = smooth_take(noisy, valid)
+    assert chosen["noise_mm"] == pytest.approx(0.5, abs=0.21)
+    raw_err = np.sqrt(np.mean((noisy - truth) ** 2))
+    assert np.sqrt(np.mean((out - truth)[ok] ** 2)) < 0.5 * raw_err
+    f = StreamingMarkerKalman(4, lag=1)
+    streamed = np.array([f.step(noisy[t], valid[t])[0] for t in range(400)])
+    assert np.sqrt(np.mean((streamed[101:] - truth[100:-1]) ** 2)) < 0.8 * raw_err  # one frame late
+
+
+def test_bridged_fills_short_gaps_only():
+    v = np.ones((30, 1), bool)
+    v[5:8] = False
+    v[12:25] = False
+    b = bridged(v, 5)
+    assert b[5:8].all() and not b[12:25].any()
+
+
+def test_held_out_strength_prefers_stronger_prior_for_noisier_markers():
+    rng = np.random.default_rng(0)
+    B = rng.normal(0, 1, (30, 6)) @ np.diag([1, 1, 1, 0.3, 0.1, 0.05])
+    W = np.clip(rng.normal(0.3, 0.15, (400, 6)), 0, 1)
+    picks = []
+    for noise in (0.01, 1.0):
+        sel = HeldOutStrength(B, np.zeros(6), np.ones(6), np.full(6, 0.3), np.eye(6) / 0.15 ** 2,
+                              np.logspace(-4, 1, 6))
+        for w in W:
+            sel.observe((B @ w).reshape(10, 3) + rng.normal(0, noise, (10, 3)), np.ones(10, bool))
+        picks.append(sel.best)
+    assert picks[0] < picks[1]
+
+
+def test_prior_build_cli_and_kalman_solve(tmp_path, short_csv, capsys):  # noqa: F811
+    out = tmp_path / "p.npz"
+    assert main(["prior", "build", str(short_csv), "--rig", "recordings/demo_rig.npz", "--out", str(out)]) == 0
+    p = AnimationPrior.load(out)
+    assert p.cov.shape == (43, 43) and np.all(np.linalg.eigvalsh(p.cov) > 0) and p.frames == 328
+    assert main(["generate", "--curves", str(short_csv), "--seconds", "2", "--out", str(tmp_path)]) == 0
+    take, neutral = tmp_path / f"{short_csv.stem}.c3d", tmp_path / f"{short_csv.stem}_neutral.c3d"
+    assert main(["calibrate", str(neutral), "--rig", "recordings/demo_rig.npz", "--out", str(tmp_path / "a.npz")]) == 0
+    assert main(["solve", str(take), "--rig", "recordings/demo_rig.npz", "--mode", "kalman", "--prior", str(out),
+                 "--profile", str(tmp_path / "a.npz"), "--out", str(tmp_path / "w.csv")]) == 0
+    assert len((tmp_path / "w.csv").read_text().splitlines()) == 121

@@ -1,0 +1,102 @@
+"""Every command of the README's command table: ``--help``, and a run on the bundled demo (exit 0, no traceback).
+
+The runs use the demo the generator writes (``generate`` is itself a row), with the smallest settings
+that still exercise each command, so the whole file stays quick.
+"""
+
+import argparse
+import re
+from pathlib import Path
+
+import pytest
+
+from livecap.cli import build_parser, main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def table_commands() -> list[str]:
+    """Command names in the README table's first column (``rom``, ``composite``, ``map`` rows split)."""
+    table = ROOT.joinpath("README.md").read_text().split("## Commands", 1)[1].split("\n## ", 1)[0]
+    names = []
+    for row in re.findall(r"^\| (`livecap .*?) \| ", table.replace("\\|", "/"), re.M):
+        for code in re.findall(r"`([^`]*)`", row):
+            words = code.removeprefix("livecap ").split()
+            names.append(" ".join(words[:2]) if words[0] == "rig" else words[0])
+    return names
+
+
+# each row's run on the demo; "{rec}" is the generated demo folder
+RUNS = {
+    "generate": ["generate", "--out", "rec", "--seconds", "2"],
+    "demo": ["demo", "--recordings", "rec", "--mode", "qp", "--out", "demo.csv"],
+    "info": ["info", "rec/demo_rig.npz"],
+    "solve": ["solve", "rec/demo_take.c3d", "--rig", "rec/demo_rig.npz", "--mode", "qp", "--out", "w.csv"],
+    "export": ["export", "w.csv", "--rig", "rec/demo_rig.npz", "--out", "take.glb"],
+    "calibrate": ["calibrate", "rec/demo_neutral.c3d", "--rig", "rec/demo_rig.npz", "--out", "actor.npz"],
+    "calibration-report": ["calibration-report", "rec/demo_take.c3d", "--rig", "rec/demo_rig.npz", "--mode", "qp",
+                           "--stride", "8"],
+    "evaluate": ["evaluate", "rec/demo_take.c3d", "--rig", "rec/demo_rig.npz", "--profile", "actor.npz",
+                 "--modes", "qp"],
+    "edit": ["edit", "w.csv", "--take", "rec/demo_take.c3d", "--rig", "rec/demo_rig.npz", "--profile", "actor.npz",
+             "--edit", "100:jawOpen=0.9@90-110", "--out", "e.csv"],
+    "run": ["run", "--replay", "rec/demo_take.c3d", "--fast", "--max-frames", "60", "--rig", "rec/demo_rig.npz",
+            "--profile", "actor.npz", "--record-csv", "live.csv"],
+    "send": ["send", "rec/demo_take.c3d", "--osc", "127.0.0.1:39999", "--fast", "--frames", "30"],
+    "replay": ["replay", "rec/demo_take.c3d", "--rig", "rec/demo_rig.npz", "--profile", "actor.npz", "--mode", "qp",
+               "--frames", "png", "--every", "120", "--size", "160x120"],
+    "rig transfer": ["rig", "transfer", "--generic", "rec/demo_rig.npz", "--target", "objrig/neutral.obj",
+                     "--out", "transferred"],
+    "rom": ["rom", "--out", "rom", "--rate", "30"],
+    "composite": ["composite", "--demo", "--out", "composite"],
+    "map": ["map", "w.csv", "--out", "mapped.csv"],
+    "noise-study": ["noise-study", "--rig", "rec/demo_rig.npz", "--seconds", "2", "--modes", "lsq", "--no-sweep",
+                    "--plot", ""],
+    "fig11": ["fig11", "--seconds", "2", "--out-dir", "fig11"],
+}
+
+
+def test_the_table_lists_every_command_and_each_has_a_run():
+    names = table_commands()
+    assert "demo" in names and "calibrate" in names and "rig transfer" in names
+    assert set(names) == set(RUNS), "a README command without a demo run here, or the reverse"
+    registered = set(build_parser()._subparsers._group_actions[0].choices)
+    assert {n.split()[0] for n in names} <= registered
+
+
+def _undocumented(name: str, parser) -> list[str]:
+    out = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub, p in action.choices.items():
+                out += _undocumented(f"{name} {sub}", p)
+        elif action.option_strings and action.dest != "help" and not action.help:
+            out.append(f"{name} {action.option_strings[0]}")
+    return out
+
+
+def test_every_option_has_a_help_text():
+    commands = build_parser()._subparsers._group_actions[0].choices
+    assert [o for n, p in commands.items() for o in _undocumented(n, p)] == []
+
+
+@pytest.mark.parametrize("name", sorted(RUNS))
+def test_help_says_what_each_option_is_for(name, capsys):
+    with pytest.raises(SystemExit) as done:
+        main([*name.split(), "--help"])
+    assert done.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: livecap")
+
+
+def test_every_command_runs_on_the_demo(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    order = ["generate", "demo", "info", "solve", "calibrate"] + [n for n in sorted(RUNS) if n not in
+                                                                   ("generate", "demo", "info", "solve", "calibrate")]
+    for name in order:
+        if name == "rig transfer":
+            assert main(["generate", "--out", "rec", "--seconds", "2", "--obj-rig", "objrig"]) == 0
+        code = main(RUNS[name])
+        err = capsys.readouterr().err
+        assert code == 0, f"livecap {name}: {err}"
+        assert "Traceback" not in err

@@ -1,0 +1,17 @@
+// Load a .glb with three.js's GLTFLoader (as a browser viewer would) and print what it built.
+import fs from "node:fs";
+import { GLTFLoader } from "three/examples/jsm/loaders/GLTFLoader.js";
+
+const data = fs.readFileSync(process.argv[2]);
+const buffer = data.buffer.slice(data.byteOffset, data.byteOffset + data.byteLength);
+new GLTFLoader().parse(buffer, "", (gltf) => {
+  let mesh = null;
+  gltf.scene.traverse((o) => { if (o.isMesh) mesh = o; });
+  const clip = gltf.animations[0];
+  console.log(JSON.stringify({
+    vertices: mesh.geometry.attributes.position.count,
+    targets: Object.keys(mesh.morphTargetDictionary),
+    tracks: clip.tracks.map((t) => ({ name: t.name, times: t.times.length, values: t.values.length })),
+    duration: clip.duration,
+  }));
+}, (err) => { console.error(String(err)); process.exit(2); });

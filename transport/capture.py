@@ -1,0 +1,27 @@
+"""``livecap run --qtm-in`` / ``--natnet-in``: the capture-system source for HOST[:PORT]."""
+
+from __future__ import annotations
+
+
+def _host_port(text: str, default: int) -> tuple[str, int]:
+    host, _, port = text.rpartition(":") if ":" in text else (text, "", "")
+    try:
+        return host or "127.0.0.1", int(port) if port else default
+    except ValueError:
+        raise ValueError(f"{text!r}: expected HOST[:PORT]") from None
+
+
+def capture_source(qtm: str | None, natnet: str | None, labels: list[str], unlabelled: bool,
+                   idle_timeout: float | None):
+    """The QTM RT or NatNet source and its description for the ``ready`` line."""
+    if qtm:
+        from transport.qtm import DEFAULT_PORT, QtmSource
+
+        host, port = _host_port(qtm, DEFAULT_PORT)
+        return (QtmSource(host, port, labels, unlabelled=unlabelled, idle_timeout=idle_timeout),
+                f"qtm-in {host}:{port}")
+    from transport.natnet import DEFAULT_PORT, NatNetSource
+
+    host, port = _host_port(natnet, DEFAULT_PORT)
+    return (NatNetSource(host, port, labels, unlabelled=unlabelled, idle_timeout=idle_timeout),
+            f"natnet-in {host}:{port}")
