@@ -28,7 +28,7 @@ def calibrated_profile(neutral: str, rig: str, markers: str | None, out_dir: str
     argv = ["calibrate", neutral, "--rig", rig, "--out", str(path)] + (["--markers", markers] if markers else [])
     args = parser.parse_args(argv)
     buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
         calibrate.run_calibrate(args)
     log.info("calibrated %s from %s", path, neutral)
     return str(path)
