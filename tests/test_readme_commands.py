@@ -5,12 +5,16 @@ that still exercise each command, so the whole file stays quick.
 """
 
 import argparse
+import json
 import re
 from pathlib import Path
+from urllib.request import urlopen
 
 import pytest
 
 from livecap.cli import build_parser, main
+from transport.recorders import MarkerRecorder
+from transport.takefile import read_take
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -41,7 +45,17 @@ RUNS = {
     "edit": ["edit", "w.csv", "--take", "rec/demo_take.c3d", "--rig", "rec/demo_rig.npz", "--profile", "actor.npz",
              "--edit", "100:jawOpen=0.9@90-110", "--out", "e.csv"],
     "run": ["run", "--replay", "rec/demo_take.c3d", "--fast", "--max-frames", "60", "--rig", "rec/demo_rig.npz",
-            "--profile", "actor.npz", "--record-csv", "live.csv"],
+            "--profile", "actor.npz", "--record-csv", "live.csv", "--csv-layout", "livelinkface"],
+    "batch": ["batch", "rec/demo_take.c3d", "--rig", "rec/demo_rig.npz", "--profile", "actor.npz", "--mode", "qp",
+              "--workers", "1", "--out", "batch"],
+    "recover": ["recover", "killed.npz.partial"],
+    "review": ["review"],  # a server until stopped: tests/review_server.py runs it on the demo take
+    "label": ["label", "rec/demo_take.c3d", "--profile", "actor.npz", "--out", "labelled.c3d"],
+    "pose": ["pose", "--rig", "rec/demo_rig.npz", "--pin", "marker:{marker}=0,0,0", "--out", "pose.csv"],
+    # the live session's Live Link Face CSV stands in for a real performance (the app's own layout)
+    "prior": ["prior", "build", "live.csv", "--rig", "rec/demo_rig.npz", "--out", "prior.npz"],
+    "realeval": ["realeval", "--curves", "live.csv", "--rig", "demo", "--seconds", "0.5", "--start", "0",
+                 "--noise", "0.5", "--modes", "lsq", "--no-prior"],
     "send": ["send", "rec/demo_take.c3d", "--osc", "127.0.0.1:39999", "--fast", "--frames", "30"],
     "replay": ["replay", "rec/demo_take.c3d", "--rig", "rec/demo_rig.npz", "--profile", "actor.npz", "--mode", "qp",
                "--frames", "png", "--every", "120", "--size", "160x120"],
@@ -89,14 +103,31 @@ def test_help_says_what_each_option_is_for(name, capsys):
     assert out.startswith("usage: livecap")
 
 
-def test_every_command_runs_on_the_demo(tmp_path, monkeypatch, capsys):
+def _killed_journal(path: str) -> None:
+    """What a ``run --record-markers`` killed mid-session leaves: a journal, never closed."""
+    take = read_take("rec/demo_take.c3d")
+    rec = MarkerRecorder(path.removesuffix(".partial"), take.labels, take.rate)
+    for _, frame in zip(range(30), take.frames(), strict=False):
+        rec.record(frame)
+    rec.fh.flush()
+
+
+def test_every_command_runs_on_the_demo(tmp_path, monkeypatch, capsys, review_server):
     monkeypatch.chdir(tmp_path)
-    order = ["generate", "demo", "info", "solve", "calibrate"] + [n for n in sorted(RUNS) if n not in
-                                                                   ("generate", "demo", "info", "solve", "calibrate")]
+    first = ["generate", "demo", "info", "solve", "calibrate", "run"]
+    order = first + [n for n in sorted(RUNS) if n not in first]
     for name in order:
+        if name == "review":  # a server: the shared test process on the demo take answers its page and API
+            base = review_server.url.rstrip("/")
+            with urlopen(base + "/", timeout=30) as page, urlopen(base + "/api/meta", timeout=30) as api:
+                assert page.status == 200 and json.load(api)["n_frames"] > 0
+            continue
         if name == "rig transfer":
             assert main(["generate", "--out", "rec", "--seconds", "2", "--obj-rig", "objrig"]) == 0
-        code = main(RUNS[name])
+        if name == "recover":
+            _killed_journal("killed.npz.partial")
+        marker = read_take("rec/demo_take.c3d").labels[10] if name == "pose" else ""
+        code = main([a.format(marker=marker) for a in RUNS[name]])
         err = capsys.readouterr().err
         assert code == 0, f"livecap {name}: {err}"
         assert "Traceback" not in err
