@@ -2,6 +2,30 @@
 
 from __future__ import annotations
 
+import queue
+import time
+from collections.abc import Callable, Iterator
+
+from livecap.core.take import MarkerFrame
+
+
+def queued_frames(frames: queue.Queue, running: Callable[[], bool],
+                  idle_timeout: float | None) -> Iterator[MarkerFrame]:
+    """The frames a client library's reader thread puts on ``frames`` (None ends the stream), until the
+    source is stopped or nothing has arrived for ``idle_timeout`` seconds."""
+    last_good = time.monotonic()
+    while running():
+        try:
+            frame = frames.get(timeout=0.2)
+        except queue.Empty:
+            if idle_timeout and time.monotonic() - last_good > idle_timeout:
+                return
+            continue
+        if frame is None:
+            return
+        last_good = time.monotonic()
+        yield frame
+
 
 def _host_port(text: str, default: int) -> tuple[str, int]:
     host, _, port = text.rpartition(":") if ":" in text else (text, "", "")

@@ -23,6 +23,7 @@ import numpy as np
 from livecap.core.take import MarkerFrame
 from livecap.core.units import MM_PER_UNIT
 from transport.badinput import BadInput, FrameOrder
+from transport.capture import queued_frames
 
 DEFAULT_PORT = 1510  # Motive's command port
 
@@ -157,15 +158,4 @@ class NatNetSource:
         self.client.shutdown()
 
     def __iter__(self) -> Iterator[MarkerFrame]:
-        last_good = time.monotonic()
-        while self._running:
-            try:
-                frame = self._queue.get(timeout=0.2)
-            except queue.Empty:
-                if self.idle_timeout and time.monotonic() - last_good > self.idle_timeout:
-                    return
-                continue
-            if frame is None:
-                return
-            last_good = time.monotonic()
-            yield frame
+        return queued_frames(self._queue, lambda: self._running, self.idle_timeout)

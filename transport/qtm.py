@@ -21,6 +21,7 @@ import numpy as np
 
 from livecap.core.take import MarkerFrame
 from transport.badinput import BadInput, FrameOrder
+from transport.capture import queued_frames
 
 DEFAULT_PORT = 22223  # QTM's little-endian RT port
 
@@ -166,15 +167,4 @@ class QtmSource:
         self._thread.join(timeout=3.0)
 
     def __iter__(self) -> Iterator[MarkerFrame]:
-        last_good = time.monotonic()
-        while self._running:
-            try:
-                frame = self._queue.get(timeout=0.2)
-            except queue.Empty:
-                if self.idle_timeout and time.monotonic() - last_good > self.idle_timeout:
-                    return
-                continue
-            if frame is None:
-                return
-            last_good = time.monotonic()
-            yield frame
+        return queued_frames(self._queue, lambda: self._running, self.idle_timeout)
