@@ -173,6 +173,16 @@ def marker_outlet(name: str, labels: list[str] | None, n_channels: int, rate: fl
     return pylsl.StreamOutlet(info)
 
 
+LINGER = 0.5  # s: liblsl has no flush; an outlet destroyed at once loses the samples still in its send queue
+
+
+def release(outlet) -> None:
+    """Let connected inlets drain the last samples before the outlet goes (a take's last frame was lost
+    without this), then drop it."""
+    if outlet is not None and outlet.have_consumers():
+        time.sleep(LINGER)
+
+
 class LslWeightSink:
     """Weights and head pose as one LSL stream (``publish``/``close``, like every sink)."""
 
@@ -197,7 +207,7 @@ class LslWeightSink:
         return {"sent": self.sent}
 
     def close(self) -> None:
-        self.outlet = None
+        self.outlet = release(self.outlet)
 
 
 class LslMarkerSender:
@@ -220,4 +230,4 @@ class LslMarkerSender:
         self.outlet.push_sample(pts.astype(np.float32).ravel().tolist())
 
     def close(self) -> None:
-        self.outlet = None
+        self.outlet = release(self.outlet)
