@@ -9,6 +9,15 @@ from collections.abc import Callable, Iterator
 from livecap.core.take import MarkerFrame
 
 
+def offer(frames: queue.Queue, frame: MarkerFrame, bad) -> None:
+    """Hand a decoded frame from the client library's thread to the consumer; a full queue is a counted
+    ``overrun`` (the consumer is behind), never a blocked network thread."""
+    try:
+        frames.put_nowait(frame)
+    except queue.Full:
+        bad.skip("overrun", f"frame {frame.frame}: consumer behind by {frames.qsize()} frames")
+
+
 def queued_frames(frames: queue.Queue, running: Callable[[], bool],
                   idle_timeout: float | None) -> Iterator[MarkerFrame]:
     """The frames a client library's reader thread puts on ``frames`` (None ends the stream), until the

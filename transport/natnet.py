@@ -23,7 +23,7 @@ import numpy as np
 from livecap.core.take import MarkerFrame
 from livecap.core.units import MM_PER_UNIT
 from transport.badinput import BadInput, FrameOrder
-from transport.capture import queued_frames
+from transport.capture import offer, queued_frames
 
 DEFAULT_PORT = 1510  # Motive's command port
 
@@ -112,10 +112,7 @@ class NatNetSource:
         out = self.decode(frame)
         self.last_decode_seconds = time.perf_counter() - t0
         if out is not None:
-            try:
-                self._queue.put_nowait(out)
-            except queue.Full:
-                self.bad.skip("overrun", f"frame {out.frame}: consumer behind")
+            offer(self._queue, out, self.bad)
 
     def decode(self, frame) -> MarkerFrame | None:
         number = frame.prefix.frame_number

@@ -21,7 +21,7 @@ import numpy as np
 
 from livecap.core.take import MarkerFrame
 from transport.badinput import BadInput, FrameOrder
-from transport.capture import queued_frames
+from transport.capture import offer, queued_frames
 
 DEFAULT_PORT = 22223  # QTM's little-endian RT port
 
@@ -114,10 +114,7 @@ class QtmSource:
         frame = self.decode(packet)
         self.last_decode_seconds = time.perf_counter() - t0
         if frame is not None:
-            try:
-                self._queue.put_nowait(frame)
-            except queue.Full:
-                self.bad.skip("overrun", f"frame {frame.frame}: consumer behind by {self._queue.qsize()} frames")
+            offer(self._queue, frame, self.bad)
 
     def decode(self, packet) -> MarkerFrame | None:
         """One data packet to a frame, or None (counted) when it cannot be read."""
