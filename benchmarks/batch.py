@@ -149,7 +149,7 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",)) -> dict:
     from livecap.cli import main as livecap
     from transport.takefile import read_take, write_take
 
-    n = 2 if quick else 4
+    n = 2 if quick else 12  # enough takes that 2 workers reach steady state (4 short takes measured start-up)
     work = Path(tempfile.mkdtemp(prefix="livecap-batch-bench-"))
     try:
         profile = str(work / "actor.npz")
