@@ -90,12 +90,12 @@ def run(args: argparse.Namespace) -> int:
                 s = CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise, occlusion=args.occlusion)
                 t0 = time.perf_counter()
                 ct = curves_take(rig, layout, f, s, mapping)
-                options = {}
+                options = {"kalman": {"rate": ct.take.rate}}  # the IMM's process noise is per second
                 others = [o for o in files if o != f]
                 if not args.no_prior and others and "kalman" in args.modes:
                     from livecap.calibration.animation_prior import build_prior
 
-                    options["kalman"] = {"prior": build_prior(others, rig.names, rig.lower, rig.upper, mapping)}
+                    options["kalman"]["prior"] = build_prior(others, rig.names, rig.lower, rig.upper, mapping)
                 rows = evaluate_curve_take(rig, layout, ct, args.modes, options)
                 oracle = rows[0]
                 took = time.perf_counter() - t0
