@@ -10,6 +10,8 @@ from hypothesis import strategies as st
 from livecap.calibration.animation_prior import AnimationPrior
 from livecap.cli import main
 from solvers.marker_kalman import StreamingMarkerKalman, bridged, smooth_take
+from solvers.pose_refine import refit_pose
+from solvers.rigid import kabsch
 from solvers.prior_strength import HeldOutStrength
 from tests.test_curves_take import short_csv  # noqa: F401 - fixture
 
@@ -76,3 +78,54 @@ def test_prior_build_cli_and_kalman_solve(tmp_path, short_csv, capsys):  # noqa:
     assert main(["solve", str(take), "--rig", "recordings/demo_rig.npz", "--mode", "kalman", "--prior", str(out),
                  "--profile", str(tmp_path / "a.npz"), "--out", str(tmp_path / "w.csv")]) == 0
     assert len((tmp_path / "w.csv").read_text().splitlines()) == 121
+
+
+def _blink_take(noise: float, seed: int):
+    """Markers still for 2 s, one fast 3 mm pulse (8 frames, a blink at 60 Hz), still again."""
+    T = 300
+    pulse = np.zeros(T)
+    pulse[150:159] = 3.0 * np.sin(np.linspace(0, np.pi, 9)) ** 2
+    truth = np.zeros((T, 4, 3))
+    truth[:, :, 1] = pulse[:, None]
+    return truth, truth + np.random.default_rng(seed).normal(0, noise, truth.shape), pulse
+
+
+def test_local_process_noise_keeps_a_blink_and_smooths_the_still_face():
+    truth, noisy, pulse = _blink_take(0.3, 2)
+    out, _, _ = smooth_take(noisy, np.ones(noisy.shape[:2], bool))
+    peak = out[150:159, :, 1].max(0).mean()
+    assert peak > 0.8 * pulse.max()  # one q for the take (before issue 15's fix) kept 0.07 of it
+    still = np.concatenate([out[:120], out[190:]]) - np.concatenate([truth[:120], truth[190:]])
+    assert np.sqrt(np.mean(still ** 2)) < 0.25 * 0.3
+
+
+def test_pose_refit_from_the_smoothed_markers_keeps_the_raw_noise_out_of_the_pose():
+    rng = np.random.default_rng(3)
+    neutral = rng.normal(0, 30, (12, 3))
+    stable = np.arange(12) < 6
+    basis = np.zeros((36, 2))
+    angle = 0.02
+    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    moved = (neutral @ R.T + [0.5, -0.3, 0.2] - neutral)[None].repeat(50, 0)  # a pose error, no expression
+    noise = rng.normal(0, 0.5, moved.shape)
+    valid = np.ones((50, 12), bool)
+    W = np.zeros((50, 2))
+    fixed = refit_pose(moved + noise, valid, W, neutral, stable, basis, pose_from=moved)
+    raw = refit_pose(moved + noise, valid, W, neutral, stable, basis)
+    R0, t0 = kabsch(neutral + moved[0], neutral)  # the true correction
+    expected = (neutral + moved + noise) @ R0.T + t0 - neutral
+    assert np.allclose(fixed, expected, atol=1e-6)  # from noise-free smoothed markers: the true correction
+    # fitted on the raw stable markers, each frame's correction follows their noise: a rigid jitter
+    assert np.sqrt(np.mean((raw - expected)[:, ~stable] ** 2)) > 0.15
+
+
+def test_weight_motion_stage_follows_a_ramp_without_lag_and_cuts_noise():
+    from livecap.modes.marker_kalman import WeightMotion
+
+    rate, T = 60.0, 240
+    truth = np.clip((np.arange(T) - 60) / 60.0, 0, 1)[:, None] * np.ones((1, 3))  # 1 s ramps
+    noisy = truth + np.random.default_rng(4).normal(0, 0.02, truth.shape)
+    out = WeightMotion(rate, 0.5, 80.0, 0.8).imm(0.5, np.full(3, 25.0)).filter(noisy)
+    lag = min(range(0, 5), key=lambda s: np.mean((out[s:] - truth[:T - s]) ** 2))
+    assert lag <= 1
+    assert np.mean(np.abs(np.diff(out, 2, axis=0))) < 0.3 * np.mean(np.abs(np.diff(noisy, 2, axis=0)))
