@@ -11,8 +11,8 @@ from livecap.calibration.animation_prior import AnimationPrior
 from livecap.cli import main
 from solvers.marker_kalman import StreamingMarkerKalman, bridged, smooth_take
 from solvers.pose_refine import refit_pose
-from solvers.rigid import kabsch
 from solvers.prior_strength import HeldOutStrength
+from solvers.rigid import kabsch
 from tests.test_curves_take import short_csv  # noqa: F401 - fixture
 
 
