@@ -1,0 +1,188 @@
+"""Warm-started primal active-set solver for box-constrained QPs with a fixed Hessian.
+
+    minimise  1/2 x' H x + f' x   subject to  lower <= x <= upper,   H symmetric positive definite.
+
+The per-frame blendshape fit (Curio et al. 2006 §2.3; Lewis et al. 2014 §5.2) is this problem
+with H fixed per marker-visibility pattern and only f changing per frame; from one frame to the
+next the set of weights strictly inside their limits (the free set F) rarely changes, and it is
+small when the fit is sparse (most shapes rest at a bound). A primal active-set method
+(Nocedal & Wright, Numerical Optimization, 2nd ed. 2006, §16.5; for boxes the bounded-variable
+least squares of Stark & Parker 1995) works on F alone: it keeps the inverse of H_FF, updated
+through the Schur complement when variables enter or leave F (O(k^2) for k = |F|, no O(m^3)), so
+a frame whose free set is unchanged costs one k x k product, one k x m product and the KKT check.
+A dual active-set solver such as DAQP works on the *active* bounds instead, which at 1000 shapes
+with ~25 free means factorising ~975 constraints.
+
+Each pass solves the subproblem on F with the bounded variables fixed; an infeasible subproblem
+solution is stepped towards from the current feasible point until the first limit blocks (the
+blocking variables leave F); a feasible one is optimal unless a bounded variable's multiplier
+has the wrong sign, in which case every such variable enters F. The objective decreases strictly
+between subproblem minimisers, so no free set repeats and the method terminates (§16.5). The
+solution satisfies the KKT conditions to ``tol`` (scaled by H), the same optimum DAQP returns.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class BoxQP:
+    """Solver state for one Hessian: the free set of the last solve and the inverse of its block.
+
+    ``solve(f)`` starts from the last solve's free set and point; ``warm(x)`` starts the next
+    solve from any feasible point ``x`` instead (another workspace's solution, a reset).
+    """
+
+    def __init__(self, H: np.ndarray, lower: np.ndarray, upper: np.ndarray, max_iter: int | None = None) -> None:
+        self.H = np.ascontiguousarray(H, dtype=np.float64)
+        self.m = self.H.shape[0]
+        if self.H.shape != (self.m, self.m):
+            raise ValueError(f"H must be square, got {self.H.shape}")
+        self.lo = np.asarray(lower, dtype=np.float64).reshape(self.m)
+        self.hi = np.asarray(upper, dtype=np.float64).reshape(self.m)
+        self._fixed = self.lo == self.hi
+        self._ref = np.where(np.isfinite(self.lo), self.lo, np.where(np.isfinite(self.hi), self.hi, 0.0))
+        self._span = np.where(np.isfinite(self.hi), self.hi - self._ref, np.inf)  # y = x - ref in [ylo, span]
+        self._ylo = np.where(np.isfinite(self.lo), self.lo - self._ref, -np.inf)
+        self._Href = self.H @ self._ref
+        self.tol = 1e-11 * float(max(1.0, np.abs(np.diagonal(self.H)).max()))
+        self.max_iter = 3 * self.m + 10 if max_iter is None else int(max_iter)
+        self.iterations = 0
+        self.warm(np.clip(np.zeros(self.m), self.lo, self.hi))
+
+    # ------------------------------------------------------------------ state
+    def warm(self, x: np.ndarray) -> None:
+        """Start the next solve from the feasible point ``x``: free where strictly inside the box."""
+        x = np.clip(np.asarray(x, dtype=np.float64), self.lo, self.hi)
+        up = (x >= self.hi) & ~self._fixed
+        self._free_set(np.flatnonzero((x > self.lo) & (x < self.hi)), up, (x - self._ref))
+
+    def _free_set(self, F: np.ndarray, up: np.ndarray, y: np.ndarray) -> None:
+        """Set F (order of the inverse), the variables at their upper bound, and derived constants."""
+        self.F = np.asarray(F, dtype=np.intp)
+        self._up = up
+        self._invert()
+        self._y = y[self.F].copy()  # current feasible point on F
+        self._derive()
+
+    def _invert(self) -> None:
+        F = self.F
+        self.Minv = np.linalg.inv(self.H[np.ix_(F, F)]) if len(F) else np.zeros((0, 0))
+        self._fresh = True
+
+    def _derive(self) -> None:
+        """Constants of the current (F, upper) partition: the bounded variables' values, the gradient
+        offset c = H ref + H y_bounded, the multiplier signs, y's limits on F."""
+        F, up = self.F, self._up
+        self.HF = self.H[F]
+        self._nMinv = -self.Minv
+        self._checked = False  # the inverse changed: check its residual at the next solution
+        yb = np.where(up, self._span, 0.0)
+        yb[F] = 0.0
+        self._xb = np.where(up, self.hi, self._ref)  # the bounded variables' values (exact limits)
+        U = np.flatnonzero(up)
+        self._c = self._Href + yb[U] @ self.H[U] if len(U) else self._Href.copy()
+        sgn = np.where(up, -1.0, 1.0)
+        sgn[self._fixed] = 0.0
+        sgn[F] = 0.0
+        self._sgn = sgn
+        self._ylo_F, self._yhi_F = self._ylo[F], self._span[F]
+        lo_F, hi_F = np.unique(self._ylo_F), np.unique(self._yhi_F)
+        self._box_F = (float(lo_F[0]), float(hi_F[0])) if len(lo_F) == 1 and len(hi_F) == 1 else None
+        self._refF = self._ref[F] if np.any(self._ref[F]) else None
+
+    def _add(self, J: np.ndarray) -> bool:
+        """Variables J enter F: block Schur-complement update of the inverse. False if H_FF loses rank."""
+        F, H = self.F, self.H
+        HJ = H[J]
+        Bj = HJ[:, F]  # a x k
+        U = self.Minv @ Bj.T  # k x a
+        S = HJ[:, J] - Bj @ U
+        try:
+            Sinv = np.linalg.inv(S)
+        except np.linalg.LinAlgError:
+            return False
+        if not (np.all(np.isfinite(Sinv)) and np.all(np.diagonal(Sinv) > 0)):
+            return False
+        k, a = len(F), len(J)
+        US = U @ Sinv
+        M = np.empty((k + a, k + a))
+        M[:k, :k] = self.Minv + US @ U.T
+        M[:k, k:] = -US
+        M[k:, :k] = -US.T
+        M[k:, k:] = Sinv
+        self.Minv = M
+        self._fresh = False
+        y_new = np.where(self._up[J], self._span[J], 0.0)
+        self._up[J] = False
+        self.F = np.concatenate([F, J])
+        self._y = np.concatenate([self._y, y_new])
+        self._derive()
+        return True
+
+    def _remove(self, P: np.ndarray, to_upper: np.ndarray) -> None:
+        """Positions P of F leave it (to their upper bound where ``to_upper``): the inverse downdated."""
+        keep = np.ones(len(self.F), bool)
+        keep[P] = False
+        M = self.Minv
+        E = M[np.ix_(keep, P)]
+        self.Minv = M[np.ix_(keep, keep)] - E @ np.linalg.solve(M[np.ix_(P, P)], E.T)
+        self._fresh = False
+        self._up[self.F[P[to_upper]]] = True
+        self.F = self.F[keep]
+        self._y = self._y[keep]
+        self._derive()
+
+    # ------------------------------------------------------------------ solve
+    def solve(self, f: np.ndarray) -> np.ndarray | None:
+        """The minimiser for linear term ``f`` (None if the iteration limit is reached or H_FF is singular)."""
+        for it in range(1, self.max_iter + 1):
+            fc = f + self._c
+            y = self._nMinv @ fc[self.F]
+            if len(y) and not self._inside(y):
+                lo_gap, hi_gap = y - self._ylo_F, self._yhi_F - y
+                self._block(y, lo_gap < 0, hi_gap < 0)
+                continue
+            g = y @ self.HF
+            g += fc
+            if not self._checked:  # after an update of the inverse: is H_FF y = -fc_F still solved?
+                r, b = g[self.F], fc[self.F]
+                if r @ r > 1e-20 * (b @ b) + self.tol * self.tol and not self._fresh:
+                    self._invert()  # drifted: refactor and solve again (a fresh inverse is as good as H allows)
+                    self._nMinv = -self.Minv
+                    continue
+                self._checked = True
+            self._y = y
+            g *= self._sgn
+            if g.min() < -self.tol:
+                tol = self.tol + 1e-12 * float(np.abs(fc).max())  # rounding in g grows with |f|
+                bad = np.flatnonzero(g < -tol)
+                if len(bad):
+                    if not self._add(bad):
+                        return None
+                    continue
+            self.iterations = it
+            x = self._xb.copy()
+            x[self.F] = y if self._refF is None else self._refF + y
+            return x
+        self.iterations = self.max_iter
+        return None
+
+    def _inside(self, y: np.ndarray) -> bool:
+        box = self._box_F
+        if box is not None:
+            return y.min() >= box[0] and y.max() <= box[1]
+        return bool(np.all(y >= self._ylo_F) and np.all(y <= self._yhi_F))
+
+    def _block(self, y: np.ndarray, below: np.ndarray, above: np.ndarray) -> None:
+        """Step from the feasible point towards ``y`` until the first limit; blocking variables leave F."""
+        cur = self._y
+        p = y - cur
+        viol = below | above
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(below, self._ylo_F - cur, self._yhi_F - cur) / p
+        t = np.where(viol, np.maximum(t, 0.0), np.inf)
+        alpha = float(min(t.min(), 1.0))
+        self._y = cur + alpha * p
+        hit = np.flatnonzero(t <= alpha * (1 + 1e-12) + 1e-300)
+        self._remove(hit, above[hit])
