@@ -45,6 +45,9 @@ class BoxQP:
         self._span = np.where(np.isfinite(self.hi), self.hi - self._ref, np.inf)  # y = x - ref in [ylo, span]
         self._ylo = np.where(np.isfinite(self.lo), self.lo - self._ref, -np.inf)
         self._Href = self.H @ self._ref
+        uniform = len(np.unique(self._ylo)) == 1 and len(np.unique(self._span)) == 1
+        self._box = (float(self._ylo[0]), float(self._span[0])) if uniform and self.m else None
+        self._ref_zero = not np.any(self._ref)
         self.tol = 1e-11 * float(max(1.0, np.abs(np.diagonal(self.H)).max()))
         self.max_iter = 3 * self.m + 10 if max_iter is None else int(max_iter)
         self.iterations = 0
@@ -87,37 +90,47 @@ class BoxQP:
         sgn[F] = 0.0
         self._sgn = sgn
         self._ylo_F, self._yhi_F = self._ylo[F], self._span[F]
-        lo_F, hi_F = np.unique(self._ylo_F), np.unique(self._yhi_F)
-        self._box_F = (float(lo_F[0]), float(hi_F[0])) if len(lo_F) == 1 and len(hi_F) == 1 else None
-        self._refF = self._ref[F] if np.any(self._ref[F]) else None
+        self._refF = None if self._ref_zero else self._ref[F]
 
     def _add(self, J: np.ndarray) -> bool:
-        """Variables J enter F: block Schur-complement update of the inverse. False if H_FF loses rank."""
+        """Variables J enter F: block Schur-complement update of the inverse, partition constants
+        updated in place. False if H_FF loses rank."""
         F, H = self.F, self.H
         HJ = H[J]
         Bj = HJ[:, F]  # a x k
         U = self.Minv @ Bj.T  # k x a
         S = HJ[:, J] - Bj @ U
-        try:
-            Sinv = np.linalg.inv(S)
-        except np.linalg.LinAlgError:
-            return False
-        if not (np.all(np.isfinite(Sinv)) and np.all(np.diagonal(Sinv) > 0)):
-            return False
+        if len(J) == 1:
+            if not S[0, 0] > 0:
+                return False
+            Sinv = 1.0 / S
+        else:
+            try:
+                Sinv = np.linalg.inv(S)
+            except np.linalg.LinAlgError:
+                return False
+            if not (np.all(np.isfinite(Sinv)) and np.all(np.diagonal(Sinv) > 0)):
+                return False
         k, a = len(F), len(J)
         US = U @ Sinv
         M = np.empty((k + a, k + a))
-        M[:k, :k] = self.Minv + US @ U.T
+        np.matmul(US, U.T, out=M[:k, :k])
+        M[:k, :k] += self.Minv
         M[:k, k:] = -US
-        M[k:, :k] = -US.T
+        M[k:, :k] = M[:k, k:].T
         M[k:, k:] = Sinv
-        self.Minv = M
-        self._fresh = False
-        y_new = np.where(self._up[J], self._span[J], 0.0)
-        self._up[J] = False
+        self.Minv, self._nMinv = M, -M
+        self._fresh = self._checked = False
+        up = self._up[J]
+        y_new = np.where(up, self._span[J], 0.0)
+        if up.any():
+            self._c -= y_new[up] @ HJ[up]
+            self._up[J] = False
+        self._sgn[J] = 0.0
         self.F = np.concatenate([F, J])
+        self.HF = np.concatenate([self.HF, HJ])
         self._y = np.concatenate([self._y, y_new])
-        self._derive()
+        self._limits()
         return True
 
     def _remove(self, P: np.ndarray, to_upper: np.ndarray) -> None:
@@ -125,51 +138,133 @@ class BoxQP:
         keep = np.ones(len(self.F), bool)
         keep[P] = False
         M = self.Minv
-        E = M[np.ix_(keep, P)]
-        self.Minv = M[np.ix_(keep, keep)] - E @ np.linalg.solve(M[np.ix_(P, P)], E.T)
-        self._fresh = False
-        self._up[self.F[P[to_upper]]] = True
+        if len(P) == 1:
+            e = M[keep, P[0]]
+            Mk = M[keep][:, keep]
+            Mk -= np.multiply.outer(e, e / M[P[0], P[0]])
+        else:
+            E = M[np.ix_(keep, P)]
+            Mk = M[np.ix_(keep, keep)] - E @ np.linalg.solve(M[np.ix_(P, P)], E.T)
+        self.Minv, self._nMinv = Mk, -Mk
+        self._fresh = self._checked = False
+        V = self.F[P]
+        Vu, Vl = V[to_upper], V[~to_upper]
+        if len(Vu):
+            self._up[Vu] = True
+            self._sgn[Vu] = -1.0
+            self._xb[Vu] = self.hi[Vu]
+            self._c += self._span[Vu] @ self.H[Vu]
+        self._sgn[Vl] = 1.0
+        self._xb[Vl] = self._ref[Vl]
         self.F = self.F[keep]
+        self.HF = self.HF[keep]
         self._y = self._y[keep]
-        self._derive()
+        self._limits()
+
+    def _limits(self) -> None:
+        """y's limits and the reference point on F (only where the box is not the same for all)."""
+        if self._box is None:
+            self._ylo_F, self._yhi_F = self._ylo[self.F], self._span[self.F]
+        if not self._ref_zero:
+            self._refF = self._ref[self.F]
 
     # ------------------------------------------------------------------ solve
     def solve(self, f: np.ndarray) -> np.ndarray | None:
-        """The minimiser for linear term ``f`` (None if the iteration limit is reached or H_FF is singular)."""
+        """The minimiser for linear term ``f`` (None if the iteration limit is reached or H_FF is singular).
+
+        Block principal pivoting first (Judice & Pires 1994; Portugal, Judice & Vicente 1994 for
+        bounds): every primal- and dual-infeasible variable changes side at once, usually converging
+        in one or two passes from the last frame's partition. If the count of infeasibilities stops
+        falling for ``_TRIES`` passes, the primal method (monotone, finite) finishes from the clipped point.
+        """
+        best, tries = self.m + 1, self._TRIES
         for it in range(1, self.max_iter + 1):
-            fc = f + self._c
-            y = self._nMinv @ fc[self.F]
-            if len(y) and not self._inside(y):
-                lo_gap, hi_gap = y - self._ylo_F, self._yhi_F - y
-                self._block(y, lo_gap < 0, hi_gap < 0)
+            y, g, fc = self._subproblem(f)
+            if g is None:
                 continue
-            g = y @ self.HF
-            g += fc
-            if not self._checked:  # after an update of the inverse: is H_FF y = -fc_F still solved?
-                r, b = g[self.F], fc[self.F]
-                if r @ r > 1e-20 * (b @ b) + self.tol * self.tol and not self._fresh:
-                    self._invert()  # drifted: refactor and solve again (a fresh inverse is as good as H allows)
-                    self._nMinv = -self.Minv
-                    continue
-                self._checked = True
-            self._y = y
+            inside = not len(y) or self._inside(y)
             g *= self._sgn
-            if g.min() < -self.tol:
-                tol = self.tol + 1e-12 * float(np.abs(fc).max())  # rounding in g grows with |f|
-                bad = np.flatnonzero(g < -tol)
-                if len(bad):
-                    if not self._add(bad):
-                        return None
-                    continue
-            self.iterations = it
-            x = self._xb.copy()
-            x[self.F] = y if self._refF is None else self._refF + y
-            return x
+            if inside and g.min() >= -self.tol:
+                return self._done(it, y)
+            tol = self.tol + 1e-12 * float(np.abs(fc).max())  # rounding in g grows with |f|
+            J = np.flatnonzero(g < -tol)
+            below = above = None
+            if not inside:
+                lo_F, hi_F = self._bounds_F()
+                below, above = y < lo_F, y > hi_F
+            n_bad = len(J) + (0 if inside else int(np.count_nonzero(below | above)))
+            if n_bad == 0:
+                return self._done(it, y)
+            if n_bad < best and len(J) <= max(self._BLOCK, len(y)):
+                best, tries = n_bad, self._TRIES
+            elif tries > 0 and len(J) <= max(self._BLOCK, len(y)):
+                tries -= 1
+            else:  # not converging, or far from the solution (a cold start): one variable at a time
+                return self._primal(f, y, it)
+            self._y = y
+            if not inside:
+                P = np.flatnonzero(below | above)
+                self._remove(P, above[P])
+            if len(J) and not self._add(J):
+                return None
         self.iterations = self.max_iter
         return None
 
+    _TRIES = 3  # passes without fewer infeasibilities before the primal method takes over
+    _BLOCK = 8  # more entering variables than this (and than |F|): the primal method, one at a time
+
+    def _subproblem(self, f: np.ndarray):
+        """y on F with the bounded variables fixed, the gradient g = H x + f and fc = f + c; g None
+        when the updated inverse drifted and was refactored (solve again)."""
+        fc = f + self._c
+        y = self._nMinv @ fc[self.F]
+        g = y @ self.HF
+        g += fc
+        if not self._checked:  # after an update of the inverse: is H_FF y = -fc_F still solved?
+            r, b = g[self.F], fc[self.F]
+            if r @ r > 1e-20 * (b @ b) + self.tol * self.tol and not self._fresh:
+                self._invert()  # drifted: refactor and solve again (a fresh inverse is as good as H allows)
+                self._nMinv = -self.Minv
+                return y, None, fc
+            self._checked = True
+        return y, g, fc
+
+    def _done(self, it: int, y: np.ndarray) -> np.ndarray:
+        self.iterations = it
+        self._y = y
+        x = self._xb.copy()
+        x[self.F] = y if self._refF is None else self._refF + y
+        return x
+
+    def _primal(self, f: np.ndarray, y: np.ndarray, start: int) -> np.ndarray | None:
+        """Primal active-set passes (Nocedal & Wright §16.5) from the current partition's clipped point."""
+        x = self._xb.copy()
+        x[self.F] = y if self._refF is None else self._refF + y
+        self.warm(x)
+        for it in range(start + 1, self.max_iter + 1):
+            y, g, fc = self._subproblem(f)
+            if g is None:
+                continue
+            if len(y) and not self._inside(y):
+                lo_F, hi_F = self._bounds_F()
+                self._block(y, y < lo_F, y > hi_F)
+                continue
+            self._y = y
+            g *= self._sgn
+            j = int(np.argmin(g))
+            if g[j] < -(self.tol + 1e-12 * float(np.abs(fc).max())):  # the most violated bound enters F
+                if not self._add(np.array([j])):
+                    return None
+                continue
+            return self._done(it, y)
+        self.iterations = self.max_iter
+        return None
+
+    def _bounds_F(self):
+        return self._box if self._box is not None else (self._ylo_F, self._yhi_F)
+
     def _inside(self, y: np.ndarray) -> bool:
-        box = self._box_F
+        box = self._box
         if box is not None:
             return y.min() >= box[0] and y.max() <= box[1]
         return bool(np.all(y >= self._ylo_F) and np.all(y <= self._yhi_F))
@@ -180,7 +275,8 @@ class BoxQP:
         p = y - cur
         viol = below | above
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where(below, self._ylo_F - cur, self._yhi_F - cur) / p
+            lo_F, hi_F = self._bounds_F()
+            t = np.where(below, lo_F - cur, hi_F - cur) / p
         t = np.where(viol, np.maximum(t, 0.0), np.inf)
         alpha = float(min(t.min(), 1.0))
         self._y = cur + alpha * p

@@ -39,17 +39,23 @@ class _Workspace:
         self.H, self.BtD, self.floor, self.rows, self.box = H, BtD, floor, rows, box
         self._daqp = None
 
-    def daqp(self, f: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray | None:
-        """The fallback: DAQP cold on this H (its workspace built on first use)."""
+    def daqp(self, f: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+             sense: np.ndarray | None) -> tuple[np.ndarray | None, int]:
+        """DAQP on this H (workspace built on first use), warm from its own last active set or ``sense``."""
         import daqp
 
         if self._daqp is None:
             self._daqp = daqp.Model()
             m = len(f)
             self._daqp.setup(self.H, np.zeros(m), np.zeros((0, m)), upper.copy(), lower.copy())
-        self._daqp.update(f=f, sense=np.zeros(len(f), dtype=np.int32))
-        x, _, flag, _ = self._daqp.solve()
-        return x if flag > 0 and np.isfinite(x).all() else None
+            sense = np.zeros(m, dtype=np.int32) if sense is None else sense
+        if sense is None:
+            self._daqp.update(f=f)
+        else:
+            self._daqp.update(f=f, sense=sense)
+        x, _, flag, info = self._daqp.solve()
+        ok = flag > 0 and np.isfinite(x).all()
+        return (np.minimum(np.maximum(x, lower), upper) if ok else None), int(info["iterations"])
 
 
 class FrameQP:
@@ -90,13 +96,15 @@ class FrameQP:
         self._models: OrderedDict[bytes, _Workspace] = OrderedDict()
         self._all_seen = np.ones(self.n, bool).tobytes()
         self.failures = 0
-        self.iterations = 0  # active-set passes of the last solve (warm starts keep this at 1 or 2)
+        self.iterations = 0  # active-set passes (DAQP: iterations) of the last solve
+        self.churn = 1.0  # running mean of self.iterations: how much the active set moves per frame
         self.reset()
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
         self._prev = np.clip(np.zeros(self.m), self.lower, self.upper)
         self._last_key: bytes | None = None  # pattern of the last successful solve: its solver is warm
+        self._daqp_key: bytes | None = None  # the same for DAQP (used while the active set churns)
 
     @property
     def cached_patterns(self) -> int:
@@ -137,7 +145,7 @@ class FrameQP:
         if not math.isfinite(s.sum()):  # a NaN or inf coordinate (or overflow): drop those markers
             seen = seen & np.isfinite(s.reshape(self.n, 3)).all(axis=1)
             key = seen.tobytes()
-        if key == self._last_key:
+        if key == self._last_key or key == self._daqp_key:
             ws = self._last_ws
         else:
             if key != self._all_seen and not seen.any():
@@ -151,27 +159,49 @@ class FrameQP:
             f -= self._prior_f
         if self.temporal + ws.floor > 0:
             f -= (self.temporal + ws.floor) * self._prev
-        if key != self._last_key:  # another pattern's solver: start it from where we are
-            ws.box.warm(self._prev)
-        x = ws.box.solve(f)
-        self.iterations = ws.box.iterations
+        x = self._solve(key, ws, f)
         if x is None:
             self.failures += 1
             x = self._fallback(ws, f)
-            self._last_key = None
-        else:
-            self._last_key, self._last_ws = key, ws
         self._prev = x
         return x.copy()
 
-    def _fallback(self, ws: _Workspace, f: np.ndarray) -> np.ndarray:
-        try:
-            x = ws.daqp(f, self.lower, self.upper)
-        except Exception as exc:  # noqa: BLE001 - a stream must survive a solver failure
-            log.debug("daqp failed: %s", exc)
-            x = None
+    # Where the active set moves a lot per frame and most weights are free (an unregularised fit of
+    # noisy markers), each of BoxQP's passes costs O(k^2) numpy work while DAQP, a dual method whose
+    # work grows with the *bounded* weights, updates its factors in C: above a running mean of 3
+    # iterations per frame with at least a third of the weights free, DAQP (warm) takes over;
+    # below 2, BoxQP takes back.
+    _CHURN_DAQP, _CHURN_BOX = 3.0, 2.0
+
+    def _solve(self, key: bytes, ws: _Workspace, f: np.ndarray) -> np.ndarray | None:
+        x = None
+        if self._daqp_key is not None:
+            use_daqp = self.churn > self._CHURN_BOX
+        else:
+            use_daqp = self.churn > self._CHURN_DAQP and 3 * len(ws.box.F) >= self.m
+        if not use_daqp:
+            if key != self._last_key:  # another pattern's solver: start it from where we are
+                ws.box.warm(self._prev)
+            x = ws.box.solve(f)
+            self.iterations = ws.box.iterations
+            self._last_key, self._daqp_key = (None if x is None else key), None
         if x is None:
-            x = np.linalg.lstsq(ws.H, -f, rcond=None)[0]
-            if not np.all(np.isfinite(x)):
-                return self._prev.copy()
+            sense = None
+            if key != self._daqp_key:  # DAQP constraint states: active (1), at the lower bound (2)
+                sense = np.where(self._prev <= self.lower, 3, np.where(self._prev >= self.upper, 1, 0)).astype(np.int32)
+            try:
+                x, self.iterations = ws.daqp(f, self.lower, self.upper, sense)
+            except Exception as exc:  # noqa: BLE001 - a stream must survive a solver failure
+                log.debug("daqp failed: %s", exc)
+            self._daqp_key = None if x is None else key
+            self._last_key = None
+        self.churn += 0.1 * (self.iterations - self.churn)
+        if x is not None:
+            self._last_ws = ws
+        return x
+
+    def _fallback(self, ws: _Workspace, f: np.ndarray) -> np.ndarray:
+        x = np.linalg.lstsq(ws.H, -f, rcond=None)[0]
+        if not np.all(np.isfinite(x)):
+            return self._prev.copy()
         return np.minimum(np.maximum(x, self.lower), self.upper)
