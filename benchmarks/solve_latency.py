@@ -18,7 +18,8 @@ livecap.modes.registry.MODES gets a row per size: timed, or the reason it is not
 first frames, from tracemalloc (off while timing). Beside the wall-clock p50 / p99 each row has the
 thread CPU time per call (``cpu_p50_us`` / ``cpu_p99_us``, time.thread_time_ns: what the call itself
 cost, without the time another process held the core on a loaded machine) and the RMSE of the
-weights against the synthetic ground truth over the timed frames (accuracy beside speed).
+weights against the synthetic ground truth on the stream's first ``rmse_frames`` frames from a reset
+solver (300, or 60 for a mode slower than 0.1 s a call), the same frames in every run (accuracy beside speed).
 """
 
 from __future__ import annotations
@@ -59,36 +60,37 @@ def _build(mode: str, profile) -> tuple[object, str]:
     return build_solver(mode, profile, {**opts, "ridge": 1e-3}), "ridge=1e-3 (default options ill-posed: m > 3n)"
 
 
-def time_steps(fn, n: int, warmup: int, truth: np.ndarray | None = None) -> dict:
-    """``fn(i)`` for i in range(warmup + n): wall and thread-CPU microseconds per call (p50, p99, mean);
-    with ``truth`` (T x m), the RMSE of the returned weights against ``truth[i % T]``."""
+def time_steps(fn, n: int, warmup: int) -> dict:
+    """``fn(i)`` for i in range(warmup + n): wall and thread-CPU microseconds per call (p50, p99, mean)."""
     for i in range(warmup):
         fn(i)
     wall, cpu = np.empty(n), np.empty(n)
-    out = []
     clock, thread = time.perf_counter_ns, time.thread_time_ns
     for k in range(n):
         c0, t0 = thread(), clock()
-        w = fn(warmup + k)
+        fn(warmup + k)
         t1, c1 = clock(), thread()
         wall[k], cpu[k] = t1 - t0, c1 - c0
-        if truth is not None:
-            out.append(w)
     wall /= 1e3
     cpu /= 1e3
-    res = {"n": n, "median_us": float(np.median(wall)), "p99_us": float(np.percentile(wall, 99)),
-           "mean_us": float(wall.mean()), "cpu_p50_us": float(np.median(cpu)),
-           "cpu_p99_us": float(np.percentile(cpu, 99)), "cpu_mean_us": float(cpu.mean())}
-    if truth is not None:
-        idx = (warmup + np.arange(n)) % len(truth)
-        res["rmse"] = float(np.sqrt(np.mean((np.asarray(out) - truth[idx]) ** 2)))
-    return res
+    return {"n": n, "median_us": float(np.median(wall)), "p99_us": float(np.percentile(wall, 99)),
+            "mean_us": float(wall.mean()), "cpu_p50_us": float(np.median(cpu)),
+            "cpu_p99_us": float(np.percentile(cpu, 99)), "cpu_mean_us": float(cpu.mean())}
+
+
+def accuracy(step, truth: np.ndarray, frames: int) -> dict:
+    """RMSE of ``step(i)`` (i = 0 .. frames - 1, from a reset solver) against ``truth[i]``."""
+    W = np.array([step(i) for i in range(frames)])
+    return {"rmse": float(np.sqrt(np.mean((W - truth[:frames]) ** 2))), "rmse_frames": frames}
 
 
 def _baseline(profile, targets, n: int, truth: np.ndarray | None = None) -> dict:
     pinv = np.linalg.pinv(profile.basis)
     flat = targets.reshape(len(targets), -1)
-    return time_steps(lambda i: pinv @ flat[i % len(flat)], n=n, warmup=100, truth=truth)
+    res = time_steps(lambda i: pinv @ flat[i % len(flat)], n=n, warmup=100)
+    if truth is not None:
+        res.update(accuracy(lambda i: pinv @ flat[i], truth, min(len(flat), 300)))
+    return res
 
 
 def time_mode(mode: str, profile, targets, valid, count: int, warmup: int = 50,
@@ -114,7 +116,10 @@ def time_mode(mode: str, profile, targets, valid, count: int, warmup: int = 50,
         return {**out, "skipped": f"{per_call:.1f} s per call (> {SLOW_LIMIT_S:g} s)"}
     if per_call > 0.01:  # milliseconds per call: fewer repetitions, same statistics
         count, warmup = max(30, min(count, int(20.0 / per_call))), 5
-    res = time_steps(lambda i: solver.step(targets[i % T], valid[i % T]), n=count, warmup=warmup, truth=truth)
+    res = time_steps(lambda i: solver.step(targets[i % T], valid[i % T]), n=count, warmup=warmup)
+    if truth is not None:
+        solver.reset()
+        res.update(accuracy(lambda i: solver.step(targets[i], valid[i]), truth, min(T, 300 if per_call < 0.1 else 60)))
     return {**out, **res}
 
 
@@ -138,8 +143,8 @@ def run(quick: bool = False, modes: tuple[str, ...] = ()) -> dict:
             if "p99_us" in res:
                 res["ratio_p99"] = res["p99_us"] / base["p99_us"]
             rows.append({"mode": mode, "size": size, **res})
-    print(table(rows, ["mode", "size", "median_us", "p99_us", "ratio_p99", "cpu_p50_us", "cpu_p99_us", "rmse", "n",
-                       "prepare_ms", "peak_mb", "skipped", "note"],
+    print(table(rows, ["mode", "size", "median_us", "p99_us", "ratio_p99", "cpu_p50_us", "cpu_p99_us", "rmse",
+                       "rmse_frames", "n", "prepare_ms", "peak_mb", "skipped", "note"],
                 f"Per-frame solve latency (us), synthetic problems; ratio = p99 / p99 of the prefactored pinv "
                 f"product; load average {load:.2f} at start, {os.getloadavg()[0]:.2f} at end"))
     return {"rows": rows, "load_start": load, "load_end": os.getloadavg()[0],
