@@ -167,7 +167,18 @@ class IMMFilter:
         self._S, self._E, self._L, self._W = (np.empty((2, C)) for _ in range(4))
         self._DD, self._dP = np.empty((3, C)), np.empty((3, C))
         self._K, self._KE = np.empty((2, 2, C)), np.empty((2, 2, C))
+        self._views = [self._frame_views(self._X, self._Xn), self._frame_views(self._Xn, self._X)]
+        self._flip = 0
+        P, Pn, d, DD = self._P, self._Pn, self._d, self._DD
+        self._v = (P[:, 0], P[:, 1], P[:, 1:2], P.reshape(3, -1), Pn.reshape(3, -1), P[0], P[1], P[2], P[:2],
+                   d[0], d[:, None], self._dP[:, None], DD[:2], DD[2], DD[:, None], self._K[1],
+                   self._mu[0], self._mu[1], self._L[0], self._L[1])
         return start.reshape(y.shape).copy()
+
+    @staticmethod
+    def _frame_views(X: np.ndarray, Xn: np.ndarray) -> tuple:
+        """Views of the state (X) and next state (Xn) buffers, made once: a step swaps the two."""
+        return X, Xn, X[:, 0], X[:, 1], X[:, 1:2], Xn[0], Xn[1]
 
     def step(self, y: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         y = np.asarray(y, dtype=np.float64)
@@ -176,43 +187,45 @@ class IMMFilter:
             return self._start(y, np.ones(y.shape, bool) if ok is None else ok.reshape(y.shape))
         if ok is not None and ok.all():
             ok = None
-        X, P, mu, a, b, d = self._X, self._P, self._mu, self._a, self._b, self._d
-        Xn, Pn, c, S, E, L, K, KE = self._Xn, self._Pn, self._c, self._S, self._E, self._L, self._K, self._KE
+        X, Xn, X_hold, X_move, X_move_b, Xn_x, Xn_v = self._views[self._flip]
+        (P_hold, P_move, P_move_b, P3, Pn3, P00, P01, P11, P0_1, d0, d_b, dP_b, DD01, DD2, DD_b, K1,
+         mu0, mu1, L0, L1) = self._v
+        P, mu, a, b, d = self._P, self._mu, self._a, self._b, self._d
+        Pn, c, S, E, L, K, KE = self._Pn, self._c, self._S, self._E, self._L, self._K, self._KE
         # interaction: a_j = P(hold before | j now), mixed means and covariances per model j
         np.matmul(self._piT, mu, out=c)
-        np.multiply(self._pi_hold, mu[0], out=a)
+        np.multiply(self._pi_hold, mu0, out=a)
         a /= c
-        np.subtract(X[:, 0], X[:, 1], out=d)
-        np.multiply(a, d[:, None], out=Xn)
-        Xn += X[:, 1:2]
+        np.subtract(X_hold, X_move, out=d)
+        np.multiply(a, d_b, out=Xn)
+        Xn += X_move_b
         np.multiply(a, a, out=b)
         np.subtract(a, b, out=b)
-        DD, dP, T3 = self._DD, self._dP, self._T3
-        np.multiply(d[0], d, out=DD[:2])
-        np.multiply(d[1], d[1], out=DD[2])
-        np.subtract(P[:, 0], P[:, 1], out=dP)
-        np.multiply(a, dP[:, None], out=Pn)
-        Pn += P[:, 1:2]
-        np.multiply(b, DD[:, None], out=T3)
-        Pn += T3
+        np.multiply(d0, d, out=DD01)
+        np.multiply(d[1], d[1], out=DD2)
+        np.subtract(P_hold, P_move, out=self._dP)
+        np.multiply(a, dP_b, out=Pn)
+        Pn += P_move_b
+        np.multiply(b, DD_b, out=self._T3)
+        Pn += self._T3
         # mode-matched prediction (DWNA constant velocity) and update
-        Xn[0] += Xn[1]
-        np.matmul(self._PREDICT, Pn.reshape(3, -1), out=P.reshape(3, -1))
+        Xn_x += Xn_v
+        np.matmul(self._PREDICT, Pn3, out=P3)
         P += self._Q
-        np.add(P[0], self._r, out=S)
-        np.divide(P[:2], S, out=K)
-        np.subtract(y.reshape(-1), Xn[0], out=E)
+        np.add(P00, self._r, out=S)
+        np.divide(P0_1, S, out=K)
+        np.subtract(y.reshape(-1), Xn_x, out=E)
         if ok is not None:  # a missing sample (possibly NaN) is predicted through: no update
             E[:, ~ok] = 0.0
             K[:, :, ~ok] = 0.0
         np.multiply(K, E, out=KE)
         Xn += KE
-        np.multiply(K[1], P[1], out=L)
-        P[2] -= L
+        np.multiply(K1, P01, out=L)
+        P11 -= L
         np.divide(self._r, S, out=L)
         if ok is not None:
             L[:, ~ok] = 1.0
-        P[:2] *= L
+        P0_1 *= L
         # mode probabilities from the innovation likelihoods, then the combined output
         np.multiply(E, E, out=L)
         L /= S
@@ -225,11 +238,12 @@ class IMMFilter:
             L[:, ~ok] = 1.0
         np.multiply(c, L, out=mu)
         mu += 1e-300
-        np.add(mu[0], mu[1], out=L[0])
-        mu /= L[0]
-        self._X, self._Xn = Xn, X
-        np.multiply(mu, Xn[0], out=L)
-        return np.add(L[0], L[1]).reshape(self._shape)
+        np.add(mu0, mu1, out=L0)
+        mu /= L0
+        self._flip ^= 1
+        self._X = Xn
+        np.multiply(mu, Xn_x, out=L)
+        return np.add(L0, L1).reshape(self._shape)
 
     def filter(self, Y: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         """Run over a sequence (T, ...) from a fresh state; the same numbers as calling ``step``."""
