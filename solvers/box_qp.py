@@ -44,7 +44,7 @@ class BoxQP:
         self._ref = np.where(np.isfinite(self.lo), self.lo, np.where(np.isfinite(self.hi), self.hi, 0.0))
         self._span = np.where(np.isfinite(self.hi), self.hi - self._ref, np.inf)  # y = x - ref in [ylo, span]
         self._ylo = np.where(np.isfinite(self.lo), self.lo - self._ref, -np.inf)
-        self._Href = self.H @ self._ref
+        self._Href = np.zeros(self.m) if not np.any(self._ref) else self.H @ self._ref
         uniform = len(np.unique(self._ylo)) == 1 and len(np.unique(self._span)) == 1
         self._box = (float(self._ylo[0]), float(self._span[0])) if uniform and self.m else None
         self._ref_zero = not np.any(self._ref)

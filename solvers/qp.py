@@ -91,6 +91,10 @@ class FrameQP:
         # previous weights keeps it positive definite and holds those shapes where they were.
         scale = float(np.mean(np.einsum("ij,ij->j", self.basis, self.basis))) or 1.0
         self._floor = 1e-9 * scale
+        diag = np.diagonal(self._const)
+        # H = B'M^2B + const >= const: a positive diagonal const bounds cond(H) by trace(H) / min(const)
+        self._const_min = float(diag.min()) if self.m and not np.any(self._const - np.diag(diag)) else 0.0
+        self._H_all: np.ndarray | None = None  # H with every marker seen; other patterns downdate it
         self.linear = np.zeros(self.m)  # a linear term callers may change per frame (e.g. an L1 penalty)
         self.cache_size = int(cache_size)
         self._models: OrderedDict[bytes, _Workspace] = OrderedDict()
@@ -116,16 +120,27 @@ class FrameQP:
             self._models.move_to_end(key)
             return ws
         rows = np.repeat(seen, 3)
-        Bv = self.basis[rows]
-        H = Bv.T @ (Bv * self._row_w[rows, None]) + self._const
+        if self._H_all is None:
+            self._H_all = self.basis.T @ (self.basis * self._row_w[:, None]) + self._const
+        miss = ~rows
+        n_miss = int(np.count_nonzero(miss))
+        if n_miss == 0:
+            H = self._H_all
+        elif n_miss <= len(rows) // 2:  # a few markers missing: a rank-3k downdate, O(k m^2) not O(n m^2)
+            Bm = self.basis[miss]
+            H = self._H_all - Bm.T @ (Bm * self._row_w[miss, None])
+        else:
+            Bv = self.basis[rows]
+            H = Bv.T @ (Bv * self._row_w[rows, None]) + self._const
         floor = 0.0
-        try:  # (max / min Cholesky diagonal)^2 bounds cond(H) from below: no SVD per new pattern
-            d = np.diagonal(np.linalg.cholesky(H))
-            if d.min() <= 0 or (d.max() / d.min()) ** 2 > 1e12:
-                raise np.linalg.LinAlgError
-        except np.linalg.LinAlgError:
-            floor = self._floor
-            H = H + floor * np.eye(self.m)
+        if not (self._const_min > 0 and np.trace(H) <= 1e12 * self._const_min):
+            try:  # (max / min Cholesky diagonal)^2 bounds cond(H) from below: no SVD per new pattern
+                d = np.diagonal(np.linalg.cholesky(H))
+                if d.min() <= 0 or (d.max() / d.min()) ** 2 > 1e12:
+                    raise np.linalg.LinAlgError
+            except np.linalg.LinAlgError:
+                floor = self._floor
+                H = H + floor * np.eye(self.m)
         BtD = self._BtD if rows.all() else self._BtD * rows[None, :]
         ws = _Workspace(H, BtD, floor, None if seen.all() else rows, BoxQP(H, self.lower, self.upper))
         self._models[key] = ws
