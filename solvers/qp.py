@@ -101,7 +101,6 @@ class FrameQP:
         self._all_seen = np.ones(self.n, bool).tobytes()
         self.failures = 0
         self.iterations = 0  # active-set passes (DAQP: iterations) of the last solve
-        self.churn = 1.0  # running mean of self.iterations: how much the active set moves per frame
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -109,6 +108,7 @@ class FrameQP:
         self._prev = np.clip(np.zeros(self.m), self.lower, self.upper)
         self._last_key: bytes | None = None  # pattern of the last successful solve: its solver is warm
         self._daqp_key: bytes | None = None  # the same for DAQP (used while the active set churns)
+        self.churn = 1.0  # running mean of self.iterations: how much the active set moves per frame
 
     @property
     def cached_patterns(self) -> int:
