@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+_MIN, _MAX = np.minimum.reduce, np.maximum.reduce  # the ufunc reductions, without ndarray.min's wrapper
+
 
 class BoxQP:
     """Solver state for one Hessian: the free set of the last solve and the inverse of its block.
@@ -184,7 +186,7 @@ class BoxQP:
                 continue
             inside = not len(y) or self._inside(y)
             g *= self._sgn
-            if inside and g.min() >= -self.tol:
+            if inside and _MIN(g) >= -self.tol:
                 return self._done(it, y)
             tol = self.tol + 1e-12 * float(np.abs(fc).max())  # rounding in g grows with |f|
             J = np.flatnonzero(g < -tol)
@@ -266,7 +268,7 @@ class BoxQP:
     def _inside(self, y: np.ndarray) -> bool:
         box = self._box
         if box is not None:
-            return y.min() >= box[0] and y.max() <= box[1]
+            return _MIN(y) >= box[0] and _MAX(y) <= box[1]
         return bool(np.all(y >= self._ylo_F) and np.all(y <= self._yhi_F))
 
     def _block(self, y: np.ndarray, below: np.ndarray, above: np.ndarray) -> None:

@@ -157,7 +157,7 @@ class FrameQP:
                         s.shape[0], seen.shape[0], self.n)
             return self._prev.copy()
         key = seen.tobytes()
-        if not math.isfinite(s.sum()):  # a NaN or inf coordinate (or overflow): drop those markers
+        if not math.isfinite(np.add.reduce(s)):  # a NaN or inf coordinate (or overflow): drop those markers
             seen = seen & np.isfinite(s.reshape(self.n, 3)).all(axis=1)
             key = seen.tobytes()
         if key == self._last_key or key == self._daqp_key:

@@ -52,7 +52,7 @@ class HysteresisSparseFit(PriorLeastSquares):
         self._gap = np.empty(m)
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
-        gap = np.abs(np.subtract(self._last, self._rest, out=self._gap), out=self._gap)
+        gap = np.abs(np.subtract(self._prev, self._rest, out=self._gap), out=self._gap)
         self.linear = np.where(gap <= 1e-9, *self._half)  # the L1 term at rest, the smaller one once active
         return super().step(target, valid)
 
