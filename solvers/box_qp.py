@@ -1,24 +1,27 @@
-"""Warm-started primal active-set solver for box-constrained QPs with a fixed Hessian.
+"""Warm-started active-set solver for box-constrained QPs with a fixed Hessian.
 
     minimise  1/2 x' H x + f' x   subject to  lower <= x <= upper,   H symmetric positive definite.
 
 The per-frame blendshape fit (Curio et al. 2006 §2.3; Lewis et al. 2014 §5.2) is this problem
 with H fixed per marker-visibility pattern and only f changing per frame; from one frame to the
 next the set of weights strictly inside their limits (the free set F) rarely changes, and it is
-small when the fit is sparse (most shapes rest at a bound). A primal active-set method
-(Nocedal & Wright, Numerical Optimization, 2nd ed. 2006, §16.5; for boxes the bounded-variable
-least squares of Stark & Parker 1995) works on F alone: it keeps the inverse of H_FF, updated
-through the Schur complement when variables enter or leave F (O(k^2) for k = |F|, no O(m^3)), so
-a frame whose free set is unchanged costs one k x k product, one k x m product and the KKT check.
-A dual active-set solver such as DAQP works on the *active* bounds instead, which at 1000 shapes
-with ~25 free means factorising ~975 constraints.
+small when the fit is sparse (most shapes rest at a bound). This solver works on F alone: it keeps
+the inverse of H_FF, updated through the Schur complement when variables enter or leave F (O(k^2)
+for k = |F|, no O(m^3)), so a frame whose free set is unchanged costs one k x k product, one k x m
+product and the KKT check. A dual active-set solver such as DAQP works on the *active* bounds
+instead, which at 1000 shapes with ~25 free means factorising ~975 constraints.
 
-Each pass solves the subproblem on F with the bounded variables fixed; an infeasible subproblem
-solution is stepped towards from the current feasible point until the first limit blocks (the
-blocking variables leave F); a feasible one is optimal unless a bounded variable's multiplier
-has the wrong sign, in which case every such variable enters F. The objective decreases strictly
-between subproblem minimisers, so no free set repeats and the method terminates (§16.5). The
-solution satisfies the KKT conditions to ``tol`` (scaled by H), the same optimum DAQP returns.
+Each pass solves the subproblem on F with the bounded variables fixed. Block principal pivoting
+(Judice & Pires 1994; for bounds, the BLCP form) moves every primal-infeasible free variable to the
+limit it crossed and every bounded variable whose multiplier has the wrong sign into F at once,
+usually converging in one or two passes from the last frame's partition. When the number of
+infeasibilities stops falling, or many variables want to enter at once (a cold start), the primal
+active-set method takes over from the clipped point (Nocedal & Wright, Numerical Optimization, 2nd
+ed. 2006, §16.5; for boxes the bounded-variable least squares of Stark & Parker 1995): a step from
+the feasible point towards the subproblem solution until the first limit blocks, or the most
+violated bound entering F. Its objective decreases strictly between subproblem minimisers, so it
+terminates. The solution satisfies the KKT conditions to ``tol`` (scaled by H), the optimum DAQP
+returns (tests/test_box_qp.py).
 """
 
 from __future__ import annotations

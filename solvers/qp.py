@@ -13,7 +13,9 @@ pattern gets one workspace (H formed once; only the linear term changes per fram
 warm-started primal active-set method of ``solvers.box_qp`` on the free weights: the previous
 frame's free set and its inverse carry over, so a frame costs O(m 3n) for the linear term plus
 O(k m) for the optimality check (k free weights). DAQP (the fastest general library in
-benchmarks/qp_libraries.py) is the fallback if that solve fails. Missing markers drop their rows;
+benchmarks/qp_libraries.py) takes over, warm, where the active set moves by many weights a frame
+and most weights are free (its C updates beat numpy there), and if the active-set solve fails.
+Missing markers drop their rows (a new pattern's H is the all-markers H downdated by them);
 workspaces are cached per visibility pattern in a bounded LRU.
 """
 
