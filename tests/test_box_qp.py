@@ -109,3 +109,29 @@ def test_sparse_problem_at_a_thousand_shapes_keeps_the_free_set_small():
         x = box.solve(f)
         assert len(box.F) < 60
         np.testing.assert_allclose(x, _daqp(H, f, lo, hi), atol=1e-8)
+
+
+def test_demo_rig_stream_matches_daqp_frame_by_frame(demo):
+    """A real rig's problems: the demo rig's calibrated basis, a generated performance (noise, head
+    motion, occlusion), the robust mode's sparse-fit Hessian and L1 term, one warm solver per pattern."""
+    from livecap.calibration.profile import calibrate
+    from livecap.demo.performance import PerformanceSettings, perform
+    from livecap.offline.solve import prepare_targets
+    from solvers.sparse_fit import l1_weights, universal_threshold
+
+    rig, layout = demo
+    perf = perform(rig, layout, PerformanceSettings(seconds=2.0, occlusion=0.05, seed=4))
+    profile = calibrate(rig, layout, perf.actor_neutral)
+    _, S, _, _ = prepare_targets(perf.take, profile)
+    B, lo, hi = profile.basis, profile.lower, profile.upper
+    half_mu = 0.5 * l1_weights(B, 0.5, universal_threshold(B.shape[1]))
+    solvers, worst = {}, 0.0
+    for s, seen in zip(S, perf.take.valid, strict=True):
+        rows = np.repeat(seen, 3)
+        H = B[rows].T @ B[rows] + 1.0 * np.eye(B.shape[1])
+        f = -(B[rows].T @ s.reshape(-1)[rows]) + half_mu
+        box = solvers.setdefault(seen.tobytes(), BoxQP(H, lo, hi))
+        x = box.solve(f)
+        worst = max(worst, float(np.abs(x - np.clip(_daqp(H, f, lo, hi), lo, hi)).max()))
+    assert len(solvers) > 5 and worst < 1e-8  # occlusion made several patterns; every frame agrees
+    assert 0 < len(box.F) < B.shape[1]  # some weights free, some at a limit
