@@ -224,16 +224,31 @@ class CausalPolyFilter:
         self._ring_ok: np.ndarray | None = None  # the last window is one contiguous slice (no roll)
         self._pos = 0
         self._last: np.ndarray | None = None
+        self._full_run = 0  # consecutive frames with every channel valid
 
     def step(self, x: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         x = np.asarray(x, dtype=np.float64)
-        ok = np.ones(x.shape, bool) if valid is None else np.broadcast_to(np.asarray(valid, bool), x.shape)
-        flat, okf = x.reshape(-1), ok.reshape(-1)
+        flat = x.reshape(-1)
         W = self.window
+        if self._ring is not None and (valid is None or np.all(valid)):
+            self._full_run += 1
+            if self._full_run >= W:  # the whole window is valid: the fixed end-point weights
+                p = self._pos
+                self._ring[p] = self._ring[p + W] = flat
+                self._ring_ok[p] = self._ring_ok[p + W] = True
+                self._pos = (p + 1) % W
+                out = self._h @ self._ring[p + 1:p + 1 + W]
+                self._last = out.copy()
+                return out.reshape(x.shape)
+        else:
+            self._full_run = 0
+        ok = np.ones(x.shape, bool) if valid is None else np.broadcast_to(np.asarray(valid, bool), x.shape)
+        okf = ok.reshape(-1)
         if self._ring is None:
             self._ring = np.zeros((2 * W, flat.size))
             self._ring_ok = np.zeros((2 * W, flat.size), bool)
             self._last = np.where(okf, flat, 0.0)
+            self._full_run = int(okf.all())
         p = self._pos
         self._ring[p] = self._ring[p + W] = flat
         self._ring_ok[p] = self._ring_ok[p + W] = okf
@@ -293,10 +308,12 @@ class FilteredSolver:
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         valid = np.asarray(valid, dtype=bool)
         if self.marker_filter is not None:
-            target = self.marker_filter.step(target, np.broadcast_to(valid[:, None], np.shape(target)))
+            mask = None if valid.all() else np.broadcast_to(valid[:, None], np.shape(target))
+            target = self.marker_filter.step(target, mask)
         w = self.inner.step(target, valid)
         if self.weight_filter is not None:
             w = self.weight_filter.step(w)
             if self.lower is not None:
-                w = np.clip(w, self.lower, self.upper)
+                w = np.maximum(w, self.lower)
+                np.minimum(w, self.upper, out=w)
         return w

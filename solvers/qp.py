@@ -9,21 +9,55 @@ for mocap-driven rigs. Per frame:
 
 M a per-marker weight (confidence), the last two terms an optional temporal term and Gaussian
 prior. The Hessian H = B'M^2B + (lam + gam) I + alpha P is constant, so each marker-visibility
-pattern gets one DAQP workspace (H factored once; only the linear term changes per frame) and
-the previous frame's active set warm-starts the next: DAQP won benchmarks/qp_libraries.py.
-Missing markers drop their rows; workspaces are cached per visibility pattern in a bounded LRU.
+pattern gets one workspace (H formed once; only the linear term changes per frame), solved by the
+warm-started primal active-set method of ``solvers.box_qp`` on the free weights: the previous
+frame's free set and its inverse carry over, so a frame costs O(m 3n) for the linear term plus
+O(k m) for the optimality check (k free weights). DAQP (the fastest general library in
+benchmarks/qp_libraries.py) takes over, warm, where the active set moves by many weights a frame
+and most weights are free (its C updates beat numpy there), and if the active-set solve fails.
+Missing markers drop their rows (a new pattern's H is the all-markers H downdated by them);
+workspaces are cached per visibility pattern in a bounded LRU.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from collections import OrderedDict
 
 import numpy as np
 
+from solvers.box_qp import BoxQP
+
 log = logging.getLogger(__name__)
 
-_ACTIVE, _LOWER = 1, 2  # DAQP constraint state bits (sense): active, at the lower bound
+
+class _Workspace:
+    """One visibility pattern: H, the linear-term matrix, the active-set solver, DAQP on demand."""
+
+    __slots__ = ("H", "BtD", "floor", "rows", "box", "_daqp")
+
+    def __init__(self, H: np.ndarray, BtD: np.ndarray, floor: float, rows: np.ndarray | None, box: BoxQP) -> None:
+        self.H, self.BtD, self.floor, self.rows, self.box = H, BtD, floor, rows, box
+        self._daqp = None
+
+    def daqp(self, f: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+             sense: np.ndarray | None) -> tuple[np.ndarray | None, int]:
+        """DAQP on this H (workspace built on first use), warm from its own last active set or ``sense``."""
+        import daqp
+
+        if self._daqp is None:
+            self._daqp = daqp.Model()
+            m = len(f)
+            self._daqp.setup(self.H, np.zeros(m), np.zeros((0, m)), upper.copy(), lower.copy())
+            sense = np.zeros(m, dtype=np.int32) if sense is None else sense
+        if sense is None:
+            self._daqp.update(f=f)
+        else:
+            self._daqp.update(f=f, sense=sense)
+        x, _, flag, info = self._daqp.solve()
+        ok = flag > 0 and np.isfinite(x).all()
+        return (np.minimum(np.maximum(x, lower), upper) if ok else None), int(info["iterations"])
 
 
 class FrameQP:
@@ -33,9 +67,6 @@ class FrameQP:
                  temporal: float = 0.0, marker_weights: np.ndarray | None = None,
                  prior: tuple[np.ndarray, np.ndarray] | None = None, prior_weight: float = 0.0,
                  cache_size: int = 32) -> None:
-        import daqp
-
-        self._daqp = daqp
         self.basis = np.asarray(basis, dtype=np.float64)
         if self.basis.ndim != 2 or self.basis.shape[0] % 3:
             raise ValueError(f"basis must be 3n x m, got {self.basis.shape}")
@@ -53,7 +84,7 @@ class FrameQP:
         self._row_w = np.repeat(mw**2, 3)  # M^2 on the rows x0 y0 z0 x1 ...
         self._BtD = (self.basis * self._row_w[:, None]).T.copy()  # m x 3n, B'M^2
         self._const = (self.ridge + self.temporal) * np.eye(self.m)
-        self._prior_f = np.zeros(self.m)
+        self._prior_f = None
         if prior is not None and prior_weight > 0:
             mu, P = (np.asarray(a, dtype=np.float64) for a in prior)
             self._const = self._const + prior_weight * P
@@ -62,50 +93,58 @@ class FrameQP:
         # previous weights keeps it positive definite and holds those shapes where they were.
         scale = float(np.mean(np.einsum("ij,ij->j", self.basis, self.basis))) or 1.0
         self._floor = 1e-9 * scale
+        diag = np.diagonal(self._const)
+        # H = B'M^2B + const >= const: a positive diagonal const bounds cond(H) by trace(H) / min(const)
+        self._const_min = float(diag.min()) if self.m and not np.any(self._const - np.diag(diag)) else 0.0
+        self._H_all: np.ndarray | None = None  # H with every marker seen; other patterns downdate it
         self.linear = np.zeros(self.m)  # a linear term callers may change per frame (e.g. an L1 penalty)
         self.cache_size = int(cache_size)
-        self._models: OrderedDict[bytes, tuple] = OrderedDict()
+        self._models: OrderedDict[bytes, _Workspace] = OrderedDict()
+        self._all_seen = np.ones(self.n, bool).tobytes()
         self.failures = 0
-        self.iterations = 0  # active-set iterations of the last solve (warm starts keep this small)
+        self.iterations = 0  # active-set passes (DAQP: iterations) of the last solve
         self.reset()
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
         self._prev = np.clip(np.zeros(self.m), self.lower, self.upper)
-        self._lam: np.ndarray | None = None  # multipliers of the last solve: its active set
-        self._last_key: bytes | None = None
-
-    def _active_set(self) -> np.ndarray:
-        """DAQP constraint states from the last multipliers: active, and at which bound."""
-        if self._lam is None:
-            return np.zeros(self.m, dtype=np.int32)
-        lam = self._lam
-        return np.where(lam != 0, _ACTIVE | np.where(lam < 0, _LOWER, 0), 0).astype(np.int32)
+        self._last_key: bytes | None = None  # pattern of the last successful solve: its solver is warm
+        self._daqp_key: bytes | None = None  # the same for DAQP (used while the active set churns)
+        self.churn = 1.0  # running mean of self.iterations: how much the active set moves per frame
 
     @property
     def cached_patterns(self) -> int:
         return len(self._models)
 
-    def _workspace(self, key: bytes, seen: np.ndarray):
+    def _workspace(self, key: bytes, seen: np.ndarray) -> _Workspace:
         ws = self._models.get(key)
         if ws is not None:
             self._models.move_to_end(key)
             return ws
         rows = np.repeat(seen, 3)
-        Bv = self.basis[rows]
-        H = Bv.T @ (Bv * self._row_w[rows, None]) + self._const
+        if self._H_all is None:
+            self._H_all = self.basis.T @ (self.basis * self._row_w[:, None]) + self._const
+        miss = ~rows
+        n_miss = int(np.count_nonzero(miss))
+        if n_miss == 0:
+            H = self._H_all
+        elif n_miss <= len(rows) // 2:  # a few markers missing: a rank-3k downdate, O(k m^2) not O(n m^2)
+            Bm = self.basis[miss]
+            H = self._H_all - Bm.T @ (Bm * self._row_w[miss, None])
+        else:
+            Bv = self.basis[rows]
+            H = Bv.T @ (Bv * self._row_w[rows, None]) + self._const
         floor = 0.0
-        try:  # (max / min Cholesky diagonal)^2 bounds cond(H) from below: no SVD per new pattern
-            d = np.diagonal(np.linalg.cholesky(H))
-            if d.min() <= 0 or (d.max() / d.min()) ** 2 > 1e12:
-                raise np.linalg.LinAlgError
-        except np.linalg.LinAlgError:
-            floor = self._floor
-            H = H + floor * np.eye(self.m)
+        if not (self._const_min > 0 and np.trace(H) <= 1e12 * self._const_min):
+            try:  # (max / min Cholesky diagonal)^2 bounds cond(H) from below: no SVD per new pattern
+                d = np.diagonal(np.linalg.cholesky(H))
+                if d.min() <= 0 or (d.max() / d.min()) ** 2 > 1e12:
+                    raise np.linalg.LinAlgError
+            except np.linalg.LinAlgError:
+                floor = self._floor
+                H = H + floor * np.eye(self.m)
         BtD = self._BtD if rows.all() else self._BtD * rows[None, :]
-        model = self._daqp.Model()
-        model.setup(H, np.zeros(self.m), np.zeros((0, self.m)), self.upper.copy(), self.lower.copy())
-        ws = (model, BtD, floor, H, None if seen.all() else rows)
+        ws = _Workspace(H, BtD, floor, None if seen.all() else rows, BoxQP(H, self.lower, self.upper))
         self._models[key] = ws
         if len(self._models) > self.cache_size:
             self._models.popitem(last=False)
@@ -119,37 +158,67 @@ class FrameQP:
             log.warning("frame has %d coordinates / %d flags, expected %d markers: holding the last weights",
                         s.shape[0], seen.shape[0], self.n)
             return self._prev.copy()
-        if not np.isfinite(s).all():
-            seen = seen & np.isfinite(s.reshape(self.n, 3)).all(axis=1)
-        if not seen.any():
-            return self._prev.copy()
         key = seen.tobytes()
-        model, BtD, floor, H, rows = self._workspace(key, seen)
-        if rows is not None:
-            s = np.where(rows, s, 0.0)
-        f = -(BtD @ s) - self._prior_f + self.linear
-        if self.temporal + floor > 0:
-            f -= (self.temporal + floor) * self._prev
-        try:
-            if key == self._last_key:  # the workspace still holds last frame's active set
-                model.update(f=f)
-            else:  # another visibility pattern: hand it the active set we just left
-                model.update(f=f, sense=self._active_set())
-            x, _, flag, info = model.solve()
-            ok = flag > 0 and np.isfinite(x).all()
-        except Exception as exc:  # noqa: BLE001 - a stream must survive a solver failure
-            log.debug("daqp failed: %s", exc)
-            ok = False
-        if ok:
-            self._last_key = key
-            self._lam = info["lam"]
-            self.iterations = int(info["iterations"])
+        if not math.isfinite(np.add.reduce(s)):  # a NaN or inf coordinate (or overflow): drop those markers
+            seen = seen & np.isfinite(s.reshape(self.n, 3)).all(axis=1)
+            key = seen.tobytes()
+        if key == self._last_key or key == self._daqp_key:
+            ws = self._last_ws
         else:
+            if key != self._all_seen and not seen.any():
+                return self._prev.copy()
+            ws = self._workspace(key, seen)
+        if ws.rows is not None:
+            s = np.where(ws.rows, s, 0.0)
+        f = ws.BtD @ s
+        np.subtract(self.linear, f, out=f)
+        if self._prior_f is not None:
+            f -= self._prior_f
+        if self.temporal + ws.floor > 0:
+            f -= (self.temporal + ws.floor) * self._prev
+        x = self._solve(key, ws, f)
+        if x is None:
             self.failures += 1
+            x = self._fallback(ws, f)
+        self._prev = x
+        return x.copy()
+
+    # Where the active set moves a lot per frame and most weights are free (an unregularised fit of
+    # noisy markers), each of BoxQP's passes costs O(k^2) numpy work while DAQP, a dual method whose
+    # work grows with the *bounded* weights, updates its factors in C: above a running mean of 3
+    # iterations per frame with at least a third of the weights free, DAQP (warm) takes over;
+    # below 2, BoxQP takes back.
+    _CHURN_DAQP, _CHURN_BOX = 3.0, 2.0
+
+    def _solve(self, key: bytes, ws: _Workspace, f: np.ndarray) -> np.ndarray | None:
+        x = None
+        if self._daqp_key is not None:
+            use_daqp = self.churn > self._CHURN_BOX
+        else:
+            use_daqp = self.churn > self._CHURN_DAQP and 3 * len(ws.box.F) >= self.m
+        if not use_daqp:
+            if key != self._last_key:  # another pattern's solver: start it from where we are
+                ws.box.warm(self._prev)
+            x = ws.box.solve(f)
+            self.iterations = ws.box.iterations
+            self._last_key, self._daqp_key = (None if x is None else key), None
+        if x is None:
+            sense = None
+            if key != self._daqp_key:  # DAQP constraint states: active (1), at the lower bound (2)
+                sense = np.where(self._prev <= self.lower, 3, np.where(self._prev >= self.upper, 1, 0)).astype(np.int32)
+            try:
+                x, self.iterations = ws.daqp(f, self.lower, self.upper, sense)
+            except Exception as exc:  # noqa: BLE001 - a stream must survive a solver failure
+                log.debug("daqp failed: %s", exc)
+            self._daqp_key = None if x is None else key
             self._last_key = None
-            x = np.clip(np.linalg.lstsq(H, -f, rcond=None)[0], self.lower, self.upper)
-            if not np.all(np.isfinite(x)):
-                x = self._prev.copy()
-            self._lam = None
-        self._prev = np.minimum(np.maximum(x, self.lower), self.upper)  # DAQP's tolerance, not a clip
-        return self._prev.copy()
+        self.churn += 0.1 * (self.iterations - self.churn)
+        if x is not None:
+            self._last_ws = ws
+        return x
+
+    def _fallback(self, ws: _Workspace, f: np.ndarray) -> np.ndarray:
+        x = np.linalg.lstsq(ws.H, -f, rcond=None)[0]
+        if not np.all(np.isfinite(x)):
+            return self._prev.copy()
+        return np.minimum(np.maximum(x, self.lower), self.upper)

@@ -47,10 +47,13 @@ class HysteresisSparseFit(PriorLeastSquares):
         self.stay = np.broadcast_to(np.asarray(stay, dtype=np.float64), (m,)).copy()
         if np.any(self.enter < 0) or np.any(self.stay < 0):
             raise ValueError("L1 thresholds must be non-negative")
+        self._rest = np.clip(0.0, self.lower, self.upper)
+        self._half = (0.5 * self.enter, 0.5 * self.stay)
+        self._gap = np.empty(m)
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
-        at_rest = np.abs(self._last - np.clip(0.0, self.lower, self.upper)) <= 1e-9
-        self.rest_pull = np.where(at_rest, self.enter, self.stay)
+        gap = np.abs(np.subtract(self._prev, self._rest, out=self._gap), out=self._gap)
+        self.linear = np.where(gap <= 1e-9, *self._half)  # the L1 term at rest, the smaller one once active
         return super().step(target, valid)
 
 

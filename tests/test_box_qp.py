@@ -1,0 +1,137 @@
+"""The warm-started primal active-set box QP (solvers/box_qp.py) against DAQP and the KKT conditions."""
+
+from __future__ import annotations
+
+import daqp
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from solvers.box_qp import BoxQP
+
+
+def _daqp(H, f, lo, hi):
+    x, _, flag, _ = daqp.solve(H, f, np.zeros((0, len(f))), hi.copy(), lo.copy())
+    assert flag > 0
+    return x
+
+
+def _kkt_violation(H, f, lo, hi, x):
+    """Largest violation of: lo <= x <= hi, gradient zero inside, pointing out of the box at a bound
+    (gradients relative to the problem's scale, the largest of diag H and |f|)."""
+    g = (H @ x + f) / max(np.abs(np.diagonal(H)).max(), np.abs(f).max())
+    inside = (x > lo) & (x < hi)
+    at_lo, at_hi = (x <= lo) & (lo < hi), (x >= hi) & (lo < hi)
+    outside = np.maximum(lo - x, 0) + np.maximum(x - hi, 0)
+    return max(float(np.max(outside)), float(np.max(np.abs(g[inside]), initial=0)),
+               float(np.max(-g[at_lo], initial=0)), float(np.max(g[at_hi], initial=0)))
+
+
+def _objective(H, f, x):
+    return 0.5 * x @ H @ x + f @ x
+
+
+def _problem(rng, n, m, ridge, kind):
+    B = rng.normal(0, 3, (3 * n, m))
+    H = B.T @ B + ridge * np.eye(m)
+    if kind == "unit":
+        lo, hi = np.zeros(m), np.ones(m)
+    else:
+        lo = rng.uniform(-1, 0, m)
+        hi = lo + rng.uniform(0.2, 1.5, m)
+        if kind == "mixed":  # infinite and equal limits
+            lo[rng.random(m) < 0.2] = -np.inf
+            hi[rng.random(m) < 0.2] = np.inf
+            fix = rng.random(m) < 0.1
+            hi[fix] = lo[fix] = np.where(np.isfinite(lo[fix]), lo[fix], 0.0)
+    return B, H, lo, hi
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 25), m=st.integers(1, 40),
+       ridge=st.sampled_from([1e-3, 0.1, 10.0]), kind=st.sampled_from(["unit", "random", "mixed"]))
+def test_a_warm_started_stream_matches_daqp(seed, n, m, ridge, kind):
+    """Frame after frame (warm starts from the last free set), the same optimum as DAQP solved cold."""
+    rng = np.random.default_rng(seed)
+    B, H, lo, hi = _problem(rng, n, m, ridge, kind)
+    box = BoxQP(H, lo, hi)
+    w = rng.uniform(-1, 2, m)
+    for _ in range(8):
+        w = w + rng.normal(0, 0.3, m)  # a drifting target: the free set changes a little per frame
+        f = -(B.T @ (B @ w + rng.normal(0, 0.5, 3 * n)))
+        x = box.solve(f)
+        assert x is not None
+        ref = np.clip(_daqp(H, f, lo, hi), lo, hi)
+        if ridge >= 0.1:
+            assert _kkt_violation(H, f, lo, hi, x) < 1e-10
+            np.testing.assert_allclose(x, ref, atol=1e-8)
+        else:  # curvature 1e-3 along the directions no row sees: only the objective is well determined
+            assert _kkt_violation(H, f, lo, hi, x) < 1e-6
+            assert _objective(H, f, x) <= _objective(H, f, ref) + 1e-12 * max(1.0, abs(_objective(H, f, ref)))
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), m=st.integers(2, 30))
+def test_any_feasible_warm_start_reaches_the_same_optimum(seed, m):
+    rng = np.random.default_rng(seed)
+    B, H, lo, hi = _problem(rng, 12, m, 0.1, "random")
+    f = -(B.T @ (B @ rng.uniform(-1, 2, m)))
+    box = BoxQP(H, lo, hi)
+    cold = box.solve(f)
+    box.warm(rng.uniform(lo, hi))
+    np.testing.assert_allclose(box.solve(f), cold, atol=1e-9)
+    box.warm(np.where(rng.random(m) < 0.5, lo, hi))
+    np.testing.assert_allclose(box.solve(f), cold, atol=1e-9)
+
+
+def test_bounds_are_exact_and_unchanged_frames_cost_one_pass():
+    rng = np.random.default_rng(4)
+    B, H, lo, hi = _problem(rng, 20, 30, 0.5, "unit")
+    f = -(B.T @ (B @ rng.uniform(-0.5, 1.5, 30)))
+    box = BoxQP(H, lo, hi)
+    x = box.solve(f)
+    assert np.any(x == 0.0) and np.any(x == 1.0)  # bounded weights sit exactly on their limits
+    assert box.solve(f + 1e-6) is not None and box.iterations == 1
+
+
+def test_sparse_problem_at_a_thousand_shapes_keeps_the_free_set_small():
+    """m = 1000 > rows: only the few free weights are ever factorised (the robust fit's regime)."""
+    rng = np.random.default_rng(5)
+    B = rng.normal(0, 1, (216, 1000))
+    H = B.T @ B + 1.0 * np.eye(1000)
+    lo, hi = np.zeros(1000), np.ones(1000)
+    box = BoxQP(H, lo, hi)
+    w = np.zeros(1000)
+    w[rng.choice(1000, 20, replace=False)] = rng.uniform(0.2, 0.9, 20)
+    mu = 2 * 3.7 * 0.5 * np.linalg.norm(B, axis=0)  # an L1 term at the universal threshold
+    for _ in range(3):
+        f = -(B.T @ (B @ w + rng.normal(0, 0.5, 216))) + 0.5 * mu
+        x = box.solve(f)
+        assert len(box.F) < 60
+        np.testing.assert_allclose(x, _daqp(H, f, lo, hi), atol=1e-8)
+
+
+def test_demo_rig_stream_matches_daqp_frame_by_frame(demo):
+    """A real rig's problems: the demo rig's calibrated basis, a generated performance (noise, head
+    motion, occlusion), the robust mode's sparse-fit Hessian and L1 term, one warm solver per pattern."""
+    from livecap.calibration.profile import calibrate
+    from livecap.demo.performance import PerformanceSettings, perform
+    from livecap.offline.solve import prepare_targets
+    from solvers.sparse_fit import l1_weights, universal_threshold
+
+    rig, layout = demo
+    perf = perform(rig, layout, PerformanceSettings(seconds=2.0, occlusion=0.05, seed=4))
+    profile = calibrate(rig, layout, perf.actor_neutral)
+    _, S, _, _ = prepare_targets(perf.take, profile)
+    B, lo, hi = profile.basis, profile.lower, profile.upper
+    half_mu = 0.5 * l1_weights(B, 0.5, universal_threshold(B.shape[1]))
+    solvers, worst = {}, 0.0
+    for s, seen in zip(S, perf.take.valid, strict=True):
+        rows = np.repeat(seen, 3)
+        H = B[rows].T @ B[rows] + 1.0 * np.eye(B.shape[1])
+        f = -(B[rows].T @ s.reshape(-1)[rows]) + half_mu
+        box = solvers.setdefault(seen.tobytes(), BoxQP(H, lo, hi))
+        x = box.solve(f)
+        worst = max(worst, float(np.abs(x - np.clip(_daqp(H, f, lo, hi), lo, hi)).max()))
+    assert len(solvers) > 5 and worst < 1e-8  # occlusion made several patterns; every frame agrees
+    assert 0 < len(box.F) < B.shape[1]  # some weights free, some at a limit
