@@ -87,6 +87,19 @@ def test_local_cluster_equals_solve_and_reports_bad_takes(library, client, tmp_p
     assert "data:image/png;base64," in (out / "summary.html").read_text()
 
 
+def _worker_settings(dask_worker) -> dict:
+    return {"trim": os.environ.get("MALLOC_TRIM_THRESHOLD_"), "blas": os.environ.get("OPENBLAS_NUM_THREADS"),
+            "tick": dask_worker.periodic_callbacks["tick"].callback_time,
+            "memory": dask_worker.periodic_callbacks["memory_monitor"].callback_time,
+            "profile": "profile" in dask_worker.periodic_callbacks}
+
+
+def test_local_cluster_workers_get_the_batch_settings(client):
+    """The settings that cut the worker's per-take overhead (docs/batch.md) reach the worker processes."""
+    for got in client.run(_worker_settings).values():
+        assert got == {"trim": None, "blas": "1", "tick": 1000, "memory": 1000, "profile": False}
+
+
 def test_resume_skips_finished_takes_and_force_redoes_them(library, client, tmp_path):
     out = tmp_path / "out"
     takes = tmp_path / "takes"
