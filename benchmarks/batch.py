@@ -93,15 +93,30 @@ def _loop_in_process(profile: str, out: Path, warm: Path, takes: list[Path]) -> 
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def nested(dotted: dict) -> dict:
+    """Dask settings as dotted keys, as the nested mapping a Dask YAML file holds."""
+    out: dict = {}
+    for key, value in dotted.items():
+        *path, last = key.split(".")
+        node = out
+        for part in path:
+            node = node.setdefault(part, {})
+        node[last] = value
+    return out
+
+
 @contextmanager
 def _session_workers(n: int):
     """A ``dask scheduler`` and ``n`` ``dask worker`` processes, each in its own session: the kernel's
     autogroup scheduling then gives every worker its own fair share, as separate machines would have."""
     from benchmarks.processes import free_port
+    from livecap.batch.runner import LOCAL_CLUSTER_CONFIG
 
     dask = Path(sys.executable).with_name("dask")
     address = f"tcp://127.0.0.1:{free_port()}"
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False"}
+    config = Path(tempfile.mkdtemp(prefix="livecap-dask-config-")) / "livecap-batch.yaml"
+    config.write_text(json.dumps(nested(LOCAL_CLUSTER_CONFIG)))  # JSON is YAML: the file docs/batch.md shows
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "DASK_CONFIG": str(config)}
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True, "env": env}
     procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1],
                                "--no-dashboard"], **quiet)]
@@ -115,6 +130,7 @@ def _session_workers(n: int):
             proc.terminate()
         for proc in procs:
             proc.wait(timeout=60)
+        shutil.rmtree(config.parent, ignore_errors=True)
 
 
 @contextmanager
@@ -126,7 +142,7 @@ def _client(workers: int, placement: str, settings: str):
             client.wait_for_workers(workers, timeout=120)
             yield client
         return
-    tuned = runner.LOCAL_CLUSTER_CONFIG
+    tuned, environ = runner.LOCAL_CLUSTER_CONFIG, dict(os.environ)
     if settings == "dask":  # the LocalCluster as before livecap's settings: Dask's defaults, profiler off
         runner.LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False}
     try:
@@ -134,6 +150,8 @@ def _client(workers: int, placement: str, settings: str):
             yield client
     finally:
         runner.LOCAL_CLUSTER_CONFIG = tuned
+        os.environ.clear()  # a Nanny sets its workers' variables (MALLOC_TRIM_THRESHOLD_) in this process too
+        os.environ.update(environ)
 
 
 def _batch(workers: int, profile: str, out: Path, warm: Path, takes: list[Path], placement: str = "cluster",

@@ -234,3 +234,24 @@ def test_csv_manifest_paths_and_options(tmp_path):
     jobs = plan_jobs([], [str(tmp_path / "m.csv")], rig=RIG, out_dir=str(tmp_path / "out"), mode="robust", fmt="csv")
     assert [Path(j.take).name for j in jobs] == ["a.c3d", "b.c3d"] and {j.mode for j in jobs} == {"qp"}
     assert jobs[0].solve_argv()[-4:] == ["--ridge", "0.01", "--temporal", "2"]
+
+
+def test_docs_dask_config_is_what_the_local_cluster_sets():
+    """docs/batch.md's YAML for a user's `dask worker` carries the LocalCluster's settings, key for key."""
+    import re
+
+    import yaml
+
+    from livecap.batch.runner import LOCAL_CLUSTER_CONFIG
+
+    text = (ROOT / "docs" / "batch.md").read_text()
+    block = re.search(r"```yaml\n# livecap-batch.yaml.*?\n(.*?)```", text, re.S)
+    assert block, "docs/batch.md lacks the livecap-batch.yaml block"
+
+    def flat(d: dict, prefix: str = "") -> dict:
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    assert flat(yaml.safe_load(block.group(1))) == LOCAL_CLUSTER_CONFIG

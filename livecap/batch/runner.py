@@ -20,13 +20,13 @@ MAX_EXIT_CODE = 100  # exit code = failed takes, capped below the shell's signal
 # (docs/batch.md "Throughput": profiled, +28 % CPU in a worker against a plain process). The statistical
 # profiler samples the solving thread every 10 ms; the 20 ms event-loop tick and the 100 ms memory monitor
 # wake the event loop, which then waits for the solving thread's GIL; MALLOC_TRIM_THRESHOLD_ (glibc
-# returns freed memory at once) turns every large numpy temporary into fresh zeroed pages. Thread counts
+# returns freed memory at once) turns every large numpy temporary into fresh zeroed pages. BLAS threads
 # stay at one per worker, as Dask sets them.
 LOCAL_CLUSTER_CONFIG = {
     "distributed.worker.profile.enabled": False,
     "distributed.admin.tick.interval": "1s",
     "distributed.worker.memory.monitor-interval": "1s",
-    "distributed.nanny.pre-spawn-environ": {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1},
+    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,  # None: not set (Dask's convention)
 }
 
 
