@@ -16,12 +16,11 @@ from livecap.batch.worker import SolverCache, load_record, solve_job
 log = logging.getLogger(__name__)
 MAX_EXIT_CODE = 100  # exit code = failed takes, capped below the shell's signal codes
 
-# Dask's defaults suit workers holding data; a worker solving one take at a time pays for them per take
-# (docs/batch.md "Throughput": profiled, +28 % CPU in a worker against a plain process). The statistical
-# profiler samples the solving thread every 10 ms; the 20 ms event-loop tick and the 100 ms memory monitor
-# wake the event loop, which then waits for the solving thread's GIL; MALLOC_TRIM_THRESHOLD_ (glibc
-# returns freed memory at once) turns every large numpy temporary into fresh zeroed pages. BLAS threads
-# stay at one per worker, as Dask sets them.
+# Dask's defaults suit workers holding data; a worker solving one take after another pays for them per take
+# (profiled and measured in docs/batch.md "Throughput"). The statistical profiler samples the solving
+# thread every 10 ms; the 20 ms event-loop tick and the 100 ms memory monitor wake the event loop, which
+# then waits for the solving thread's GIL; MALLOC_TRIM_THRESHOLD_ (glibc returns freed memory at once)
+# turns every large numpy temporary into fresh zeroed pages. BLAS threads stay at one, as Dask sets them.
 LOCAL_CLUSTER_CONFIG = {
     "distributed.worker.profile.enabled": False,
     "distributed.admin.tick.interval": "1s",
