@@ -3,12 +3,17 @@ the per-take overhead of the batch path against a warm in-process loop doing wha
 does (read the take, build the solver, solve, write the CSV), on copies of the bundled 20 s demo take
 (2400 frames, 60 markers, 43 shapes) with a profile calibrated from the demo neutral take.
 
-    python -m benchmarks.batch [--quick] [--json FILE]
+    python -m benchmarks.batch [--quick] [--json FILE] [--settings livecap,dask] [--placement cluster,sessions]
 
 Each cluster is started and warmed (every worker solves a 1 s take: imports, rig and profile loaded,
-solver prepared) before the timed batch; that fixed cost is reported beside it. The baseline loop runs
-in its own process with one BLAS thread, as Dask's worker processes do (OMP/MKL/OPENBLAS_NUM_THREADS=1).
-The machine is shared: the load average is recorded beside every figure.
+solver prepared) before the timed batch; that fixed cost is reported beside it. Takes/s count the
+solving (first task sent to last result in); the batch's summary (summary.json/csv/html/png, written
+once per batch by the client) is timed and reported beside it. The baseline loop runs in its own
+process with one BLAS thread, as Dask's worker processes do (OMP/MKL/OPENBLAS_NUM_THREADS=1), and
+alternates with the batch's per-take function (``solve_job``: also the statistics and the record) in
+that process, so the batch path's own work and the cost of running it in a Dask worker are told apart.
+``--settings dask`` also runs the LocalCluster with Dask's defaults (livecap's settings, A/B).
+The machine is shared: the load average is recorded beside every figure; CPU is process CPU time.
 """
 
 from __future__ import annotations
@@ -37,7 +42,10 @@ def _load() -> float:
 
 
 def loop(profile: str, out: str, warm: str, takes: list[str]) -> dict:
-    """Wall and CPU seconds of the plain in-process loop over ``takes`` (after one untimed warm-up solve)."""
+    """Wall and CPU seconds of the plain in-process loop over ``takes`` (after one untimed warm-up solve),
+    and of the batch's per-take function on the same takes, alternating take by take."""
+    from livecap.batch.jobs import Job
+    from livecap.batch.worker import SolverCache, solve_job
     from livecap.calibration.profile import Profile
     from livecap.cli.common import load_rig
     from livecap.modes.registry import build_solver
@@ -56,11 +64,23 @@ def loop(profile: str, out: str, warm: str, takes: list[str]) -> dict:
         write_weights_csv(Path(out) / (Path(path).stem + ".csv"), solved.names, solved.weights, solved.rate,
                           solved.first_frame)
 
-    one(warm)
-    start, cpu = time.perf_counter(), time.process_time()
+    cache = SolverCache()
+
+    def job(path: str) -> None:
+        row = solve_job(Job(path, str(RIG), str(Path(out) / "job"), MODE, "csv", profile=profile), cache)
+        if row["status"] != "ok":
+            raise RuntimeError(row["error"])
+
+    times = {"loop": [0.0, 0.0], "job": [0.0, 0.0]}
+    for fn in (one, job):
+        fn(warm)
     for t in takes:
-        one(t)
-    return {"wall": time.perf_counter() - start, "cpu": time.process_time() - cpu}
+        for name, fn in (("loop", one), ("job", job)):
+            start, cpu = time.perf_counter(), time.process_time()
+            fn(t)
+            times[name][0] += time.perf_counter() - start
+            times[name][1] += time.process_time() - cpu
+    return {"wall": times["loop"][0], "cpu": times["loop"][1], "job_wall": times["job"][0], "job_cpu": times["job"][1]}
 
 
 def _loop_in_process(profile: str, out: Path, warm: Path, takes: list[Path]) -> dict:
@@ -73,15 +93,30 @@ def _loop_in_process(profile: str, out: Path, warm: Path, takes: list[Path]) -> 
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def nested(dotted: dict) -> dict:
+    """Dask settings as dotted keys, as the nested mapping a Dask YAML file holds."""
+    out: dict = {}
+    for key, value in dotted.items():
+        *path, last = key.split(".")
+        node = out
+        for part in path:
+            node = node.setdefault(part, {})
+        node[last] = value
+    return out
+
+
 @contextmanager
 def _session_workers(n: int):
     """A ``dask scheduler`` and ``n`` ``dask worker`` processes, each in its own session: the kernel's
     autogroup scheduling then gives every worker its own fair share, as separate machines would have."""
     from benchmarks.processes import free_port
+    from livecap.batch.runner import LOCAL_CLUSTER_CONFIG
 
     dask = Path(sys.executable).with_name("dask")
     address = f"tcp://127.0.0.1:{free_port()}"
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False"}
+    config = Path(tempfile.mkdtemp(prefix="livecap-dask-config-")) / "livecap-batch.yaml"
+    config.write_text(json.dumps(nested(LOCAL_CLUSTER_CONFIG)))  # JSON is YAML: the file docs/batch.md shows
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "DASK_CONFIG": str(config)}
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True, "env": env}
     procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1],
                                "--no-dashboard"], **quiet)]
@@ -95,22 +130,32 @@ def _session_workers(n: int):
             proc.terminate()
         for proc in procs:
             proc.wait(timeout=60)
+        shutil.rmtree(config.parent, ignore_errors=True)
 
 
 @contextmanager
-def _client(workers: int, placement: str):
-    from livecap.batch.runner import dask_client
+def _client(workers: int, placement: str, settings: str):
+    from livecap.batch import runner
 
     if placement == "sessions":
-        with _session_workers(workers) as address, dask_client(scheduler=address) as client:
+        with _session_workers(workers) as address, runner.dask_client(scheduler=address) as client:
             client.wait_for_workers(workers, timeout=120)
             yield client
-    else:
-        with dask_client(workers=workers) as client:
+        return
+    tuned, environ = runner.LOCAL_CLUSTER_CONFIG, dict(os.environ)
+    if settings == "dask":  # the LocalCluster as before livecap's settings: Dask's defaults, profiler off
+        runner.LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False}
+    try:
+        with runner.dask_client(workers=workers) as client:
             yield client
+    finally:
+        runner.LOCAL_CLUSTER_CONFIG = tuned
+        os.environ.clear()  # a Nanny sets its workers' variables (MALLOC_TRIM_THRESHOLD_) in this process too
+        os.environ.update(environ)
 
 
-def _batch(workers: int, profile: str, out: Path, warm: Path, takes: list[Path], placement: str = "cluster") -> dict:
+def _batch(workers: int, profile: str, out: Path, warm: Path, takes: list[Path], placement: str = "cluster",
+           settings: str = "livecap") -> dict:
     from livecap.batch.jobs import Job
     from livecap.batch.runner import run_batch
 
@@ -119,7 +164,7 @@ def _batch(workers: int, profile: str, out: Path, warm: Path, takes: list[Path],
 
     t0 = time.perf_counter()
     load0 = _load()
-    with _client(workers, placement) as client:
+    with _client(workers, placement, settings) as client:
         started = time.perf_counter() - t0
         warm_jobs = []
         for i in range(workers):  # one warm-up take per worker (same file under another name)
@@ -129,13 +174,14 @@ def _batch(workers: int, profile: str, out: Path, warm: Path, takes: list[Path],
         run_batch(jobs(warm_jobs, out / "warm"), out / "warm", client, force=True)
         warmed = time.perf_counter() - t0 - started
         t1, c1 = time.perf_counter(), time.process_time()
-        rows, _ = run_batch(jobs(takes, out / "timed"), out / "timed", client, force=True)
-        wall, client_cpu = time.perf_counter() - t1, time.process_time() - c1
+        rows, meta = run_batch(jobs(takes, out / "timed"), out / "timed", client, force=True)
+        total, client_cpu = time.perf_counter() - t1, time.process_time() - c1
     failed = [r["error"] for r in rows if r["status"] != "ok"]
     if failed:
         raise RuntimeError(f"batch failed: {failed[0]}")
-    return {"workers": workers, "placement": placement, "takes": len(takes), "wall_s": wall,
-            "takes_per_s": len(takes) / wall,
+    wall = meta["wall_seconds"]  # solving: first task sent to last result in
+    return {"workers": workers, "placement": placement, "settings": settings, "takes": len(takes), "wall_s": wall,
+            "takes_per_s": len(takes) / wall, "summary_s": total - wall, "takes_per_s_with_summary": len(takes) / total,
             "per_take_s": wall / len(takes) * workers, "cluster_start_s": started, "warm_up_s": warmed,
             "worker_seconds_per_take": sum(r["seconds"] for r in rows) / len(rows),
             "cpu_per_take_s": sum(r["cpu_seconds"] for r in rows) / len(rows),
@@ -143,9 +189,11 @@ def _batch(workers: int, profile: str, out: Path, warm: Path, takes: list[Path],
             "load_start": load0, "load_end": _load()}
 
 
-def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",)) -> dict:
+def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",),
+        settings: tuple[str, ...] = ("livecap",)) -> dict:
     """``placement``: "cluster" (livecap's LocalCluster) and/or "sessions" (dask scheduler and workers as
-    separate processes, each in its own session)."""
+    separate processes, each in its own session); ``settings`` of the LocalCluster: "livecap" (what
+    ``livecap batch`` starts) and/or "dask" (Dask's defaults, the profiler off: the code before them)."""
     from livecap.cli import main as livecap
     from transport.takefile import read_take, write_take
 
@@ -175,8 +223,10 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",)) -> dict:
         timed = _loop_in_process(profile, work / "loop", warm, takes)
         loop_s = timed["wall"]
         base = {"takes": n, "wall_s": loop_s, "per_take_s": loop_s / n, "takes_per_s": n / loop_s,
-                "cpu_per_take_s": timed["cpu"] / n, "load_start": load0, "load_end": _load()}
-        results = [_batch(w, profile, work / f"{where}{w}", warm, takes, where) for where in placement
+                "cpu_per_take_s": timed["cpu"] / n, "job_per_take_s": timed["job_wall"] / n,
+                "job_cpu_per_take_s": timed["job_cpu"] / n, "load_start": load0, "load_end": _load()}
+        runs = [(where, how) for where in placement for how in (settings if where == "cluster" else ("livecap",))]
+        results = [_batch(w, profile, work / f"{where}-{how}{w}", warm, takes, where, how) for where, how in runs
                    for w in (1, 2)]
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -185,29 +235,39 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",)) -> dict:
     cpu_overhead = one["cpu_per_take_s"] / base["cpu_per_take_s"] - 1.0
     speedup = two["takes_per_s"] / one["takes_per_s"]
     print(f"{n} takes of {duration:.0f} s ({frames} frames, mode {MODE}), profile calibrated once")
-    print(f"{'':>28} {'takes/s':>8} {'s/take':>7} {'CPU s/take':>10} {'vs loop':>8} {'start+warm s':>13} "
-          f"{'load':>11}")
-    print(f"{'in-process loop (baseline)':>28} {base['takes_per_s']:>8.3f} {base['per_take_s']:>7.2f} "
-          f"{base['cpu_per_take_s']:>10.2f} {'1.00':>8} {'-':>13} {base['load_start']:>5.1f}-{base['load_end']:<5.1f}")
+    print(f"{'':>34} {'takes/s':>8} {'s/take':>7} {'CPU s/take':>10} {'vs loop':>8} {'summary s':>9} "
+          f"{'start+warm s':>13} {'load':>11}")
+    print(f"{'in-process loop (baseline)':>34} {base['takes_per_s']:>8.3f} {base['per_take_s']:>7.2f} "
+          f"{base['cpu_per_take_s']:>10.2f} {'1.00':>8} {'-':>9} {'-':>13} "
+          f"{base['load_start']:>5.1f}-{base['load_end']:<5.1f}")
+    print(f"{'in-process solve_job (same run)':>34} {1 / base['job_per_take_s']:>8.3f} {base['job_per_take_s']:>7.2f} "
+          f"{base['job_cpu_per_take_s']:>10.2f} {base['per_take_s'] / base['job_per_take_s']:>8.2f}")
     for r in results:
-        label = f"{r['placement']}, {r['workers']} worker(s)"
-        print(f"{label:>28} {r['takes_per_s']:>8.3f} "
+        label = f"{r['placement']} ({r['settings']}), {r['workers']} worker(s)"
+        print(f"{label:>34} {r['takes_per_s']:>8.3f} "
               f"{r['wall_s'] / r['takes']:>7.2f} {r['cpu_per_take_s']:>10.2f} "
-              f"{r['takes_per_s'] / base['takes_per_s']:>8.2f} "
+              f"{r['takes_per_s'] / base['takes_per_s']:>8.2f} {r['summary_s']:>9.2f} "
               f"{r['cluster_start_s'] + r['warm_up_s']:>13.1f} {r['load_start']:>5.1f}-{r['load_end']:<5.1f}")
     for r in results:
-        print(f"{r['placement']}, {r['workers']} worker(s): client/scheduler process CPU "
-              f"{r['client_cpu_per_take_s']:.3f} s per take")
-    print(f"per-take overhead of the batch path (1 worker) over the warm loop: wall {overhead:+.1%}, "
-          f"CPU {cpu_overhead:+.1%} (goal <= 10%)")
-    speedups = {results[i]["placement"]: results[i + 1]["takes_per_s"] / results[i]["takes_per_s"]
-                for i in range(0, len(results), 2)}
-    for where, ratio in speedups.items():
-        print(f"{where}: 2 workers / 1 worker takes/s: {ratio:.2f}x (goal >= 1.7x)")
+        print(f"{r['placement']} ({r['settings']}), {r['workers']} worker(s): client/scheduler process CPU "
+              f"{r['client_cpu_per_take_s']:.3f} s per take (summary included)")
+    print(f"batch's per-take function in-process over the loop: wall "
+          f"{base['job_per_take_s'] / base['per_take_s'] - 1:+.1%}, "
+          f"CPU {base['job_cpu_per_take_s'] / base['cpu_per_take_s'] - 1:+.1%}")
+    pairs = [(results[i], results[i + 1]) for i in range(0, len(results), 2)]
+    speedups = {}
+    for a, b in pairs:
+        name = f"{a['placement']} ({a['settings']})"
+        speedups[name] = b["takes_per_s"] / a["takes_per_s"]
+        print(f"{name}: per-take overhead (1 worker) over the warm loop: "
+              f"wall {a['per_take_s'] / base['per_take_s'] - 1:+.1%}, "
+              f"worker CPU {a['cpu_per_take_s'] / base['cpu_per_take_s'] - 1:+.1%} (goal <= 10%); "
+              f"2 workers / 1 worker takes/s: {speedups[name]:.2f}x solving, "
+              f"{b['takes_per_s_with_summary'] / a['takes_per_s_with_summary']:.2f}x with the summary (goal >= 1.7x)")
     return {"takes": n, "take_seconds": duration, "take_frames": frames, "mode": MODE, "loop": base,
             "batch": results, "speedups": speedups, "overhead_1_worker": overhead,
             "cpu_overhead_1_worker": cpu_overhead, "speedup_2_workers": speedup}
 
 
 if __name__ == "__main__":
-    sys.exit(suite_main(run, __doc__, placement="cluster"))
+    sys.exit(suite_main(run, __doc__, placement="cluster", settings="livecap"))

@@ -29,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RIG = str(ROOT / "recordings" / "demo_rig.npz")
 NEUTRAL = str(ROOT / "recordings" / "demo_neutral.c3d")
 FRAMES = 120  # 1 s takes keep the batch tests short
+USER_TRIM = os.environ.get("MALLOC_TRIM_THRESHOLD_")  # the shell's own, before a Nanny sets it in this process
 
 
 @pytest.fixture(scope="module")
@@ -85,6 +86,19 @@ def test_local_cluster_equals_solve_and_reports_bad_takes(library, client, tmp_p
         assert 0 <= t["missing_share"] < 0.2 and len(t["weight_max"]) == len(t["names"]) == 43
     assert (out / "summary.csv").read_text().count("\n") == 6
     assert "data:image/png;base64," in (out / "summary.html").read_text()
+
+
+def _worker_settings(dask_worker) -> dict:
+    return {"trim": os.environ.get("MALLOC_TRIM_THRESHOLD_"), "blas": os.environ.get("OPENBLAS_NUM_THREADS"),
+            "tick": dask_worker.periodic_callbacks["tick"].callback_time,
+            "memory": dask_worker.periodic_callbacks["memory_monitor"].callback_time,
+            "profile": "profile" in dask_worker.periodic_callbacks}
+
+
+def test_local_cluster_workers_get_the_batch_settings(client):
+    """The settings that cut the worker's per-take overhead (docs/batch.md) reach the worker processes."""
+    for got in client.run(_worker_settings).values():
+        assert got == {"trim": USER_TRIM, "blas": "1", "tick": 1000, "memory": 1000, "profile": False}
 
 
 def test_resume_skips_finished_takes_and_force_redoes_them(library, client, tmp_path):
@@ -221,3 +235,24 @@ def test_csv_manifest_paths_and_options(tmp_path):
     jobs = plan_jobs([], [str(tmp_path / "m.csv")], rig=RIG, out_dir=str(tmp_path / "out"), mode="robust", fmt="csv")
     assert [Path(j.take).name for j in jobs] == ["a.c3d", "b.c3d"] and {j.mode for j in jobs} == {"qp"}
     assert jobs[0].solve_argv()[-4:] == ["--ridge", "0.01", "--temporal", "2"]
+
+
+def test_docs_dask_config_is_what_the_local_cluster_sets():
+    """docs/batch.md's YAML for a user's `dask worker` carries the LocalCluster's settings, key for key."""
+    import re
+
+    import yaml
+
+    from livecap.batch.runner import LOCAL_CLUSTER_CONFIG
+
+    text = (ROOT / "docs" / "batch.md").read_text()
+    block = re.search(r"```yaml\n# livecap-batch.yaml.*?\n(.*?)```", text, re.S)
+    assert block, "docs/batch.md lacks the livecap-batch.yaml block"
+
+    def flat(d: dict, prefix: str = "") -> dict:
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    assert flat(yaml.safe_load(block.group(1))) == LOCAL_CLUSTER_CONFIG

@@ -16,6 +16,18 @@ from livecap.batch.worker import SolverCache, load_record, solve_job
 log = logging.getLogger(__name__)
 MAX_EXIT_CODE = 100  # exit code = failed takes, capped below the shell's signal codes
 
+# Dask's defaults suit workers holding data; a worker solving one take after another pays for them per take
+# (profiled and measured in docs/batch.md "Throughput"). The statistical profiler samples the solving
+# thread every 10 ms; the 20 ms event-loop tick and the 100 ms memory monitor wake the event loop, which
+# then waits for the solving thread's GIL; MALLOC_TRIM_THRESHOLD_ (glibc returns freed memory at once)
+# turns every large numpy temporary into fresh zeroed pages. BLAS threads stay at one, as Dask sets them.
+LOCAL_CLUSTER_CONFIG = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "1s",
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,  # None: not set (Dask's convention)
+}
+
 
 def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
@@ -34,8 +46,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
     else:
         import dask
 
-        # the workers' statistical profiler samples the solving thread every 10 ms: CPU a batch does not need
-        with dask.config.set({"distributed.worker.profile.enabled": False}):
+        with dask.config.set(LOCAL_CLUSTER_CONFIG):
             cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
                                    dashboard_address=None, silence_logs=logging.ERROR)
         client = Client(cluster)
