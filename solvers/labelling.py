@@ -77,16 +77,41 @@ _EMPTY = np.zeros(0, dtype=np.int64)
 
 
 def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Kabsch with the fewest numpy calls (the per-frame head re-fit)."""
+    """Kabsch (Arun et al. 1987) for the per-frame head re-fit: the rotation is the polar factor
+    of the cross-covariance, by scaled Newton iteration X <- (g X + X^-T / g) / 2 (Higham 1986) in
+    plain floats — quadratic convergence, no LAPACK call; SVD when the covariance is singular or
+    reflected."""
     inv = 1.0 / len(src)
     cs = src.sum(0) * inv
     cd = dst.sum(0) * inv
-    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    R = Vt.T @ U.T
-    a, b, c = R.tolist()
-    if a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0]) + a[2] * (b[0] * c[1] - b[1] * c[0]) < 0:
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = ((dst - cd).T @ (src - cs)).tolist()
+    for _ in range(12):
+        c00, c01, c02 = m11 * m22 - m12 * m21, m12 * m20 - m10 * m22, m10 * m21 - m11 * m20
+        c10, c11, c12 = m02 * m21 - m01 * m22, m00 * m22 - m02 * m20, m01 * m20 - m00 * m21
+        c20, c21, c22 = m01 * m12 - m02 * m11, m02 * m10 - m00 * m12, m00 * m11 - m01 * m10
+        det = m00 * c00 + m01 * c01 + m02 * c02
+        if det <= 1e-12 * (abs(m00) + abs(m11) + abs(m22)) ** 3:
+            return _rigid_svd(src - cs, dst - cd, cs, cd)
+        nx = m00 * m00 + m01 * m01 + m02 * m02 + m10 * m10 + m11 * m11 + m12 * m12 + m20 * m20 + m21 * m21 + m22 * m22
+        nc = c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12 + c20 * c20 + c21 * c21 + c22 * c22
+        g = (nc / (nx * det * det)) ** 0.25
+        a, b = 0.5 * g, 0.5 / (g * det)
+        n00, n01, n02 = a * m00 + b * c00, a * m01 + b * c01, a * m02 + b * c02
+        n10, n11, n12 = a * m10 + b * c10, a * m11 + b * c11, a * m12 + b * c12
+        n20, n21, n22 = a * m20 + b * c20, a * m21 + b * c21, a * m22 + b * c22
+        step = abs(n00 - m00) + abs(n11 - m11) + abs(n22 - m22) + abs(n01 - m01) + abs(n10 - m10)
+        m00, m01, m02, m10, m11, m12, m20, m21, m22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
+        if step < 1e-12:
+            break
+    R = np.array(((m00, m01, m02), (m10, m11, m12), (m20, m21, m22)))
+    return R, cd - R @ cs
+
+
+def _rigid_svd(src: np.ndarray, dst: np.ndarray, cs: np.ndarray, cd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    U, _, Vt = np.linalg.svd(src.T @ dst)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
         Vt[2] = -Vt[2]
-        R = Vt.T @ U.T
+    R = Vt.T @ U.T
     return R, cd - R @ cs
 
 
@@ -190,6 +215,12 @@ class MarkerLabeller:
         self._marker_gram = np.einsum("nki,nkj->nij", rows, rows)  # each marker's share of the gram
         gap = np.linalg.norm(self.neutral[:, None] - self.neutral[None], axis=-1)
         self._pairs = np.argwhere(np.triu(gap < self.settings.close_pair_mm, 1)).T  # 2 x p
+        a, b = self._pairs
+        self._pair_rest = self.neutral[a] - self.neutral[b]
+        self._pair_basis = (rows[a] - rows[b]).reshape(-1, m)  # the pairs' separations through the basis
+        g = self.settings.gate_mm
+        # beyond this predicted separation neither pairing of a pair can be within the ambiguity margin
+        self._near_mm2 = (g + np.sqrt(g * g + self.settings.ambiguity_mm2)) ** 2
         self._stable_idx = np.flatnonzero(self.stable)
         self._zero_w = np.clip(np.zeros(m), lower, upper)
         self._g2 = np.full(self.n, self.settings.gate_mm ** 2)
@@ -213,12 +244,15 @@ class MarkerLabeller:
         self.recheck = 0
         self.missing_for = np.zeros(self.n)
         self._tracked = np.ones(self.n, dtype=bool)
-        self._held = np.zeros(self.n, dtype=bool)
+        self._no_held = np.zeros(self.n, dtype=bool)
+        self._held = self._no_held
+        self._candidates = False
         self._candidate = np.zeros((self.n, 3))
         self._candidate_ok = np.zeros(self.n, dtype=bool)
         self._candidate_index = np.full(self.n, -1, dtype=np.int64)
         self._late = self._late_index = _EMPTY
         self._returning = self._returning_index = _EMPTY
+        self._near = np.arange(self._pairs.shape[1])
         self.tentative = 0
 
     # ------------------------------------------------------------------ model
@@ -232,13 +266,13 @@ class MarkerLabeller:
     def _local(self, points: np.ndarray) -> np.ndarray:
         return ((points - self.t) @ self.R) * (1.0 / self.scale)
 
-    def _fit_shape(self, points: np.ndarray, index: np.ndarray, lab: np.ndarray, n_lab: int) -> np.ndarray:
-        """Weights from the labelled markers (missing ones held at their prediction)."""
-        if n_lab == self.n:
-            local = self._local(points[index])
-        else:
-            local = self._model.copy()
-            local[lab] = self._local(points[index[lab]])
+    def _fit_shape(self, local: np.ndarray, lab: np.ndarray, n_lab: int) -> np.ndarray:
+        """Weights from the labelled markers' head-frame positions (missing ones held at their
+        prediction): ridge least squares through the precomputed pseudo-inverse."""
+        if n_lab < self.n:
+            full = self._model.copy()
+            full[lab] = local
+            local = full
         w = self._fit @ local.ravel()
         w -= self._fit_offset
         np.clip(w, self.lower, self.upper, out=w)
@@ -269,6 +303,9 @@ class MarkerLabeller:
 
     def _fit_pose(self, points: np.ndarray, index: np.ndarray, local: np.ndarray) -> bool:
         ist = index[self._stable_idx]
+        if ist.min() >= 0:
+            self.R, self.t = _rigid(self.scale * local[self._stable_idx], points[ist])
+            return True
         use = self._stable_idx[ist >= 0]
         if len(use) < 3:
             use = np.flatnonzero(index >= 0)
@@ -284,119 +321,140 @@ class MarkerLabeller:
         if not np.isfinite(points).all():
             points = points[np.isfinite(points).all(1)]
         if not self.tracking:
-            return self._frame(points, self.initialise(points), True)
+            index = self.initialise(points)
+            return self._frame(points, index, index >= 0, True)
         s = self.settings
-        index = self._label(self._world_pred, points)
-        n_lab = int(np.count_nonzero(index >= 0))
-        if self.n - n_lab >= s.refine_at and len(points) - n_lab >= s.refine_at:
+        n = self.n
+        index = self._label(self._world_pred, points, self._near)
+        lab = index >= 0
+        n_lab = int(np.count_nonzero(lab))
+        if n - n_lab >= s.refine_at and len(points) - n_lab >= s.refine_at:
             self.refines += 1
             self._refine(points, 3, 2 * s.gate_mm)
             self._model = self.model(self.w)
-            index = self._label(self._world(self._model), points)
-        index = self._confirm(points, index)
-        lab = index >= 0
-        n_lab = int(np.count_nonzero(lab))
-        self._tracked = self.missing_for == 0
-        fresh = lab & ~self._tracked
+            index = self._label(self._world(self._model), points, self._all_pairs)
+            lab = index >= 0
+        missing = self.missing_for > 0
+        self._tracked = ~missing
+        self._late = self._late_index = self._returning = self._returning_index = _EMPTY
+        fresh = lab & missing
         if fresh.any():
-            self._returning = np.flatnonzero(fresh)
-            self._returning_index = index[self._returning]
-        else:
-            self._returning = self._returning_index = _EMPTY
+            self._confirm(points, index, np.flatnonzero(fresh))
+            lab = index >= 0
+        elif self._candidates:
+            self._candidate_ok[:] = False
+            self._candidates = False
+        n_lab = int(np.count_nonzero(lab))
         self.missing_for += 1.0
         self.missing_for[lab | self._held] = 0.0
         if self._fit_pose(points, index, self._model):
-            self.w = self._fit_shape(points, index, lab, n_lab)
+            local = self._local(points[index] if n_lab == n else points[index[lab]])
+            self.w = self._fit_shape(local, lab, n_lab)
             model = self._model = self.model(self.w)
-            if n_lab == self.n:
-                res = self._local(points[index]) - model
-            else:
-                res = self._local(points[index[lab]]) - model[lab]
+            res = local - (model if n_lab == n else model[lab])
             far = np.einsum("ij,ij->i", res, res) > s.reject_mm ** 2
+            gap2 = self._pair_gaps()
             if far.any():
                 self.rejected += int(far.sum())
                 index[np.flatnonzero(lab)[far]] = -1
-                lab = index >= 0
                 if self._second_opinion(points):
                     index = self._settle(points)
-            elif self._pairs_met(model) and self._second_opinion(points):
+                lab = index >= 0
+                n_lab = int(np.count_nonzero(lab))
+            elif self._pairs_met(gap2) and self._second_opinion(points):
                 index = self._settle(points)
-            lab = index >= 0
-        if np.count_nonzero(lab) < s.min_labelled * self.n:
+                lab = index >= 0
+                n_lab = int(np.count_nonzero(lab))
+        if n_lab < s.min_labelled * n:
             self.poor += 1
             if self.poor >= s.lost_after:
                 self.tracking = False
         else:
             self.poor = 0
         self._world_pred = self._world(self._model)
-        return self._frame(points, index, False)
+        return self._frame(points, index, lab, False)
 
-    def _label(self, world: np.ndarray, points: np.ndarray) -> np.ndarray:
+    def _label(self, world: np.ndarray, points: np.ndarray, pairs: np.ndarray) -> np.ndarray:
         """Labels tracked last frame are assigned first (a track keeps its point rather than
         hand it to a label that was missing: an occluded lid must not take the other lid's point
         at a blink); watched pairs whose assignment is within noise are withheld; labels that were
         missing take leftover points within a gate growing with the time missing."""
-        self._held = np.zeros(self.n, dtype=bool)
-        if len(points) == 0:
+        self._held = self._no_held
+        k = len(points)
+        if k == 0:
             return np.full(self.n, -1, dtype=np.int64)
-        d = _sqdist(world, points)
+        d = np.empty((self.n, k + 1))  # last column 0: index -1 (missing) reads no distance
+        body = d[:, :k]
+        np.matmul(world, points.T, out=body)
+        body *= -2.0
+        body += np.einsum("ij,ij->i", world, world)[:, None]
+        body += np.einsum("ij,ij->i", points, points)
+        d[:, k] = 0.0
         tracked = self.missing_for == 0
         if tracked.all():
-            index, _ = _assign(d, self._g2)
+            index, _ = _assign(body, self._g2)
         else:
             index = np.full(self.n, -1, dtype=np.int64)
             rows = np.flatnonzero(tracked)
-            index[rows], _ = _assign(d[rows], self._g2[rows])
-        self._withhold(d, index)
-        self._reacquire(d, index)
+            index[rows], _ = _assign(body[rows], self._g2[rows])
+            self._withhold(d, index, pairs)
+            self._reacquire(body, index, ~tracked)
+            return index
+        self._withhold(d, index, pairs)
         return index
 
-    def _withhold(self, d: np.ndarray, index: np.ndarray) -> None:
+    def _withhold(self, d: np.ndarray, index: np.ndarray, pairs: np.ndarray) -> None:
         """Watched pairs (eyelids at a blink) whose two possible pairings cost within
         ``ambiguity_mm2`` of each other — or whose one point is about as near to either — are
         left unlabelled this frame: within marker noise either reading is as likely, and a wrong
-        one would carry into the next prediction. They stay tracked."""
-        a, b = self._pairs
+        one would carry into the next prediction. They stay tracked. ``d``'s last column is 0."""
+        if len(pairs) == 0:
+            return
+        a, b = self._pairs[:, pairs]
         ia, ib = index[a], index[b]
-        has_a, has_b = ia >= 0, ib >= 0
-        ja, jb = np.maximum(ia, 0), np.maximum(ib, 0)
-        delta = np.where(has_a, d[b, ja] - d[a, ja], 0.0) + np.where(has_b, d[a, jb] - d[b, jb], 0.0)
-        amb = (delta < self.settings.ambiguity_mm2) & (has_a | has_b)
+        delta = d[b, ia] - d[a, ia] + d[a, ib] - d[b, ib]
+        amb = (delta < self.settings.ambiguity_mm2) & (ia + ib > -2)
         if amb.any():
+            self._held = np.zeros(self.n, dtype=bool)
             self._held[a[amb]] = True
             self._held[b[amb]] = True
             self.withheld += int(np.count_nonzero(index[self._held] >= 0))
             index[self._held] = -1
 
-    def _confirm(self, points: np.ndarray, index: np.ndarray) -> np.ndarray:
+    def _confirm(self, points: np.ndarray, index: np.ndarray, fresh: np.ndarray) -> None:
         """A label that was missing takes a point only when the frame before offered it one within
         ``confirm_mm``: a ghost near an occluded marker's prediction rarely comes twice, a marker
         coming back does (live, one frame of it is lost; offline it is put back, see ``late``)."""
-        self._late = self._late_index = _EMPTY
-        if not self._candidate_ok.any() and self.missing_for.max() == 0:
-            return index
-        fresh = np.flatnonzero((index >= 0) & (self.missing_for > 0))
-        had = self._candidate_ok.copy()
-        self._candidate_ok[:] = False
-        if len(fresh) == 0:
-            return index
         p = points[index[fresh]]
         d = p - self._candidate[fresh]
-        ok = had[fresh] & (np.einsum("ij,ij->i", d, d) < self.settings.confirm_mm ** 2)
-        self._late, self._late_index = fresh[ok], self._candidate_index[fresh[ok]]
+        ok = self._candidate_ok[fresh] & (np.einsum("ij,ij->i", d, d) < self.settings.confirm_mm ** 2)
+        kept = fresh[ok]
+        self._late, self._late_index = kept, self._candidate_index[kept]
+        self._candidate_ok[:] = False
         self._candidate[fresh] = p
         self._candidate_index[fresh] = index[fresh]
         self._candidate_ok[fresh] = True
-        if not ok.all():
+        self._candidates = True
+        if len(kept) < len(fresh):
             index[fresh[~ok]] = -1
-            self.tentative += int((~ok).sum())
-        return index
+            self.tentative += len(fresh) - len(kept)
+        self._returning, self._returning_index = kept, index[kept]
 
-    def _pairs_met(self, model: np.ndarray) -> bool:
+    @property
+    def _all_pairs(self) -> np.ndarray:
+        return np.arange(self._pairs.shape[1])
+
+    def _pair_gaps(self) -> np.ndarray:
+        """Squared model separations of the watched pairs at the current weights; remembers which
+        pairs are near enough (at the current scale) to be ambiguous in the next frame."""
+        sep = self._pair_rest + (self._pair_basis @ self.w).reshape(-1, 3)
+        gap2 = np.einsum("ij,ij->i", sep, sep)
+        self._near = np.flatnonzero(gap2 < self._near_mm2 / (self.scale * self.scale))
+        return gap2
+
+    def _pairs_met(self, gap2: np.ndarray) -> bool:
         """True on the frames just after two watched labels' model positions came within the gate."""
-        a, b = self._pairs
-        d = model[a] - model[b]
-        if (np.einsum("ij,ij->i", d, d) < self.settings.gate_mm ** 2).any():
+        if (gap2 < self.settings.gate_mm ** 2).any():
             self.recheck = self.settings.recheck_frames
             return True
         if self.recheck > 0:
@@ -424,37 +482,42 @@ class MarkerLabeller:
         """Labels from the second opinion's pose and shape: the labels tracked before this frame
         are re-assigned; those that came back this frame (confirmed) keep their point if free."""
         self._model = self.model(self.w)
-        world = self._world(self._model)
-        d = _sqdist(world, points)
+        k = len(points)
+        d = np.zeros((self.n, k + 1))
+        d[:, :k] = _sqdist(self._world(self._model), points)
         index = np.full(self.n, -1, dtype=np.int64)
         rows = np.flatnonzero(self._tracked)
-        index[rows], _ = _assign(d[rows], self._g2[rows])
-        self._held = np.zeros(self.n, dtype=bool)
-        self._withhold(d, index)
+        index[rows], _ = _assign(d[rows, :k], self._g2[rows])
+        self._held = self._no_held
+        self._withhold(d, index, self._all_pairs)
+        self._pair_gaps()
         free = ~np.isin(self._returning_index, index[index >= 0])
         index[self._returning[free]] = self._returning_index[free]
         self.missing_for[:] = np.where((index >= 0) | self._held, 0.0, np.maximum(self.missing_for, 1.0))
         return index
 
-    def _reacquire(self, d: np.ndarray, index: np.ndarray) -> None:
+    def _reacquire(self, d: np.ndarray, index: np.ndarray, missing: np.ndarray) -> None:
         """Labels missing for a while (their prediction has drifted) may take points nobody took,
         within a gate that grows with the time they have been missing."""
-        lost = np.flatnonzero((index < 0) & (self.missing_for > 0))
-        if len(lost) == 0 or d.shape[1] <= np.count_nonzero(index >= 0):
+        lost = np.flatnonzero(missing & (index < 0))
+        if len(lost) == 0:
             return
-        free = np.ones(d.shape[1], dtype=bool)
-        free[index[index >= 0]] = False
-        free = np.flatnonzero(free)
         s = self.settings
-        gate = s.gate_mm * np.minimum(1.0 + s.reacquire_growth * self.missing_for[lost], s.reacquire_max)
-        sub, _ = _assign(d[np.ix_(lost, free)], gate ** 2)
-        got = sub >= 0
-        index[lost[got]] = free[sub[got]]
+        sub = d[lost]
+        sub[:, index[index >= 0]] = np.inf
+        near = sub.min(1)
+        if near.min() >= (s.gate_mm * s.reacquire_max) ** 2:
+            return
+        gate2 = (s.gate_mm * np.minimum(1.0 + s.reacquire_growth * self.missing_for[lost], s.reacquire_max)) ** 2
+        if (near >= gate2).all():
+            return
+        got, _ = _assign(sub, gate2)
+        ok = got >= 0
+        index[lost[ok]] = got[ok]
 
-    def _frame(self, points: np.ndarray, index: np.ndarray, initialised: bool) -> LabelFrame:
-        valid = index >= 0
-        pos = np.zeros((self.n, 3))
-        pos[valid] = points[index[valid]]
+    def _frame(self, points: np.ndarray, index: np.ndarray, valid: np.ndarray, initialised: bool) -> LabelFrame:
+        pos = points[index] if len(points) else np.zeros((self.n, 3))
+        pos[~valid] = 0.0
         late, self._late = self._late, _EMPTY
         return LabelFrame(index, pos, valid, initialised, late, self._late_index)
 
@@ -492,9 +555,10 @@ class MarkerLabeller:
         self.initialisations += int(self.tracking)
         self._model = local
         self._world_pred = self._world(local)
+        self._near = self._all_pairs
         self.poor = 0
         self.missing_for[:] = np.where(lab, 0.0, 1.0)
-        self._held[:] = False
+        self._held = self._no_held
         return index
 
     def _icp(self, points, local, scale, R, t):
