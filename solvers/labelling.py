@@ -41,7 +41,7 @@ class LabellerSettings:
     refine_at: int = 3  # this many labels missing and points unused: re-fit from a wide gate
     confirm_mm: float = 4.0  # a label coming back is kept when two frames in a row give it points this close
     close_pair_mm: float = 15.0  # label pairs this close at rest are watched for meeting (blinks)
-    recheck_frames: int = 6  # frames after two labels' predictions met that get a second opinion
+    recheck_frames: int = 2  # frames after two labels' predictions met that get a second opinion
     ambiguity_mm2: float = 8.0  # a watched pair whose two pairings' squared distances differ by less is withheld
     init_iterations: int = 20
     init_gate_mm: float = 25.0  # the ICP's first gate; it shrinks to gate_mm
@@ -74,6 +74,7 @@ def _axis_rotations() -> np.ndarray:
 
 _AXIS_ROTATIONS = _axis_rotations()
 _EMPTY = np.zeros(0, dtype=np.int64)
+_ROWS = np.arange(1024)
 
 
 def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -128,26 +129,22 @@ def _sqdist(pred: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", pred, pred)[:, None] + np.einsum("ij,ij->i", points, points) - 2.0 * (pred @ points.T)
 
 
-def _assign(d: np.ndarray, g2: np.ndarray) -> tuple[np.ndarray, float]:
-    """Row -> column (-1: none) minimising the sum of min(d, g2) over rows, and that sum.
+def _assign(d: np.ndarray, g2: np.ndarray) -> np.ndarray:
+    """Row -> column (-1: none) minimising the sum of min(d, g2) over rows.
 
     A row whose nearest column within its gate is nobody else's nearest is at its own minimum;
     only the rows and columns connected to a conflict through within-gate pairs can do better
     by trading, so the Hungarian solve runs on that component alone (exact: every pair outside it
-    costs the gate, the same as staying unmatched).
+    costs the gate, the same as staying unmatched). A row with gate 0 takes nothing.
     """
-    n = len(d)
-    index = np.full(n, -1, dtype=np.int64)
     near = d.argmin(1)
-    best = d[np.arange(n), near]
-    inside = best < g2
+    inside = d[_ROWS[: len(d)] if len(d) <= len(_ROWS) else np.arange(len(d)), near] < g2
     chosen = near[inside]
-    counts = np.bincount(chosen, minlength=d.shape[1]) if len(chosen) else None
-    if counts is None or counts.max() <= 1:
-        index[inside] = chosen
-        return index, float(np.minimum(best, g2).sum())
+    index = np.where(inside, near, -1)
+    if len(chosen) < 2 or np.bincount(chosen).max() <= 1:
+        return index
     within = d < g2[:, None]
-    rows = inside & (counts[near] > 1)
+    rows = inside & (np.bincount(chosen, minlength=d.shape[1])[near] > 1)
     while True:
         cols = within[rows].any(0)
         grown = within[:, cols].any(1)
@@ -157,12 +154,10 @@ def _assign(d: np.ndarray, g2: np.ndarray) -> tuple[np.ndarray, float]:
     r, c = np.flatnonzero(rows), np.flatnonzero(cols)
     sub = np.minimum(d[np.ix_(r, c)], g2[r, None])
     rr, cc = linear_sum_assignment(sub)
+    index[r] = -1
     keep = sub[rr, cc] < g2[r[rr]]
-    solo = inside & ~rows
-    index[solo] = near[solo]
     index[r[rr[keep]]] = c[cc[keep]]
-    cost = np.where(index >= 0, d[np.arange(n), np.maximum(index, 0)], g2)
-    return index, float(cost.sum())
+    return index
 
 
 def gated_assignment(pred: np.ndarray, points: np.ndarray, gate: float | np.ndarray) -> tuple[np.ndarray, float]:
@@ -175,7 +170,10 @@ def gated_assignment(pred: np.ndarray, points: np.ndarray, gate: float | np.ndar
     g2 = np.full(n, float(gate) ** 2) if np.isscalar(gate) else np.asarray(gate, dtype=np.float64) ** 2
     if len(points) == 0:
         return np.full(n, -1, dtype=np.int64), float(g2.sum())
-    return _assign(_sqdist(pred, points), g2)
+    d = _sqdist(pred, points)
+    index = _assign(d, g2)
+    cost = np.where(index >= 0, d[np.arange(n), np.maximum(index, 0)], g2)
+    return index, float(cost.sum())
 
 
 def _similarity(src: np.ndarray, dst: np.ndarray, lo: float, hi: float) -> tuple[float, np.ndarray, np.ndarray]:
@@ -218,9 +216,6 @@ class MarkerLabeller:
         a, b = self._pairs
         self._pair_rest = self.neutral[a] - self.neutral[b]
         self._pair_basis = (rows[a] - rows[b]).reshape(-1, m)  # the pairs' separations through the basis
-        g = self.settings.gate_mm
-        # beyond this predicted separation neither pairing of a pair can be within the ambiguity margin
-        self._near_mm2 = (g + np.sqrt(g * g + self.settings.ambiguity_mm2)) ** 2
         self._stable_idx = np.flatnonzero(self.stable)
         self._zero_w = np.clip(np.zeros(m), lower, upper)
         self._g2 = np.full(self.n, self.settings.gate_mm ** 2)
@@ -252,7 +247,6 @@ class MarkerLabeller:
         self._candidate_index = np.full(self.n, -1, dtype=np.int64)
         self._late = self._late_index = _EMPTY
         self._returning = self._returning_index = _EMPTY
-        self._near = np.arange(self._pairs.shape[1])
         self.tentative = 0
 
     # ------------------------------------------------------------------ model
@@ -325,14 +319,14 @@ class MarkerLabeller:
             return self._frame(points, index, index >= 0, True)
         s = self.settings
         n = self.n
-        index = self._label(self._world_pred, points, self._near)
+        index = self._label(self._world_pred, points)
         lab = index >= 0
         n_lab = int(np.count_nonzero(lab))
         if n - n_lab >= s.refine_at and len(points) - n_lab >= s.refine_at:
             self.refines += 1
             self._refine(points, 3, 2 * s.gate_mm)
             self._model = self.model(self.w)
-            index = self._label(self._world(self._model), points, self._all_pairs)
+            index = self._label(self._world(self._model), points)
             lab = index >= 0
         missing = self.missing_for > 0
         self._tracked = ~missing
@@ -374,7 +368,7 @@ class MarkerLabeller:
         self._world_pred = self._world(self._model)
         return self._frame(points, index, lab, False)
 
-    def _label(self, world: np.ndarray, points: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    def _label(self, world: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Labels tracked last frame are assigned first (a track keeps its point rather than
         hand it to a label that was missing: an occluded lid must not take the other lid's point
         at a blink); watched pairs whose assignment is within noise are withheld; labels that were
@@ -390,27 +384,22 @@ class MarkerLabeller:
         body += np.einsum("ij,ij->i", world, world)[:, None]
         body += np.einsum("ij,ij->i", points, points)
         d[:, k] = 0.0
-        tracked = self.missing_for == 0
-        if tracked.all():
-            index, _ = _assign(body, self._g2)
-        else:
-            index = np.full(self.n, -1, dtype=np.int64)
-            rows = np.flatnonzero(tracked)
-            index[rows], _ = _assign(body[rows], self._g2[rows])
-            self._withhold(d, index, pairs)
-            self._reacquire(body, index, ~tracked)
+        missing = self.missing_for > 0
+        if not missing.any():
+            index = _assign(body, self._g2)
+            self._withhold(d, index)
             return index
-        self._withhold(d, index, pairs)
+        index = _assign(body, np.where(missing, 0.0, self._g2))
+        self._withhold(d, index)
+        self._reacquire(body, index, np.flatnonzero(missing))
         return index
 
-    def _withhold(self, d: np.ndarray, index: np.ndarray, pairs: np.ndarray) -> None:
+    def _withhold(self, d: np.ndarray, index: np.ndarray) -> None:
         """Watched pairs (eyelids at a blink) whose two possible pairings cost within
         ``ambiguity_mm2`` of each other — or whose one point is about as near to either — are
         left unlabelled this frame: within marker noise either reading is as likely, and a wrong
         one would carry into the next prediction. They stay tracked. ``d``'s last column is 0."""
-        if len(pairs) == 0:
-            return
-        a, b = self._pairs[:, pairs]
+        a, b = self._pairs
         ia, ib = index[a], index[b]
         delta = d[b, ia] - d[a, ia] + d[a, ib] - d[b, ib]
         amb = (delta < self.settings.ambiguity_mm2) & (ia + ib > -2)
@@ -440,17 +429,10 @@ class MarkerLabeller:
             self.tentative += len(fresh) - len(kept)
         self._returning, self._returning_index = kept, index[kept]
 
-    @property
-    def _all_pairs(self) -> np.ndarray:
-        return np.arange(self._pairs.shape[1])
-
     def _pair_gaps(self) -> np.ndarray:
-        """Squared model separations of the watched pairs at the current weights; remembers which
-        pairs are near enough (at the current scale) to be ambiguous in the next frame."""
+        """Squared model separations of the watched pairs at the current weights."""
         sep = self._pair_rest + (self._pair_basis @ self.w).reshape(-1, 3)
-        gap2 = np.einsum("ij,ij->i", sep, sep)
-        self._near = np.flatnonzero(gap2 < self._near_mm2 / (self.scale * self.scale))
-        return gap2
+        return np.einsum("ij,ij->i", sep, sep)
 
     def _pairs_met(self, gap2: np.ndarray) -> bool:
         """True on the frames just after two watched labels' model positions came within the gate."""
@@ -487,21 +469,17 @@ class MarkerLabeller:
         d[:, :k] = _sqdist(self._world(self._model), points)
         index = np.full(self.n, -1, dtype=np.int64)
         rows = np.flatnonzero(self._tracked)
-        index[rows], _ = _assign(d[rows, :k], self._g2[rows])
+        index[rows] = _assign(d[rows, :k], self._g2[rows])
         self._held = self._no_held
-        self._withhold(d, index, self._all_pairs)
-        self._pair_gaps()
+        self._withhold(d, index)
         free = ~np.isin(self._returning_index, index[index >= 0])
         index[self._returning[free]] = self._returning_index[free]
         self.missing_for[:] = np.where((index >= 0) | self._held, 0.0, np.maximum(self.missing_for, 1.0))
         return index
 
-    def _reacquire(self, d: np.ndarray, index: np.ndarray, missing: np.ndarray) -> None:
-        """Labels missing for a while (their prediction has drifted) may take points nobody took,
-        within a gate that grows with the time they have been missing."""
-        lost = np.flatnonzero(missing & (index < 0))
-        if len(lost) == 0:
-            return
+    def _reacquire(self, d: np.ndarray, index: np.ndarray, lost: np.ndarray) -> None:
+        """Labels missing since last frame (``lost``, none assigned yet; their prediction may have
+        drifted) may take points nobody took, within a gate that grows with the time missing."""
         s = self.settings
         sub = d[lost]
         sub[:, index[index >= 0]] = np.inf
@@ -511,7 +489,7 @@ class MarkerLabeller:
         gate2 = (s.gate_mm * np.minimum(1.0 + s.reacquire_growth * self.missing_for[lost], s.reacquire_max)) ** 2
         if (near >= gate2).all():
             return
-        got, _ = _assign(sub, gate2)
+        got = _assign(sub, gate2)
         ok = got >= 0
         index[lost[ok]] = got[ok]
 
@@ -555,7 +533,6 @@ class MarkerLabeller:
         self.initialisations += int(self.tracking)
         self._model = local
         self._world_pred = self._world(local)
-        self._near = self._all_pairs
         self.poor = 0
         self.missing_for[:] = np.where(lab, 0.0, 1.0)
         self._held = self._no_held
