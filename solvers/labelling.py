@@ -242,6 +242,7 @@ class MarkerLabeller:
         self._no_held = np.zeros(self.n, dtype=bool)
         self._held = self._no_held
         self._candidates = False
+        self._sep_min = 0.0
         self._candidate = np.zeros((self.n, 3))
         self._candidate_ok = np.zeros(self.n, dtype=bool)
         self._candidate_index = np.full(self.n, -1, dtype=np.int64)
@@ -326,6 +327,7 @@ class MarkerLabeller:
             self.refines += 1
             self._refine(points, 3, 2 * s.gate_mm)
             self._model = self.model(self.w)
+            self._sep_min = 0.0
             index = self._label(self._world(self._model), points)
             lab = index >= 0
         missing = self.missing_for > 0
@@ -398,7 +400,16 @@ class MarkerLabeller:
         """Watched pairs (eyelids at a blink) whose two possible pairings cost within
         ``ambiguity_mm2`` of each other — or whose one point is about as near to either — are
         left unlabelled this frame: within marker noise either reading is as likely, and a wrong
-        one would carry into the next prediction. They stay tracked. ``d``'s last column is 0."""
+        one would carry into the next prediction. They stay tracked. ``d``'s last column is 0.
+
+        Skipped when no pair can be: with every assigned point within e of its prediction and
+        every pair's predictions at least ``sep`` apart, either pairing of a pair differs by at
+        least sep (sep - 2e)."""
+        sep = self._sep_min
+        if sep > 0.0:
+            e = float(np.sqrt(d[_ROWS[: self.n], index].max()))
+            if sep * (sep - 2.0 * e) >= self.settings.ambiguity_mm2 and sep > 2.0 * e:
+                return
         a, b = self._pairs
         ia, ib = index[a], index[b]
         delta = d[b, ia] - d[a, ia] + d[a, ib] - d[b, ib]
@@ -430,9 +441,12 @@ class MarkerLabeller:
         self._returning, self._returning_index = kept, index[kept]
 
     def _pair_gaps(self) -> np.ndarray:
-        """Squared model separations of the watched pairs at the current weights."""
+        """Squared model separations of the watched pairs at the current weights (and the
+        smallest in the world, for the next frame's ambiguity test)."""
         sep = self._pair_rest + (self._pair_basis @ self.w).reshape(-1, 3)
-        return np.einsum("ij,ij->i", sep, sep)
+        gap2 = np.einsum("ij,ij->i", sep, sep)
+        self._sep_min = self.scale * float(np.sqrt(gap2.min())) if len(gap2) else np.inf
+        return gap2
 
     def _pairs_met(self, gap2: np.ndarray) -> bool:
         """True on the frames just after two watched labels' model positions came within the gate."""
@@ -471,7 +485,9 @@ class MarkerLabeller:
         rows = np.flatnonzero(self._tracked)
         index[rows] = _assign(d[rows, :k], self._g2[rows])
         self._held = self._no_held
+        self._sep_min = 0.0
         self._withhold(d, index)
+        self._pair_gaps()
         free = ~np.isin(self._returning_index, index[index >= 0])
         index[self._returning[free]] = self._returning_index[free]
         self.missing_for[:] = np.where((index >= 0) | self._held, 0.0, np.maximum(self.missing_for, 1.0))
@@ -536,6 +552,7 @@ class MarkerLabeller:
         self.poor = 0
         self.missing_for[:] = np.where(lab, 0.0, 1.0)
         self._held = self._no_held
+        self._sep_min = 0.0
         return index
 
     def _icp(self, points, local, scale, R, t):
