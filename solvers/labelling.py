@@ -379,37 +379,32 @@ class MarkerLabeller:
         k = len(points)
         if k == 0:
             return np.full(self.n, -1, dtype=np.int64)
-        d = np.empty((self.n, k + 1))  # last column 0: index -1 (missing) reads no distance
-        body = d[:, :k]
-        np.matmul(world, points.T, out=body)
-        body *= -2.0
-        body += np.einsum("ij,ij->i", world, world)[:, None]
-        body += np.einsum("ij,ij->i", points, points)
-        d[:, k] = 0.0
+        d = _sqdist(world, points)
         missing = self.missing_for > 0
         if not missing.any():
-            index = _assign(body, self._g2)
+            index = _assign(d, self._g2)
             self._withhold(d, index)
             return index
-        index = _assign(body, np.where(missing, 0.0, self._g2))
+        index = _assign(d, np.where(missing, 0.0, self._g2))
         self._withhold(d, index)
-        self._reacquire(body, index, np.flatnonzero(missing))
+        self._reacquire(d, index, np.flatnonzero(missing))
         return index
 
     def _withhold(self, d: np.ndarray, index: np.ndarray) -> None:
         """Watched pairs (eyelids at a blink) whose two possible pairings cost within
         ``ambiguity_mm2`` of each other — or whose one point is about as near to either — are
         left unlabelled this frame: within marker noise either reading is as likely, and a wrong
-        one would carry into the next prediction. They stay tracked. ``d``'s last column is 0.
+        one would carry into the next prediction. They stay tracked.
 
         Skipped when no pair can be: with every assigned point within e of its prediction and
         every pair's predictions at least ``sep`` apart, either pairing of a pair differs by at
         least sep (sep - 2e)."""
         sep = self._sep_min
         if sep > 0.0:
-            e = float(np.sqrt(d[_ROWS[: self.n], index].max()))
+            e = float(np.sqrt(d[_ROWS[: self.n], index][index >= 0].max(initial=0.0)))
             if sep * (sep - 2.0 * e) >= self.settings.ambiguity_mm2 and sep > 2.0 * e:
                 return
+        d = np.concatenate([d, np.zeros((self.n, 1))], axis=1)  # index -1 (missing) reads no distance
         a, b = self._pairs
         ia, ib = index[a], index[b]
         delta = d[b, ia] - d[a, ia] + d[a, ib] - d[b, ib]
@@ -478,12 +473,10 @@ class MarkerLabeller:
         """Labels from the second opinion's pose and shape: the labels tracked before this frame
         are re-assigned; those that came back this frame (confirmed) keep their point if free."""
         self._model = self.model(self.w)
-        k = len(points)
-        d = np.zeros((self.n, k + 1))
-        d[:, :k] = _sqdist(self._world(self._model), points)
+        d = _sqdist(self._world(self._model), points)
         index = np.full(self.n, -1, dtype=np.int64)
         rows = np.flatnonzero(self._tracked)
-        index[rows] = _assign(d[rows, :k], self._g2[rows])
+        index[rows] = _assign(d[rows], self._g2[rows])
         self._held = self._no_held
         self._sep_min = 0.0
         self._withhold(d, index)
