@@ -80,12 +80,13 @@ _ROWS = np.arange(1024)
 def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Kabsch (Arun et al. 1987) for the per-frame head re-fit: the rotation is the polar factor
     of the cross-covariance, by scaled Newton iteration X <- (g X + X^-T / g) / 2 (Higham 1986) in
-    plain floats — quadratic convergence, no LAPACK call; SVD when the covariance is singular or
-    reflected."""
+    plain floats — quadratic convergence (one more step after a change below 1e-6 leaves ~1e-12),
+    no LAPACK call; SVD when the covariance is singular or reflected."""
     inv = 1.0 / len(src)
     cs = src.sum(0) * inv
     cd = dst.sum(0) * inv
     (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = ((dst - cd).T @ (src - cs)).tolist()
+    last = False
     for _ in range(12):
         c00, c01, c02 = m11 * m22 - m12 * m21, m12 * m20 - m10 * m22, m10 * m21 - m11 * m20
         c10, c11, c12 = m02 * m21 - m01 * m22, m00 * m22 - m02 * m20, m01 * m20 - m00 * m21
@@ -100,10 +101,11 @@ def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n00, n01, n02 = a * m00 + b * c00, a * m01 + b * c01, a * m02 + b * c02
         n10, n11, n12 = a * m10 + b * c10, a * m11 + b * c11, a * m12 + b * c12
         n20, n21, n22 = a * m20 + b * c20, a * m21 + b * c21, a * m22 + b * c22
-        step = abs(n00 - m00) + abs(n11 - m11) + abs(n22 - m22) + abs(n01 - m01) + abs(n10 - m10)
-        m00, m01, m02, m10, m11, m12, m20, m21, m22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
-        if step < 1e-12:
+        if last:
+            m00, m01, m02, m10, m11, m12, m20, m21, m22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
             break
+        last = abs(n00 - m00) + abs(n11 - m11) + abs(n22 - m22) + abs(n01 - m01) + abs(n10 - m10) < 1e-6
+        m00, m01, m02, m10, m11, m12, m20, m21, m22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
     R = np.array(((m00, m01, m02), (m10, m11, m12), (m20, m21, m22)))
     return R, cd - R @ cs
 
