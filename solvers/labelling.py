@@ -42,7 +42,7 @@ class LabellerSettings:
     confirm_mm: float = 4.0  # a label coming back is kept when two frames in a row give it points this close
     close_pair_mm: float = 15.0  # label pairs this close at rest are watched for meeting (blinks)
     recheck_frames: int = 2  # frames after two labels' predictions met that get a second opinion
-    ambiguity_mm2: float = 8.0  # a watched pair whose two pairings' squared distances differ by less is withheld
+    ambiguity_mm2: float = 5.0  # a watched pair whose two pairings' squared distances differ by less is withheld
     init_iterations: int = 20
     init_gate_mm: float = 25.0  # the ICP's first gate; it shrinks to gate_mm
     scale_range: tuple[float, float] = (0.8, 1.25)
