@@ -4,12 +4,13 @@ An optical system hands over each frame's points unordered, with ghosts (reflect
 gaps; facial markers sit too close together for its own labeller. Every frame, each label's
 position is predicted from the head pose and the last fitted blendshape weights through the
 marker basis B (the rig is a strong shape model of where the markers can be; Seol et al. 2012
-§3), plus the marker's last residual against that model. Labels and points are then matched
-one-to-one by ``scipy.optimize.linear_sum_assignment`` on squared distance clipped at the gate,
-which is exactly the assignment in which a label may stay unmatched (missing) at the cost of the
-gate and a point may stay unused (ghost). The head pose is re-fitted on the labelled stable
-markers (Kabsch; Arun et al. 1987) and the weights on all labelled ones (ridge least squares,
-clipped to the rig's limits).
+§3). Labels and points are then matched one-to-one by ``scipy.optimize.linear_sum_assignment``
+on squared distance clipped at the gate, which is exactly the assignment in which a label may
+stay unmatched (missing) at the cost of the gate and a point may stay unused (ghost) — labels
+tracked last frame first, then the missing ones on the leftovers; watched close pairs (eyelids)
+whose two readings are within noise are withheld. The head pose is re-fitted on the labelled
+stable markers (Kabsch; Arun et al. 1987) and the weights on all labelled ones (ridge least
+squares, clipped to the rig's limits).
 
 Without a track (first frame, or after too many poorly labelled frames) the neutral
 constellation is fitted to the cloud: the principal axes of both give 24 axis-aligned rotation
