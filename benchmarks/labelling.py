@@ -2,9 +2,12 @@
 solve's weight RMSE against the labelled solve, on the bundled demo take and on an ICT-FaceKit
 take (labels stripped, points shuffled every frame, 2 ghosts per frame, occlusion bursts to 5 %),
 each also as a 20 % faster and larger performance than the calibration; the per-frame labelling
-time beside the robust solve's (the baseline, same run).
+CPU time beside the robust solve's step (the baseline, interleaved frame by frame in the same run).
 
-    python -m benchmarks.labelling [--quick]
+    python -m benchmarks.labelling [--quick] [--against REV]
+
+``--against REV``: also times ``solvers/labelling.py`` as it was at git revision REV (e.g. the
+previous labeller), interleaved with the current one on the same frames.
 
 ``run(quick)`` prints a table and returns the figures as a dict (``--json FILE`` writes them).
 """
@@ -15,7 +18,7 @@ import sys
 from pathlib import Path
 
 from benchmarks.demo_take import TAKE, demo_take
-from benchmarks.timing import suite_main, table, time_calls
+from benchmarks.timing import suite_main, table
 
 ICT = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "ict-face"
 
@@ -68,45 +71,97 @@ def cases(quick: bool):
     return out
 
 
-def _step_time(profile, take, quick: bool) -> dict:
-    """Steady-state labeller.step time on a scrambled take's clouds (after its first frame)."""
+def _labeller_at(rev: str):
+    """``solvers/labelling.py`` at git revision ``rev``, imported as its own module."""
+    import importlib.util
+    import subprocess
+    import tempfile
+
+    root = Path(__file__).resolve().parents[1]
+    text = subprocess.run(["git", "-C", str(root), "show", f"{rev}:solvers/labelling.py"], check=True,
+                          capture_output=True, text=True).stdout
+    path = Path(tempfile.mkdtemp()) / "labelling_at_rev.py"
+    path.write_text(text)
+    spec = importlib.util.spec_from_file_location("labelling_at_rev", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["labelling_at_rev"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _step_time(profile, take, quick: bool, mode: str = "robust", baseline=None) -> dict:
+    """Per-frame CPU time (``time.thread_time_ns``: the machine is shared, CPU time is less noisy
+    than wall time) of ``labeller.step`` on a scrambled take's clouds and, interleaved frame by
+    frame under the same load, of the ``mode`` solver's step on the same take's labelled frames."""
+    import time
+
+    import numpy as np
+
     from livecap.demo.unlabelled import scramble
     from livecap.live.unlabelled import labeller_for
+    from livecap.modes.registry import build_solver
+    from livecap.offline.solve import prepare_targets
 
     sc = scramble(take.select(profile.labels), seed=5)
     clouds = [sc.cloud.positions[f, sc.cloud.valid[f]] for f in range(sc.cloud.n_frames)]
+    occluded, targets, _, _ = prepare_targets(sc.occluded, profile)
     lab = labeller_for(profile)
+    old = None if baseline is None else baseline.MarkerLabeller(profile.source_neutral, profile.stable,
+                                                                profile.basis, profile.lower, profile.upper)
+    solver = build_solver(mode, profile, {})
     lab.step(clouds[0])
+    if old is not None:
+        old.step(clouds[0])
     n = min(len(clouds) - 1, 500 if quick else 2000)
-    best = None
-    for _ in range(1 if quick else 3):  # the machine is shared: the quietest of three passes
-        r = time_calls(lambda i: lab.step(clouds[1 + i % n]), n, warmup=20)
-        best = r if best is None or r["median_us"] < best["median_us"] else best
-    return best
+    t_lab, t_solve, t_old = np.empty(n), np.empty(n), np.empty(n)
+    clock = time.thread_time_ns
+    for i in range(n):
+        f = 1 + i
+        t0 = clock()
+        lab.step(clouds[f])
+        t1 = clock()
+        solver.step(targets[f], occluded.valid[f])
+        t2 = clock()
+        if old is not None:
+            old.step(clouds[f])
+        t_lab[i], t_solve[i], t_old[i] = t1 - t0, t2 - t1, clock() - t2
+    out = {}
+    for key, t in (("label", t_lab), ("solve", t_solve)) + ((("baseline", t_old),) if old is not None else ()):
+        out[f"{key}_median_us"] = float(np.median(t)) / 1e3
+        out[f"{key}_p99_us"] = float(np.percentile(t, 99)) / 1e3
+    return out
 
 
-def run(quick: bool = False) -> dict:
+def run(quick: bool = False, against: tuple[str, ...] = ("",)) -> dict:
+    import os
+
     from livecap.offline.labelling import labelling_study
 
+    baseline = _labeller_at(against[0]) if against and against[0] else None
     rows = []
+    load = [os.getloadavg()[0]]
     for name, profile, take, truth in cases(quick):
         st = labelling_study(take, profile, truth, seed=1)
-        step = _step_time(profile, take, quick)
+        step = _step_time(profile, take, quick, baseline=baseline)
+        load.append(os.getloadavg()[0])
         rows.append({
             "take": name, "frames": take.n_frames, "markers": len(profile.labels),
             "right_pct": 100 * st.scores.right, "longest_swap": st.scores.longest_swap,
             "unlabelled": st.scores.unlabelled, "ghosts_labelled": st.scores.ghost_labelled,
             "rmse_labelled": st.rmse_labelled, "rmse_unlabelled": st.rmse_unlabelled,
-            "rmse_ratio": st.rmse_ratio, "label_median_us": step["median_us"], "label_p99_us": step["p99_us"],
-            "solve_us": st.solve_us_per_frame, "label_over_solve": step["median_us"] / st.solve_us_per_frame,
+            "rmse_ratio": st.rmse_ratio, **step, "label_over_solve": step["label_median_us"] / step["solve_median_us"],
             "inits": st.initialisations,
         })
     print(table(rows, ["take", "frames", "right_pct", "longest_swap", "unlabelled", "ghosts_labelled",
                        "rmse_labelled", "rmse_unlabelled", "rmse_ratio", "label_median_us", "label_p99_us",
-                       "solve_us", "label_over_solve", "inits"],
-                "labelling unlabelled clouds (2 ghosts/frame, occlusion to 5 %, robust solve)"))
-    return {"rows": rows, "ghosts": 2, "occlusion": 0.05, "mode": "robust"}
+                       "solve_median_us", "solve_p99_us", "label_over_solve", "inits"]
+                + (["baseline_median_us", "baseline_p99_us"] if baseline is not None else []),
+                "labelling unlabelled clouds (2 ghosts/frame, occlusion to 5 %, robust solve; "
+                "per-frame CPU time)"))
+    print(f"load average (1 min) during the run: {min(load):.1f}-{max(load):.1f}")
+    return {"rows": rows, "ghosts": 2, "occlusion": 0.05, "mode": "robust", "load": load,
+            "baseline_rev": against[0] if baseline is not None else None}
 
 
 if __name__ == "__main__":
-    sys.exit(suite_main(run, __doc__))
+    sys.exit(suite_main(run, __doc__, against=""))

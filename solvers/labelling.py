@@ -4,12 +4,13 @@ An optical system hands over each frame's points unordered, with ghosts (reflect
 gaps; facial markers sit too close together for its own labeller. Every frame, each label's
 position is predicted from the head pose and the last fitted blendshape weights through the
 marker basis B (the rig is a strong shape model of where the markers can be; Seol et al. 2012
-§3), plus the marker's last residual against that model. Labels and points are then matched
-one-to-one by ``scipy.optimize.linear_sum_assignment`` on squared distance clipped at the gate,
-which is exactly the assignment in which a label may stay unmatched (missing) at the cost of the
-gate and a point may stay unused (ghost). The head pose is re-fitted on the labelled stable
-markers (Kabsch; Arun et al. 1987) and the weights on all labelled ones (ridge least squares,
-clipped to the rig's limits).
+§3). Labels and points are then matched one-to-one by ``scipy.optimize.linear_sum_assignment``
+on squared distance clipped at the gate, which is exactly the assignment in which a label may
+stay unmatched (missing) at the cost of the gate and a point may stay unused (ghost) — labels
+tracked last frame first, then the missing ones on the leftovers; watched close pairs (eyelids)
+whose two readings are within noise are withheld. The head pose is re-fitted on the labelled
+stable markers (Kabsch; Arun et al. 1987) and the weights on all labelled ones (ridge least
+squares, clipped to the rig's limits).
 
 Without a track (first frame, or after too many poorly labelled frames) the neutral
 constellation is fitted to the cloud: the principal axes of both give 24 axis-aligned rotation
@@ -34,8 +35,6 @@ class LabellerSettings:
     reacquire_growth: float = 0.15  # a missing label's gate grows by this fraction per frame missing
     reacquire_max: float = 2.0  # ... up to this multiple of gate_mm
     ridge: float = 1e-3  # shape fit ridge, relative to the basis' mean squared column norm
-    residual_max_mm: float = 4.0  # remembered model residual is clipped to this length (a swap's is larger)
-    residual_decay: float = 0.95  # per-frame decay of a missing marker's remembered model residual
     min_labelled: float = 0.5  # a frame labelling fewer than this fraction of labels is poor
     lost_after: int = 3  # consecutive poor frames that end the track (re-initialise)
     limit_slack: float = 0.5  # the fit's weights may pass the rig's limits by this fraction of their range
@@ -43,7 +42,8 @@ class LabellerSettings:
     refine_at: int = 3  # this many labels missing and points unused: re-fit from a wide gate
     confirm_mm: float = 4.0  # a label coming back is kept when two frames in a row give it points this close
     close_pair_mm: float = 15.0  # label pairs this close at rest are watched for meeting (blinks)
-    recheck_frames: int = 6  # frames after two labels' predictions met that get a second opinion
+    recheck_frames: int = 2  # frames after two labels' predictions met that get a second opinion
+    ambiguity_mm2: float = 5.0  # a watched pair whose two pairings' squared distances differ by less is withheld
     init_iterations: int = 20
     init_gate_mm: float = 25.0  # the ICP's first gate; it shrinks to gate_mm
     scale_range: tuple[float, float] = (0.8, 1.25)
@@ -74,20 +74,48 @@ def _axis_rotations() -> np.ndarray:
 
 
 _AXIS_ROTATIONS = _axis_rotations()
-_ARANGE = np.arange(4096)
+_EMPTY = np.zeros(0, dtype=np.int64)
+_ROWS = np.arange(1024)
 
 
 def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Kabsch with the fewest numpy calls (the per-frame head re-fit)."""
+    """Kabsch (Arun et al. 1987) for the per-frame head re-fit: the rotation is the polar factor
+    of the cross-covariance, by scaled Newton iteration X <- (g X + X^-T / g) / 2 (Higham 1986) in
+    plain floats — quadratic convergence (one more step after a change below 1e-6 leaves ~1e-12),
+    no LAPACK call; SVD when the covariance is singular or reflected."""
     inv = 1.0 / len(src)
     cs = src.sum(0) * inv
     cd = dst.sum(0) * inv
-    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    R = Vt.T @ U.T
-    a, b, c = R.tolist()
-    if a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0]) + a[2] * (b[0] * c[1] - b[1] * c[0]) < 0:
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = ((dst - cd).T @ (src - cs)).tolist()
+    last = False
+    for _ in range(12):
+        c00, c01, c02 = m11 * m22 - m12 * m21, m12 * m20 - m10 * m22, m10 * m21 - m11 * m20
+        c10, c11, c12 = m02 * m21 - m01 * m22, m00 * m22 - m02 * m20, m01 * m20 - m00 * m21
+        c20, c21, c22 = m01 * m12 - m02 * m11, m02 * m10 - m00 * m12, m00 * m11 - m01 * m10
+        det = m00 * c00 + m01 * c01 + m02 * c02
+        if det <= 1e-12 * (abs(m00) + abs(m11) + abs(m22)) ** 3:
+            return _rigid_svd(src - cs, dst - cd, cs, cd)
+        nx = m00 * m00 + m01 * m01 + m02 * m02 + m10 * m10 + m11 * m11 + m12 * m12 + m20 * m20 + m21 * m21 + m22 * m22
+        nc = c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12 + c20 * c20 + c21 * c21 + c22 * c22
+        g = (nc / (nx * det * det)) ** 0.25
+        a, b = 0.5 * g, 0.5 / (g * det)
+        n00, n01, n02 = a * m00 + b * c00, a * m01 + b * c01, a * m02 + b * c02
+        n10, n11, n12 = a * m10 + b * c10, a * m11 + b * c11, a * m12 + b * c12
+        n20, n21, n22 = a * m20 + b * c20, a * m21 + b * c21, a * m22 + b * c22
+        if last:
+            m00, m01, m02, m10, m11, m12, m20, m21, m22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
+            break
+        last = abs(n00 - m00) + abs(n11 - m11) + abs(n22 - m22) + abs(n01 - m01) + abs(n10 - m10) < 1e-6
+        m00, m01, m02, m10, m11, m12, m20, m21, m22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
+    R = np.array(((m00, m01, m02), (m10, m11, m12), (m20, m21, m22)))
+    return R, cd - R @ cs
+
+
+def _rigid_svd(src: np.ndarray, dst: np.ndarray, cs: np.ndarray, cd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    U, _, Vt = np.linalg.svd(src.T @ dst)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
         Vt[2] = -Vt[2]
-        R = Vt.T @ U.T
+    R = Vt.T @ U.T
     return R, cd - R @ cs
 
 
@@ -99,34 +127,56 @@ def _principal_axes(p: np.ndarray) -> np.ndarray:
     return vecs
 
 
+def _sqdist(pred: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """All squared label-point distances by one matmul."""
+    return np.einsum("ij,ij->i", pred, pred)[:, None] + np.einsum("ij,ij->i", points, points) - 2.0 * (pred @ points.T)
+
+
+def _assign(d: np.ndarray, g2: np.ndarray) -> np.ndarray:
+    """Row -> column (-1: none) minimising the sum of min(d, g2) over rows.
+
+    A row whose nearest column within its gate is nobody else's nearest is at its own minimum;
+    only the rows and columns connected to a conflict through within-gate pairs can do better
+    by trading, so the Hungarian solve runs on that component alone (exact: every pair outside it
+    costs the gate, the same as staying unmatched). A row with gate 0 takes nothing.
+    """
+    near = d.argmin(1)
+    inside = d[_ROWS[: len(d)] if len(d) <= len(_ROWS) else np.arange(len(d)), near] < g2
+    chosen = near[inside]
+    index = np.where(inside, near, -1)
+    if len(chosen) < 2 or np.bincount(chosen).max() <= 1:
+        return index
+    within = d < g2[:, None]
+    rows = inside & (np.bincount(chosen, minlength=d.shape[1])[near] > 1)
+    while True:
+        cols = within[rows].any(0)
+        grown = within[:, cols].any(1)
+        if (grown == rows).all():
+            break
+        rows = grown
+    r, c = np.flatnonzero(rows), np.flatnonzero(cols)
+    sub = np.minimum(d[np.ix_(r, c)], g2[r, None])
+    rr, cc = linear_sum_assignment(sub)
+    index[r] = -1
+    keep = sub[rr, cc] < g2[r[rr]]
+    index[r[rr[keep]]] = c[cc[keep]]
+    return index
+
+
 def gated_assignment(pred: np.ndarray, points: np.ndarray, gate: float | np.ndarray) -> tuple[np.ndarray, float]:
     """Label -> point index (-1: missing) minimising the sum of min(d^2, gate^2), and that sum.
 
-    ``gate`` may be one per label. When every label's nearest point within its gate is a
-    different point, that is already optimal (each label at its own minimum cost) and the
-    Hungarian solve is skipped.
+    ``gate`` may be one per label: the one-to-one assignment in which a label may stay missing at
+    the gate's cost and a point unused (a ghost).
     """
     n = len(pred)
-    index = np.full(n, -1, dtype=np.int64)
     g2 = np.full(n, float(gate) ** 2) if np.isscalar(gate) else np.asarray(gate, dtype=np.float64) ** 2
     if len(points) == 0:
-        return index, float(g2.sum())
-    d = np.einsum("ij,ij->i", pred, pred)[:, None] + np.einsum("ij,ij->i", points, points) - 2.0 * (pred @ points.T)
-    np.minimum(d, g2[:, None], out=d)
-    near = d.argmin(1)
-    best = d[_ARANGE[:n] if n <= len(_ARANGE) else np.arange(n), near]
-    inside = best < g2
-    chosen = near[inside]
-    if not len(chosen) or np.bincount(chosen).max() <= 1:
-        index[inside] = chosen
-        return index, float(best.sum())
-    rows, cols = linear_sum_assignment(d)
-    cost = d[rows, cols]
-    keep = cost < g2[rows]
-    index[rows[keep]] = cols[keep]
-    unmatched = np.ones(n, dtype=bool)
-    unmatched[rows] = False
-    return index, float(cost.sum() + g2[unmatched].sum())
+        return np.full(n, -1, dtype=np.int64), float(g2.sum())
+    d = _sqdist(pred, points)
+    index = _assign(d, g2)
+    cost = np.where(index >= 0, d[np.arange(n), np.maximum(index, 0)], g2)
+    return index, float(cost.sum())
 
 
 def _similarity(src: np.ndarray, dst: np.ndarray, lo: float, hi: float) -> tuple[float, np.ndarray, np.ndarray]:
@@ -159,13 +209,19 @@ class MarkerLabeller:
         m = self.basis.shape[1]
         gram = self.basis.T @ self.basis
         lam = self.settings.ridge * float(np.trace(gram)) / max(m, 1)
-        self._fit = np.linalg.solve(gram + lam * np.eye(m), self.basis.T)  # m x 3n
         self._gram = gram + lam * np.eye(m)
+        self._fit = np.linalg.solve(self._gram, self.basis.T)  # m x 3n
+        self._fit_offset = self._fit @ self.neutral.ravel()
         rows = self.basis.reshape(self.n, 3, m)
         self._marker_gram = np.einsum("nki,nkj->nij", rows, rows)  # each marker's share of the gram
         gap = np.linalg.norm(self.neutral[:, None] - self.neutral[None], axis=-1)
         self._pairs = np.argwhere(np.triu(gap < self.settings.close_pair_mm, 1)).T  # 2 x p
+        a, b = self._pairs
+        self._pair_rest = self.neutral[a] - self.neutral[b]
+        self._pair_basis = (rows[a] - rows[b]).reshape(-1, m)  # the pairs' separations through the basis
+        self._stable_idx = np.flatnonzero(self.stable)
         self._zero_w = np.clip(np.zeros(m), lower, upper)
+        self._g2 = np.full(self.n, self.settings.gate_mm ** 2)
         self.reset()
 
     def reset(self) -> None:
@@ -175,20 +231,26 @@ class MarkerLabeller:
         self.R = np.eye(3)
         self.t = np.zeros(3)
         self.w = self._zero_w.copy()
-        self.residual = np.zeros((self.n, 3))
+        self._model = self.model(self.w)
+        self._world_pred = self._model.copy()
         self.poor = 0
         self.initialisations = 0
         self.refines = 0
         self.rejected = 0
         self.second_opinions = 0
+        self.withheld = 0
         self.recheck = 0
-        self._forget: np.ndarray | None = None
         self.missing_for = np.zeros(self.n)
+        self._tracked = np.ones(self.n, dtype=bool)
+        self._no_held = np.zeros(self.n, dtype=bool)
+        self._held = self._no_held
+        self._candidates = False
+        self._sep_min = 0.0
         self._candidate = np.zeros((self.n, 3))
         self._candidate_ok = np.zeros(self.n, dtype=bool)
         self._candidate_index = np.full(self.n, -1, dtype=np.int64)
-        self._late = np.zeros(0, dtype=np.int64)
-        self._late_index = np.zeros(0, dtype=np.int64)
+        self._late = self._late_index = _EMPTY
+        self._returning = self._returning_index = _EMPTY
         self.tentative = 0
 
     # ------------------------------------------------------------------ model
@@ -197,14 +259,20 @@ class MarkerLabeller:
         return self.neutral + (self.basis @ w).reshape(self.n, 3)
 
     def _world(self, local: np.ndarray) -> np.ndarray:
-        return self.scale * local @ self.R.T + self.t
+        return (self.scale * local) @ self.R.T + self.t
 
-    def _fit_shape(self, points: np.ndarray, index: np.ndarray, predicted_local: np.ndarray) -> np.ndarray:
-        """Weights from the labelled markers (missing ones held at their prediction)."""
-        lab = index >= 0
-        local = predicted_local.copy()
-        local[lab] = ((points[index[lab]] - self.t) @ self.R) / self.scale
-        w = self._fit @ (local - self.neutral).ravel()
+    def _local(self, points: np.ndarray) -> np.ndarray:
+        return ((points - self.t) @ self.R) * (1.0 / self.scale)
+
+    def _fit_shape(self, local: np.ndarray, lab: np.ndarray, n_lab: int) -> np.ndarray:
+        """Weights from the labelled markers' head-frame positions (missing ones held at their
+        prediction): ridge least squares through the precomputed pseudo-inverse."""
+        if n_lab < self.n:
+            full = self._model.copy()
+            full[lab] = local
+            local = full
+        w = self._fit @ local.ravel()
+        w -= self._fit_offset
         np.clip(w, self.lower, self.upper, out=w)
         return w
 
@@ -212,7 +280,7 @@ class MarkerLabeller:
         """Weights from the labelled markers alone (no pull towards the prediction of missing ones)."""
         lab = index >= 0
         gram = self._gram - self._marker_gram[~lab].sum(0)
-        local = ((points[index[lab]] - self.t) @ self.R) / self.scale
+        local = self._local(points[index[lab]])
         rhs = self.basis.reshape(self.n, 3, -1)[lab].reshape(-1, self.basis.shape[1]).T @ (
             local - self.neutral[lab]).ravel()
         w = np.linalg.solve(gram, rhs)
@@ -232,12 +300,15 @@ class MarkerLabeller:
         return index
 
     def _fit_pose(self, points: np.ndarray, index: np.ndarray, local: np.ndarray) -> bool:
-        lab = index >= 0
-        use = lab & self.stable
-        if use.sum() < 3:
-            use = lab
-        if use.sum() < 3:
-            return False
+        ist = index[self._stable_idx]
+        if ist.min() >= 0:
+            self.R, self.t = _rigid(self.scale * local[self._stable_idx], points[ist])
+            return True
+        use = self._stable_idx[ist >= 0]
+        if len(use) < 3:
+            use = np.flatnonzero(index >= 0)
+            if len(use) < 3:
+                return False
         self.R, self.t = _rigid(self.scale * local[use], points[index[use]])
         return True
 
@@ -245,96 +316,150 @@ class MarkerLabeller:
     def step(self, points: np.ndarray) -> LabelFrame:
         """Label one frame's unordered points (k x 3, any k)."""
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        points = points[np.isfinite(points).all(1)]
-        s = self.settings
+        if not np.isfinite(points).all():
+            points = points[np.isfinite(points).all(1)]
         if not self.tracking:
             index = self.initialise(points)
-            return self._frame(points, index, True)
-        predicted = self._model + self.residual
-        world = self._world(predicted)
-        index, _ = gated_assignment(world, points, s.gate_mm)
-        self._reacquire(world, points, index)
+            return self._frame(points, index, index >= 0, True)
+        s = self.settings
+        n = self.n
+        index = self._label(self._world_pred, points)
         lab = index >= 0
-        missing = self.n - int(lab.sum())
-        if missing >= s.refine_at and len(points) - (self.n - missing) >= s.refine_at:
+        n_lab = int(np.count_nonzero(lab))
+        if n - n_lab >= s.refine_at and len(points) - n_lab >= s.refine_at:
             self.refines += 1
             self._refine(points, 3, 2 * s.gate_mm)
-            self.residual[:] = 0.0
-            predicted = self._model = self.model(self.w)
-            index, _ = gated_assignment(self._world(predicted), points, s.gate_mm)
+            self._model = self.model(self.w)
+            self._sep_min = 0.0
+            index = self._label(self._world(self._model), points)
             lab = index >= 0
-        index, lab = self._confirm(points, index, lab)
+        missing = self.missing_for > 0
+        self._tracked = ~missing
+        self._late = self._late_index = self._returning = self._returning_index = _EMPTY
+        fresh = lab & missing
+        if fresh.any():
+            self._confirm(points, index, np.flatnonzero(fresh))
+            lab = index >= 0
+        elif self._candidates:
+            self._candidate_ok[:] = False
+            self._candidates = False
+        n_lab = int(np.count_nonzero(lab))
         self.missing_for += 1.0
-        self.missing_for[lab] = 0.0
-        if self._fit_pose(points, index, predicted):
-            self.w = self._fit_shape(points, index, predicted)
+        self.missing_for[lab | self._held] = 0.0
+        if self._fit_pose(points, index, self._model):
+            local = self._local(points[index] if n_lab == n else points[index[lab]])
+            self.w = self._fit_shape(local, lab, n_lab)
             model = self._model = self.model(self.w)
-            local = ((points[index[lab]] - self.t) @ self.R) / self.scale
-            res = local - model[lab]
+            res = local - (model if n_lab == n else model[lab])
             far = np.einsum("ij,ij->i", res, res) > s.reject_mm ** 2
+            gap2 = self._pair_gaps()
             if far.any():
                 self.rejected += int(far.sum())
                 index[np.flatnonzero(lab)[far]] = -1
-                lab = index >= 0
-                res = res[~far]
                 if self._second_opinion(points):
-                    return self._frame(points, self._settle(points), False)
-            elif self._pairs_met(model) and self._second_opinion(points):
-                return self._frame(points, self._settle(points), False)
-            self.residual *= s.residual_decay
-            self.residual[lab] = self._clip(res)
-            if self._forget is not None:
-                self.residual[self._forget] = 0.0
-                self._forget = None
-        if lab.sum() < s.min_labelled * self.n:
+                    index = self._settle(points)
+                lab = index >= 0
+                n_lab = int(np.count_nonzero(lab))
+            elif self._pairs_met(gap2) and self._second_opinion(points):
+                index = self._settle(points)
+                lab = index >= 0
+                n_lab = int(np.count_nonzero(lab))
+        if n_lab < s.min_labelled * n:
             self.poor += 1
             if self.poor >= s.lost_after:
                 self.tracking = False
         else:
             self.poor = 0
-        return self._frame(points, index, False)
+        self._world_pred = self._world(self._model)
+        return self._frame(points, index, lab, False)
 
-    def _confirm(self, points: np.ndarray, index: np.ndarray, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _label(self, world: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Labels tracked last frame are assigned first (a track keeps its point rather than
+        hand it to a label that was missing: an occluded lid must not take the other lid's point
+        at a blink); watched pairs whose assignment is within noise are withheld; labels that were
+        missing take leftover points within a gate growing with the time missing."""
+        self._held = self._no_held
+        k = len(points)
+        if k == 0:
+            return np.full(self.n, -1, dtype=np.int64)
+        d = _sqdist(world, points)
+        missing = self.missing_for > 0
+        if not missing.any():
+            index = _assign(d, self._g2)
+            self._withhold(d, index)
+            return index
+        index = _assign(d, np.where(missing, 0.0, self._g2))
+        self._withhold(d, index)
+        self._reacquire(d, index, np.flatnonzero(missing))
+        return index
+
+    def _withhold(self, d: np.ndarray, index: np.ndarray) -> None:
+        """Watched pairs (eyelids at a blink) whose two possible pairings cost within
+        ``ambiguity_mm2`` of each other — or whose one point is about as near to either — are
+        left unlabelled this frame: within marker noise either reading is as likely, and a wrong
+        one would carry into the next prediction. They stay tracked.
+
+        Skipped when no pair can be: with every assigned point within e of its prediction and
+        every pair's predictions at least ``sep`` apart, either pairing of a pair differs by at
+        least sep (sep - 2e)."""
+        sep = self._sep_min
+        if sep > 0.0:
+            e = float(np.sqrt(d[_ROWS[: self.n], index][index >= 0].max(initial=0.0)))
+            if sep * (sep - 2.0 * e) >= self.settings.ambiguity_mm2 and sep > 2.0 * e:
+                return
+        d = np.concatenate([d, np.zeros((self.n, 1))], axis=1)  # index -1 (missing) reads no distance
+        a, b = self._pairs
+        ia, ib = index[a], index[b]
+        delta = d[b, ia] - d[a, ia] + d[a, ib] - d[b, ib]
+        amb = (delta < self.settings.ambiguity_mm2) & (ia + ib > -2)
+        if amb.any():
+            self._held = np.zeros(self.n, dtype=bool)
+            self._held[a[amb]] = True
+            self._held[b[amb]] = True
+            self.withheld += int(np.count_nonzero(index[self._held] >= 0))
+            index[self._held] = -1
+
+    def _confirm(self, points: np.ndarray, index: np.ndarray, fresh: np.ndarray) -> None:
         """A label that was missing takes a point only when the frame before offered it one within
         ``confirm_mm``: a ghost near an occluded marker's prediction rarely comes twice, a marker
         coming back does (live, one frame of it is lost; offline it is put back, see ``late``)."""
-        fresh = np.flatnonzero(lab & (self.missing_for > 0))
-        had = self._candidate_ok.copy()
-        self._candidate_ok[:] = False
-        self._late = self._late_index = np.zeros(0, dtype=np.int64)
-        if len(fresh) == 0:
-            return index, lab
         p = points[index[fresh]]
         d = p - self._candidate[fresh]
-        ok = had[fresh] & (np.einsum("ij,ij->i", d, d) < self.settings.confirm_mm ** 2)
-        self._late, self._late_index = fresh[ok], self._candidate_index[fresh[ok]]
+        ok = self._candidate_ok[fresh] & (np.einsum("ij,ij->i", d, d) < self.settings.confirm_mm ** 2)
+        kept = fresh[ok]
+        self._late, self._late_index = kept, self._candidate_index[kept]
+        self._candidate_ok[:] = False
         self._candidate[fresh] = p
         self._candidate_index[fresh] = index[fresh]
         self._candidate_ok[fresh] = True
-        if ok.all():
-            return index, lab
-        index[fresh[~ok]] = -1
-        self.tentative += int((~ok).sum())
-        return index, index >= 0
+        self._candidates = True
+        if len(kept) < len(fresh):
+            index[fresh[~ok]] = -1
+            self.tentative += len(fresh) - len(kept)
+        self._returning, self._returning_index = kept, index[kept]
 
-    def _pairs_met(self, model: np.ndarray) -> bool:
+    def _pair_gaps(self) -> np.ndarray:
+        """Squared model separations of the watched pairs at the current weights (and the
+        smallest in the world, for the next frame's ambiguity test)."""
+        sep = self._pair_rest + (self._pair_basis @ self.w).reshape(-1, 3)
+        gap2 = np.einsum("ij,ij->i", sep, sep)
+        self._sep_min = self.scale * float(np.sqrt(gap2.min())) if len(gap2) else np.inf
+        return gap2
+
+    def _pairs_met(self, gap2: np.ndarray) -> bool:
         """True on the frames just after two watched labels' model positions came within the gate."""
-        a, b = self._pairs
-        d = model[a] - model[b]
-        met = np.einsum("ij,ij->i", d, d) < self.settings.gate_mm ** 2
-        if met.any():
+        if (gap2 < self.settings.gate_mm ** 2).any():
             self.recheck = self.settings.recheck_frames
-            self._forget = np.concatenate([a[met], b[met]])  # their residuals would hold a swap
             return True
-        elif self.recheck > 0:
+        if self.recheck > 0:
             self.recheck -= 1
             return True
         return False
 
     def _second_opinion(self, points: np.ndarray) -> bool:
-        """After a rejection: the track may carry a consistent swap (two lid markers that met in
-        a blink). Re-fit the shape from the neutral at the current head pose and keep whichever
-        of the two explains the cloud better (gated cost of the model without remembered residuals)."""
+        """After a rejection or a blink: the track may carry a consistent swap (two lid markers
+        that met). Re-fit the shape from the neutral at the current head pose and keep whichever
+        of the two explains the cloud better (gated cost)."""
         g = self.settings.gate_mm
         _, kept = gated_assignment(self._world(self.model(self.w)), points, g)
         state = (self.w.copy(), self.R.copy(), self.t.copy())
@@ -348,37 +473,42 @@ class MarkerLabeller:
         return False
 
     def _settle(self, points: np.ndarray) -> np.ndarray:
-        """Labels from the current pose and shape, remembered residuals cleared."""
-        self.residual[:] = 0.0
+        """Labels from the second opinion's pose and shape: the labels tracked before this frame
+        are re-assigned; those that came back this frame (confirmed) keep their point if free."""
         self._model = self.model(self.w)
-        index, _ = gated_assignment(self._world(self._model), points, self.settings.gate_mm)
-        self.missing_for[index >= 0] = 0.0
+        d = _sqdist(self._world(self._model), points)
+        index = np.full(self.n, -1, dtype=np.int64)
+        rows = np.flatnonzero(self._tracked)
+        index[rows] = _assign(d[rows], self._g2[rows])
+        self._held = self._no_held
+        self._sep_min = 0.0
+        self._withhold(d, index)
+        self._pair_gaps()
+        free = ~np.isin(self._returning_index, index[index >= 0])
+        index[self._returning[free]] = self._returning_index[free]
+        self.missing_for[:] = np.where((index >= 0) | self._held, 0.0, np.maximum(self.missing_for, 1.0))
         return index
 
-    def _clip(self, r: np.ndarray) -> np.ndarray:
-        norm = np.sqrt(np.einsum("ij,ij->i", r, r))
-        return r * np.minimum(1.0, self.settings.residual_max_mm / np.maximum(norm, 1e-12))[:, None]
-
-    def _reacquire(self, world: np.ndarray, points: np.ndarray, index: np.ndarray) -> None:
-        """Labels missing for a while (their prediction has drifted) may take points nobody took,
-        within a gate that grows with the time they have been missing."""
-        lost = np.flatnonzero((index < 0) & (self.missing_for > 0))
-        if len(lost) == 0 or len(points) <= (index >= 0).sum():
-            return
-        free = np.ones(len(points), dtype=bool)
-        free[index[index >= 0]] = False
-        free = np.flatnonzero(free)
+    def _reacquire(self, d: np.ndarray, index: np.ndarray, lost: np.ndarray) -> None:
+        """Labels missing since last frame (``lost``, none assigned yet; their prediction may have
+        drifted) may take points nobody took, within a gate that grows with the time missing."""
         s = self.settings
-        gate = s.gate_mm * np.minimum(1.0 + s.reacquire_growth * self.missing_for[lost], s.reacquire_max)
-        sub, _ = gated_assignment(world[lost], points[free], gate)
-        got = sub >= 0
-        index[lost[got]] = free[sub[got]]
+        sub = d[lost]
+        sub[:, index[index >= 0]] = np.inf
+        near = sub.min(1)
+        if near.min() >= (s.gate_mm * s.reacquire_max) ** 2:
+            return
+        gate2 = (s.gate_mm * np.minimum(1.0 + s.reacquire_growth * self.missing_for[lost], s.reacquire_max)) ** 2
+        if (near >= gate2).all():
+            return
+        got = _assign(sub, gate2)
+        ok = got >= 0
+        index[lost[ok]] = got[ok]
 
-    def _frame(self, points: np.ndarray, index: np.ndarray, initialised: bool) -> LabelFrame:
-        valid = index >= 0
-        pos = np.zeros((self.n, 3))
-        pos[valid] = points[index[valid]]
-        late, self._late = self._late, np.zeros(0, dtype=np.int64)
+    def _frame(self, points: np.ndarray, index: np.ndarray, valid: np.ndarray, initialised: bool) -> LabelFrame:
+        pos = points[index] if len(points) else np.zeros((self.n, 3))
+        pos[~valid] = 0.0
+        late, self._late = self._late, _EMPTY
         return LabelFrame(index, pos, valid, initialised, late, self._late_index)
 
     # ------------------------------------------------------------------ (re)initialisation
@@ -407,7 +537,6 @@ class MarkerLabeller:
         _, (self.scale, self.R, self.t) = best
         # expression: alternate assignment, pose and shape from the best rigid start
         self.w = self._zero_w.copy()
-        self.residual[:] = 0.0
         self._refine(points, 5, 2 * s.gate_mm)
         local = self.model(self.w)
         index, _ = gated_assignment(self._world(local), points, s.gate_mm)
@@ -415,10 +544,11 @@ class MarkerLabeller:
         self.tracking = lab.sum() >= s.min_labelled * self.n
         self.initialisations += int(self.tracking)
         self._model = local
+        self._world_pred = self._world(local)
         self.poor = 0
         self.missing_for[:] = np.where(lab, 0.0, 1.0)
-        if self.tracking:
-            self.residual[lab] = self._clip(((points[index[lab]] - self.t) @ self.R) / self.scale - local[lab])
+        self._held = self._no_held
+        self._sep_min = 0.0
         return index
 
     def _icp(self, points, local, scale, R, t):
