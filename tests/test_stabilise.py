@@ -184,3 +184,60 @@ def test_streamed_deleted_residuals_equal_the_batched_ones(k, seed, noise):
     use = rng.random(k) > 0.25
     np.testing.assert_allclose(_deleted_residuals(ref, pts, use), _deleted_residuals(ref, pts[None], use[None])[0],
                                atol=1e-8)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([1, 7, 47, 48, 300]), st.floats(0.0, 5.0))
+def test_closed_form_rotation_is_the_svd_rotation(seed, B, noise):
+    """Horn's quaternion (eigh for small batches, Newton on the quartic for large) = Kabsch by SVD."""
+    from solvers.rigid import _svd_rotation, rotation_from_covariance
+
+    rng = np.random.default_rng(seed)
+    a = rng.normal(0, 50, (B, 6, 3))
+    a -= a.mean(1, keepdims=True)
+    R0 = Rotation.random(B, random_state=seed).as_matrix()
+    b = np.einsum("bij,bkj->bki", R0, a) + rng.normal(0, noise, (B, 6, 3))
+    b -= b.mean(1, keepdims=True)
+    H = np.einsum("bki,bkj->bij", a, b)
+    bound = 0.5 * ((a * a).sum((1, 2)) + (b * b).sum((1, 2)))
+    np.testing.assert_allclose(rotation_from_covariance(H, bound), _svd_rotation(H), atol=1e-11)
+
+
+def test_closed_form_rotation_handles_degenerate_sets():
+    """Mirror images, collinear points and no weight go to the SVD's answer, never NaN."""
+    from solvers.rigid import _svd_rotation, rotation_from_covariance
+
+    rng = np.random.default_rng(3)
+    src = rng.normal(0, 1, (6, 3))
+    line = np.outer(np.arange(6.0), [1.0, 2.0, 3.0])
+    cases = [(src, src * [-1, 1, 1]), (line, line @ Rotation.random(random_state=1).as_matrix().T),
+             (np.zeros((6, 3)), np.zeros((6, 3)))]
+    for x, y in cases:
+        x, y = x - x.mean(0), y - y.mean(0)
+        H = np.repeat((x.T @ y)[None], 60, axis=0)
+        bound = np.full(60, 0.5 * ((x * x).sum() + (y * y).sum()))
+        for R in (rotation_from_covariance(H[:1]), rotation_from_covariance(H, bound)):
+            assert np.isfinite(R).all()
+            np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-9)
+            np.testing.assert_allclose(R, _svd_rotation(H[: len(R)]), atol=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 12), st.floats(0.0, 40.0))
+def test_streamed_fit_with_deleted_residuals_matches_the_batched_form(seed, k, jump):
+    """The single-frame fit + leave-one-out residuals equal kabsch + _deleted_residuals."""
+    from livecap.calibration.stabilise import _deleted_residuals, _fit_with_deleted, _residuals
+
+    rng = np.random.default_rng(seed)
+    ref = rng.normal(0, 50, (k, 3))
+    pts = ref @ Rotation.random(random_state=seed).as_matrix().T + rng.normal(0, 800, 3)
+    pts += rng.normal(0, 0.5, (k, 3))
+    pts[rng.integers(k)] += jump
+    use = rng.random(k) > 0.2
+    use[:3] = True
+    R, t, r = _fit_with_deleted(ref, pts, use)
+    R0, t0 = kabsch(ref, pts, use)
+    np.testing.assert_allclose(R, R0, atol=1e-10)
+    np.testing.assert_allclose(t, t0, atol=1e-8)
+    expected = np.maximum(_residuals(ref, pts, R0, t0), _deleted_residuals(ref, pts, use))
+    np.testing.assert_allclose(r[use], expected[use], atol=1e-8)

@@ -19,12 +19,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from solvers.rigid import kabsch
+from solvers.rigid import kabsch, rotation_from_covariance
 
 TUKEY_C = 4.685  # 95 % efficiency at the Gaussian
 MAD_TO_SIGMA = 1.4826
 CHECK_SCALES = 3.0  # a residual beyond 3 floors sends the frame through the robust refit
 LEAVE_ONE_OUT_MAX = 12  # leave-one-out starts only for small marker sets (stable markers)
+_DROP = {k: ~np.eye(k, dtype=bool) for k in range(5, LEAVE_ONE_OUT_MAX + 1)}  # row j leaves marker j out
 
 
 def to_quaternion(R: np.ndarray) -> np.ndarray:
@@ -134,6 +135,39 @@ def _deleted_residuals(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> np.
     return np.where(use & (cand.sum(-1) >= 4), np.linalg.norm(own, axis=-1), 0.0)
 
 
+def _fit_with_deleted(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One frame's rigid fit and each marker's larger of its residual and deleted residual.
+
+    The streamed form of ``kabsch`` + :func:`_deleted_residuals`: the fit and the k leave-one-out
+    fits share one set of centred products (each leave-one-out covariance is the full one less
+    marker j's term and a centroid correction), and their rotations come from one batched call.
+    """
+    k = len(ref)
+    loo = 5 <= k <= LEAVE_ONE_OUT_MAX
+    W = np.empty((k + 1 if loo else 1, k))
+    W[0] = use
+    if loo:
+        np.logical_and(use, _DROP[k], out=W[1:], casting="unsafe")
+    wsum = W.sum(1)
+    n = max(wsum[0], 1e-300)
+    ca = (W[0] @ ref) / n
+    cb = (W[0] @ pts) / n
+    a = ref - ca
+    b = pts - cb
+    cs = (W @ a) / np.maximum(wsum, 1e-300)[:, None]
+    cd = (W @ b) / np.maximum(wsum, 1e-300)[:, None]
+    H = W @ (a[:, :, None] * b[:, None, :]).reshape(k, 9)
+    H -= wsum[:, None] * (cs[:, :, None] * cd[:, None, :]).reshape(-1, 9)
+    R = rotation_from_covariance(H.reshape(-1, 3, 3))
+    fit = (a - cs[0]) @ R[0].T + cd[0] - b
+    r = np.sqrt(np.einsum("ij,ij->i", fit, fit))
+    if loo:
+        own = np.einsum("jab,jb->ja", R[1:], a - cs[1:]) + cd[1:] - b
+        deleted = np.sqrt(np.einsum("ij,ij->i", own, own))
+        r = np.where(use & (wsum[1:] >= 4), np.maximum(r, deleted), r)
+    return R[0], cb + cd[0] - R[0] @ (ca + cs[0]), r
+
+
 def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: int = 3,
                 floor_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rigid fit ``R ref + t ~ pts``, robust to outlying markers; batched over ``pts``' leading axes.
@@ -147,14 +181,16 @@ def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: i
     leave-one-out fit. Returns R, t and the per-marker weights used.
     """
     use = np.asarray(use, dtype=bool)
-    R, t = kabsch(ref, pts, use)
     w = use.astype(np.float64)
+    if pts.ndim == 2 and iterations > 0:
+        R, t, r = _fit_with_deleted(ref, pts, use)
+        bad = (use & (r > CHECK_SCALES * floor_mm)).any()
+        return _irls(ref, pts, use, iterations, floor_mm) if bad else (R, t, w)
+    R, t = kabsch(ref, pts, use)
     if iterations <= 0:
         return R, t, w
     r = np.maximum(_residuals(ref, pts, R, t), _deleted_residuals(ref, pts, use))
     bad = (use & (r > CHECK_SCALES * floor_mm)).any(-1)
-    if pts.ndim == 2:
-        return _irls(ref, pts, use, iterations, floor_mm) if bad else (R, t, w)
     if bad.any():
         f = np.flatnonzero(bad.reshape(-1))
         lead = pts.shape[:-2]
