@@ -171,21 +171,6 @@ def test_demo_take_with_stable_markers_missing_for_a_second_still_stabilises(dem
     assert rot.mean() < 0.8 and tr.mean() < 1.2
 
 
-@settings(max_examples=60, deadline=None)
-@given(st.integers(5, 12), st.integers(0, 2**31 - 1), st.sampled_from([0.01, 1.0, 20.0]))
-def test_streamed_deleted_residuals_equal_the_batched_ones(k, seed, noise):
-    """A streamed frame (k, 3) and a batch of that one frame (1, k, 3) get the same leave-one-out residuals."""
-    from livecap.calibration.stabilise import _deleted_residuals
-
-    rng = np.random.default_rng(seed)
-    ref = rng.normal(size=(k, 3)) * 40
-    pts = ref @ Rotation.random(random_state=seed).as_matrix().T + rng.normal(size=3) * 10
-    pts += rng.normal(size=(k, 3)) * noise
-    use = rng.random(k) > 0.25
-    np.testing.assert_allclose(_deleted_residuals(ref, pts, use), _deleted_residuals(ref, pts[None], use[None])[0],
-                               atol=1e-8)
-
-
 @settings(max_examples=40, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.sampled_from([1, 7, 47, 48, 300]), st.floats(0.0, 5.0))
 def test_closed_form_rotation_is_the_svd_rotation(seed, B, noise):
@@ -225,8 +210,8 @@ def test_closed_form_rotation_handles_degenerate_sets():
 @settings(max_examples=60, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(3, 12), st.floats(0.0, 40.0))
 def test_streamed_fit_with_deleted_residuals_matches_the_batched_form(seed, k, jump):
-    """The single-frame fit + leave-one-out residuals equal kabsch + _deleted_residuals."""
-    from livecap.calibration.stabilise import _deleted_residuals, _fit_with_deleted, _residuals
+    """The shared-products fit and leave-one-out residuals equal plain Kabsch fits, one per marker left out."""
+    from livecap.calibration.stabilise import LEAVE_ONE_OUT_MAX, _fit_with_deleted, _residuals
 
     rng = np.random.default_rng(seed)
     ref = rng.normal(0, 50, (k, 3))
@@ -239,5 +224,13 @@ def test_streamed_fit_with_deleted_residuals_matches_the_batched_form(seed, k, j
     R0, t0 = kabsch(ref, pts, use)
     np.testing.assert_allclose(R, R0, atol=1e-10)
     np.testing.assert_allclose(t, t0, atol=1e-8)
-    expected = np.maximum(_residuals(ref, pts, R0, t0), _deleted_residuals(ref, pts, use))
+    expected = _residuals(ref, pts, R0, t0)
+    for j in np.flatnonzero(use) if 5 <= k <= LEAVE_ONE_OUT_MAX and use.sum() >= 5 else []:
+        others = use & (np.arange(k) != j)
+        Rj, tj = kabsch(ref[others], pts[others])
+        expected[j] = max(expected[j], np.linalg.norm(Rj @ ref[j] + tj - pts[j]))
     np.testing.assert_allclose(r[use], expected[use], atol=1e-8)
+    Rb, tb, rb = _fit_with_deleted(ref, np.stack([pts, pts + 1.0]), np.stack([use, use]))  # a take at once
+    np.testing.assert_allclose(Rb, [R, R], atol=1e-10)
+    np.testing.assert_allclose(tb, [t, t + 1.0], atol=1e-8)
+    np.testing.assert_allclose(rb[:, use], [r[use], r[use]], atol=1e-8)

@@ -119,53 +119,49 @@ def _initial(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndar
     return Rb, tb
 
 
-def _deleted_residuals(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> np.ndarray:
-    """Each marker's distance from the rigid fit of the others (0 where that fit has < 4 markers).
+def _fit_with_deleted(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rigid fits and each marker's larger of its residual and deleted residual, batched over frames.
 
     A far (high-leverage) marker that jumps drags the plain fit towards itself and hides in its
-    own residual; fitted without it, the jump shows in full. k tiny SVDs, for small sets only.
-    """
-    k = use.shape[-1]
-    if k < 5 or k > LEAVE_ONE_OUT_MAX:
-        return np.zeros(use.shape)
-    cand = use[..., None, :] & ~np.eye(k, dtype=bool)  # row j leaves marker j out
-    with np.errstate(invalid="ignore", divide="ignore"):  # fits left with too few markers are masked
-        Rc, tc = kabsch(ref[..., None, :, :], pts[..., None, :, :], cand)
-    own = np.einsum("...jab,jb->...ja", Rc, ref) + tc - pts  # marker j under the fit without j
-    return np.where(use & (cand.sum(-1) >= 4), np.linalg.norm(own, axis=-1), 0.0)
-
-
-def _fit_with_deleted(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One frame's rigid fit and each marker's larger of its residual and deleted residual.
-
-    The streamed form of ``kabsch`` + :func:`_deleted_residuals`: the fit and the k leave-one-out
-    fits share one set of centred products (each leave-one-out covariance is the full one less
-    marker j's term and a centroid correction), and their rotations come from one batched call.
+    own residual; fitted without it (with 4 or more markers left, sets of 5-12 markers only), the
+    jump shows in full. Per frame the fit and the k leave-one-out fits share one set of centred
+    products (each leave-one-out covariance is the full one less marker j's term and a centroid
+    correction), and all rotations come from one call (Horn 1987, ``solvers.rigid.rotation_from_covariance``).
+    ``ref`` (k, 3), ``pts`` (..., k, 3), ``use`` (..., k); returns R (..., 3, 3), t (..., 3), r (..., k).
     """
     k = len(ref)
+    lead = pts.shape[:-2]
+    P = pts.reshape(-1, k, 3)
+    U = use.reshape(-1, k)
+    T = len(P)
     loo = 5 <= k <= LEAVE_ONE_OUT_MAX
-    W = np.empty((k + 1 if loo else 1, k))
-    W[0] = use
+    W = np.empty((T, k + 1 if loo else 1, k))
+    W[:, 0] = U
     if loo:
-        np.logical_and(use, _DROP[k], out=W[1:], casting="unsafe")
-    wsum = W.sum(1)
-    n = max(wsum[0], 1e-300)
-    ca = (W[0] @ ref) / n
-    cb = (W[0] @ pts) / n
-    a = ref - ca
-    b = pts - cb
-    cs = (W @ a) / np.maximum(wsum, 1e-300)[:, None]
-    cd = (W @ b) / np.maximum(wsum, 1e-300)[:, None]
-    H = W @ (a[:, :, None] * b[:, None, :]).reshape(k, 9)
-    H -= wsum[:, None] * (cs[:, :, None] * cd[:, None, :]).reshape(-1, 9)
-    R = rotation_from_covariance(H.reshape(-1, 3, 3))
-    fit = (a - cs[0]) @ R[0].T + cd[0] - b
-    r = np.sqrt(np.einsum("ij,ij->i", fit, fit))
+        np.logical_and(U[:, None, :], _DROP[k], out=W[:, 1:], casting="unsafe")
+    wsum = W.sum(-1)  # (T, J): fit 0 uses every marker, fit j + 1 all but marker j
+    n = np.maximum(wsum[:, :1], 1e-300)
+    ca = (W[:, 0] @ ref) / n
+    cb = (W[:, :1] @ P)[:, 0] / n
+    a = ref - ca[:, None, :]  # centred once, so the products below lose no digits
+    b = P - cb[:, None, :]
+    inv = 1.0 / np.maximum(wsum, 1e-300)[..., None]
+    cs = (W @ a) * inv
+    cd = (W @ b) * inv
+    H = W @ (a[..., :, None] * b[..., None, :]).reshape(T, k, 9)
+    H -= wsum[..., None] * (cs[..., :, None] * cd[..., None, :]).reshape(T, -1, 9)
+    spread = W @ (np.einsum("tki,tki->tk", a, a) + np.einsum("tki,tki->tk", b, b))[..., None]
+    bound = 0.5 * (spread[..., 0] - wsum * (np.einsum("tji,tji->tj", cs, cs) + np.einsum("tji,tji->tj", cd, cd)))
+    R = rotation_from_covariance(H.reshape(T, -1, 3, 3), bound)
+    R0 = R[:, 0]
+    fit = (a - cs[:, :1]) @ np.swapaxes(R0, -1, -2) + cd[:, :1] - b
+    r = np.sqrt(np.einsum("tki,tki->tk", fit, fit))
     if loo:
-        own = np.einsum("jab,jb->ja", R[1:], a - cs[1:]) + cd[1:] - b
-        deleted = np.sqrt(np.einsum("ij,ij->i", own, own))
-        r = np.where(use & (wsum[1:] >= 4), np.maximum(r, deleted), r)
-    return R[0], cb + cd[0] - R[0] @ (ca + cs[0]), r
+        own = (R[:, 1:] @ (a - cs[:, 1:])[..., None])[..., 0] + cd[:, 1:] - b
+        deleted = np.sqrt(np.einsum("tki,tki->tk", own, own))
+        r = np.where(U & (wsum[:, 1:] >= 4), np.maximum(r, deleted), r)
+    t = cb + cd[:, 0] - (R0 @ (ca + cs[:, 0])[..., None])[..., 0]
+    return R0.reshape(*lead, 3, 3), t.reshape(*lead, 3), r.reshape(*lead, k)
 
 
 def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: int = 3,
@@ -182,15 +178,13 @@ def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: i
     """
     use = np.asarray(use, dtype=bool)
     w = use.astype(np.float64)
-    if pts.ndim == 2 and iterations > 0:
-        R, t, r = _fit_with_deleted(ref, pts, use)
-        bad = (use & (r > CHECK_SCALES * floor_mm)).any()
-        return _irls(ref, pts, use, iterations, floor_mm) if bad else (R, t, w)
-    R, t = kabsch(ref, pts, use)
     if iterations <= 0:
+        R, t = kabsch(ref, pts, use)
         return R, t, w
-    r = np.maximum(_residuals(ref, pts, R, t), _deleted_residuals(ref, pts, use))
+    R, t, r = _fit_with_deleted(ref, pts, use)
     bad = (use & (r > CHECK_SCALES * floor_mm)).any(-1)
+    if pts.ndim == 2:
+        return _irls(ref, pts, use, iterations, floor_mm) if bad else (R, t, w)
     if bad.any():
         f = np.flatnonzero(bad.reshape(-1))
         lead = pts.shape[:-2]
