@@ -234,3 +234,18 @@ def test_streamed_fit_with_deleted_residuals_matches_the_batched_form(seed, k, j
     np.testing.assert_allclose(Rb, [R, R], atol=1e-10)
     np.testing.assert_allclose(tb, [t, t + 1.0], atol=1e-8)
     np.testing.assert_allclose(rb[:, use], [r[use], r[use]], atol=1e-8)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 12), st.integers(1, 4), st.integers(0, 40))
+def test_savgol_matches_scipy(seed, half, order, extra):
+    """The numpy Savitzky-Golay filter equals scipy.signal.savgol_filter (mode interp) on any signal."""
+    from scipy.signal import savgol_filter
+
+    from livecap.calibration.stabilise import savgol
+
+    window = 2 * half + 1
+    if order >= window:
+        return
+    x = np.random.default_rng(seed).normal(0, 300, (window + extra, 4))
+    np.testing.assert_allclose(savgol(x, window, order), savgol_filter(x, window, order, axis=0), atol=1e-9)

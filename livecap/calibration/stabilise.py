@@ -77,7 +77,7 @@ def _residuals(ref: np.ndarray, pts: np.ndarray, R: np.ndarray, t: np.ndarray) -
     if R.ndim == 2 and ref.ndim == 2:
         d = ref @ R.T + t - pts
         return np.sqrt(np.einsum("...i,...i->...", d, d))
-    fit = np.einsum("...ij,...kj->...ki", R, ref) + t[..., None, :]
+    fit = ref @ np.swapaxes(R, -1, -2) + t[..., None, :]
     return np.linalg.norm(fit - pts, axis=-1)
 
 
@@ -288,7 +288,7 @@ class HeadStabiliser:
     def stabilise(self, positions: np.ndarray, valid: np.ndarray):
         """Stabilised positions (same shape, 0 where missing), rotation and translation."""
         R, t = self.pose(positions, valid)
-        local = np.einsum("...ji,...nj->...ni", R, np.asarray(positions, np.float64) - t[..., None, :])
+        local = (np.asarray(positions, np.float64) - t[..., None, :]) @ R  # R^T applied per frame
         return np.where(np.asarray(valid, bool)[..., None], local, 0.0), R, t
 
     # ------------------------------------------------------------------ streams
@@ -322,8 +322,6 @@ def smooth_pose(R: np.ndarray, t: np.ndarray, window: int, order: int = 3) -> tu
     smoother than that at capture rates. Quaternions are sign-aligned frame to frame, filtered and
     renormalised. Streams cannot look ahead and keep the raw pose.
     """
-    from scipy.signal import savgol_filter
-
     T = len(R)
     window = min(int(window), T if T % 2 else T - 1)
     if window % 2 == 0:
@@ -333,9 +331,26 @@ def smooth_pose(R: np.ndarray, t: np.ndarray, window: int, order: int = 3) -> tu
     q = Rotation.from_matrix(R).as_quat()
     flip = np.concatenate([[1.0], np.sign(np.sum(q[1:] * q[:-1], axis=1))])
     q = q * np.cumprod(np.where(flip == 0, 1.0, flip))[:, None]
-    qs = savgol_filter(q, window, order, axis=0)
+    qs = savgol(q, window, order)
     qs /= np.linalg.norm(qs, axis=1, keepdims=True)
-    return Rotation.from_quat(qs).as_matrix(), savgol_filter(t, window, order, axis=0)
+    return Rotation.from_quat(qs).as_matrix(), savgol(t, window, order)
+
+
+def savgol(x: np.ndarray, window: int, order: int) -> np.ndarray:
+    """Savitzky-Golay smoothing along axis 0 (Savitzky & Golay 1964), as ``scipy.signal.savgol_filter``
+    with its default ``mode="interp"``: the local polynomial fit's centre value inside, the fit to the
+    first / last ``window`` samples at the ends. Here in numpy because importing scipy.signal costs a
+    whole-take solve more (about 0.4-0.9 s) than the filtering itself. ``window`` odd, <= len(x)."""
+    x = np.asarray(x, dtype=np.float64)
+    half = window // 2
+    A = np.vander(np.linspace(-1.0, 1.0, window), order + 1, increasing=True)  # centred, scaled: well conditioned
+    fit = A @ np.linalg.pinv(A)  # window x window: samples -> the least-squares polynomial at each sample
+    out = np.empty_like(x)
+    inner = np.lib.stride_tricks.sliding_window_view(x, window, axis=0)  # (T - window + 1, ..., window)
+    out[half:len(x) - half] = inner @ fit[half]
+    out[:half] = np.tensordot(fit[:half], x[:window], axes=1)
+    out[len(x) - half:] = np.tensordot(fit[window - half:], x[len(x) - window:], axes=1)
+    return out
 
 
 def head_pose_error(R: np.ndarray, t: np.ndarray, truth_R: np.ndarray, truth_t: np.ndarray,
