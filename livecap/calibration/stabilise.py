@@ -145,21 +145,22 @@ def _fit_with_deleted(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tupl
     cb = (W[:, :1] @ P)[:, 0] / n
     a = ref - ca[:, None, :]  # centred once, so the products below lose no digits
     b = P - cb[:, None, :]
+    # every fit's sums (of a, b, a b^T, |a|^2 + |b|^2) from one product with the marker weights
+    F = np.concatenate([a, b, (a[..., :, None] * b[..., None, :]).reshape(T, k, 9),
+                        (a * a).sum(-1, keepdims=True) + (b * b).sum(-1, keepdims=True)], axis=-1)
+    G = W @ F
     inv = 1.0 / np.maximum(wsum, 1e-300)[..., None]
-    cs = (W @ a) * inv
-    cd = (W @ b) * inv
-    H = W @ (a[..., :, None] * b[..., None, :]).reshape(T, k, 9)
-    H -= wsum[..., None] * (cs[..., :, None] * cd[..., None, :]).reshape(T, -1, 9)
-    spread = W @ (np.einsum("tki,tki->tk", a, a) + np.einsum("tki,tki->tk", b, b))[..., None]
-    bound = 0.5 * (spread[..., 0] - wsum * (np.einsum("tji,tji->tj", cs, cs) + np.einsum("tji,tji->tj", cd, cd)))
+    cs = G[..., 0:3] * inv
+    cd = G[..., 3:6] * inv
+    H = G[..., 6:15] - wsum[..., None] * (cs[..., :, None] * cd[..., None, :]).reshape(T, -1, 9)
+    bound = 0.5 * (G[..., 15] - wsum * ((cs * cs).sum(-1) + (cd * cd).sum(-1)))
     R = rotation_from_covariance(H.reshape(T, -1, 3, 3), bound)
     R0 = R[:, 0]
     fit = (a - cs[:, :1]) @ np.swapaxes(R0, -1, -2) + cd[:, :1] - b
-    r = np.sqrt(np.einsum("tki,tki->tk", fit, fit))
+    r = np.sqrt((fit * fit).sum(-1))
     if loo:
         own = (R[:, 1:] @ (a - cs[:, 1:])[..., None])[..., 0] + cd[:, 1:] - b
-        deleted = np.sqrt(np.einsum("tki,tki->tk", own, own))
-        r = np.where(U & (wsum[:, 1:] >= 4), np.maximum(r, deleted), r)
+        r = np.where(U & (wsum[:, 1:] >= 4), np.maximum(r, np.sqrt((own * own).sum(-1))), r)
     t = cb + cd[:, 0] - (R0 @ (ca + cs[:, 0])[..., None])[..., 0]
     return R0.reshape(*lead, 3, 3), t.reshape(*lead, 3), r.reshape(*lead, k)
 
