@@ -171,16 +171,81 @@ def test_demo_take_with_stable_markers_missing_for_a_second_still_stabilises(dem
     assert rot.mean() < 0.8 and tr.mean() < 1.2
 
 
-@settings(max_examples=60, deadline=None)
-@given(st.integers(5, 12), st.integers(0, 2**31 - 1), st.sampled_from([0.01, 1.0, 20.0]))
-def test_streamed_deleted_residuals_equal_the_batched_ones(k, seed, noise):
-    """A streamed frame (k, 3) and a batch of that one frame (1, k, 3) get the same leave-one-out residuals."""
-    from livecap.calibration.stabilise import _deleted_residuals
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([1, 7, 47, 48, 300]), st.floats(0.0, 5.0))
+def test_closed_form_rotation_is_the_svd_rotation(seed, B, noise):
+    """Horn's quaternion (eigh for small batches, Newton on the quartic for large) = Kabsch by SVD."""
+    from solvers.rigid import _svd_rotation, rotation_from_covariance
 
     rng = np.random.default_rng(seed)
-    ref = rng.normal(size=(k, 3)) * 40
-    pts = ref @ Rotation.random(random_state=seed).as_matrix().T + rng.normal(size=3) * 10
-    pts += rng.normal(size=(k, 3)) * noise
-    use = rng.random(k) > 0.25
-    np.testing.assert_allclose(_deleted_residuals(ref, pts, use), _deleted_residuals(ref, pts[None], use[None])[0],
-                               atol=1e-8)
+    a = rng.normal(0, 50, (B, 6, 3))
+    a -= a.mean(1, keepdims=True)
+    R0 = Rotation.random(B, random_state=seed).as_matrix()
+    b = np.einsum("bij,bkj->bki", R0, a) + rng.normal(0, noise, (B, 6, 3))
+    b -= b.mean(1, keepdims=True)
+    H = np.einsum("bki,bkj->bij", a, b)
+    bound = 0.5 * ((a * a).sum((1, 2)) + (b * b).sum((1, 2)))
+    np.testing.assert_allclose(rotation_from_covariance(H, bound), _svd_rotation(H), atol=1e-11)
+
+
+def test_closed_form_rotation_handles_degenerate_sets():
+    """Mirror images, collinear points and no weight go to the SVD's answer, never NaN."""
+    from solvers.rigid import _svd_rotation, rotation_from_covariance
+
+    rng = np.random.default_rng(3)
+    src = rng.normal(0, 1, (6, 3))
+    line = np.outer(np.arange(6.0), [1.0, 2.0, 3.0])
+    cases = [(src, src * [-1, 1, 1]), (line, line @ Rotation.random(random_state=1).as_matrix().T),
+             (np.zeros((6, 3)), np.zeros((6, 3)))]
+    for x, y in cases:
+        x, y = x - x.mean(0), y - y.mean(0)
+        H = np.repeat((x.T @ y)[None], 60, axis=0)
+        bound = np.full(60, 0.5 * ((x * x).sum() + (y * y).sum()))
+        for R in (rotation_from_covariance(H[:1]), rotation_from_covariance(H, bound)):
+            assert np.isfinite(R).all()
+            np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-9)
+            np.testing.assert_allclose(R, _svd_rotation(H[: len(R)]), atol=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 12), st.floats(0.0, 40.0))
+def test_streamed_fit_with_deleted_residuals_matches_the_batched_form(seed, k, jump):
+    """The shared-products fit and leave-one-out residuals equal plain Kabsch fits, one per marker left out."""
+    from livecap.calibration.stabilise import LEAVE_ONE_OUT_MAX, _fit_with_deleted, _residuals
+
+    rng = np.random.default_rng(seed)
+    ref = rng.normal(0, 50, (k, 3))
+    pts = ref @ Rotation.random(random_state=seed).as_matrix().T + rng.normal(0, 800, 3)
+    pts += rng.normal(0, 0.5, (k, 3))
+    pts[rng.integers(k)] += jump
+    use = rng.random(k) > 0.2
+    use[:3] = True
+    R, t, r = _fit_with_deleted(ref, pts, use)
+    R0, t0 = kabsch(ref, pts, use)
+    np.testing.assert_allclose(R, R0, atol=1e-10)
+    np.testing.assert_allclose(t, t0, atol=1e-8)
+    expected = _residuals(ref, pts, R0, t0)
+    for j in np.flatnonzero(use) if 5 <= k <= LEAVE_ONE_OUT_MAX and use.sum() >= 5 else []:
+        others = use & (np.arange(k) != j)
+        Rj, tj = kabsch(ref[others], pts[others])
+        expected[j] = max(expected[j], np.linalg.norm(Rj @ ref[j] + tj - pts[j]))
+    np.testing.assert_allclose(r[use], expected[use], atol=1e-8)
+    Rb, tb, rb = _fit_with_deleted(ref, np.stack([pts, pts + 1.0]), np.stack([use, use]))  # a take at once
+    np.testing.assert_allclose(Rb, [R, R], atol=1e-10)
+    np.testing.assert_allclose(tb, [t, t + 1.0], atol=1e-8)
+    np.testing.assert_allclose(rb[:, use], [r[use], r[use]], atol=1e-8)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 12), st.integers(1, 4), st.integers(0, 40))
+def test_savgol_matches_scipy(seed, half, order, extra):
+    """The numpy Savitzky-Golay filter equals scipy.signal.savgol_filter (mode interp) on any signal."""
+    from scipy.signal import savgol_filter
+
+    from livecap.calibration.stabilise import savgol
+
+    window = 2 * half + 1
+    if order >= window:
+        return
+    x = np.random.default_rng(seed).normal(0, 300, (window + extra, 4))
+    np.testing.assert_allclose(savgol(x, window, order), savgol_filter(x, window, order, axis=0), atol=1e-9)

@@ -70,7 +70,7 @@ class ZmqSink:
     def _joined(self) -> bool:
         """Drain subscription notices; True when someone (re)subscribed to our topic."""
         joined = False
-        while True:
+        while self.sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # no exception raised per frame
             try:
                 msg = self.sock.recv(zmq.NOBLOCK)
             except zmq.Again:
@@ -78,6 +78,7 @@ class ZmqSink:
             if msg[:1] == b"\x01" and self.topic.startswith(msg[1:]):
                 joined = True
                 self.joins += 1
+        return joined
 
     def publish(self, result) -> None:
         if result.names is not self._names_ref:  # names are shared per session: compare rarely

@@ -19,12 +19,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from solvers.rigid import kabsch
+from solvers.rigid import kabsch, rotation_from_covariance
 
 TUKEY_C = 4.685  # 95 % efficiency at the Gaussian
 MAD_TO_SIGMA = 1.4826
 CHECK_SCALES = 3.0  # a residual beyond 3 floors sends the frame through the robust refit
 LEAVE_ONE_OUT_MAX = 12  # leave-one-out starts only for small marker sets (stable markers)
+_DROP = {k: ~np.eye(k, dtype=bool) for k in range(5, LEAVE_ONE_OUT_MAX + 1)}  # row j leaves marker j out
 
 
 def to_quaternion(R: np.ndarray) -> np.ndarray:
@@ -76,7 +77,7 @@ def _residuals(ref: np.ndarray, pts: np.ndarray, R: np.ndarray, t: np.ndarray) -
     if R.ndim == 2 and ref.ndim == 2:
         d = ref @ R.T + t - pts
         return np.sqrt(np.einsum("...i,...i->...", d, d))
-    fit = np.einsum("...ij,...kj->...ki", R, ref) + t[..., None, :]
+    fit = ref @ np.swapaxes(R, -1, -2) + t[..., None, :]
     return np.linalg.norm(fit - pts, axis=-1)
 
 
@@ -118,20 +119,50 @@ def _initial(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndar
     return Rb, tb
 
 
-def _deleted_residuals(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> np.ndarray:
-    """Each marker's distance from the rigid fit of the others (0 where that fit has < 4 markers).
+def _fit_with_deleted(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rigid fits and each marker's larger of its residual and deleted residual, batched over frames.
 
     A far (high-leverage) marker that jumps drags the plain fit towards itself and hides in its
-    own residual; fitted without it, the jump shows in full. k tiny SVDs, for small sets only.
+    own residual; fitted without it (with 4 or more markers left, sets of 5-12 markers only), the
+    jump shows in full. Per frame the fit and the k leave-one-out fits share one set of centred
+    products (each leave-one-out covariance is the full one less marker j's term and a centroid
+    correction), and all rotations come from one call (Horn 1987, ``solvers.rigid.rotation_from_covariance``).
+    ``ref`` (k, 3), ``pts`` (..., k, 3), ``use`` (..., k); returns R (..., 3, 3), t (..., 3), r (..., k).
     """
-    k = use.shape[-1]
-    if k < 5 or k > LEAVE_ONE_OUT_MAX:
-        return np.zeros(use.shape)
-    cand = use[..., None, :] & ~np.eye(k, dtype=bool)  # row j leaves marker j out
-    with np.errstate(invalid="ignore", divide="ignore"):  # fits left with too few markers are masked
-        Rc, tc = kabsch(ref[..., None, :, :], pts[..., None, :, :], cand)
-    own = np.einsum("...jab,jb->...ja", Rc, ref) + tc - pts  # marker j under the fit without j
-    return np.where(use & (cand.sum(-1) >= 4), np.linalg.norm(own, axis=-1), 0.0)
+    k = len(ref)
+    lead = pts.shape[:-2]
+    P = pts.reshape(-1, k, 3)
+    U = use.reshape(-1, k)
+    T = len(P)
+    loo = 5 <= k <= LEAVE_ONE_OUT_MAX
+    W = np.empty((T, k + 1 if loo else 1, k))
+    W[:, 0] = U
+    if loo:
+        np.logical_and(U[:, None, :], _DROP[k], out=W[:, 1:], casting="unsafe")
+    wsum = W.sum(-1)  # (T, J): fit 0 uses every marker, fit j + 1 all but marker j
+    n = np.maximum(wsum[:, :1], 1e-300)
+    ca = (W[:, 0] @ ref) / n
+    cb = (W[:, :1] @ P)[:, 0] / n
+    a = ref - ca[:, None, :]  # centred once, so the products below lose no digits
+    b = P - cb[:, None, :]
+    # every fit's sums (of a, b, a b^T, |a|^2 + |b|^2) from one product with the marker weights
+    F = np.concatenate([a, b, (a[..., :, None] * b[..., None, :]).reshape(T, k, 9),
+                        (a * a).sum(-1, keepdims=True) + (b * b).sum(-1, keepdims=True)], axis=-1)
+    G = W @ F
+    inv = 1.0 / np.maximum(wsum, 1e-300)[..., None]
+    cs = G[..., 0:3] * inv
+    cd = G[..., 3:6] * inv
+    H = G[..., 6:15] - wsum[..., None] * (cs[..., :, None] * cd[..., None, :]).reshape(T, -1, 9)
+    bound = 0.5 * (G[..., 15] - wsum * ((cs * cs).sum(-1) + (cd * cd).sum(-1)))
+    R = rotation_from_covariance(H.reshape(T, -1, 3, 3), bound)
+    R0 = R[:, 0]
+    fit = (a - cs[:, :1]) @ np.swapaxes(R0, -1, -2) + cd[:, :1] - b
+    r = np.sqrt((fit * fit).sum(-1))
+    if loo:
+        own = (R[:, 1:] @ (a - cs[:, 1:])[..., None])[..., 0] + cd[:, 1:] - b
+        r = np.where(U & (wsum[:, 1:] >= 4), np.maximum(r, np.sqrt((own * own).sum(-1))), r)
+    t = cb + cd[:, 0] - (R0 @ (ca + cs[:, 0])[..., None])[..., 0]
+    return R0.reshape(*lead, 3, 3), t.reshape(*lead, 3), r.reshape(*lead, k)
 
 
 def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: int = 3,
@@ -147,11 +178,11 @@ def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: i
     leave-one-out fit. Returns R, t and the per-marker weights used.
     """
     use = np.asarray(use, dtype=bool)
-    R, t = kabsch(ref, pts, use)
     w = use.astype(np.float64)
     if iterations <= 0:
+        R, t = kabsch(ref, pts, use)
         return R, t, w
-    r = np.maximum(_residuals(ref, pts, R, t), _deleted_residuals(ref, pts, use))
+    R, t, r = _fit_with_deleted(ref, pts, use)
     bad = (use & (r > CHECK_SCALES * floor_mm)).any(-1)
     if pts.ndim == 2:
         return _irls(ref, pts, use, iterations, floor_mm) if bad else (R, t, w)
@@ -258,7 +289,7 @@ class HeadStabiliser:
     def stabilise(self, positions: np.ndarray, valid: np.ndarray):
         """Stabilised positions (same shape, 0 where missing), rotation and translation."""
         R, t = self.pose(positions, valid)
-        local = np.einsum("...ji,...nj->...ni", R, np.asarray(positions, np.float64) - t[..., None, :])
+        local = (np.asarray(positions, np.float64) - t[..., None, :]) @ R  # R^T applied per frame
         return np.where(np.asarray(valid, bool)[..., None], local, 0.0), R, t
 
     # ------------------------------------------------------------------ streams
@@ -292,8 +323,6 @@ def smooth_pose(R: np.ndarray, t: np.ndarray, window: int, order: int = 3) -> tu
     smoother than that at capture rates. Quaternions are sign-aligned frame to frame, filtered and
     renormalised. Streams cannot look ahead and keep the raw pose.
     """
-    from scipy.signal import savgol_filter
-
     T = len(R)
     window = min(int(window), T if T % 2 else T - 1)
     if window % 2 == 0:
@@ -303,9 +332,26 @@ def smooth_pose(R: np.ndarray, t: np.ndarray, window: int, order: int = 3) -> tu
     q = Rotation.from_matrix(R).as_quat()
     flip = np.concatenate([[1.0], np.sign(np.sum(q[1:] * q[:-1], axis=1))])
     q = q * np.cumprod(np.where(flip == 0, 1.0, flip))[:, None]
-    qs = savgol_filter(q, window, order, axis=0)
+    qs = savgol(q, window, order)
     qs /= np.linalg.norm(qs, axis=1, keepdims=True)
-    return Rotation.from_quat(qs).as_matrix(), savgol_filter(t, window, order, axis=0)
+    return Rotation.from_quat(qs).as_matrix(), savgol(t, window, order)
+
+
+def savgol(x: np.ndarray, window: int, order: int) -> np.ndarray:
+    """Savitzky-Golay smoothing along axis 0 (Savitzky & Golay 1964), as ``scipy.signal.savgol_filter``
+    with its default ``mode="interp"``: the local polynomial fit's centre value inside, the fit to the
+    first / last ``window`` samples at the ends. Here in numpy because importing scipy.signal costs a
+    whole-take solve more (about 0.4-0.9 s) than the filtering itself. ``window`` odd, <= len(x)."""
+    x = np.asarray(x, dtype=np.float64)
+    half = window // 2
+    A = np.vander(np.linspace(-1.0, 1.0, window), order + 1, increasing=True)  # centred, scaled: well conditioned
+    fit = A @ np.linalg.pinv(A)  # window x window: samples -> the least-squares polynomial at each sample
+    out = np.empty_like(x)
+    inner = np.lib.stride_tricks.sliding_window_view(x, window, axis=0)  # (T - window + 1, ..., window)
+    out[half:len(x) - half] = inner @ fit[half]
+    out[:half] = np.tensordot(fit[:half], x[:window], axes=1)
+    out[len(x) - half:] = np.tensordot(fit[window - half:], x[len(x) - window:], axes=1)
+    return out
 
 
 def head_pose_error(R: np.ndarray, t: np.ndarray, truth_R: np.ndarray, truth_t: np.ndarray,

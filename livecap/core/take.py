@@ -58,13 +58,12 @@ class Take:
     def select(self, labels: Sequence[str]) -> Take:
         """The take with markers in ``labels`` order; labels it lacks are missing throughout."""
         where = {lab: i for i, lab in enumerate(self.labels)}
+        src = np.array([where.get(lab, -1) for lab in labels], dtype=np.int64)
+        have = src >= 0
         pos = np.zeros((self.n_frames, len(labels), 3))
         val = np.zeros((self.n_frames, len(labels)), dtype=bool)
-        for j, lab in enumerate(labels):
-            i = where.get(lab)
-            if i is not None:
-                pos[:, j] = self.positions[:, i]
-                val[:, j] = self.valid[:, i]
+        pos[:, have] = self.positions[:, src[have]]
+        val[:, have] = self.valid[:, src[have]]
         return Take(list(labels), pos, val, self.rate, self.first_frame)
 
     def slice(self, start: int, stop: int | None = None) -> Take:

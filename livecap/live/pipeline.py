@@ -19,7 +19,9 @@ recorder. On by default for live network sources in ``livecap run``; off for fil
 where every frame must be solved.
 
 Timing is kept per stage (receive = decoding the packet, solve = stabilise + solver step,
-publish = all sinks and recorders) as running p50/p99 over the last few thousand frames;
+step = the mode's ``step`` alone, publish = all sinks and recorders; frame = everything the driver
+does for a solved frame, decoding to the last sink; around_step = frame less the mode's step, the
+driver's own cost per frame, issue 18) as running p50/p99 over the last few thousand frames;
 :meth:`report` formats them, on exit, on SIGUSR1, or periodically.
 """
 
@@ -45,7 +47,7 @@ from livecap.modes.registry import build_solver
 
 log = logging.getLogger("livecap.live.pipeline")
 
-STAGES = ("receive", "solve", "publish")
+STAGES = ("receive", "solve", "step", "publish", "frame", "around_step")
 
 
 class StageTiming:
@@ -103,6 +105,7 @@ class Pipeline:
         self._stop = threading.Event()
         self._buffer: list[MarkerFrame] = []
         self._solver = None
+        self._step_time = 0.0
         self._started = 0.0
         self._cpu0 = 0.0
         if profile is not None:
@@ -191,11 +194,14 @@ class Pipeline:
         local, R, t = self._stabiliser.step(frame.positions, frame.valid)
         valid = frame.valid
         target = np.where(valid[:, None], local - self._neutral, 0.0)
+        t_step = time.perf_counter()
         try:
             w = np.asarray(self._solver.step(target, valid), dtype=float)
         except Exception as exc:  # a solver bug must not end a live session
             self._error("solver_error", f"frame {frame.frame}: {type(exc).__name__}: {exc}")
             return None
+        self._step_time = time.perf_counter() - t_step
+        self.timing["step"].add(self._step_time)
         if not np.isfinite(w).all():
             self._error("solver_nonfinite", f"frame {frame.frame}: solver returned NaN/inf")
             return None
@@ -251,9 +257,13 @@ class Pipeline:
                             if res is not None:
                                 self.publish(res)
                 elif not self._skip_if_stale(frame):
+                    t_frame = time.perf_counter()
                     res = self.solve_frame(frame)
                     if res is not None:
                         self.publish(res)
+                        spent = time.perf_counter() - t_frame + getattr(self.source, "last_decode_seconds", 0.0)
+                        self.timing["frame"].add(spent)
+                        self.timing["around_step"].add(spent - self._step_time)
                 now = time.monotonic()
                 if now - last_flush >= self.flush_every:
                     self.flush()

@@ -56,12 +56,12 @@ def prepare_targets(take: Take, profile: Profile, max_gap_seconds: float | None 
     window = int(round(float(sec) * take.rate)) | 1
     if window > 3:
         R, t = smooth_pose(R, t, window)
-        local = np.einsum("tji,tnj->tni", R, take.positions - t[:, None, :])
+        local = (take.positions - t[:, None, :]) @ R  # R^T per frame, as a batched matmul
         local = np.where(take.valid[..., None], local, 0.0)
     gap = max_gap_frames(profile, take.rate, max_gap_seconds)
     if gap > 0:
         local, valid = fill_gaps(local, take.valid, gap)
-        raw = np.einsum("tij,tnj->tni", R, local) + t[:, None, :]
+        raw = local @ np.swapaxes(R, 1, 2) + t[:, None, :]
         take = Take(take.labels, raw, valid, take.rate, take.first_frame)
     targets = np.where(take.valid[..., None], local - profile.source_neutral, 0.0)
     return take, targets, R, t

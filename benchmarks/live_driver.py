@@ -1,0 +1,111 @@
+"""The live driver's own per-frame CPU, in one process: packet bytes -> decode -> stabilise -> the
+mode's step -> SolveResult -> ZeroMQ sink (a subscriber attached), paced at 120 Hz.
+
+Thread CPU time (``time.thread_time``) per part, so the figures are steadier than the three-process
+wall-clock run of ``live_latency`` on a shared machine, and the mode's step is separable from what
+the driver adds around it (issue 18 item 4):
+
+    python -m benchmarks.live_driver [--quick] [--modes robust,qp]
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.timing import suite_main
+
+PARTS = ("decode", "stabilise", "step", "publish", "frame", "around_step")
+
+
+def measure(mode: str, frames: int, pace: float = 1 / 120) -> dict:
+    """Per-part thread-CPU p50 / p99 (µs) of ``frames`` demo frames through the driver's own path."""
+    import zmq
+
+    from livecap.calibration.profile import calibrate, estimate_neutral
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
+    from livecap.demo import DEMO_TAKE, generate
+    from livecap.demo.performance import PerformanceSettings
+    from livecap.live.pipeline import Pipeline
+    from transport.takefile import read_take
+    from transport.wire import encode_markers, layout_id, topic
+    from transport.zmq_sink import ZmqSink
+    from transport.zmq_source import ZmqSource
+
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        generate(work, 0, PerformanceSettings(seconds=10, rate=120.0, seed=1))
+        rig = Rig.load(work / "demo_rig.npz")
+        layout = MarkerLayout.load(work / "demo_rig.markers.json", rig)
+        take = read_take(work / DEMO_TAKE)
+        profile = calibrate(rig, layout, estimate_neutral(take.select(layout.labels), layout.stable, 120))
+    lid = layout_id(take.labels)
+    loop = list(take.frames())
+    packets = [[topic("markers", "actor"), encode_markers(f.frame, f.timestamp, f.positions, f.valid,
+                                                          take.labels if i == 0 else None, lid)]
+               for i, f in enumerate(loop[i % len(loop)] for i in range(frames))]
+    source = ZmqSource("tcp://127.0.0.1:1", profile.labels)
+    sink = ZmqSink("tcp://127.0.0.1:*", rate=120.0)
+    rx = zmq.Context.instance().socket(zmq.SUB)
+    rx.connect(sink.address)
+    rx.setsockopt(zmq.SUBSCRIBE, b"")
+    time.sleep(0.3)
+    pipe = Pipeline([], [sink], profile=profile, mode=mode)
+    clock = time.thread_time
+    spent: dict[str, float] = {}
+    for name, obj, attr in (("stabilise", pipe._stabiliser, "step"), ("step", pipe._solver, "step")):
+        inner = getattr(obj, attr)
+
+        def timed(*args, _inner=inner, _name=name):
+            c = clock()
+            out = _inner(*args)
+            spent[_name] = clock() - c
+            return out
+
+        setattr(obj, attr, timed)
+    rows = {p: np.empty(frames) for p in PARTS}
+    for i, parts in enumerate(packets):
+        c0 = clock()
+        frame = source.decode(parts)
+        c1 = clock()
+        result = pipe.solve_frame(frame)
+        c2 = clock()
+        pipe.publish(result)
+        c3 = clock()
+        for p, v in (("decode", c1 - c0), ("publish", c3 - c2), ("frame", c3 - c0), ("stabilise", spent["stabilise"]),
+                     ("step", spent["step"]), ("around_step", c3 - c0 - spent["step"])):
+            rows[p][i] = v
+        while rx.poll(0):
+            rx.recv()
+        time.sleep(pace)
+    sink.close()
+    rx.close(0)
+    warm = frames // 10
+    return {p: {"p50_us": float(np.percentile(v[warm:] * 1e6, 50)), "p99_us": float(np.percentile(v[warm:] * 1e6, 99))}
+            for p, v in rows.items()}
+
+
+def run(quick: bool = False, modes=("robust", "qp")) -> dict:
+    frames = 1200 if quick else 7200
+    load = os.getloadavg()
+    out = {"frames": frames, "rate_hz": 120.0, "load_start": load, "clock": "thread CPU (time.thread_time)",
+           "data": "livecap generate seed 0 (60 markers, 43 shapes), 10 s take looped", "modes": {}}
+    for m in (m for m in modes if m):
+        out["modes"][m] = measure(m, frames)
+        r = out["modes"][m]
+        print(f"{m:16s} " + "  ".join(f"{p} {r[p]['p50_us']:.0f}/{r[p]['p99_us']:.0f}" for p in PARTS)
+              + "  (thread CPU µs p50/p99)", flush=True)
+    out["load_end"] = os.getloadavg()
+    print(f"load average {load[0]:.2f} -> {out['load_end'][0]:.2f}; frame = decode + stabilise + step + the rest "
+          "of solve_frame + publish; around_step = frame less the mode's step")
+    return out
+
+
+if __name__ == "__main__":
+    sys.exit(suite_main(run, __doc__, modes="robust,qp"))
