@@ -18,8 +18,8 @@ from pathlib import Path
 from benchmarks.timing import machine, peak_rss_mb
 
 # suite name -> module under benchmarks/ exposing run(quick) -> dict
-SUITES = ["solve_latency", "movement", "qp_libraries", "rbf_blend", "live_latency", "live_driver", "concurrency", "viewer_fps",
-          "transfer", "bounded", "weight_smoothing", "hostile", "review", "labelling",
+SUITES = ["solve_latency", "movement", "qp_libraries", "rbf_blend", "live_latency", "live_driver", "concurrency",
+          "viewer_fps", "transfer", "bounded", "weight_smoothing", "hostile", "review", "labelling",
           "offline", "batch"]
 RESULTS = Path(__file__).resolve().parent / "results"
 
