@@ -7,6 +7,7 @@ import time
 from collections.abc import Callable, Iterator
 
 from livecap.core.take import MarkerFrame
+from transport.badinput import BadInput, FrameOrder
 
 
 def offer(frames: queue.Queue, frame: MarkerFrame, bad) -> None:
@@ -34,6 +35,41 @@ def queued_frames(frames: queue.Queue, running: Callable[[], bool],
             return
         last_good = time.monotonic()
         yield frame
+
+
+class QueuedCaptureSource:
+    """What the capture-system sources share: the vendor client's thread decodes each packet
+    (``decode``, per source) and hands the frame to the consumer through a bounded queue."""
+
+    def _start_queue(self, name: str, idle_timeout: float | None) -> None:
+        self.bad = BadInput(name)
+        self._order = FrameOrder()
+        self.idle_timeout = idle_timeout
+        self.received = 0
+        self.last_decode_seconds = 0.0
+        self._queue: queue.Queue = queue.Queue(maxsize=1000)
+        self._running = True
+
+    def decode(self, packet) -> MarkerFrame | None:
+        raise NotImplementedError
+
+    def _hand_over(self, packet) -> None:
+        """The client thread's callback: decode (timed, counted) and offer the frame."""
+        t0 = time.perf_counter()
+        self.received += 1
+        frame = self.decode(packet)
+        self.last_decode_seconds = time.perf_counter() - t0
+        if frame is not None:
+            offer(self._queue, frame, self.bad)
+
+    def pending(self) -> bool:
+        return not self._queue.empty()
+
+    def stop(self) -> None:
+        self._running = False
+
+    def __iter__(self) -> Iterator[MarkerFrame]:
+        return queued_frames(self._queue, lambda: self._running, self.idle_timeout)
 
 
 def _host_port(text: str, default: int) -> tuple[str, int]:

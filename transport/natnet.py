@@ -11,19 +11,16 @@ the legacy "other markers" list when that one is empty. Motive streams metres by
 
 from __future__ import annotations
 
-import queue
 import select
 import struct
 import threading
 import time
-from collections.abc import Iterator
 
 import numpy as np
 
 from livecap.core.take import MarkerFrame
 from livecap.core.units import MM_PER_UNIT
-from transport.badinput import BadInput, FrameOrder
-from transport.capture import offer, queued_frames
+from transport.capture import QueuedCaptureSource
 
 DEFAULT_PORT = 1510  # Motive's command port
 
@@ -32,7 +29,7 @@ class NatNetSourceError(OSError):
     """No NatNet server answered, or it has no marker set for the session's labels."""
 
 
-class NatNetSource:
+class NatNetSource(QueuedCaptureSource):
     def __init__(self, server: str, port: int = DEFAULT_PORT, labels: list[str] | None = None,
                  unlabelled: bool = False, marker_set: str | None = None, units: str = "m",
                  local: str = "127.0.0.1", timeout: float = 5.0, idle_timeout: float | None = None) -> None:
@@ -44,17 +41,11 @@ class NatNetSource:
         self.unlabelled = unlabelled or labels is None
         self.labels = None if self.unlabelled else list(labels)
         self.marker_set = marker_set
-        self.bad = BadInput(f"natnet {server}:{port}")
-        self._order = FrameOrder()
-        self.idle_timeout = idle_timeout
-        self.received = 0
-        self.last_decode_seconds = 0.0
-        self._queue: queue.Queue = queue.Queue(maxsize=1000)
+        self._start_queue(f"natnet {server}:{port}", idle_timeout)
         self._descriptions = None
-        self._running = True
         self.client = NatNetClient(server_ip_address=server, local_ip_address=local, command_port=port,
                                    use_multicast=False)
-        self.client.on_data_frame_received_event.handlers.append(self._on_frame)
+        self.client.on_data_frame_received_event.handlers.append(self._hand_over)
         self.client.on_data_description_received_event.handlers.append(self._on_descriptions)
         try:
             self.client.connect(timeout)
@@ -106,14 +97,6 @@ class NatNetSource:
     def _on_descriptions(self, descriptions) -> None:
         self._descriptions = descriptions
 
-    def _on_frame(self, frame) -> None:
-        t0 = time.perf_counter()
-        self.received += 1
-        out = self.decode(frame)
-        self.last_decode_seconds = time.perf_counter() - t0
-        if out is not None:
-            offer(self._queue, out, self.bad)
-
     def decode(self, frame) -> MarkerFrame | None:
         number = frame.prefix.frame_number
         order = self._order.check(number)
@@ -142,17 +125,8 @@ class NatNetSource:
         return MarkerFrame(number, ts, np.where(ok[:, None], pos, 0.0), ok)
 
     # ------------------------------------------------------------------ consumer
-    def pending(self) -> bool:
-        return not self._queue.empty()
-
-    def stop(self) -> None:
-        self._running = False
-
     def close(self) -> None:
         self._running = False
         if self._thread.is_alive():
             self._thread.join(timeout=1.0)
         self.client.shutdown()
-
-    def __iter__(self) -> Iterator[MarkerFrame]:
-        return queued_frames(self._queue, lambda: self._running, self.idle_timeout)

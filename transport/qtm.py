@@ -10,18 +10,14 @@ counts) is counted and skipped.
 from __future__ import annotations
 
 import asyncio
-import queue
 import struct
 import threading
-import time
 import xml.etree.ElementTree as ET
-from collections.abc import Iterator
 
 import numpy as np
 
 from livecap.core.take import MarkerFrame
-from transport.badinput import BadInput, FrameOrder
-from transport.capture import offer, queued_frames
+from transport.capture import QueuedCaptureSource
 
 DEFAULT_PORT = 22223  # QTM's little-endian RT port
 
@@ -36,7 +32,7 @@ def labels_from_parameters(xml: bytes | str) -> list[str]:
     return [(e.findtext("Name") or "").strip() for e in root.iter("Label")]
 
 
-class QtmSource:
+class QtmSource(QueuedCaptureSource):
     """Frames from QTM. ``labels`` (the session's order) with ``unlabelled=False`` streams the 3D
     component mapped onto them; ``unlabelled=True`` streams 3D-no-labels as clouds."""
 
@@ -48,16 +44,10 @@ class QtmSource:
         self.host, self.port = host, port
         self.unlabelled = unlabelled or labels is None
         self.labels = None if self.unlabelled else list(labels)
-        self.bad = BadInput(f"qtm {host}:{port}")
-        self._order = FrameOrder()
-        self.idle_timeout = idle_timeout
-        self.received = 0
-        self.last_decode_seconds = 0.0
+        self._start_queue(f"qtm {host}:{port}", idle_timeout)
         self.stream_labels: list[str] = []
-        self._queue: queue.Queue = queue.Queue(maxsize=1000)
         self._ready = threading.Event()
         self._error: str | None = None
-        self._running = True
         self._loop = asyncio.new_event_loop()
         self._stop_future: asyncio.Future | None = None
         self._thread = threading.Thread(target=self._run, args=(version, timeout), daemon=True)
@@ -94,7 +84,7 @@ class QtmSource:
                 conn.disconnect()
                 return
         self._stop_future = self._loop.create_future()
-        await conn.stream_frames(components=["3dnolabels" if self.unlabelled else "3d"], on_packet=self._on_packet)
+        await conn.stream_frames(components=["3dnolabels" if self.unlabelled else "3d"], on_packet=self._hand_over)
         self._ready.set()
         await self._stop_future
         if conn.has_transport():
@@ -107,14 +97,6 @@ class QtmSource:
     def _finish(self) -> None:
         if self._stop_future is not None and not self._stop_future.done():
             self._stop_future.set_result(None)
-
-    def _on_packet(self, packet) -> None:
-        t0 = time.perf_counter()
-        self.received += 1
-        frame = self.decode(packet)
-        self.last_decode_seconds = time.perf_counter() - t0
-        if frame is not None:
-            offer(self._queue, frame, self.bad)
 
     def decode(self, packet) -> MarkerFrame | None:
         """One data packet to a frame, or None (counted) when it cannot be read."""
@@ -151,17 +133,8 @@ class QtmSource:
         return MarkerFrame(packet.framenumber, ts, np.where(ok[:, None], pos, 0.0), ok)
 
     # ------------------------------------------------------------------ consumer
-    def pending(self) -> bool:
-        return not self._queue.empty()
-
-    def stop(self) -> None:
-        self._running = False
-
     def close(self) -> None:
         self._running = False
         if self._loop.is_running():
             self._loop.call_soon_threadsafe(self._finish)
         self._thread.join(timeout=3.0)
-
-    def __iter__(self) -> Iterator[MarkerFrame]:
-        return queued_frames(self._queue, lambda: self._running, self.idle_timeout)
