@@ -46,16 +46,13 @@ def gap_table(valid: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.ndarray, 
     return marker[keep], start[keep], stop[keep]
 
 
-def fill_gaps(positions: np.ndarray, valid: np.ndarray, max_gap: int,
-              window: int = 32) -> tuple[np.ndarray, np.ndarray]:
+def fill_gaps(positions: np.ndarray, valid: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.ndarray]:
     """Copies of ``positions`` (T, n, 3) and ``valid`` (T, n) with short interior gaps filled.
 
     A gap is filled only when it has at most ``max_gap`` frames and visible samples on both sides,
     from the marker's smoothed track (module docstring); seen samples are untouched, positions that
-    stay missing are 0. ``window`` is accepted for callers of the per-gap fill and unused: the
-    smoother's reach follows from its GCV-chosen smoothing, not a fixed window.
+    stay missing are 0.
     """
-    del window
     positions = np.array(positions, dtype=np.float64)
     valid = np.array(valid, dtype=bool)
     T = len(valid)

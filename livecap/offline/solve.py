@@ -43,7 +43,7 @@ def prepare_targets(take: Take, profile: Profile, max_gap_seconds: float | None 
 
     Head motion is removed by the profile's (robust) stabiliser (Seol §3.1), the pose smoothed
     over ``pose_smoothing_seconds`` (default: the profile's setting, else 0.2 s; 0 = raw), then
-    interior gaps up to ``max_gap_seconds`` are filled by cubic spline in the head frame (Curio
+    interior gaps up to ``max_gap_seconds`` are filled from each marker's smoothed track in the head frame (Curio
     §2.1). Returns
     the take (labels in profile order, valid mask including filled samples, filled positions put
     back in capture space), targets (T, n, 3; 0 where still missing, never NaN), R and t.
