@@ -4,6 +4,11 @@ does (read the take, build the solver, solve, write the CSV), on copies of the b
 (2400 frames, 60 markers, 43 shapes) with a profile calibrated from the demo neutral take.
 
     python -m benchmarks.batch [--quick] [--json FILE] [--settings livecap,dask] [--placement cluster,sessions]
+                               [--takes demo|real]
+
+``--takes real``: instead of demo copies, 12 different 20 s takes on the ICT-FaceKit rig driven by the real
+Live Link Face performances of ../shared/realdata/performance (`livecap generate --curves`, one actor, 20 s
+segments of the files long enough for one), the profile calibrated from that actor's neutral take.
 
 Each cluster is started and warmed (every worker solves a 1 s take: imports, rig and profile loaded,
 solver prepared) before the timed batch; that fixed cost is reported beside it. Takes/s count the
@@ -31,7 +36,7 @@ from pathlib import Path
 from benchmarks.timing import suite_main
 
 ROOT = Path(__file__).resolve().parents[1]
-RIG = ROOT / "recordings" / "demo_rig.npz"
+RIG = Path(os.environ.get("LIVECAP_BENCH_RIG", ROOT / "recordings" / "demo_rig.npz"))  # the loop's process reads it
 MODE = "robust"
 ONE_THREAD = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
 
@@ -189,8 +194,40 @@ def _batch(workers: int, profile: str, out: Path, warm: Path, takes: list[Path],
             "load_start": load0, "load_end": _load()}
 
 
+def _real_takes(work: Path, n: int) -> tuple[Path, list[Path]]:
+    """``n`` 20 s ICT takes from the real performances (one actor) and that actor's neutral take."""
+    from livecap.cli import main as livecap
+
+    shared = Path(os.environ.get("LIVECAP_SHARED", ROOT.parent / "shared")) / "realdata"
+    rig, curves = shared / "ict-face", sorted((shared / "performance").glob("*.csv"))
+    if not rig.is_dir() or not curves:
+        raise FileNotFoundError(f"--takes real needs {rig} and the CSVs of {shared / 'performance'}")
+    takes, neutral = [], None
+    for start in (0, 20, 40, 60):
+        for csv in curves:
+            if len(takes) == n:
+                return neutral, takes
+            out = work / "gen" / f"{csv.stem}-{start}"
+            with open(os.devnull, "w") as null:
+                stdout, sys.stdout = sys.stdout, null
+                try:
+                    livecap(["generate", "--rig", str(rig), "--curves", str(csv), "--start", str(start),
+                             "--seconds", "20", "--rate", "120", "--out", str(out)])
+                except SystemExit:
+                    continue  # the file is shorter than this start
+                finally:
+                    sys.stdout = stdout
+            take = out / f"{csv.stem}.c3d"
+            from transport.takefile import read_take
+
+            if take.exists() and read_take(take).n_frames == 2400:
+                takes.append(take)
+                neutral = neutral or out / f"{csv.stem}_neutral.c3d"
+    raise FileNotFoundError(f"only {len(takes)} real-performance takes of 20 s could be made")
+
+
 def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",),
-        settings: tuple[str, ...] = ("livecap",)) -> dict:
+        settings: tuple[str, ...] = ("livecap",), takes: str = "demo") -> dict:
     """``placement``: "cluster" (livecap's LocalCluster) and/or "sessions" (dask scheduler and workers as
     separate processes, each in its own session); ``settings`` of the LocalCluster: "livecap" (what
     ``livecap batch`` starts) and/or "dask" (Dask's defaults, the profiler off: the code before them)."""
@@ -200,24 +237,30 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",),
     n = 2 if quick else 12  # enough takes that 2 workers reach steady state (4 short takes measured start-up)
     work = Path(tempfile.mkdtemp(prefix="livecap-batch-bench-"))
     try:
+        global RIG
+        if "real" in (takes if isinstance(takes, tuple) else (takes,)):
+            RIG = Path(os.environ.get("LIVECAP_SHARED", ROOT.parent / "shared")) / "realdata" / "ict-face"
+            os.environ["LIVECAP_BENCH_RIG"] = str(RIG)
+            neutral, paths = _real_takes(work, n)
+        else:
+            neutral, demo = ROOT / "recordings" / "demo_neutral.c3d", ROOT / "recordings" / "demo_take.c3d"
+            paths = []
+            for i in range(n):
+                paths.append(work / "takes" / f"take{i:03d}.c3d")
+                paths[-1].parent.mkdir(exist_ok=True)
+                shutil.copy(demo, paths[-1])
         profile = str(work / "actor.npz")
         with open(os.devnull, "w") as null:
             stdout, sys.stdout = sys.stdout, null
             try:
-                livecap(["calibrate", str(ROOT / "recordings" / "demo_neutral.c3d"), "--rig", str(RIG),
-                         "--out", profile])
+                livecap(["calibrate", str(neutral), "--rig", str(RIG), "--out", profile])
             finally:
                 sys.stdout = stdout
-        demo = ROOT / "recordings" / "demo_take.c3d"
-        takes = []
-        for i in range(n):
-            takes.append(work / "takes" / f"take{i:03d}.c3d")
-            takes[-1].parent.mkdir(exist_ok=True)
-            shutil.copy(demo, takes[-1])
         warm = work / "warm.c3d"
-        write_take(read_take(demo).slice(0, 120), warm)
-        frames = read_take(demo).n_frames
+        write_take(read_take(paths[0]).slice(0, 120), warm)
+        frames = read_take(paths[0]).n_frames
         duration = frames / 120.0
+        takes = paths
 
         load0 = _load()
         timed = _loop_in_process(profile, work / "loop", warm, takes)
@@ -234,7 +277,7 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",),
     overhead = one["per_take_s"] / base["per_take_s"] - 1.0
     cpu_overhead = one["cpu_per_take_s"] / base["cpu_per_take_s"] - 1.0
     speedup = two["takes_per_s"] / one["takes_per_s"]
-    print(f"{n} takes of {duration:.0f} s ({frames} frames, mode {MODE}), profile calibrated once")
+    print(f"{n} takes of {duration:.0f} s ({frames} frames, mode {MODE}, rig {RIG.name}), profile calibrated once")
     print(f"{'':>34} {'takes/s':>8} {'s/take':>7} {'CPU s/take':>10} {'vs loop':>8} {'summary s':>9} "
           f"{'start+warm s':>13} {'load':>11}")
     print(f"{'in-process loop (baseline)':>34} {base['takes_per_s']:>8.3f} {base['per_take_s']:>7.2f} "
@@ -270,4 +313,4 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",),
 
 
 if __name__ == "__main__":
-    sys.exit(suite_main(run, __doc__, placement="cluster", settings="livecap"))
+    sys.exit(suite_main(run, __doc__, placement="cluster", settings="livecap", takes="demo"))
