@@ -66,9 +66,49 @@ def cases(quick: bool):
         out.append(("ICT", profile, take.slice(0, T), truth[:T]))
         fast, W = faster_larger(rig, layout, seconds=seconds)
         out.append(("ICT 1.2x faster/larger", profile, fast, W))
+        real = _ict_real(seconds)
+        if real is not None:
+            out.append(real)
     else:
         print("ICT rig not found: ICT cases skipped", file=sys.stderr)
     return out
+
+
+def _ict_real(seconds: float):
+    """An ICT take driven by a real Live Link Face performance (``livecap generate --curves``: unseen actor,
+    head motion, 0.5 mm noise, 5 % occlusion), calibrated on its own neutral take."""
+    import os
+    import tempfile
+
+    from livecap.calibration.profile import calibrate, estimate_neutral
+    from livecap.cli import main as livecap
+    from livecap.cli.common import tune_on_take
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
+    from livecap.demo.performance import GroundTruth
+    from transport.takefile import read_take
+
+    shared = Path(os.environ["LIVECAP_SHARED"]) / "realdata" if os.environ.get("LIVECAP_SHARED") else ICT.parent
+    csv = shared / "performance" / "S07-001.csv"
+    if not csv.exists():
+        print(f"{csv} not found: the real-performance case is skipped", file=sys.stderr)
+        return None
+    rig = Rig.load(shared / "ict-face")
+    layout = MarkerLayout.load(shared / "ict-face" / "markers.json", rig)
+    with tempfile.TemporaryDirectory() as tmp:
+        with open(os.devnull, "w") as null:
+            stdout, sys.stdout = sys.stdout, null
+            try:
+                livecap(["generate", "--rig", str(shared / "ict-face"), "--curves", str(csv), "--seconds",
+                         str(seconds), "--rate", "120", "--out", tmp])
+            finally:
+                sys.stdout = stdout
+        take = read_take(Path(tmp) / "S07-001.c3d")
+        neutral = read_take(Path(tmp) / "S07-001_neutral.c3d")
+        truth = GroundTruth.load(Path(tmp) / "S07-001.truth.npz")
+    profile = calibrate(rig, layout, estimate_neutral(neutral.select(layout.labels), layout.stable, int(neutral.rate)))
+    tune_on_take(profile, take)
+    return "ICT, real performance (S07-001)", profile, take, truth.weights
 
 
 def _labeller_at(rev: str):
