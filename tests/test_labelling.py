@@ -19,6 +19,7 @@ from livecap.live.unlabelled import LabelledSource, label_take, labeller_for
 from livecap.offline.labelling import labelling_study
 from solvers.labelling import _rigid, gated_assignment
 from solvers.rigid import kabsch
+from tests.sinks import Capture
 
 
 @settings(max_examples=60, deadline=None)
@@ -169,17 +170,6 @@ def test_scrambled_faster_larger_ict(ict):
     assert st_.scores.right >= 0.995, st_.scores.line()
     assert st_.scores.longest_swap <= 2, st_.scores.line()
     assert st_.rmse_ratio <= 1.05, (st_.rmse_labelled, st_.rmse_unlabelled)
-
-
-class Capture:
-    def __init__(self):
-        self.results = []
-
-    def publish(self, r):
-        self.results.append(r)
-
-    def close(self):
-        pass
 
 
 def test_labelled_source_in_the_pipeline(demo_setup):

@@ -13,6 +13,7 @@ from livecap.live.pipeline import Pipeline, StageTiming
 from livecap.live.session import SessionError, load_session
 from livecap.modes.registry import build_solver
 from livecap.offline.solve import solve_take
+from tests.sinks import Capture
 from transport.recorders import JsonlRecorder, read_jsonl_recording
 from transport.wire import encode_markers, topic
 from transport.zmq_source import ZmqSource
@@ -25,17 +26,6 @@ def setup(demo):
     take = perf.take.select(layout.labels)
     profile = calibrate(rig, layout, estimate_neutral(take, layout.stable, 60))
     return rig, layout, take, profile
-
-
-class Capture:
-    def __init__(self):
-        self.results = []
-
-    def publish(self, r):
-        self.results.append(r)
-
-    def close(self):
-        pass
 
 
 def test_pipeline_matches_offline_solve(setup):

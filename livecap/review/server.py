@@ -140,10 +140,13 @@ def make_app(session: ReviewSession, rig_glb: bytes) -> web.Application:
         except ValueError as exc:
             return bad(exc)
 
+    def attachment(filename: str, content_type: str, **content) -> web.Response:
+        return web.Response(**content, content_type=content_type,
+                            headers={"Content-Disposition": f'attachment; filename="{filename}"'})
+
     @routes.get("/export/weights.csv")
     async def weights_csv(request):
-        return web.Response(text=session.weights_csv(), content_type="text/csv",
-                            headers={"Content-Disposition": 'attachment; filename="weights.csv"'})
+        return attachment("weights.csv", "text/csv", text=session.weights_csv())
 
     @routes.get("/export/keys.csv")
     async def keys_csv(request):
@@ -151,8 +154,7 @@ def make_app(session: ReviewSession, rig_glb: bytes) -> web.Application:
             text = session.keys_csv(float(request.query.get("max_error", 0.01)))
         except ValueError as exc:
             return bad(exc)
-        return web.Response(text=text, content_type="text/csv",
-                            headers={"Content-Disposition": 'attachment; filename="keys.csv"'})
+        return attachment("keys.csv", "text/csv", text=text)
 
     @routes.get("/export/keys.glb")
     async def keys_glb(request):
@@ -160,8 +162,7 @@ def make_app(session: ReviewSession, rig_glb: bytes) -> web.Application:
             body = session.keys_glb(float(request.query.get("max_error", 0.01)))
         except ValueError as exc:
             return bad(exc)
-        return web.Response(body=body, content_type="model/gltf-binary",
-                            headers={"Content-Disposition": 'attachment; filename="keys.glb"'})
+        return attachment("keys.glb", "model/gltf-binary", body=body)
 
     app = web.Application()
     app.add_routes(routes)
