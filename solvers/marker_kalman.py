@@ -29,46 +29,52 @@ class KalmanSettings:
 
 
 class _Bank:
-    """K filters (rows) over N coordinates (columns), vectorised; ``r``, ``q`` per row (K,) or per cell (K, N)."""
+    """K filters (rows) over n markers' 3 coordinates, vectorised; ``r``, ``q`` per row (K,) or per
+    row and marker (K, n). A marker's three coordinates share their visibility and noise, so their
+    covariances are equal: kept once per marker (K x n), the states per coordinate (K x n x 3)."""
 
     def __init__(self, r: np.ndarray, q: np.ndarray, n: int) -> None:
         self.r, self.q = (r, q) if np.ndim(r) == 2 else (r[:, None], q[:, None])
         k = len(self.r)
-        self.x = np.zeros((k, n))
-        self.v = np.zeros((k, n))
+        self.x = np.zeros((k, n, 3))
+        self.v = np.zeros((k, n, 3))
         self.p00 = np.full((k, n), 1e6)
         self.p01 = np.zeros((k, n))
         self.p11 = np.full((k, n), 1e2)
         self.started = np.zeros(n, dtype=bool)
 
     def predict(self) -> None:
+        """New arrays, never in place: callers keep the previous state by reference."""
         self.x = self.x + self.v
         p00 = self.p00 + 2 * self.p01 + self.p11 + self.q / 3
         p01 = self.p01 + self.p11 + self.q / 2
         self.p00, self.p01, self.p11 = p00, p01, self.p11 + self.q
 
     def update(self, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
-        """Update with ``z`` where ``seen``; returns the innovation log-likelihood (K x N, 0 where unseen)."""
+        """Update with ``z`` (n x 3) where ``seen`` (n,); returns the innovation log-likelihood
+        (K x n x 3, 0 where unseen)."""
         first = seen & ~self.started
-        if first.any():  # start at the first sighting, velocity unknown
+        if first.any():  # start at the first sighting, velocity unknown (on copies: see predict)
+            self.x, self.v = self.x.copy(), self.v.copy()
+            self.p00, self.p01, self.p11 = self.p00.copy(), self.p01.copy(), self.p11.copy()
             self.x[:, first] = z[first]
             self.v[:, first] = 0.0
-            self.p00[:, first] = np.broadcast_to(self.r, self.x.shape)[:, first]
+            self.p00[:, first] = np.broadcast_to(self.r, self.p00.shape)[:, first]
             self.p01[:, first] = 0.0
             self.p11[:, first] = 1e2
             self.started |= first
         upd = seen & ~first
-        e = np.where(upd, z - self.x, 0.0)
+        e = np.where(upd[:, None], z - self.x, 0.0)
         s = self.p00 + self.r
         k0, k1 = self.p00 / s, self.p01 / s
         k0, k1 = np.where(upd, k0, 0.0), np.where(upd, k1, 0.0)
-        self.x = self.x + k0 * e
-        self.v = self.v + k1 * e
+        self.x = self.x + k0[..., None] * e
+        self.v = self.v + k1[..., None] * e
         p01 = self.p01
         self.p00 = self.p00 - k0 * self.p00
         self.p01 = p01 - k0 * p01
         self.p11 = self.p11 - k1 * p01
-        return np.where(upd, -0.5 * (np.log(s) + e * e / s), 0.0)
+        return np.where(upd[:, None], -0.5 * (np.log(s)[..., None] + e * e / s[..., None]), 0.0)
 
 
 def _grid(s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -95,41 +101,42 @@ def smooth_take(targets: np.ndarray, valid: np.ndarray, settings: KalmanSettings
     that time-varying ``q`` and the RTS pass."""
     s = settings or KalmanSettings()
     T, n, _ = targets.shape
-    z = targets.reshape(T, -1)
-    seen = np.repeat(np.asarray(valid, bool), 3, axis=1)
+    z = np.asarray(targets, float)
+    seen = np.asarray(valid, bool)
     r, q = _grid(s)
-    bank = _Bank(r, q, 3 * n)
-    ll = np.zeros((len(r), 3 * n))
+    bank = _Bank(r, q, n)
+    ll = np.zeros((len(r), n, 3))
     for t in range(T):
         if t:
             bank.predict()
         ll += bank.update(z[t], seen[t])
     ri, _ = _choose(ll, n, len(s.r_grid))
     qg, r0 = np.asarray(s.q_grid, float), float(s.r_grid[ri])
-    bank = _Bank(np.full(len(qg), r0), qg, 3 * n)
+    bank = _Bank(np.full(len(qg), r0), qg, n)
     cum = np.zeros((T + 1, len(qg), n))
     for t in range(T):
         if t:
             bank.predict()
-        cum[t + 1] = cum[t] + bank.update(z[t], seen[t]).reshape(len(qg), n, 3).sum(2)
+        cum[t + 1] = cum[t] + bank.update(z[t], seen[t]).sum(2)
     h = int(s.local_frames)
     frames = np.arange(T)
     local = cum[np.minimum(frames + h + 1, T)] - cum[np.maximum(frames - h, 0)]  # T x q x n
-    qt = np.repeat(qg[local.argmax(1)], 3, axis=1)  # T x 3n
-    chosen = _Bank(np.full((1, 3 * n), r0), qt[:1].copy(), 3 * n)
+    qt = qg[local.argmax(1)]  # T x n
+    chosen = _Bank(np.full((1, n), r0), qt[:1].copy(), n)
     xs, ps, xp, pp = [], [], [], []
     for t in range(T):
         if t:
             chosen.q = qt[t][None]
             chosen.predict()
-        xp.append(np.stack([chosen.x[0], chosen.v[0]]))
+        xp.append(np.stack([chosen.x[0].ravel(), chosen.v[0].ravel()]))
         pp.append(np.stack([chosen.p00[0], chosen.p01[0], chosen.p11[0]]))
         chosen.update(z[t], seen[t])
-        xs.append(np.stack([chosen.x[0], chosen.v[0]]))
+        xs.append(np.stack([chosen.x[0].ravel(), chosen.v[0].ravel()]))
         ps.append(np.stack([chosen.p00[0], chosen.p01[0], chosen.p11[0]]))
-    out = _rts(np.array(xs), np.array(ps), np.array(xp), np.array(pp))
+    per_coordinate = [np.repeat(np.array(a), 3, axis=2) for a in (ps, pp)]
+    out = _rts(np.array(xs), per_coordinate[0], np.array(xp), per_coordinate[1])
     return out.reshape(T, n, 3), bridged(valid, s.max_gap_frames), {
-        "noise_mm": float(np.sqrt(r0)), "q_per_marker": np.median(qt[:, ::3], axis=0)}
+        "noise_mm": float(np.sqrt(r0)), "q_per_marker": np.median(qt, axis=0)}
 
 
 def _rts(xs: np.ndarray, ps: np.ndarray, xp: np.ndarray, pp: np.ndarray) -> np.ndarray:
@@ -180,8 +187,8 @@ class StreamingMarkerKalman:
         self.reset()
 
     def reset(self) -> None:
-        self.bank = _Bank(self.r, self.q, 3 * self.n)
-        self.ll = np.zeros((len(self.r), 3 * self.n))
+        self.bank = _Bank(self.r, self.q, self.n)
+        self.ll = np.zeros((len(self.r), self.n, 3))
         self.decay = 0.5 ** (1.0 / self.s.half_life_frames)
         self.unseen = np.zeros(self.n, dtype=int)
         self.prev: tuple | None = None
@@ -191,29 +198,27 @@ class StreamingMarkerKalman:
     def step(self, target: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Filtered (lag 0) or one-frame-smoothed (lag 1) markers n x 3 and their validity."""
         valid = np.asarray(valid, bool)
-        seen = np.repeat(valid, 3)
         b = self.bank
-        if self.t:
-            before = (b.x.copy(), b.v.copy(), b.p00.copy(), b.p01.copy(), b.p11.copy())
+        if self.t:  # by reference: predict and update make new arrays
+            before = (b.x, b.v, b.p00, b.p01, b.p11)
             b.predict()
-            pred = (b.x.copy(), b.v.copy(), b.p00.copy(), b.p01.copy(), b.p11.copy())
-        self.ll = self.decay * self.ll + b.update(np.asarray(target, float).reshape(-1), seen)
+            pred = (b.x, b.v, b.p00, b.p01, b.p11)
+        self.ll = self.decay * self.ll + b.update(np.asarray(target, float).reshape(self.n, 3), valid)
         self.unseen = np.where(valid, 0, self.unseen + 1)
         ri, pick = _choose(self.ll, self.n, len(self.s.r_grid))
         self.noise_mm = float(np.sqrt(self.s.r_grid[ri]))
-        cols = np.repeat(pick, 3)
-        idx = np.arange(3 * self.n)
-        ok = self.bank.started.reshape(self.n, 3).all(1) & (self.unseen <= self.s.max_gap_frames)
+        idx = np.arange(self.n)
+        ok = b.started & (self.unseen <= self.s.max_gap_frames)
         if self.lag == 0 or not self.t:
             self.t += 1
-            return b.x[cols, idx].reshape(self.n, 3), ok
+            return b.x[pick, idx], ok
         self.t += 1
-        fx, fv, f00, f01, f11 = (a[cols, idx] for a in before)
-        px, pv, a00, a01, a11 = (a[cols, idx] for a in pred)
+        fx, fv, f00, f01, f11 = (a[pick, idx] for a in before)
+        px, pv, a00, a01, a11 = (a[pick, idx] for a in pred)
         det = a00 * a11 - a01 * a01
-        j00 = ((f00 + f01) * a11 - f01 * a01) / det
-        j01 = (-(f00 + f01) * a01 + f01 * a00) / det
-        x = fx + j00 * (b.x[cols, idx] - px) + j01 * (b.v[cols, idx] - pv)
+        j00 = (((f00 + f01) * a11 - f01 * a01) / det)[:, None]
+        j01 = ((-(f00 + f01) * a01 + f01 * a00) / det)[:, None]
+        x = fx + j00 * (b.x[pick, idx] - px) + j01 * (b.v[pick, idx] - pv)
         prev_ok = self.prev if self.prev is not None else ok
         self.prev = ok
-        return x.reshape(self.n, 3), prev_ok
+        return x, prev_ok
