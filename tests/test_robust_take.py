@@ -92,3 +92,11 @@ def test_causal_filter_over_the_take_equals_its_steps():
         X0 = np.where(mask, X, 0.0)
         assert np.abs(causal_poly_take(X0, mask, window) - f.filter(X0, mask)).max() <= 1e-10
         assert np.abs(causal_poly_take(X, None, window) - f.filter(X)).max() <= 1e-10
+        short = X0[:window - 2], mask[:window - 2]  # a take shorter than the window
+        assert np.abs(causal_poly_take(*short, window) - f.filter(*short)).max() <= 1e-10
+
+
+def test_an_empty_take(demo):
+    rig, layout = demo
+    _, profile, S, valid = _take(rig, layout, 1.0, 0.0)
+    assert whole_take(build_solver("robust", profile), S[:0], valid[:0]).shape == (0, rig.n_shapes)

@@ -24,6 +24,8 @@ def whole_take(solver, targets: np.ndarray, valid: np.ndarray) -> np.ndarray | N
             and isinstance(solver.marker_filter, CausalPolyFilter) and hasattr(solver.weight_filter, "filter")):
         return None
     valid = np.asarray(valid, dtype=bool)
+    if not len(valid):
+        return np.zeros((0, solver.inner.m))
     solver.reset()
     mf, fit = solver.marker_filter, solver.inner
     smoothed = causal_poly_take(targets, valid[..., None], mf.window, mf.order)
