@@ -9,7 +9,10 @@ and written to C3D first. Every mode gets a row: x real time = take seconds / en
 the stage times beside it, x real time in process CPU seconds (steadier than wall time on a
 shared, loaded machine), and the weight RMSE against the generator's ground truth (accuracy
 beside speed). The gap-fill column also times the per-gap spline it replaced
-(livecap.calibration.gaps_spline) on the same take, as the baseline.
+(livecap.calibration.gaps_spline) on the same take, as the baseline. ``robust-streamed`` is the
+default mode stepped frame by frame (the path before its whole-take one, livecap/modes/robust_take.py):
+run right after ``robust`` on the same take, the baseline of that speed-up, with the largest weight
+difference between the two printed.
 """
 
 from __future__ import annotations
@@ -71,6 +74,16 @@ def _profile(rig, layout, take_path: Path, folder: Path) -> tuple[Path, float]:
     return path, seconds
 
 
+STREAMED = "robust-streamed"  # the robust solver stepped frame by frame: the whole-take path's baseline
+
+
+class _Stepped:
+    """A solver reduced to ``step``/``reset``, so ``solve_take`` steps it frame by frame."""
+
+    def __init__(self, solver) -> None:
+        self.step, self.reset = solver.step, solver.reset
+
+
 def _options(mode: str, profile) -> dict:
     if mode == "rbf":
         from benchmarks.synthetic import rom_keys
@@ -98,7 +111,8 @@ def solve_end_to_end(mode: str, take_path: Path, profile_path: Path, out: Path, 
     t1 = clock()
     profile = Profile.load(profile_path)
     t2 = clock()
-    solver = build_solver(mode, profile, _options(mode, profile))
+    solver = _Stepped(build_solver("robust", profile)) if mode == STREAMED else build_solver(
+        mode, profile, _options(mode, profile))
     t3 = clock()
     solved = solve_take(take, profile, solver)
     t4 = clock()
@@ -114,7 +128,8 @@ def solve_end_to_end(mode: str, take_path: Path, profile_path: Path, out: Path, 
     return {"frames": T, "seconds_of_take": T / take.rate, "read_s": t1 - t0, "profile_s": t2 - t1,
             "build_s": t3 - t2, "prepare_s": prepare, "solve_s": solved.solve_seconds,
             "write_s": t5 - t4, "total_s": total, "x_real_time": T / take.rate / total,
-            "cpu_s": cpu, "x_real_time_cpu": T / take.rate / max(cpu, 1e-9), "weight_rmse": rmse}
+            "cpu_s": cpu, "x_real_time_cpu": T / take.rate / max(cpu, 1e-9), "weight_rmse": rmse,
+            "weights": solved.weights}
 
 
 def gap_fill_baseline(take_path: Path, profile_path: Path) -> dict:
@@ -142,7 +157,7 @@ def run(quick: bool = False, modes: tuple[str, ...] = ()) -> dict:
     from livecap.modes.registry import DEFAULT_MODE, MODES
 
     seconds = 5.0 if quick else 30.0
-    modes = tuple(m for m in modes if m) or tuple(MODES)
+    modes = tuple(m for m in modes if m) or (*MODES, STREAMED)
     res: dict = {"take_seconds": seconds, "default_mode": DEFAULT_MODE, "load_average": os.getloadavg(),
                  "rigs": {}, "skipped": {}}
     rigs = _rigs()
@@ -158,11 +173,13 @@ def run(quick: bool = False, modes: tuple[str, ...] = ()) -> dict:
                 profile_path, calib_s = _profile(rig, layout, take_path, folder)
                 key = f"{rig_name} {rig.n_shapes} shapes, {occ:.0%} occluded"
                 entry: dict = {"calibrate_and_tune_s": calib_s, "modes": {}}
+                weights: dict = {}
                 if occ > 0:
                     entry["gap_fill"] = gap_fill_baseline(take_path, profile_path)
                 for mode in modes:
                     limit = int(min(seconds, 5.0) * 120) if mode in SLOW_MODES else None
                     r = solve_end_to_end(mode, take_path, profile_path, folder / "w.csv", truth, limit)
+                    weights[mode] = r.pop("weights")
                     entry["modes"][mode] = r
                     rows.append({"take": key, "mode": mode, "s of take": r["seconds_of_take"],
                                  "x real time": r["x_real_time"], "total s": r["total_s"],
@@ -173,6 +190,10 @@ def run(quick: bool = False, modes: tuple[str, ...] = ()) -> dict:
                     print(f"{key:>32} {mode:>16} {r['x_real_time']:8.1f}x real time  RMSE {r['weight_rmse']:.4f}",
                           flush=True)
                 res["rigs"][key] = entry
+                if "robust" in weights and STREAMED in weights:
+                    entry["robust_vs_streamed_max_abs"] = float(np.abs(weights["robust"] - weights[STREAMED]).max())
+                    print(f"{key}: robust whole take vs {STREAMED}: max |weight difference| "
+                          f"{entry['robust_vs_streamed_max_abs']:.2e}", flush=True)
                 gf = entry.get("gap_fill")
                 print(f"{key}: calibrate+tune on the take {calib_s:.2f} s"
                       + (f"; gap fill {gf['banded_s']:.3f} s vs per-gap spline {gf['per_gap_spline_s']:.2f} s"

@@ -33,13 +33,23 @@ log = logging.getLogger(__name__)
 
 
 class _Workspace:
-    """One visibility pattern: H, the linear-term matrix, the active-set solver, DAQP on demand."""
+    """One visibility pattern: H, the linear-term matrix, the active-set solver and DAQP, each built on
+    first use (with many markers missing most patterns are seen once, often while DAQP has taken over)."""
 
-    __slots__ = ("H", "BtD", "floor", "rows", "box", "_daqp")
+    __slots__ = ("H", "BtD", "floor", "rows", "_limits", "_box", "_daqp")
 
-    def __init__(self, H: np.ndarray, BtD: np.ndarray, floor: float, rows: np.ndarray | None, box: BoxQP) -> None:
-        self.H, self.BtD, self.floor, self.rows, self.box = H, BtD, floor, rows, box
+    def __init__(self, H: np.ndarray, BtD: np.ndarray, floor: float, rows: np.ndarray | None,
+                 lower: np.ndarray, upper: np.ndarray) -> None:
+        self.H, self.BtD, self.floor, self.rows = H, BtD, floor, rows
+        self._limits = (lower, upper)
+        self._box: BoxQP | None = None
         self._daqp = None
+
+    @property
+    def box(self) -> BoxQP:
+        if self._box is None:
+            self._box = BoxQP(self.H, *self._limits)
+        return self._box
 
     def daqp(self, f: np.ndarray, lower: np.ndarray, upper: np.ndarray,
              sense: np.ndarray | None) -> tuple[np.ndarray | None, int]:
@@ -144,7 +154,7 @@ class FrameQP:
                 floor = self._floor
                 H = H + floor * np.eye(self.m)
         BtD = self._BtD if rows.all() else self._BtD * rows[None, :]
-        ws = _Workspace(H, BtD, floor, None if seen.all() else rows, BoxQP(H, self.lower, self.upper))
+        ws = _Workspace(H, BtD, floor, None if seen.all() else rows, self.lower, self.upper)
         self._models[key] = ws
         if len(self._models) > self.cache_size:
             self._models.popitem(last=False)

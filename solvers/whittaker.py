@@ -62,11 +62,24 @@ def solve_pentadiagonal(d: np.ndarray, e: np.ndarray, f: np.ndarray, b: np.ndarr
     return x
 
 
+BLOCK = 256  # tracks per sweep: its rows stay in cache (1600 gap windows at once ran 1.5-4x slower)
+
+
 def smooth(y: np.ndarray, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Smoothed tracks (T, k, c) for tracks ``y`` (T, k, c) seen where ``seen`` (T, k), and the
-    smoothing chosen for each track. Every track needs at least two seen samples."""
+    smoothing chosen for each track. Every track needs at least two seen samples. Tracks are
+    independent: they are swept ``BLOCK`` at a time, the same numbers as all at once."""
     y = np.asarray(y, dtype=np.float64)
     seen = np.asarray(seen, dtype=bool)
+    if y.shape[1] <= BLOCK:
+        return _smooth(y, seen)
+    x, lam = np.empty_like(y), np.empty(y.shape[1])
+    for a in range(0, y.shape[1], BLOCK):
+        x[:, a:a + BLOCK], lam[a:a + BLOCK] = _smooth(y[:, a:a + BLOCK], seen[:, a:a + BLOCK])
+    return x, lam
+
+
+def _smooth(y: np.ndarray, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     T, k, c = y.shape
     nl = len(LAMBDAS)
     w = seen.astype(np.float64)

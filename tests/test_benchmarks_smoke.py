@@ -56,5 +56,8 @@ def test_offline_suite_runs_a_whole_take_file_end_to_end(tmp_path, demo):
     r = solve_end_to_end("qp", take_path, profile_path, tmp_path / "w.csv", truth)
     assert r["frames"] == len(truth) and (tmp_path / "w.csv").exists() and 0 < r["weight_rmse"] < 1
     assert r["total_s"] >= r["solve_s"] > 0 and calib_s > 0
+    whole, stepped = (solve_end_to_end(m, take_path, profile_path, tmp_path / "w.csv", truth)
+                      for m in ("robust", "robust-streamed"))
+    assert np.abs(whole["weights"] - stepped["weights"]).max() <= 1e-8 and whole["weight_rmse"] < 1
     g = gap_fill_baseline(take_path, profile_path)
     assert g["max_difference_mm"] < 50 and g["per_gap_spline_s"] > 0

@@ -11,6 +11,7 @@ from livecap.calibration.gaps import fill_gaps
 from livecap.calibration.profile import Profile
 from livecap.calibration.stabilise import smooth_pose, to_quaternion
 from livecap.core.take import Take
+from livecap.modes.robust_take import whole_take
 
 DEFAULT_MAX_GAP_SECONDS = 0.25  # Curio §2.1 fills gaps by spline; longer gaps stay missing
 DEFAULT_POSE_SMOOTHING_SECONDS = 0.2  # offline head-pose smoothing window (see stabilise.smooth_pose)
@@ -70,7 +71,8 @@ def prepare_targets(take: Take, profile: Profile, max_gap_seconds: float | None 
 def solve_take(take: Take, profile: Profile, solver, progress=None,
                max_gap_seconds: float | None = None, stabiliser=None,
                pose_smoothing_seconds: float | None = None) -> SolvedTake:
-    """Run ``solver`` over every frame; solvers with ``solve(targets, valid)`` do it in one go.
+    """Run ``solver`` over every frame; solvers with ``solve(targets, valid)`` do it in one go, and the
+    robust mode's stages run over the whole take (:func:`livecap.modes.robust_take.whole_take`).
 
     ``max_gap_seconds``: gaps filled before solving (see :func:`prepare_targets`; 0 = none);
     ``stabiliser``: anything with ``stabilise(positions, valid)`` in place of the profile's;
@@ -80,6 +82,9 @@ def solve_take(take: Take, profile: Profile, solver, progress=None,
     start = time.perf_counter()
     if hasattr(solver, "solve"):
         W = solver.solve(targets, take.valid)
+    elif (W := whole_take(solver, targets, take.valid)) is not None:
+        if progress is not None:
+            progress(take.n_frames, take.n_frames)
     else:
         W = np.zeros((take.n_frames, len(profile.names)))
         for i in range(take.n_frames):
