@@ -79,15 +79,22 @@ _EMPTY = np.zeros(0, dtype=np.int64)
 _ROWS = np.arange(1024)
 
 
-def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _rigid(src: np.ndarray, dst: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Kabsch (Arun et al. 1987) for the per-frame head re-fit: the rotation is the polar factor
     of the cross-covariance, by scaled Newton iteration X <- (g X + X^-T / g) / 2 (Higham 1986) in
     plain floats — quadratic convergence (one more step after a change below 1e-6 leaves ~1e-12),
-    no LAPACK call; SVD when the covariance is singular or reflected."""
+    no LAPACK call; SVD when the covariance is singular or reflected. The covariance is one
+    product less the centroids' outer product (three numpy calls in all). ``R scale src + t ~ dst``
+    (the rotation does not depend on the scale)."""
     inv = 1.0 / len(src)
-    cs = src.sum(0) * inv
-    cd = dst.sum(0) * inv
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = ((dst - cd).T @ (src - cs)).tolist()
+    s0, s1, s2 = src.sum(0).tolist()
+    d0, d1, d2 = dst.sum(0).tolist()
+    (h00, h01, h02), (h10, h11, h12), (h20, h21, h22) = (dst.T @ src).tolist()
+    s0, s1, s2, d0, d1, d2 = s0 * inv, s1 * inv, s2 * inv, d0 * inv, d1 * inv, d2 * inv
+    k = len(src)
+    m00, m01, m02 = h00 - k * d0 * s0, h01 - k * d0 * s1, h02 - k * d0 * s2
+    m10, m11, m12 = h10 - k * d1 * s0, h11 - k * d1 * s1, h12 - k * d1 * s2
+    m20, m21, m22 = h20 - k * d2 * s0, h21 - k * d2 * s1, h22 - k * d2 * s2
     last = False
     for _ in range(12):
         c00, c01, c02 = m11 * m22 - m12 * m21, m12 * m20 - m10 * m22, m10 * m21 - m11 * m20
@@ -95,7 +102,8 @@ def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         c20, c21, c22 = m01 * m12 - m02 * m11, m02 * m10 - m00 * m12, m00 * m11 - m01 * m10
         det = m00 * c00 + m01 * c01 + m02 * c02
         if det <= 1e-12 * (abs(m00) + abs(m11) + abs(m22)) ** 3:
-            return _rigid_svd(src - cs, dst - cd, cs, cd)
+            cs, cd = np.array((s0, s1, s2)), np.array((d0, d1, d2))
+            return _rigid_svd(src - cs, dst - cd, scale * cs, cd)
         nx = m00 * m00 + m01 * m01 + m02 * m02 + m10 * m10 + m11 * m11 + m12 * m12 + m20 * m20 + m21 * m21 + m22 * m22
         nc = c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12 + c20 * c20 + c21 * c21 + c22 * c22
         g = (nc / (nx * det * det)) ** 0.25
@@ -109,7 +117,10 @@ def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         last = abs(n00 - m00) + abs(n11 - m11) + abs(n22 - m22) + abs(n01 - m01) + abs(n10 - m10) < 1e-6
         m00, m01, m02, m10, m11, m12, m20, m21, m22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
     R = np.array(((m00, m01, m02), (m10, m11, m12), (m20, m21, m22)))
-    return R, cd - R @ cs
+    s0, s1, s2 = scale * s0, scale * s1, scale * s2
+    t = np.array((d0 - m00 * s0 - m01 * s1 - m02 * s2, d1 - m10 * s0 - m11 * s1 - m12 * s2,
+                  d2 - m20 * s0 - m21 * s1 - m22 * s2))
+    return R, t
 
 
 def _rigid_svd(src: np.ndarray, dst: np.ndarray, cs: np.ndarray, cd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -146,10 +157,10 @@ def _assign(d: np.ndarray, g2: np.ndarray) -> tuple[np.ndarray, float]:
     near = d.argmin(1)
     dn = d[rows, near]
     inside = dn < g2
-    chosen = near[inside]
     index = np.where(inside, near, -1)
-    if len(chosen) < 2 or np.bincount(chosen).max() <= 1:
+    if np.bincount(near, inside).max() <= 1:
         return index, float(dn.max(initial=0.0, where=inside))
+    chosen = near[inside]
     within = d < g2[:, None]
     rows = inside & (np.bincount(chosen, minlength=d.shape[1])[near] > 1)
     while True:
@@ -309,7 +320,7 @@ class MarkerLabeller:
     def _fit_shape(self, local: np.ndarray, lab: np.ndarray, complete: bool) -> np.ndarray:
         """Weights from the labelled markers' head-frame positions (missing ones held at their
         prediction: written into the model, which is recomputed from the fit): ridge least squares
-        through the precomputed pseudo-inverse."""
+        through the precomputed pseudo-inverse. Sets ``w``; returns the n x 3 positions fitted."""
         if not complete:
             self._model[lab] = local
             local = self._model
@@ -317,7 +328,8 @@ class MarkerLabeller:
         w -= self._fit_offset
         np.maximum(w, self.lower, out=w)
         np.minimum(w, self.upper, out=w)
-        return w
+        self.w = w
+        return local
 
     def _fit_shape_subset(self, points: np.ndarray, index: np.ndarray) -> np.ndarray:
         """Weights from the labelled markers alone (no pull towards the prediction of missing ones)."""
@@ -345,14 +357,14 @@ class MarkerLabeller:
     def _fit_pose(self, points: np.ndarray, index: np.ndarray, local: np.ndarray) -> bool:
         ist = index[self._stable_idx]
         if ist.min() >= 0:
-            self.R, self.t = _rigid(self.scale * local[self._stable_idx], points[ist])
+            self.R, self.t = _rigid(local[self._stable_idx], points[ist], self.scale)
             return True
         use = self._stable_idx[ist >= 0]
         if len(use) < 3:
             use = np.flatnonzero(index >= 0)
             if len(use) < 3:
                 return False
-        self.R, self.t = _rigid(self.scale * local[use], points[index[use]])
+        self.R, self.t = _rigid(local[use], points[index[use]], self.scale)
         return True
 
     # ------------------------------------------------------------------ streaming
@@ -381,23 +393,22 @@ class MarkerLabeller:
         if len(self._fresh):
             self._confirm(points, index, self._fresh)
             lab = index >= 0
+            n_lab = int(np.count_nonzero(lab))
         elif self._candidates:
             self._candidate_ok[:] = False
             self._candidates = False
-        n_lab = int(np.count_nonzero(lab))
         self.missing_for += 1.0
         self.missing_for[lab if self._held is self._no_held else lab | self._held] = 0.0
         if self._fit_pose(points, index, self._model):
             complete = n_lab == n
-            local = self._local(points[index] if complete else points[index[lab]])
-            self.w = self._fit_shape(local, lab, complete)
+            fitted = self._fit_shape(self._local(points[index] if complete else points[index[lab]]), lab, complete)
             gap2 = self._set_shape(self.w)
-            res = local - (self._model if complete else self._model[lab])
+            res = fitted - self._model
             r2 = np.einsum("ij,ij->i", res, res)
-            if r2.max(initial=0.0) > s.reject_mm ** 2:
-                far = r2 > s.reject_mm ** 2
+            if r2.max(initial=0.0, where=lab) > s.reject_mm ** 2:
+                far = (r2 > s.reject_mm ** 2) & lab
                 self.rejected += int(far.sum())
-                index[np.flatnonzero(lab)[far]] = -1
+                index[far] = -1
                 if self._second_opinion(points):
                     index = self._settle(points)
                 lab = index >= 0
@@ -426,7 +437,7 @@ class MarkerLabeller:
         if len(points) == 0:
             return np.full(self.n, -1, dtype=np.int64)
         d = self._distances(points)
-        lost = np.flatnonzero(missing)
+        lost = missing.nonzero()[0]
         if len(lost) == 0:
             index, e2 = _assign(d, self._g2)
             self._withhold(d, index, e2, self._sep_min)
@@ -529,9 +540,9 @@ class MarkerLabeller:
         s = self.settings
         sub = d[lost]
         sub[:, index[index >= 0]] = np.inf
-        near = sub.min(1)
-        if near.min() >= (s.gate_mm * s.reacquire_max) ** 2:
+        if sub.min() >= (s.gate_mm * s.reacquire_max) ** 2:
             return
+        near = sub.min(1)
         gate2 = (s.gate_mm * np.minimum(1.0 + s.reacquire_growth * self.missing_for[lost], s.reacquire_max)) ** 2
         if (near >= gate2).all():
             return
@@ -541,8 +552,7 @@ class MarkerLabeller:
         index[self._fresh] = got[ok]
 
     def _frame(self, points: np.ndarray, index: np.ndarray, valid: np.ndarray, initialised: bool) -> LabelFrame:
-        pos = points[index] if len(points) else np.zeros((self.n, 3))
-        pos[~valid] = 0.0
+        pos = np.where(valid[:, None], points[index], 0.0) if len(points) else np.zeros((self.n, 3))
         late, self._late = self._late, _EMPTY
         return LabelFrame(index, pos, valid, initialised, late, self._late_index)
 
