@@ -95,15 +95,16 @@ def _rigid(src: np.ndarray, dst: np.ndarray, scale: float = 1.0) -> tuple[np.nda
     m00, m01, m02 = h00 - k * d0 * s0, h01 - k * d0 * s1, h02 - k * d0 * s2
     m10, m11, m12 = h10 - k * d1 * s0, h11 - k * d1 * s1, h12 - k * d1 * s2
     m20, m21, m22 = h20 - k * d2 * s0, h21 - k * d2 * s1, h22 - k * d2 * s2
+    c00, c01, c02 = m11 * m22 - m12 * m21, m12 * m20 - m10 * m22, m10 * m21 - m11 * m20
+    if m00 * c00 + m01 * c01 + m02 * c02 <= 1e-12 * (abs(m00) + abs(m11) + abs(m22)) ** 3:
+        cs, cd = np.array((s0, s1, s2)), np.array((d0, d1, d2))
+        return _rigid_svd(src - cs, dst - cd, scale * cs, cd)
     last = False
-    for _ in range(12):
+    for _ in range(12):  # the iterates keep det > 0 (singular values (g s + 1 / (g s)) / 2 >= 1)
         c00, c01, c02 = m11 * m22 - m12 * m21, m12 * m20 - m10 * m22, m10 * m21 - m11 * m20
         c10, c11, c12 = m02 * m21 - m01 * m22, m00 * m22 - m02 * m20, m01 * m20 - m00 * m21
         c20, c21, c22 = m01 * m12 - m02 * m11, m02 * m10 - m00 * m12, m00 * m11 - m01 * m10
         det = m00 * c00 + m01 * c01 + m02 * c02
-        if det <= 1e-12 * (abs(m00) + abs(m11) + abs(m22)) ** 3:
-            cs, cd = np.array((s0, s1, s2)), np.array((d0, d1, d2))
-            return _rigid_svd(src - cs, dst - cd, scale * cs, cd)
         nx = m00 * m00 + m01 * m01 + m02 * m02 + m10 * m10 + m11 * m11 + m12 * m12 + m20 * m20 + m21 * m21 + m22 * m22
         nc = c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12 + c20 * c20 + c21 * c21 + c22 * c22
         g = (nc / (nx * det * det)) ** 0.25
@@ -158,8 +159,8 @@ def _assign(d: np.ndarray, g2: np.ndarray) -> tuple[np.ndarray, float]:
     dn = d[rows, near]
     inside = dn < g2
     index = np.where(inside, near, -1)
-    if np.bincount(near, inside).max() <= 1:
-        return index, float(dn.max(initial=0.0, where=inside))
+    if np.maximum.reduce(np.bincount(near, inside)) <= 1:
+        return index, float(np.maximum.reduce(dn, initial=0.0, where=inside))
     chosen = near[inside]
     within = d < g2[:, None]
     rows = inside & (np.bincount(chosen, minlength=d.shape[1])[near] > 1)
@@ -291,7 +292,7 @@ class MarkerLabeller:
             self._sep_min = math.inf
             return math.inf
         sep = full[3 * self.n:].reshape(-1, 3)
-        gap2 = float(np.einsum("ij,ij->i", sep, sep).min())
+        gap2 = float(np.minimum.reduce(np.vecdot(sep, sep)))
         self._sep_min = self.scale * math.sqrt(gap2)
         return gap2
 
@@ -299,7 +300,7 @@ class MarkerLabeller:
         """Next frame's world prediction from the current model and pose, as ``_pred`` rows."""
         world = self._world(self._model)
         self._pred[:, :3] = world
-        np.einsum("ij,ij->i", world, world, out=self._pred[:, 3])
+        np.vecdot(world, world, out=self._pred[:, 3])
 
     def _distances(self, points: np.ndarray) -> np.ndarray:
         """Squared distances from every predicted label to every point: one product."""
@@ -308,7 +309,7 @@ class MarkerLabeller:
             self._cloud = np.ones((2 * k, 5))
         q = self._cloud[:k]
         np.multiply(points, -2.0, out=q[:, :3])
-        np.einsum("ij,ij->i", points, points, out=q[:, 4])
+        np.vecdot(points, points, out=q[:, 4])
         return self._pred @ q.T
 
     def _world(self, local: np.ndarray) -> np.ndarray:
@@ -356,7 +357,7 @@ class MarkerLabeller:
 
     def _fit_pose(self, points: np.ndarray, index: np.ndarray, local: np.ndarray) -> bool:
         ist = index[self._stable_idx]
-        if ist.min() >= 0:
+        if np.minimum.reduce(ist) >= 0:
             self.R, self.t = _rigid(local[self._stable_idx], points[ist], self.scale)
             return True
         use = self._stable_idx[ist >= 0]
@@ -404,8 +405,8 @@ class MarkerLabeller:
             fitted = self._fit_shape(self._local(points[index] if complete else points[index[lab]]), lab, complete)
             gap2 = self._set_shape(self.w)
             res = fitted - self._model
-            r2 = np.einsum("ij,ij->i", res, res)
-            if r2.max(initial=0.0, where=lab) > s.reject_mm ** 2:
+            r2 = np.vecdot(res, res)
+            if np.maximum.reduce(r2, initial=0.0, where=lab) > s.reject_mm ** 2:
                 far = (r2 > s.reject_mm ** 2) & lab
                 self.rejected += int(far.sum())
                 index[far] = -1
@@ -540,7 +541,7 @@ class MarkerLabeller:
         s = self.settings
         sub = d[lost]
         sub[:, index[index >= 0]] = np.inf
-        if sub.min() >= (s.gate_mm * s.reacquire_max) ** 2:
+        if np.minimum.reduce(sub, axis=None) >= (s.gate_mm * s.reacquire_max) ** 2:
             return
         near = sub.min(1)
         gate2 = (s.gate_mm * np.minimum(1.0 + s.reacquire_growth * self.missing_for[lost], s.reacquire_max)) ** 2
