@@ -479,7 +479,7 @@ class MarkerLabeller:
         coming back does (live, one frame of it is lost; offline it is put back, see ``late``)."""
         p = points[index[fresh]]
         d = p - self._candidate[fresh]
-        ok = self._candidate_ok[fresh] & (np.einsum("ij,ij->i", d, d) < self.settings.confirm_mm ** 2)
+        ok = self._candidate_ok[fresh] & (np.vecdot(d, d) < self.settings.confirm_mm ** 2)
         kept = fresh[ok]
         self._late, self._late_index = kept, self._candidate_index[kept]
         self._candidate_ok[:] = False
