@@ -86,12 +86,12 @@ def _rigid(src: np.ndarray, dst: np.ndarray, scale: float = 1.0) -> tuple[np.nda
     no LAPACK call; SVD when the covariance is singular or reflected. The covariance is one
     product less the centroids' outer product (three numpy calls in all). ``R scale src + t ~ dst``
     (the rotation does not depend on the scale)."""
-    inv = 1.0 / len(src)
+    k = len(src)
+    inv = 1.0 / k
     s0, s1, s2 = src.sum(0).tolist()
     d0, d1, d2 = dst.sum(0).tolist()
     (h00, h01, h02), (h10, h11, h12), (h20, h21, h22) = (dst.T @ src).tolist()
     s0, s1, s2, d0, d1, d2 = s0 * inv, s1 * inv, s2 * inv, d0 * inv, d1 * inv, d2 * inv
-    k = len(src)
     m00, m01, m02 = h00 - k * d0 * s0, h01 - k * d0 * s1, h02 - k * d0 * s2
     m10, m11, m12 = h10 - k * d1 * s0, h11 - k * d1 * s1, h12 - k * d1 * s2
     m20, m21, m22 = h20 - k * d2 * s0, h21 - k * d2 * s1, h22 - k * d2 * s2
