@@ -80,12 +80,13 @@ _ROWS = np.arange(1024)
 
 
 def _rigid(src: np.ndarray, dst: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """Kabsch (Arun et al. 1987) for the per-frame head re-fit: the rotation is the polar factor
-    of the cross-covariance, by scaled Newton iteration X <- (g X + X^-T / g) / 2 (Higham 1986) in
-    plain floats — quadratic convergence (one more step after a change below 1e-6 leaves ~1e-12),
-    no LAPACK call; SVD when the covariance is singular or reflected. The covariance is one
-    product less the centroids' outer product (three numpy calls in all). ``R scale src + t ~ dst``
-    (the rotation does not depend on the scale)."""
+    """Kabsch (Arun et al. 1987) for the per-frame head re-fit: ``R scale src + t ~ dst``. The
+    rotation is the polar factor of the cross-covariance (one product less the centroids' outer
+    product; the scale does not change it), by scaled Newton iteration X <- (g X + X^-T / g) / 2
+    (Higham 1986) in plain floats, no LAPACK call; SVD when the covariance is singular or
+    reflected. After the first step every singular value is 1 + e >= 1, the Frobenius scaling
+    g = (|X^-1| / |X|)^(1/2) ~ 1 - sum(e) / 3 and a step maps e to ~e^2 / 2: the step taken at
+    1 - g < 1e-6 leaves ~1e-11 (quadratic convergence)."""
     k = len(src)
     inv = 1.0 / k
     s0, s1, s2 = src.sum(0).tolist()
@@ -99,8 +100,7 @@ def _rigid(src: np.ndarray, dst: np.ndarray, scale: float = 1.0) -> tuple[np.nda
     if m00 * c00 + m01 * c01 + m02 * c02 <= 1e-12 * (abs(m00) + abs(m11) + abs(m22)) ** 3:
         cs, cd = np.array((s0, s1, s2)), np.array((d0, d1, d2))
         return _rigid_svd(src - cs, dst - cd, scale * cs, cd)
-    last = False
-    for _ in range(12):  # the iterates keep det > 0 (singular values (g s + 1 / (g s)) / 2 >= 1)
+    for i in range(12):  # the iterates keep det > 0
         c00, c01, c02 = m11 * m22 - m12 * m21, m12 * m20 - m10 * m22, m10 * m21 - m11 * m20
         c10, c11, c12 = m02 * m21 - m01 * m22, m00 * m22 - m02 * m20, m01 * m20 - m00 * m21
         c20, c21, c22 = m01 * m12 - m02 * m11, m02 * m10 - m00 * m12, m00 * m11 - m01 * m10
@@ -109,14 +109,11 @@ def _rigid(src: np.ndarray, dst: np.ndarray, scale: float = 1.0) -> tuple[np.nda
         nc = c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12 + c20 * c20 + c21 * c21 + c22 * c22
         g = (nc / (nx * det * det)) ** 0.25
         a, b = 0.5 * g, 0.5 / (g * det)
-        n00, n01, n02 = a * m00 + b * c00, a * m01 + b * c01, a * m02 + b * c02
-        n10, n11, n12 = a * m10 + b * c10, a * m11 + b * c11, a * m12 + b * c12
-        n20, n21, n22 = a * m20 + b * c20, a * m21 + b * c21, a * m22 + b * c22
-        if last:
-            m00, m01, m02, m10, m11, m12, m20, m21, m22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
+        m00, m01, m02 = a * m00 + b * c00, a * m01 + b * c01, a * m02 + b * c02
+        m10, m11, m12 = a * m10 + b * c10, a * m11 + b * c11, a * m12 + b * c12
+        m20, m21, m22 = a * m20 + b * c20, a * m21 + b * c21, a * m22 + b * c22
+        if i and 1.0 - g < 1e-6:
             break
-        last = abs(n00 - m00) + abs(n11 - m11) + abs(n22 - m22) + abs(n01 - m01) + abs(n10 - m10) < 1e-6
-        m00, m01, m02, m10, m11, m12, m20, m21, m22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
     R = np.array(((m00, m01, m02), (m10, m11, m12), (m20, m21, m22)))
     s0, s1, s2 = scale * s0, scale * s1, scale * s2
     t = np.array((d0 - m00 * s0 - m01 * s1 - m02 * s2, d1 - m10 * s0 - m11 * s1 - m12 * s2,
