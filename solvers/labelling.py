@@ -387,6 +387,7 @@ class MarkerLabeller:
             self._predict()
             index = self._label(points)
             lab = index >= 0
+            n_lab = int(np.count_nonzero(lab))
         self._late = self._late_index = self._returning = self._returning_index = _EMPTY
         if len(self._fresh):
             self._confirm(points, index, self._fresh)
