@@ -21,6 +21,7 @@ candidates, each refined by a similarity ICP whose steps are the same gated assi
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,37 +79,46 @@ _EMPTY = np.zeros(0, dtype=np.int64)
 _ROWS = np.arange(1024)
 
 
-def _rigid(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Kabsch (Arun et al. 1987) for the per-frame head re-fit: the rotation is the polar factor
-    of the cross-covariance, by scaled Newton iteration X <- (g X + X^-T / g) / 2 (Higham 1986) in
-    plain floats — quadratic convergence (one more step after a change below 1e-6 leaves ~1e-12),
-    no LAPACK call; SVD when the covariance is singular or reflected."""
-    inv = 1.0 / len(src)
-    cs = src.sum(0) * inv
-    cd = dst.sum(0) * inv
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = ((dst - cd).T @ (src - cs)).tolist()
-    last = False
-    for _ in range(12):
+def _rigid(src: np.ndarray, dst: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Kabsch (Arun et al. 1987) for the per-frame head re-fit: ``R scale src + t ~ dst``. The
+    rotation is the polar factor of the cross-covariance (one product less the centroids' outer
+    product; the scale does not change it), by scaled Newton iteration X <- (g X + X^-T / g) / 2
+    (Higham 1986) in plain floats, no LAPACK call; SVD when the covariance is singular or
+    reflected. After the first step every singular value is 1 + e >= 1, the Frobenius scaling
+    g = (|X^-1| / |X|)^(1/2) ~ 1 - sum(e) / 3 and a step maps e to ~e^2 / 2: the step taken at
+    1 - g < 1e-6 leaves ~1e-11 (quadratic convergence)."""
+    k = len(src)
+    inv = 1.0 / k
+    s0, s1, s2 = src.sum(0).tolist()
+    d0, d1, d2 = dst.sum(0).tolist()
+    (h00, h01, h02), (h10, h11, h12), (h20, h21, h22) = (dst.T @ src).tolist()
+    s0, s1, s2, d0, d1, d2 = s0 * inv, s1 * inv, s2 * inv, d0 * inv, d1 * inv, d2 * inv
+    m00, m01, m02 = h00 - k * d0 * s0, h01 - k * d0 * s1, h02 - k * d0 * s2
+    m10, m11, m12 = h10 - k * d1 * s0, h11 - k * d1 * s1, h12 - k * d1 * s2
+    m20, m21, m22 = h20 - k * d2 * s0, h21 - k * d2 * s1, h22 - k * d2 * s2
+    c00, c01, c02 = m11 * m22 - m12 * m21, m12 * m20 - m10 * m22, m10 * m21 - m11 * m20
+    if m00 * c00 + m01 * c01 + m02 * c02 <= 1e-12 * (abs(m00) + abs(m11) + abs(m22)) ** 3:
+        cs, cd = np.array((s0, s1, s2)), np.array((d0, d1, d2))
+        return _rigid_svd(src - cs, dst - cd, scale * cs, cd)
+    for i in range(12):  # the iterates keep det > 0
         c00, c01, c02 = m11 * m22 - m12 * m21, m12 * m20 - m10 * m22, m10 * m21 - m11 * m20
         c10, c11, c12 = m02 * m21 - m01 * m22, m00 * m22 - m02 * m20, m01 * m20 - m00 * m21
         c20, c21, c22 = m01 * m12 - m02 * m11, m02 * m10 - m00 * m12, m00 * m11 - m01 * m10
         det = m00 * c00 + m01 * c01 + m02 * c02
-        if det <= 1e-12 * (abs(m00) + abs(m11) + abs(m22)) ** 3:
-            return _rigid_svd(src - cs, dst - cd, cs, cd)
         nx = m00 * m00 + m01 * m01 + m02 * m02 + m10 * m10 + m11 * m11 + m12 * m12 + m20 * m20 + m21 * m21 + m22 * m22
         nc = c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12 + c20 * c20 + c21 * c21 + c22 * c22
         g = (nc / (nx * det * det)) ** 0.25
         a, b = 0.5 * g, 0.5 / (g * det)
-        n00, n01, n02 = a * m00 + b * c00, a * m01 + b * c01, a * m02 + b * c02
-        n10, n11, n12 = a * m10 + b * c10, a * m11 + b * c11, a * m12 + b * c12
-        n20, n21, n22 = a * m20 + b * c20, a * m21 + b * c21, a * m22 + b * c22
-        if last:
-            m00, m01, m02, m10, m11, m12, m20, m21, m22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
+        m00, m01, m02 = a * m00 + b * c00, a * m01 + b * c01, a * m02 + b * c02
+        m10, m11, m12 = a * m10 + b * c10, a * m11 + b * c11, a * m12 + b * c12
+        m20, m21, m22 = a * m20 + b * c20, a * m21 + b * c21, a * m22 + b * c22
+        if i and 1.0 - g < 1e-6:
             break
-        last = abs(n00 - m00) + abs(n11 - m11) + abs(n22 - m22) + abs(n01 - m01) + abs(n10 - m10) < 1e-6
-        m00, m01, m02, m10, m11, m12, m20, m21, m22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
     R = np.array(((m00, m01, m02), (m10, m11, m12), (m20, m21, m22)))
-    return R, cd - R @ cs
+    s0, s1, s2 = scale * s0, scale * s1, scale * s2
+    t = np.array((d0 - m00 * s0 - m01 * s1 - m02 * s2, d1 - m10 * s0 - m11 * s1 - m12 * s2,
+                  d2 - m20 * s0 - m21 * s1 - m22 * s2))
+    return R, t
 
 
 def _rigid_svd(src: np.ndarray, dst: np.ndarray, cs: np.ndarray, cd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -132,20 +142,23 @@ def _sqdist(pred: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", pred, pred)[:, None] + np.einsum("ij,ij->i", points, points) - 2.0 * (pred @ points.T)
 
 
-def _assign(d: np.ndarray, g2: np.ndarray) -> np.ndarray:
-    """Row -> column (-1: none) minimising the sum of min(d, g2) over rows.
+def _assign(d: np.ndarray, g2: np.ndarray) -> tuple[np.ndarray, float]:
+    """Row -> column (-1: none) minimising the sum of min(d, g2) over rows, and the largest squared
+    distance assigned (0 when none).
 
     A row whose nearest column within its gate is nobody else's nearest is at its own minimum;
     only the rows and columns connected to a conflict through within-gate pairs can do better
     by trading, so the Hungarian solve runs on that component alone (exact: every pair outside it
     costs the gate, the same as staying unmatched). A row with gate 0 takes nothing.
     """
+    rows = _ROWS[: len(d)] if len(d) <= len(_ROWS) else np.arange(len(d))
     near = d.argmin(1)
-    inside = d[_ROWS[: len(d)] if len(d) <= len(_ROWS) else np.arange(len(d)), near] < g2
-    chosen = near[inside]
+    dn = d[rows, near]
+    inside = dn < g2
     index = np.where(inside, near, -1)
-    if len(chosen) < 2 or np.bincount(chosen).max() <= 1:
-        return index
+    if np.maximum.reduce(np.bincount(near, inside)) <= 1:
+        return index, float(np.maximum.reduce(dn, initial=0.0, where=inside))
+    chosen = near[inside]
     within = d < g2[:, None]
     rows = inside & (np.bincount(chosen, minlength=d.shape[1])[near] > 1)
     while True:
@@ -160,7 +173,8 @@ def _assign(d: np.ndarray, g2: np.ndarray) -> np.ndarray:
     index[r] = -1
     keep = sub[rr, cc] < g2[r[rr]]
     index[r[rr[keep]]] = c[cc[keep]]
-    return index
+    got = np.flatnonzero(index >= 0)
+    return index, float(d[got, index[got]].max(initial=0.0))
 
 
 def gated_assignment(pred: np.ndarray, points: np.ndarray, gate: float | np.ndarray) -> tuple[np.ndarray, float]:
@@ -174,7 +188,7 @@ def gated_assignment(pred: np.ndarray, points: np.ndarray, gate: float | np.ndar
     if len(points) == 0:
         return np.full(n, -1, dtype=np.int64), float(g2.sum())
     d = _sqdist(pred, points)
-    index = _assign(d, g2)
+    index, _ = _assign(d, g2)
     cost = np.where(index >= 0, d[np.arange(n), np.maximum(index, 0)], g2)
     return index, float(cost.sum())
 
@@ -222,6 +236,11 @@ class MarkerLabeller:
         self._stable_idx = np.flatnonzero(self.stable)
         self._zero_w = np.clip(np.zeros(m), lower, upper)
         self._g2 = np.full(self.n, self.settings.gate_mm ** 2)
+        # one product gives the model and the watched pairs' separations
+        self._shape_basis = np.vstack([self.basis, self._pair_basis])
+        self._shape_rest = np.concatenate([self.neutral.ravel(), self._pair_rest.ravel()])
+        self._pred = np.ones((self.n, 5))  # world prediction rows [x, |x|^2, 1] ...
+        self._cloud = np.ones((64, 5))  # ... and cloud rows [-2p, 1, |p|^2]: their product is |x - p|^2
         self.reset()
 
     def reset(self) -> None:
@@ -231,8 +250,8 @@ class MarkerLabeller:
         self.R = np.eye(3)
         self.t = np.zeros(3)
         self.w = self._zero_w.copy()
-        self._model = self.model(self.w)
-        self._world_pred = self._model.copy()
+        self._set_shape(self.w)
+        self._predict()
         self.poor = 0
         self.initialisations = 0
         self.refines = 0
@@ -241,7 +260,8 @@ class MarkerLabeller:
         self.withheld = 0
         self.recheck = 0
         self.missing_for = np.zeros(self.n)
-        self._tracked = np.ones(self.n, dtype=bool)
+        self._missing = np.zeros(self.n, dtype=bool)
+        self._fresh = _EMPTY
         self._no_held = np.zeros(self.n, dtype=bool)
         self._held = self._no_held
         self._candidates = False
@@ -258,23 +278,56 @@ class MarkerLabeller:
         """Head-frame marker positions for weights ``w`` (n x 3)."""
         return self.neutral + (self.basis @ w).reshape(self.n, 3)
 
+    def _set_shape(self, w: np.ndarray) -> float:
+        """The model at weights ``w`` and the watched pairs' separations by one product; returns
+        the smallest pair's squared separation (its world distance is kept for the next frame's
+        ambiguity test)."""
+        full = self._shape_basis @ w
+        full += self._shape_rest
+        self._model = full[: 3 * self.n].reshape(self.n, 3)
+        if len(self._pair_rest) == 0:
+            self._sep_min = math.inf
+            return math.inf
+        sep = full[3 * self.n:].reshape(-1, 3)
+        gap2 = float(np.minimum.reduce(np.vecdot(sep, sep)))
+        self._sep_min = self.scale * math.sqrt(gap2)
+        return gap2
+
+    def _predict(self) -> None:
+        """Next frame's world prediction from the current model and pose, as ``_pred`` rows."""
+        world = self._world(self._model)
+        self._pred[:, :3] = world
+        np.vecdot(world, world, out=self._pred[:, 3])
+
+    def _distances(self, points: np.ndarray) -> np.ndarray:
+        """Squared distances from every predicted label to every point: one product."""
+        k = len(points)
+        if k > len(self._cloud):
+            self._cloud = np.ones((2 * k, 5))
+        q = self._cloud[:k]
+        np.multiply(points, -2.0, out=q[:, :3])
+        np.vecdot(points, points, out=q[:, 4])
+        return self._pred @ q.T
+
     def _world(self, local: np.ndarray) -> np.ndarray:
         return (self.scale * local) @ self.R.T + self.t
 
     def _local(self, points: np.ndarray) -> np.ndarray:
         return ((points - self.t) @ self.R) * (1.0 / self.scale)
 
-    def _fit_shape(self, local: np.ndarray, lab: np.ndarray, n_lab: int) -> np.ndarray:
+    def _fit_shape(self, local: np.ndarray, lab: np.ndarray, complete: bool) -> np.ndarray:
         """Weights from the labelled markers' head-frame positions (missing ones held at their
-        prediction): ridge least squares through the precomputed pseudo-inverse."""
-        if n_lab < self.n:
-            full = self._model.copy()
-            full[lab] = local
-            local = full
+        prediction: written into the model, which is recomputed from the fit): ridge least squares
+        through the precomputed pseudo-inverse. Sets ``w``; returns the n x 3 positions fitted."""
+        if not complete:
+            self._model[lab] = local
+            local = self._model
         w = self._fit @ local.ravel()
         w -= self._fit_offset
-        np.clip(w, self.lower, self.upper, out=w)
-        return w
+        np.maximum(w, self.lower, out=w)
+        np.minimum(w, self.upper, out=w)
+        self.w = w
+        return local
 
     def _fit_shape_subset(self, points: np.ndarray, index: np.ndarray) -> np.ndarray:
         """Weights from the labelled markers alone (no pull towards the prediction of missing ones)."""
@@ -301,61 +354,60 @@ class MarkerLabeller:
 
     def _fit_pose(self, points: np.ndarray, index: np.ndarray, local: np.ndarray) -> bool:
         ist = index[self._stable_idx]
-        if ist.min() >= 0:
-            self.R, self.t = _rigid(self.scale * local[self._stable_idx], points[ist])
+        if np.minimum.reduce(ist) >= 0:
+            self.R, self.t = _rigid(local[self._stable_idx], points[ist], self.scale)
             return True
         use = self._stable_idx[ist >= 0]
         if len(use) < 3:
             use = np.flatnonzero(index >= 0)
             if len(use) < 3:
                 return False
-        self.R, self.t = _rigid(self.scale * local[use], points[index[use]])
+        self.R, self.t = _rigid(local[use], points[index[use]], self.scale)
         return True
 
     # ------------------------------------------------------------------ streaming
     def step(self, points: np.ndarray) -> LabelFrame:
         """Label one frame's unordered points (k x 3, any k)."""
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        if not np.isfinite(points).all():
+        if not math.isfinite(points.sum()):
             points = points[np.isfinite(points).all(1)]
         if not self.tracking:
             index = self.initialise(points)
             return self._frame(points, index, index >= 0, True)
         s = self.settings
         n = self.n
-        index = self._label(self._world_pred, points)
+        index = self._label(points)
         lab = index >= 0
         n_lab = int(np.count_nonzero(lab))
         if n - n_lab >= s.refine_at and len(points) - n_lab >= s.refine_at:
             self.refines += 1
             self._refine(points, 3, 2 * s.gate_mm)
-            self._model = self.model(self.w)
+            self._set_shape(self.w)
             self._sep_min = 0.0
-            index = self._label(self._world(self._model), points)
+            self._predict()
+            index = self._label(points)
             lab = index >= 0
-        missing = self.missing_for > 0
-        self._tracked = ~missing
+            n_lab = int(np.count_nonzero(lab))
         self._late = self._late_index = self._returning = self._returning_index = _EMPTY
-        fresh = lab & missing
-        if fresh.any():
-            self._confirm(points, index, np.flatnonzero(fresh))
+        if len(self._fresh):
+            self._confirm(points, index, self._fresh)
             lab = index >= 0
+            n_lab = int(np.count_nonzero(lab))
         elif self._candidates:
             self._candidate_ok[:] = False
             self._candidates = False
-        n_lab = int(np.count_nonzero(lab))
         self.missing_for += 1.0
-        self.missing_for[lab | self._held] = 0.0
+        self.missing_for[lab if self._held is self._no_held else lab | self._held] = 0.0
         if self._fit_pose(points, index, self._model):
-            local = self._local(points[index] if n_lab == n else points[index[lab]])
-            self.w = self._fit_shape(local, lab, n_lab)
-            model = self._model = self.model(self.w)
-            res = local - (model if n_lab == n else model[lab])
-            far = np.einsum("ij,ij->i", res, res) > s.reject_mm ** 2
-            gap2 = self._pair_gaps()
-            if far.any():
+            complete = n_lab == n
+            fitted = self._fit_shape(self._local(points[index] if complete else points[index[lab]]), lab, complete)
+            gap2 = self._set_shape(self.w)
+            res = fitted - self._model
+            r2 = np.vecdot(res, res)
+            if np.maximum.reduce(r2, initial=0.0, where=lab) > s.reject_mm ** 2:
+                far = (r2 > s.reject_mm ** 2) & lab
                 self.rejected += int(far.sum())
-                index[np.flatnonzero(lab)[far]] = -1
+                index[far] = -1
                 if self._second_opinion(points):
                     index = self._settle(points)
                 lab = index >= 0
@@ -370,41 +422,41 @@ class MarkerLabeller:
                 self.tracking = False
         else:
             self.poor = 0
-        self._world_pred = self._world(self._model)
+        self._predict()
         return self._frame(points, index, lab, False)
 
-    def _label(self, world: np.ndarray, points: np.ndarray) -> np.ndarray:
+    def _label(self, points: np.ndarray) -> np.ndarray:
         """Labels tracked last frame are assigned first (a track keeps its point rather than
         hand it to a label that was missing: an occluded lid must not take the other lid's point
         at a blink); watched pairs whose assignment is within noise are withheld; labels that were
-        missing take leftover points within a gate growing with the time missing."""
+        missing take leftover points within a gate growing with the time missing (``_fresh``)."""
         self._held = self._no_held
-        k = len(points)
-        if k == 0:
+        self._fresh = _EMPTY
+        missing = self._missing = self.missing_for > 0
+        if len(points) == 0:
             return np.full(self.n, -1, dtype=np.int64)
-        d = _sqdist(world, points)
-        missing = self.missing_for > 0
-        if not missing.any():
-            index = _assign(d, self._g2)
-            self._withhold(d, index)
+        d = self._distances(points)
+        lost = missing.nonzero()[0]
+        if len(lost) == 0:
+            index, e2 = _assign(d, self._g2)
+            self._withhold(d, index, e2, self._sep_min)
             return index
-        index = _assign(d, np.where(missing, 0.0, self._g2))
-        self._withhold(d, index)
-        self._reacquire(d, index, np.flatnonzero(missing))
+        index, e2 = _assign(d, np.where(missing, 0.0, self._g2))
+        self._withhold(d, index, e2, self._sep_min)
+        self._reacquire(d, index, lost)
         return index
 
-    def _withhold(self, d: np.ndarray, index: np.ndarray) -> None:
+    def _withhold(self, d: np.ndarray, index: np.ndarray, e2: float, sep: float) -> None:
         """Watched pairs (eyelids at a blink) whose two possible pairings cost within
         ``ambiguity_mm2`` of each other — or whose one point is about as near to either — are
         left unlabelled this frame: within marker noise either reading is as likely, and a wrong
         one would carry into the next prediction. They stay tracked.
 
-        Skipped when no pair can be: with every assigned point within e of its prediction and
-        every pair's predictions at least ``sep`` apart, either pairing of a pair differs by at
-        least sep (sep - 2e)."""
-        sep = self._sep_min
+        Skipped when no pair can be: with every assigned point within e (``e2`` = e^2) of its
+        prediction and every pair's predictions at least ``sep`` apart (0: unknown), either pairing
+        of a pair differs by at least sep (sep - 2e)."""
         if sep > 0.0:
-            e = float(np.sqrt(d[_ROWS[: self.n], index][index >= 0].max(initial=0.0)))
+            e = math.sqrt(e2)
             if sep * (sep - 2.0 * e) >= self.settings.ambiguity_mm2 and sep > 2.0 * e:
                 return
         d = np.concatenate([d, np.zeros((self.n, 1))], axis=1)  # index -1 (missing) reads no distance
@@ -425,7 +477,7 @@ class MarkerLabeller:
         coming back does (live, one frame of it is lost; offline it is put back, see ``late``)."""
         p = points[index[fresh]]
         d = p - self._candidate[fresh]
-        ok = self._candidate_ok[fresh] & (np.einsum("ij,ij->i", d, d) < self.settings.confirm_mm ** 2)
+        ok = self._candidate_ok[fresh] & (np.vecdot(d, d) < self.settings.confirm_mm ** 2)
         kept = fresh[ok]
         self._late, self._late_index = kept, self._candidate_index[kept]
         self._candidate_ok[:] = False
@@ -438,17 +490,10 @@ class MarkerLabeller:
             self.tentative += len(fresh) - len(kept)
         self._returning, self._returning_index = kept, index[kept]
 
-    def _pair_gaps(self) -> np.ndarray:
-        """Squared model separations of the watched pairs at the current weights (and the
-        smallest in the world, for the next frame's ambiguity test)."""
-        sep = self._pair_rest + (self._pair_basis @ self.w).reshape(-1, 3)
-        gap2 = np.einsum("ij,ij->i", sep, sep)
-        self._sep_min = self.scale * float(np.sqrt(gap2.min())) if len(gap2) else np.inf
-        return gap2
-
-    def _pairs_met(self, gap2: np.ndarray) -> bool:
-        """True on the frames just after two watched labels' model positions came within the gate."""
-        if (gap2 < self.settings.gate_mm ** 2).any():
+    def _pairs_met(self, gap2: float) -> bool:
+        """True on the frames just after two watched labels' model positions came within the gate
+        (``gap2``: the closest pair's squared separation)."""
+        if gap2 < self.settings.gate_mm ** 2:
             self.recheck = self.settings.recheck_frames
             return True
         if self.recheck > 0:
@@ -475,15 +520,13 @@ class MarkerLabeller:
     def _settle(self, points: np.ndarray) -> np.ndarray:
         """Labels from the second opinion's pose and shape: the labels tracked before this frame
         are re-assigned; those that came back this frame (confirmed) keep their point if free."""
-        self._model = self.model(self.w)
+        self._set_shape(self.w)
         d = _sqdist(self._world(self._model), points)
         index = np.full(self.n, -1, dtype=np.int64)
-        rows = np.flatnonzero(self._tracked)
-        index[rows] = _assign(d[rows], self._g2[rows])
+        rows = np.flatnonzero(~self._missing)
+        index[rows], _ = _assign(d[rows], self._g2[rows])
         self._held = self._no_held
-        self._sep_min = 0.0
-        self._withhold(d, index)
-        self._pair_gaps()
+        self._withhold(d, index, 0.0, 0.0)
         free = ~np.isin(self._returning_index, index[index >= 0])
         index[self._returning[free]] = self._returning_index[free]
         self.missing_for[:] = np.where((index >= 0) | self._held, 0.0, np.maximum(self.missing_for, 1.0))
@@ -491,23 +534,24 @@ class MarkerLabeller:
 
     def _reacquire(self, d: np.ndarray, index: np.ndarray, lost: np.ndarray) -> None:
         """Labels missing since last frame (``lost``, none assigned yet; their prediction may have
-        drifted) may take points nobody took, within a gate that grows with the time missing."""
+        drifted) may take points nobody took, within a gate that grows with the time missing; those
+        that do are ``_fresh``."""
         s = self.settings
         sub = d[lost]
         sub[:, index[index >= 0]] = np.inf
-        near = sub.min(1)
-        if near.min() >= (s.gate_mm * s.reacquire_max) ** 2:
+        if np.minimum.reduce(sub, axis=None) >= (s.gate_mm * s.reacquire_max) ** 2:
             return
+        near = sub.min(1)
         gate2 = (s.gate_mm * np.minimum(1.0 + s.reacquire_growth * self.missing_for[lost], s.reacquire_max)) ** 2
         if (near >= gate2).all():
             return
-        got = _assign(sub, gate2)
+        got, _ = _assign(sub, gate2)
         ok = got >= 0
-        index[lost[ok]] = got[ok]
+        self._fresh = lost[ok]
+        index[self._fresh] = got[ok]
 
     def _frame(self, points: np.ndarray, index: np.ndarray, valid: np.ndarray, initialised: bool) -> LabelFrame:
-        pos = points[index] if len(points) else np.zeros((self.n, 3))
-        pos[~valid] = 0.0
+        pos = np.where(valid[:, None], points[index], 0.0) if len(points) else np.zeros((self.n, 3))
         late, self._late = self._late, _EMPTY
         return LabelFrame(index, pos, valid, initialised, late, self._late_index)
 
@@ -538,13 +582,12 @@ class MarkerLabeller:
         # expression: alternate assignment, pose and shape from the best rigid start
         self.w = self._zero_w.copy()
         self._refine(points, 5, 2 * s.gate_mm)
-        local = self.model(self.w)
-        index, _ = gated_assignment(self._world(local), points, s.gate_mm)
+        self._set_shape(self.w)
+        index, _ = gated_assignment(self._world(self._model), points, s.gate_mm)
         lab = index >= 0
         self.tracking = lab.sum() >= s.min_labelled * self.n
         self.initialisations += int(self.tracking)
-        self._model = local
-        self._world_pred = self._world(local)
+        self._predict()
         self.poor = 0
         self.missing_for[:] = np.where(lab, 0.0, 1.0)
         self._held = self._no_held

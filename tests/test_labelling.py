@@ -3,6 +3,8 @@ is found in any pose, lost tracks come back, and on scrambled takes of both rigs
 shuffled, 2 ghosts per frame, occlusion bursts to 5 %) the labels are right and the solve keeps its
 accuracy."""
 
+from unittest.mock import patch
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -17,7 +19,7 @@ from livecap.demo.unlabelled import faster_larger, score, scramble
 from livecap.live.pipeline import Pipeline
 from livecap.live.unlabelled import LabelledSource, label_take, labeller_for
 from livecap.offline.labelling import labelling_study
-from solvers.labelling import _rigid, gated_assignment
+from solvers.labelling import _assign, _rigid, gated_assignment
 from solvers.rigid import kabsch
 from tests.sinks import Capture
 
@@ -188,3 +190,38 @@ def test_labelled_source_in_the_pipeline(demo_setup):
     np.testing.assert_allclose(np.stack([r.weights for r in a.results])[same],
                                np.stack([r.weights for r in b.results])[same], atol=1e-9)
     assert src.initialisations == 1 and src.last_decode_seconds > 0
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(1, 60), st.integers(0, 4), st.integers(0, 5), st.integers(0, 2**31 - 1))
+def test_fast_assignment_agrees_with_the_full_one_on_separated_clouds(n, ghosts, occluded, seed):
+    """Predictions >= 10 mm apart, each point within 1.5 mm of its own, some occluded, ghosts >= 8 mm from
+    every prediction, shuffled, tracked labels gated at 6 mm and a few missing ones at 0: every nearest
+    point is nobody else's, so the assignment takes no Hungarian solve, and it gives the labels and the
+    largest assigned squared distance of the full Hungarian solve of the augmented problem."""
+    rng = np.random.default_rng(seed)
+    cells = rng.permutation(np.stack(np.meshgrid(*[np.arange(5)] * 3, indexing="ij"), -1).reshape(-1, 3))[:n]
+    pred = cells * 14.0 + rng.uniform(-1.0, 1.0, (n, 3)) + 300.0
+    own = pred + rng.uniform(-0.85, 0.85, (n, 3))
+    keep = np.ones(n, dtype=bool)
+    keep[rng.choice(n, min(occluded, n - 1), replace=False)] = False
+    extra = rng.uniform(pred.min(0) - 10, pred.max(0) + 10, (50 * ghosts, 3))
+    extra = extra[((extra[:, None] - pred[None]) ** 2).sum(-1).min(1) >= 64.0][:ghosts]
+    cloud = np.vstack([own[keep], extra])
+    order = rng.permutation(len(cloud))
+    points = cloud[order]
+    g2 = np.where(rng.random(n) < 0.1, 0.0, 36.0)
+    d = ((pred[:, None] - points[None]) ** 2).sum(-1)
+    with patch("solvers.labelling.linear_sum_assignment", side_effect=AssertionError("a Hungarian solve")):
+        index, e2 = _assign(d, g2)
+    k = len(points)
+    aug = np.full((n, k + n), 1e18)
+    aug[:, :k] = np.where(d < g2[:, None], d, 1e18)
+    aug[np.arange(n), k + np.arange(n)] = g2
+    r, c = linear_sum_assignment(aug)
+    full = np.where(c < k, c, -1)[np.argsort(r)]
+    np.testing.assert_array_equal(index, full)
+    source = np.concatenate([np.flatnonzero(keep), np.full(len(extra), -1)])[order]
+    assert all(source[j] == i for i, j in enumerate(index) if j >= 0)
+    got = index >= 0
+    assert e2 == (d[got, index[got]].max() if got.any() else 0.0)
