@@ -47,6 +47,8 @@ class LabellerSettings:
     ambiguity_mm2: float = 5.0  # a watched pair whose two pairings' squared distances differ by less is withheld
     init_iterations: int = 20
     init_gate_mm: float = 25.0  # the ICP's first gate; it shrinks to gate_mm
+    init_screen: int = 6  # every start runs this many ICP iterations ...
+    init_keep: int = 4  # ... and the best this many run the rest
     scale_range: tuple[float, float] = (0.8, 1.25)
 
 
@@ -75,6 +77,7 @@ def _axis_rotations() -> np.ndarray:
 
 
 _AXIS_ROTATIONS = _axis_rotations()
+CLOSE_AXES = 1.5  # principal spreads closer than this ratio leave their axes' turn in their plane uncertain
 _EMPTY = np.zeros(0, dtype=np.int64)
 _ROWS = np.arange(1024)
 
@@ -129,12 +132,39 @@ def _rigid_svd(src: np.ndarray, dst: np.ndarray, cs: np.ndarray, cd: np.ndarray)
     return R, cd - R @ cs
 
 
-def _principal_axes(p: np.ndarray) -> np.ndarray:
+def _principal_axes(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Principal axes (columns, a proper rotation) and standard deviations along them, ascending."""
     c = p - p.mean(0)
-    _, vecs = np.linalg.eigh(c.T @ c)
+    vals, vecs = np.linalg.eigh(c.T @ c)
     if np.linalg.det(vecs) < 0:
         vecs[:, 0] = -vecs[:, 0]
-    return vecs
+    return vecs, np.sqrt(np.maximum(vals, 0.0) / len(p))
+
+
+def _about(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation by ``angle`` about the unit ``axis`` (Rodrigues)."""
+    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * K @ K
+
+
+def start_rotations(axes_q: np.ndarray, sd_q: np.ndarray, axes_n: np.ndarray, close: float = CLOSE_AXES,
+                    step_deg: float = 30.0) -> list[np.ndarray]:
+    """Rotations from the model's principal axes onto the cloud's: the 24 axis permutations and
+    flips, and, about each cloud axis whose other two spreads are within ``close`` of each other,
+    the same turned by multiples of ``step_deg``. Two near-equal spreads leave their axes free to
+    turn in their plane with a few missing markers or ghosts (a face's width and height: 36 and
+    44 mm on the demo rig; up to 30 degrees off measured), and the similarity ICP only recovers
+    from about 15 degrees."""
+    base = [axes_q @ M @ axes_n.T for M in _AXIS_ROTATIONS]
+    out = list(base)
+    turns = [math.radians(a) for a in np.arange(step_deg, 90.0, step_deg)]
+    for k in range(3):
+        a, b = np.delete(sd_q, k)
+        if min(a, b) > 0 and max(a, b) / min(a, b) < close:
+            for angle in turns:
+                T = _about(axes_q[:, k], angle)
+                out += [T @ R for R in base]
+    return out
 
 
 def _sqdist(pred: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -564,20 +594,20 @@ class MarkerLabeller:
         if len(points) < max(3, int(s.min_labelled * self.n)):
             return index
         lo, hi = s.scale_range
-        axes_n = _principal_axes(self.neutral)
-        axes_q = _principal_axes(points)
+        axes_n, _ = _principal_axes(self.neutral)
+        axes_q, sd_q = _principal_axes(points)
         spread = np.sqrt(((points - points.mean(0)) ** 2).sum(1).mean()
                          / ((self.neutral - self.neutral.mean(0)) ** 2).sum(1).mean())
         scale0 = min(max(float(spread), lo), hi)
-        starts = [(scale0, axes_q @ M @ axes_n.T) for M in _AXIS_ROTATIONS]
+        starts = [(scale0, R) for R in start_rotations(axes_q, sd_q, axes_n)]
         if self.initialisations > 0:  # a lost track: its last pose is a candidate too
             starts.append((self.scale, self.R))
-        best = (np.inf, None)
-        for scale, R in starts:
-            t = points.mean(0) - scale * R @ self.neutral.mean(0)
-            fit = self._icp(points, self.neutral, scale, R, t)
-            if fit[0] < best[0]:
-                best = fit
+        gates = np.geomspace(s.init_gate_mm, s.gate_mm, s.init_iterations)
+        head, tail = gates[:s.init_screen], gates[s.init_screen:]
+        centre, mean_n = points.mean(0), self.neutral.mean(0)
+        screened = sorted((self._icp(points, self.neutral, sc, R, centre - sc * R @ mean_n, head)
+                           for sc, R in starts), key=lambda fit: fit[0])[:s.init_keep]
+        best = min((self._icp(points, self.neutral, *state, tail) for _, state in screened), key=lambda fit: fit[0])
         _, (self.scale, self.R, self.t) = best
         # expression: alternate assignment, pose and shape from the best rigid start
         self.w = self._zero_w.copy()
@@ -594,16 +624,14 @@ class MarkerLabeller:
         self._sep_min = 0.0
         return index
 
-    def _icp(self, points, local, scale, R, t):
-        s = self.settings
-        lo, hi = s.scale_range
-        gates = np.geomspace(s.init_gate_mm, s.gate_mm, s.init_iterations)
-        cost = np.inf
+    def _icp(self, points, local, scale, R, t, gates):
+        """Similarity ICP through the shrinking ``gates``; its cost at the last gate."""
+        lo, hi = self.settings.scale_range
         for gate in gates:
             index, _ = gated_assignment(scale * local @ R.T + t, points, gate)
             lab = index >= 0
             if lab.sum() < 3:
                 return np.inf, (scale, R, t)
             scale, R, t = _similarity(local[lab], points[index[lab]], lo, hi)
-        _, cost = gated_assignment(scale * local @ R.T + t, points, s.gate_mm)
+        _, cost = gated_assignment(scale * local @ R.T + t, points, gates[-1])
         return cost, (scale, R, t)

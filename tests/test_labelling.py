@@ -7,7 +7,7 @@ from unittest.mock import patch
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.transform import Rotation
@@ -74,6 +74,9 @@ def demo_setup(demo):
 
 @settings(max_examples=6, deadline=None)
 @given(st.integers(0, 2**31 - 1))
+@example(54)  # these three turned the face's width/height axes 20-30 degrees: 24 axis-aligned starts missed
+@example(160)
+@example(8128)
 def test_first_frame_finds_the_neutral_in_any_pose(demo_setup, seed):
     _, _, profile, _, _ = demo_setup
     rng = np.random.default_rng(seed)
