@@ -6,7 +6,8 @@ box QP kept a Cholesky factor instead of an updated inverse), put in ``solvers.q
 built. The two are timed in alternating blocks, so the machine's load falls on both alike, next to the
 prefactored pinv product (the floor) timed in the same blocks. Per row: wall and thread-CPU p50 / p99 (µs),
 the weight RMSE against the stream's truth (first 300 frames from a reset solver) and the largest
-difference between the two trees' weights over the whole stream:
+difference between the two trees' weights over the first 1000 frames (a mode slower than 1 ms a call is
+timed on 300 calls):
 
     python -m benchmarks.box_qp_ab [--quick] [--modes robust,qp] [--sizes 72x150,72x1000] [--before REV]
 """
@@ -40,6 +41,9 @@ def old_box_qp(rev: str) -> type:
     return mod.BoxQP
 
 
+COMPARED = 1000  # frames of the stream on which the two trees' weights are compared
+
+
 def _build(mode: str, profile, box: type, target, valid):
     """The mode's solver, with its workspace for ``valid``'s pattern (made on the first step) on ``box``."""
     keep = solvers.qp.BoxQP
@@ -66,10 +70,12 @@ def compare(mode: str, n: int, m: int, before: type, count: int, block: int = 25
     pinv = np.linalg.pinv(profile.basis)
     runs = {k: _build(mode, profile, box, targets[0], valid[0])
             for k, box in (("before", before), ("after", solvers.qp.BoxQP))}
-    out = {}
+    out, t0 = {}, time.perf_counter()
     for name, s in runs.items():  # accuracy and equality from reset solvers, then warm for timing
         s.reset()
-        out[name] = np.array([s.step(targets[i], valid[i]) for i in range(T)])
+        out[name] = np.array([s.step(targets[i], valid[i]) for i in range(COMPARED)])
+    if (time.perf_counter() - t0) / (2 * COMPARED) > 1e-3:  # milliseconds a call: fewer timed calls
+        count, block = min(count, 300), 50
     diff = float(np.abs(out["before"] - out["after"]).max())
     rmse = {k: float(np.sqrt(np.mean((W[:300] - truth[:300]) ** 2))) for k, W in out.items()}
     calls = {"pinv": lambda i: pinv @ flat[i % T], **{k: (lambda i, s=s: s.step(targets[i % T], valid[i % T]))

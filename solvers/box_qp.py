@@ -168,11 +168,11 @@ class BoxQP:
         self._changed()
 
     def _remove(self, P: np.ndarray, to_upper: np.ndarray) -> None:
-        """Positions P of F leave it (to their upper bound where ``to_upper``); the last position takes
+        """Positions P (ascending) of F leave it (to their upper bound where ``to_upper``); the last position takes
         each one's place (F's order is free: the factor is recomputed at the next pass)."""
         k = self._k
         F, y, HF = self._Fb, self._yb, self._HFb
-        for p, u in sorted(zip(P.tolist(), to_upper.tolist(), strict=True), reverse=True):
+        for p, u in zip(reversed(P.tolist()), reversed(to_upper.tolist()), strict=True):  # P ascending
             v = int(F[p])
             if u:
                 self._up[v] = True
@@ -218,13 +218,14 @@ class BoxQP:
             g *= self._sgn
             if inside and _MIN(g) >= -self.tol:
                 return self._done(it, y)
-            tol = self.tol + 1e-12 * float(np.abs(fc).max())  # rounding in g grows with |f|
-            J = np.flatnonzero(g < -tol)
-            below = above = None
+            tol = self.tol + 1e-12 * max(_MAX(fc), -_MIN(fc))  # rounding in g grows with |f|
+            J = (g < -tol).nonzero()[0]
+            n_bad = len(J)
             if not inside:
                 lo_F, hi_F = self._bounds_F()
-                below, above = y < lo_F, y > hi_F
-            n_bad = len(J) + (0 if inside else int(np.count_nonzero(below | above)))
+                above = y > hi_F
+                P = ((y < lo_F) | above).nonzero()[0]
+                n_bad += len(P)
             if n_bad == 0:
                 return self._done(it, y)
             if n_bad < best and len(J) <= max(self._BLOCK, self._k):
@@ -235,7 +236,6 @@ class BoxQP:
                 return self._primal(f, y, it)
             self._keep(y)
             if not inside:
-                P = np.flatnonzero(below | above)
                 self._remove(P, above[P])
             if len(J):
                 self._add(J)
