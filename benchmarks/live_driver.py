@@ -5,7 +5,13 @@ Thread CPU time (``time.thread_time``) per part, so the figures are steadier tha
 wall-clock run of ``live_latency`` on a shared machine, and the mode's step is separable from what
 the driver adds around it (issue 18 item 4):
 
-    python -m benchmarks.live_driver [--quick] [--modes robust,qp]
+    python -m benchmarks.live_driver [--quick] [--modes robust,qp] [--waits sleep,spin1ms,spin,none]
+
+``--waits``: how the loop waits for the next 120 Hz deadline between frames (what the driver does while
+no packet is due): ``sleep`` in the kernel until it (the driver's own blocking poll behaves so),
+``spin1ms`` sleeps until 1 ms before it and then busy-polls the subscriber socket, ``spin`` busy-polls
+the whole interval, ``none`` runs the frames back to back (the tight-loop cost, no pacing). The waits
+of one run alternate frame blocks, so the load falls on each alike.
 """
 
 from __future__ import annotations
@@ -21,10 +27,27 @@ import numpy as np
 from benchmarks.timing import suite_main
 
 PARTS = ("decode", "stabilise", "step", "publish", "frame", "around_step")
+WAITS = ("sleep", "spin1ms", "spin", "none")
+BLOCK = 120  # frames per block of one wait; the waits take turns block by block
 
 
-def measure(mode: str, frames: int, pace: float = 1 / 120) -> dict:
-    """Per-part thread-CPU p50 / p99 (µs) of ``frames`` demo frames through the driver's own path."""
+def _wait(how: str, deadline: float, rx) -> None:
+    """Until ``deadline`` (time.perf_counter seconds), the way ``how`` says (see the module's doc)."""
+    now = time.perf_counter()
+    if how == "none" or now >= deadline:
+        return
+    if how == "sleep":
+        time.sleep(deadline - now)
+        return
+    if how == "spin1ms" and deadline - now > 1e-3:
+        time.sleep(deadline - now - 1e-3)
+    while time.perf_counter() < deadline:
+        while rx.poll(0):
+            rx.recv()
+
+
+def measure(mode: str, frames: int, pace: float = 1 / 120, waits: tuple[str, ...] = ("sleep",)) -> dict:
+    """Per wait, per-part thread-CPU p50 / p99 (µs) of ``frames`` demo frames through the driver's own path."""
     import zmq
 
     from livecap.calibration.profile import calibrate, estimate_neutral
@@ -47,9 +70,10 @@ def measure(mode: str, frames: int, pace: float = 1 / 120) -> dict:
         profile = calibrate(rig, layout, estimate_neutral(take.select(layout.labels), layout.stable, 120))
     lid = layout_id(take.labels)
     loop = list(take.frames())
-    packets = [[topic("markers", "actor"), encode_markers(f.frame, f.timestamp, f.positions, f.valid,
+    total = frames * len(waits)  # numbered on across the take's loops: one stream, no restarts
+    packets = [[topic("markers", "actor"), encode_markers(i, i * pace, f.positions, f.valid,
                                                           take.labels if i == 0 else None, lid)]
-               for i, f in enumerate(loop[i % len(loop)] for i in range(frames))]
+               for i, f in enumerate(loop[i % len(loop)] for i in range(total))]
     source = ZmqSource("tcp://127.0.0.1:1", profile.labels)
     sink = ZmqSink("tcp://127.0.0.1:*", rate=120.0)
     rx = zmq.Context.instance().socket(zmq.SUB)
@@ -69,8 +93,10 @@ def measure(mode: str, frames: int, pace: float = 1 / 120) -> dict:
             return out
 
         setattr(obj, attr, timed)
-    rows = {p: np.empty(frames) for p in PARTS}
+    rows = {w: {p: [] for p in PARTS} for w in waits}
+    deadline = time.perf_counter()
     for i, parts in enumerate(packets):
+        how = waits[(i // BLOCK) % len(waits)]
         c0 = clock()
         frame = source.decode(parts)
         c1 = clock()
@@ -80,27 +106,34 @@ def measure(mode: str, frames: int, pace: float = 1 / 120) -> dict:
         c3 = clock()
         for p, v in (("decode", c1 - c0), ("publish", c3 - c2), ("frame", c3 - c0), ("stabilise", spent["stabilise"]),
                      ("step", spent["step"]), ("around_step", c3 - c0 - spent["step"])):
-            rows[p][i] = v
+            rows[how][p].append(v)
         while rx.poll(0):
             rx.recv()
-        time.sleep(pace)
+        deadline = max(deadline + pace, time.perf_counter() - pace)  # a late frame does not start a burst
+        _wait(how, deadline, rx)
     sink.close()
     rx.close(0)
-    warm = frames // 10
-    return {p: {"p50_us": float(np.percentile(v[warm:] * 1e6, 50)), "p99_us": float(np.percentile(v[warm:] * 1e6, 99))}
-            for p, v in rows.items()}
+    warm = min(frames // 10, BLOCK)  # the first block of each wait
+    return {w: {p: {"p50_us": float(np.percentile(np.array(v[warm:]) * 1e6, 50)),
+                    "p99_us": float(np.percentile(np.array(v[warm:]) * 1e6, 99))} for p, v in r.items()}
+            for w, r in rows.items()}
 
 
-def run(quick: bool = False, modes=("robust", "qp")) -> dict:
+def run(quick: bool = False, modes=("robust", "qp"), waits=("sleep",)) -> dict:
     frames = 1200 if quick else 7200
+    waits = tuple(w for w in waits if w)
+    if unknown := set(waits) - set(WAITS):
+        raise SystemExit(f"unknown waits {sorted(unknown)} (choose from {', '.join(WAITS)})")
     load = os.getloadavg()
     out = {"frames": frames, "rate_hz": 120.0, "load_start": load, "clock": "thread CPU (time.thread_time)",
-           "data": "livecap generate seed 0 (60 markers, 43 shapes), 10 s take looped", "modes": {}}
+           "data": "livecap generate seed 0 (60 markers, 43 shapes), 10 s take looped", "waits": waits,
+           "modes": {}}
     for m in (m for m in modes if m):
-        out["modes"][m] = measure(m, frames)
-        r = out["modes"][m]
-        print(f"{m:16s} " + "  ".join(f"{p} {r[p]['p50_us']:.0f}/{r[p]['p99_us']:.0f}" for p in PARTS)
-              + "  (thread CPU µs p50/p99)", flush=True)
+        by_wait = measure(m, frames, waits=waits)
+        out["modes"][m] = by_wait if len(waits) > 1 else by_wait[waits[0]]
+        for w, r in by_wait.items():
+            print(f"{m:10s} {w:8s} " + "  ".join(f"{p} {r[p]['p50_us']:.0f}/{r[p]['p99_us']:.0f}" for p in PARTS)
+                  + "  (thread CPU µs p50/p99)", flush=True)
     out["load_end"] = os.getloadavg()
     print(f"load average {load[0]:.2f} -> {out['load_end'][0]:.2f}; frame = decode + stabilise + step + the rest "
           "of solve_frame + publish; around_step = frame less the mode's step")
@@ -108,4 +141,4 @@ def run(quick: bool = False, modes=("robust", "qp")) -> dict:
 
 
 if __name__ == "__main__":
-    sys.exit(suite_main(run, __doc__, modes="robust,qp"))
+    sys.exit(suite_main(run, __doc__, modes="robust,qp", waits="sleep"))

@@ -11,8 +11,8 @@ M a per-marker weight (confidence), the last two terms an optional temporal term
 prior. The Hessian H = B'M^2B + (lam + gam) I + alpha P is constant, so each marker-visibility
 pattern gets one workspace (H formed once; only the linear term changes per frame), solved by the
 warm-started primal active-set method of ``solvers.box_qp`` on the free weights: the previous
-frame's free set and its inverse carry over, so a frame costs O(m 3n) for the linear term plus
-O(k m) for the optimality check (k free weights). DAQP (the fastest general library in
+frame's free set and the Cholesky factor of its block carry over, so a frame costs O(m 3n) for the
+linear term plus O(k m) for the optimality check (k free weights). DAQP (the fastest general library in
 benchmarks/qp_libraries.py) takes over, warm, where the active set moves by many weights a frame
 and most weights are free (its C updates beat numpy there), and if the active-set solve fails.
 Missing markers drop their rows (a new pattern's H is the all-markers H downdated by them);

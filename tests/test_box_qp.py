@@ -135,3 +135,55 @@ def test_demo_rig_stream_matches_daqp_frame_by_frame(demo):
         worst = max(worst, float(np.abs(x - np.clip(_daqp(H, f, lo, hi), lo, hi)).max()))
     assert len(solvers) > 5 and worst < 1e-8  # occlusion made several patterns; every frame agrees
     assert 0 < len(box.F) < B.shape[1]  # some weights free, some at a limit
+
+
+def test_the_factor_is_of_the_free_block():
+    """HF and Minv (kept public) are H's free rows and the inverse of H_FF after a solve."""
+    rng = np.random.default_rng(6)
+    B, H, lo, hi = _problem(rng, 15, 25, 0.5, "unit")
+    box = BoxQP(H, lo, hi)
+    box.solve(-(B.T @ (B @ rng.uniform(-0.5, 1.5, 25))))
+    F = box.F
+    assert 0 < len(F) < 25
+    np.testing.assert_array_equal(box.HF, H[F])
+    np.testing.assert_allclose(box.Minv @ H[np.ix_(F, F)], np.eye(len(F)), atol=1e-10)
+
+
+def test_an_unchanged_free_set_allocates_only_the_returned_point():
+    """The steady state (the free set carried over) works in the solver's buffers: over 500 solves
+    the traced memory peaks at about one returned x, however many solves."""
+    import tracemalloc
+
+    rng = np.random.default_rng(7)
+    B, H, lo, hi = _problem(rng, 24, 150, 1.0, "unit")
+    box = BoxQP(H, lo, hi)
+    f = -(B.T @ (B @ rng.uniform(-0.5, 1.5, 150)))
+    box.solve(f)
+    fs = [f + 1e-9 * k for k in range(500)]
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        for g in fs:
+            box.solve(g)
+            assert box.iterations == 1
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    assert peak < f.nbytes + 2048
+
+
+def test_an_ill_conditioned_cold_start_reaches_daqps_optimum():
+    """More shapes than rows and only a 1e-9 floor on H (qp mode at 72x1000 without a ridge): from
+    rest the primal method takes hundreds of passes with a Cholesky factor that stays positive definite
+    (the rank-updated inverse of the previous version hit its iteration limit on this problem)."""
+    rng = np.random.default_rng(8)
+    B = rng.normal(0, 3, (60, 150))
+    H = B.T @ B
+    H += 1e-9 * np.mean(np.diagonal(H)) * np.eye(150)
+    lo, hi = np.zeros(150), np.ones(150)
+    f = -(B.T @ (B @ rng.uniform(-0.5, 1.5, 150)))
+    x = BoxQP(H, lo, hi).solve(f)
+    assert x is not None
+    ref = np.clip(_daqp(H, f, lo, hi), lo, hi)
+    assert _objective(H, f, x) <= _objective(H, f, ref) + 1e-9 * abs(_objective(H, f, ref))
+    assert _kkt_violation(H, f, lo, hi, x) < 1e-8
