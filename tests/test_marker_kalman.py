@@ -159,3 +159,23 @@ def test_streaming_lambda_bank_equals_the_full_r_by_q_bank():
         assert f.noise_mm == pytest.approx(np.sqrt(r_grid[ri]))
         np.testing.assert_allclose(out, bank.x[pick, np.arange(5)], atol=1e-9)
 
+
+def test_streaming_pose_refit_is_the_batch_refit_of_one_frame_and_carries_part_of_it():
+    from solvers.pose_refine import StreamingPoseRefit
+
+    rng = np.random.default_rng(8)
+    neutral = rng.normal(0, 30, (12, 3))
+    stable = np.arange(12) < 5
+    basis = rng.normal(0, 1, (36, 3))
+    x = rng.normal(0, 0.5, (12, 3))
+    valid = np.ones(12, bool)
+    valid[[1, 9]] = False
+    w = np.array([0.2, 0.5, 0.1])
+    pose = StreamingPoseRefit(neutral, stable, basis)
+    np.testing.assert_allclose(pose.apply(x, valid), np.where(valid[:, None], x, 0.0), atol=1e-12)  # the identity
+    out = pose.refit(x, valid, w)
+    np.testing.assert_allclose(out, refit_pose(x[None], valid[None], w[None], neutral, stable, basis)[0], atol=1e-9)
+    half = pose.apply(x, valid, 0.5)
+    np.testing.assert_allclose(half[valid], 0.5 * (x + out)[valid], atol=1e-12)
+    valid[:4] = False  # one stable marker left: the last correction is kept
+    np.testing.assert_allclose(pose.refit(x, valid, w)[valid], out[valid], atol=1e-12)
