@@ -11,7 +11,9 @@ smoother, with ``q`` chosen per marker *and frame* by the likelihood over a shor
 Streaming: a bank of filters selected per marker by exponentially discounted likelihood, with an
 optional one-frame fixed-lag smoothing step. The bank runs over lambda = q / r only (21 filters), every
 r's likelihood following from three sums per filter and marker (``StreamingMarkerKalman``): the same
-filters as one per (r, q) on a q grid shifted by at most half a step, for a fifth of the work (issue 15).
+filters as one per (r, q) on a q grid shifted by at most half a step, for a fifth of the work. The
+shared r follows the take's noise, not the frame: it is re-chosen every frame for the first 60, then
+every 8th (issue 15: on the realeval takes it settles within the first 10 frames).
 """
 
 from __future__ import annotations
@@ -73,10 +75,13 @@ class _Bank:
             self.p11[:, first] = self.p11_start
             self.started |= first
         upd = seen & ~first
-        e = np.where(upd[:, None], z - self.x, 0.0)
         s = self.p00 + self.r
         k0, k1 = self.p00 / s, self.p01 / s
-        k0, k1 = np.where(upd, k0, 0.0), np.where(upd, k1, 0.0)
+        if upd.all():
+            e = z - self.x
+        else:
+            e = np.where(upd[:, None], z - self.x, 0.0)
+            k0, k1 = np.where(upd, k0, 0.0), np.where(upd, k1, 0.0)
         self.x = self.x + k0[..., None] * e
         self.v = self.v + k1[..., None] * e
         p01 = self.p01
@@ -185,6 +190,9 @@ def bridged(valid: np.ndarray, max_gap: int) -> np.ndarray:
     return v[:T]
 
 
+R_SETTLE_FRAMES, R_EVERY = 60, 8  # streaming: the shared r re-chosen every frame at first, then every 8th
+
+
 class StreamingMarkerKalman:
     """Per-frame marker filter: each marker follows the (r, q) with the best discounted likelihood
     (r shared). ``lag`` 1 returns frame t - 1 smoothed with frame t.
@@ -224,6 +232,7 @@ class StreamingMarkerKalman:
         self.sightings = np.zeros(self.n, dtype=int)
         self.prev: tuple | None = None
         self.t = 0
+        self._ri = len(self.s.r_grid) // 2
         self.noise_mm = float(np.sqrt(np.median(self.s.r_grid)))  # the shared r chosen so far
 
     def choose(self) -> tuple[int, np.ndarray]:
@@ -236,6 +245,13 @@ class StreamingMarkerKalman:
         total = (cost.min(2) + self.log_r * self.count).sum(1)
         ri = int(total.argmin())
         return ri, cost[ri].argmin(1)
+
+    def _pick(self, ri: int) -> np.ndarray:
+        """``choose``'s lambda per marker for a given r."""
+        cost = self.energy * self.inv_r[ri, 0, 0]
+        cost += self.log_s
+        cost += self.excluded[ri]
+        return cost.argmin(1)
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Filtered (lag 0) or one-frame-smoothed (lag 1) markers n x 3 and their validity."""
@@ -259,8 +275,11 @@ class StreamingMarkerKalman:
             self.log_s += np.where(use, 3.0 * np.log(s), 0.0).T
             self.energy += np.where(use, np.einsum("knc,knc->kn", e, e) / s, 0.0).T
         self.unseen = np.where(valid, 0, self.unseen + 1)
-        ri, pick = self.choose()
-        self.noise_mm = float(np.sqrt(self.s.r_grid[ri]))
+        if self.t < R_SETTLE_FRAMES or self.t % R_EVERY == 0:
+            self._ri, pick = self.choose()
+        else:  # the shared r changes on the take's noise, not from frame to frame
+            pick = self._pick(self._ri)
+        self.noise_mm = float(np.sqrt(self.s.r_grid[self._ri]))
         flat = pick * self.n + self._idx  # each marker's chosen filter in the K x n arrays, flattened
         ok = b.started & (self.unseen <= self.s.max_gap_frames)
         if self.lag == 0 or not self.t:
