@@ -18,8 +18,8 @@ and no added lag (it holds while innovations look like noise and follows at once
 Offline the IMM runs forwards and backwards and the two are averaged (zero phase).
 
 Streamed cost (issue 15): the marker bank runs over q / r only (solvers.marker_kalman), the held-out
-strength is tried every STRENGTH_TRIAL_EVERY-th frame, and the pose alternation starts from half the
-last frame's correction with one re-fit (solvers.pose_refine.StreamingPoseRefit): two QP solves and one
+strength is tried every STRENGTH_TRIAL_EVERY-th frame, and the pose alternation starts from 0.3 of
+the last frame's correction with one re-fit (solvers.pose_refine.StreamingPoseRefit): two QP solves and one
 rigid fit a frame plus a quarter trial, instead of four solves and two fits (docs/robustness.md).
 """
 
@@ -42,7 +42,7 @@ from solvers.tracking import IMMFilter, dwna_variance
 STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it balances)
 STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
 STRENGTH_TRIAL_EVERY = 4  # streaming: frames per held-out strength trial (its choice is discounted over 600)
-POSE_CARRY = 0.5  # streaming: how much of the last frame's pose correction starts the next (see step)
+POSE_CARRY = 0.3  # streaming: the part of the last frame's pose correction that starts the next (pose_refine)
 POSE_REFITS = 2  # offline pose/expression alternations (issue 15: ICT 0.2 mm vertex p95 0.66 -> 0.43 -> 0.35 mm)
 
 
