@@ -13,7 +13,7 @@ optional one-frame fixed-lag smoothing step. The bank runs over lambda = q / r o
 r's likelihood following from three sums per filter and marker (``StreamingMarkerKalman``): the same
 filters as one per (r, q) on a q grid shifted by at most half a step, for a fifth of the work. The
 shared r follows the take's noise, not the frame: it is re-chosen every frame for the first 60, then
-every 8th (issue 15: on the realeval takes it settles within the first 10 frames).
+every 8th (issue 15: the realeval rows are equal to every digit either way).
 """
 
 from __future__ import annotations
