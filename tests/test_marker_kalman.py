@@ -129,3 +129,53 @@ def test_weight_motion_stage_follows_a_ramp_without_lag_and_cuts_noise():
     lag = min(range(0, 5), key=lambda s: np.mean((out[s:] - truth[:T - s]) ** 2))
     assert lag <= 1
     assert np.mean(np.abs(np.diff(out, 2, axis=0))) < 0.3 * np.mean(np.abs(np.diff(noisy, 2, axis=0)))
+
+
+def test_streaming_lambda_bank_equals_the_full_r_by_q_bank():
+    """The streaming filter runs one bank over lambda = q / r and gets every r's likelihood from three
+    sums; a bank of every allowed (r, q = lambda r) pair, its velocity prior scaled by r (the same
+    filters), with the likelihood per coordinate, must give the same markers and noise."""
+    from solvers.marker_kalman import _Bank, _choose
+
+    truth, noisy = _walk(300, 5, 0.3, 6)
+    valid = np.random.default_rng(7).random((300, 5)) > 0.1
+    valid[40:60, 2] = False
+    valid[:30, 4] = False  # a late first sighting
+    f = StreamingMarkerKalman(5, lag=0)
+    r_grid = np.asarray(f.s.r_grid)
+    pairs = [(r, lam) for i, r in enumerate(r_grid) for lam in f.lam[np.isfinite(f.excluded[i, 0])]]
+    r, q = np.array(pairs).T
+    r, q = r.copy(), q * r
+    bank = _Bank(r, q, 5, p11_start=f.p11_start * r[:, None])
+    ll = np.zeros((len(r), 5, 3))
+    sightings = np.zeros(5, int)
+    for t in range(300):
+        out, _ = f.step(noisy[t], valid[t])
+        if t:
+            bank.predict()
+        ll = f.decay * ll + np.where((sightings >= 2)[:, None], bank.update(noisy[t], valid[t]), 0.0)
+        sightings += valid[t]
+        ri, pick = _choose(ll, 5, len(r_grid))
+        assert f.noise_mm == pytest.approx(np.sqrt(r_grid[ri]))
+        np.testing.assert_allclose(out, bank.x[pick, np.arange(5)], atol=1e-9)
+
+
+def test_streaming_pose_refit_is_the_batch_refit_of_one_frame_and_carries_part_of_it():
+    from solvers.pose_refine import StreamingPoseRefit
+
+    rng = np.random.default_rng(8)
+    neutral = rng.normal(0, 30, (12, 3))
+    stable = np.arange(12) < 5
+    basis = rng.normal(0, 1, (36, 3))
+    x = rng.normal(0, 0.5, (12, 3))
+    valid = np.ones(12, bool)
+    valid[[1, 9]] = False
+    w = np.array([0.2, 0.5, 0.1])
+    pose = StreamingPoseRefit(neutral, stable, basis)
+    np.testing.assert_allclose(pose.apply(x, valid), np.where(valid[:, None], x, 0.0), atol=1e-12)  # the identity
+    out = pose.refit(x, valid, w)
+    np.testing.assert_allclose(out, refit_pose(x[None], valid[None], w[None], neutral, stable, basis)[0], atol=1e-9)
+    half = pose.apply(x, valid, 0.5)
+    np.testing.assert_allclose(half[valid], 0.5 * (x + out)[valid], atol=1e-12)
+    valid[:4] = False  # one stable marker left: the last correction is kept
+    np.testing.assert_allclose(pose.refit(x, valid, w)[valid], out[valid], atol=1e-12)

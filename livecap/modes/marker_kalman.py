@@ -16,6 +16,12 @@ through the ill-conditioned basis (jitter 13 x / 6 x the truth's; the per-frame 
 adds about a tenth), not the pose re-fit; the IMM cuts it to 3.3 x / 2.2 x at no weight RMSE cost
 and no added lag (it holds while innovations look like noise and follows at once when they do not).
 Offline the IMM runs forwards and backwards and the two are averaged (zero phase).
+
+Streamed cost (issue 15): the marker bank runs over q / r only (solvers.marker_kalman), the held-out
+strength is tried every STRENGTH_TRIAL_EVERY-th frame, and the pose alternation starts from 0.3 of
+the last frame's correction with one re-fit (solvers.pose_refine.StreamingPoseRefit): two QP solves
+and one rigid fit a frame plus half a trial, instead of four solves and two fits; 2.1-2.8 x less
+thread CPU at 60 markers (docs/robustness.md, "`kalman` streamed cost").
 """
 
 from __future__ import annotations
@@ -29,16 +35,15 @@ from livecap.calibration.animation_prior import AnimationPrior
 from livecap.calibration.profile import Profile
 from livecap.modes.robust import robust_settings
 from solvers.marker_kalman import KalmanSettings, StreamingMarkerKalman, smooth_take
-from solvers.pose_refine import refit_pose
+from solvers.pose_refine import StreamingPoseRefit, refit_pose
 from solvers.prior_strength import HeldOutStrength
 from solvers.qp import FrameQP
 from solvers.tracking import IMMFilter, dwna_variance
 
 STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it balances)
 STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
-# per frame, on the filtered markers (issue 15, ICT 0.5 mm, S07-001 / apfel: vertex p95 0.85 / 1.10 x the
-# oracle with 1, 0.79 / 1.07 with 2, 0.78 / 1.06 with 3)
-STREAM_POSE_REFITS = 2
+STRENGTH_TRIAL_EVERY = 2  # streaming: frames per held-out strength trial (4: demo take RMSE +13 %, see docs)
+POSE_CARRY = 0.3  # streaming: the part of the last frame's pose correction that starts the next (pose_refine)
 POSE_REFITS = 2  # offline pose/expression alternations (issue 15: ICT 0.2 mm vertex p95 0.66 -> 0.43 -> 0.35 mm)
 
 
@@ -69,6 +74,7 @@ class MarkerKalmanSolver:
         self.norms = np.maximum(np.linalg.norm(profile.basis, axis=0), 1e-9)
         self.lower, self.upper = profile.lower, profile.upper
         self.filter = StreamingMarkerKalman(profile.n_markers, settings, lag=self.latency_frames)
+        self.pose = StreamingPoseRefit(profile.source_neutral, profile.stable, profile.basis)
         self.chosen: dict = {}
         self.reset()
 
@@ -84,7 +90,9 @@ class MarkerKalmanSolver:
 
     def reset(self) -> None:
         self.filter.reset()
-        self.selector = self._selector(0.5 ** (1.0 / STREAM_HALF_LIFE_FRAMES))
+        self.pose.reset()
+        self.selector = self._selector(0.5 ** (STRENGTH_TRIAL_EVERY / STREAM_HALF_LIFE_FRAMES))
+        self._frame = 0
         self._fits: dict[int, FrameQP] = {}
         self._imm: tuple[float, IMMFilter] | None = None
         for k in range(len(STRENGTHS)):  # build every workspace now, not on the first frames
@@ -93,12 +101,12 @@ class MarkerKalmanSolver:
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         x, ok = self.filter.step(target, valid)
-        self.selector.observe(x, ok)
-        fit, p = self._fit(self.selector.best), self.profile
-        w = fit.step(x, ok)
-        for _ in range(STREAM_POSE_REFITS):  # pose re-fitted to the stable markers this expression predicts
-            x = refit_pose(x[None], ok[None], w[None], p.source_neutral, p.stable, p.basis)[0]
-            w = fit.step(x, ok)
+        if self._frame % STRENGTH_TRIAL_EVERY == 0:
+            self.selector.observe(x, ok)
+        self._frame += 1
+        fit = self._fit(self.selector.best)
+        w = fit.step(self.pose.apply(x, ok, POSE_CARRY), ok)
+        w = fit.step(self.pose.refit(x, ok, w), ok)
         noise = self.filter.noise_mm
         if self._imm is None or self._imm[0] != noise:  # noise settles in the first frames; rarely changes after
             self._imm = (noise, self.motion.imm(noise, self.norms))
