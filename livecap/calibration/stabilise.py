@@ -16,10 +16,12 @@ in all, the last good pose is held.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from solvers.rigid import kabsch, rotation_from_covariance
+from solvers.rigid import DEGENERATE, HORN_MAP, ROTATION_MAP, kabsch, rotation_from_covariance
 
 TUKEY_C = 4.685  # 95 % efficiency at the Gaussian
 MAD_TO_SIGMA = 1.4826
@@ -197,6 +199,84 @@ def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: i
     return R, t, w
 
 
+class FrameFit:
+    """``robust_pose`` for one streamed frame against a fixed reference, the use mask's work done once.
+
+    The check's fits (the plain one and, for 5-12 markers, each leave-one-out fit with 4 or more
+    markers left) are linear in the centred observed points up to their rotations: every fit's Horn
+    matrix N_j (Horn 1987 §4) is one prepared product with them (the reference centred per fit,
+    times its weights, times ``solvers.rigid.HORN_MAP``), and every residual the check needs is
+    linear in the top eigenvectors' outer products q_j q_j^T (the rotation entries, ``ROTATION_MAP``)
+    plus a linear map of the points. A frame is then one product, one batched ``eigh`` and two
+    products, where the batched ``_fit_with_deleted`` takes some thirty array calls. Same check and
+    poses as ``robust_pose`` to rounding; a frame whose check fails goes to the same IRLS, one with a
+    top eigenvalue near double (degenerate geometry) to ``robust_pose`` itself.
+    """
+
+    CACHE = 64  # use masks kept (a stable set of <= 12 markers shows few)
+
+    def __init__(self, reference: np.ndarray, iterations: int = 3, floor_mm: float = 1.0) -> None:
+        self.reference = np.asarray(reference, dtype=np.float64)
+        self.iterations = int(iterations)
+        self.floor_mm = float(floor_mm)
+        self._masks: dict[bytes, tuple] = {}
+
+    def _prepare(self, use: np.ndarray) -> tuple:
+        k = len(use)
+        left = np.flatnonzero(use)
+        m = len(left)
+        ref = self.reference[left]
+        W = np.ones((1, m))
+        if 5 <= k <= LEAVE_ONE_OUT_MAX and m >= 5:  # leaving one out leaves 4 or more
+            W = np.concatenate([W, 1.0 - np.eye(m)])  # fit j + 1 leaves used marker j out
+        J = len(W)
+        Wn = W / W.sum(1, keepdims=True)
+        A = ref[None] - (Wn @ ref)[:, None, :]  # (J, m, 3): the reference centred per fit
+        Q = np.einsum("ji,jia,abn->jnib", W, A, HORN_MAP.reshape(3, 3, 16)).reshape(J * 16, 3 * m)
+        rot = ROTATION_MAP.reshape(16, 3, 3)
+        # residual rows: fit 0 at every used marker, then fit j + 1 at the marker it leaves out
+        Z = np.zeros((J, 16, m + J - 1, 3))
+        Z[0, :, :m] = np.einsum("nca,ia->nic", rot, A[0])
+        L = np.zeros((m + J - 1, 3, m, 3))
+        L[:m] = Wn[0][None, None, :, None] * np.eye(3)[None, :, None, :]
+        L[np.arange(m), :, np.arange(m), :] -= np.eye(3)
+        for j in range(1, J):
+            Z[j, :, m + j - 1] = rot @ A[j, j - 1]
+            L[m + j - 1] = Wn[j][None, :, None] * np.eye(3)[:, None, :]
+            L[m + j - 1, :, j - 1, :] -= np.eye(3)
+        n = 3 * (m + J - 1)
+        w = use.astype(np.float64)
+        w.setflags(write=False)
+        return (left, Wn[0].copy(), Q, Z.reshape(J * 16, n), L.reshape(n, 3 * m), J, ref.mean(0), w)
+
+    def fit(self, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """R, t and the per-marker weights for one frame: ``pts`` (k, 3), ``use`` (k,) bool, 3 or more set.
+
+        Markers not in use may hold anything (NaN too): ``robust_pose`` sees them as zeros.
+        """
+        key = use.tobytes()
+        prep = self._masks.get(key)
+        if prep is None:
+            if len(self._masks) >= self.CACHE:
+                self._masks.clear()
+            prep = self._masks[key] = self._prepare(use)
+        left, w0, Q, Z, L, J, c0, w = prep
+        P = pts[left]
+        cb = w0 @ P
+        p = (P - cb).reshape(-1)
+        ev, V = np.linalg.eigh((Q @ p).reshape(J, 4, 4))
+        top = ev[:, 3]  # N is traceless, so 3 x the largest top eigenvalue bounds every |eigenvalue|
+        if len(left) < 3 or not (top - ev[:, 2]).min() > 3.0 * DEGENERATE * top.max():
+            return robust_pose(self.reference, np.where(use[:, None], pts, 0.0), use, self.iterations, self.floor_mm)
+        q = V[:, :, 3]
+        o = np.einsum("ji,jk->jik", q, q).reshape(-1)
+        d = (o @ Z + L @ p).reshape(-1, 3)
+        if math.sqrt(np.einsum("ic,ic->i", d, d).max()) > CHECK_SCALES * self.floor_mm:
+            return _irls(self.reference, np.where(use[:, None], pts, 0.0), use, self.iterations, self.floor_mm)
+        R0 = (o[:16] @ ROTATION_MAP).reshape(3, 3)
+        return R0, cb - R0 @ c0, w
+
+
 def _irls(ref, pts, use, iterations, floor_mm):
     """IRLS with Tukey's biweight from the leave-one-out start (Huber where Tukey keeps < 3)."""
     R, t = _initial(ref, pts, use)
@@ -231,6 +311,7 @@ class HeadStabiliser:
         self.floor_mm = float(floor_mm)
         self._stable_idx = np.flatnonzero(self.stable)
         self._stable_ref = self.reference[self._stable_idx]
+        self._frame_fit = FrameFit(self._stable_ref, self.iterations, self.floor_mm) if self.iterations > 0 else None
         self.reset()
 
     def reset(self) -> None:
@@ -299,18 +380,21 @@ class HeadStabiliser:
         positions = np.asarray(positions, dtype=np.float64)
         valid = np.asarray(valid, dtype=bool) & np.isfinite(positions).all(-1)
         sv = valid[self._stable_idx]
-        if sv.sum() >= 3:
-            R, t, w = self._fit(self._stable_ref, positions[self._stable_idx], sv)
-            self.weights[:] = 0.0
+        if np.count_nonzero(sv) >= 3:
+            if self._frame_fit is not None:
+                R, t, w = self._frame_fit.fit(positions[self._stable_idx], sv)
+            else:
+                R, t, w = self._fit(self._stable_ref, positions[self._stable_idx], sv)
+            self.weights.fill(0.0)
             self.weights[self._stable_idx] = w
-        elif valid.sum() >= 3:
+        elif np.count_nonzero(valid) >= 3:
             R, t, w = self._fit(self.reference, np.where(valid[:, None], positions, 0.0), valid)
             self.weights = w
         else:
             R, t = self._R, self._t
-            self.weights[:] = 0.0
+            self.weights.fill(0.0)
         self._R, self._t = R, t
-        local = (np.where(valid[:, None], positions, 0.0) - t) @ R
+        local = (positions - t) @ R  # rows are independent: a missing marker's NaN stays in its row
         local[~valid] = 0.0
         return local, R.copy(), t.copy()
 
