@@ -268,7 +268,7 @@ def _per_frame_step(stab, pos, valid):
     return out
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=400, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(3, 12), st.floats(0.0, 25.0), st.floats(0.0, 1.5),
        st.integers(0, 3))
 def test_frame_fit_equals_robust_pose(seed, k, jump, noise, missing):
@@ -287,9 +287,12 @@ def test_frame_fit_equals_robust_pose(seed, k, jump, noise, missing):
         pts[~use] = rng.choice([0.0, np.nan])
         R, t, w = fit.fit(pts, use)
         R0, t0, w0 = robust_pose(ref, np.where(use[:, None], pts, 0.0), use)
-        np.testing.assert_allclose(R, R0, rtol=0, atol=1e-9)
-        np.testing.assert_allclose(t, t0, rtol=0, atol=1e-9)
-        np.testing.assert_allclose(w, w0, rtol=0, atol=1e-9)
+        # nearly collinear markers amplify either path's rounding (three of them 0.1 mm off a line: ~3e-9 mm)
+        s = np.linalg.svd(ref[use] - ref[use].mean(0), compute_uv=False)
+        tol = 1e-9 * max(1.0, 0.05 * s[0] / s[1])
+        np.testing.assert_allclose(R, R0, rtol=0, atol=tol)
+        np.testing.assert_allclose(t, t0, rtol=0, atol=tol)
+        np.testing.assert_allclose(w, w0, rtol=0, atol=tol)
 
 
 def test_frame_fit_degenerate_stable_markers_match_robust_pose():

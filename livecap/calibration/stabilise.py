@@ -205,12 +205,14 @@ class FrameFit:
     The check's fits (the plain one and, for 5-12 markers, each leave-one-out fit with 4 or more
     markers left) are linear in the centred observed points up to their rotations: every fit's Horn
     matrix N_j (Horn 1987 §4) is one prepared product with them (the reference centred per fit,
-    times its weights, times ``solvers.rigid.HORN_MAP``), and every residual the check needs is
-    linear in the top eigenvectors' outer products q_j q_j^T (the rotation entries, ``ROTATION_MAP``)
-    plus a linear map of the points. A frame is then one product, one batched ``eigh`` and two
-    products, where the batched ``_fit_with_deleted`` takes some thirty array calls. Same check and
-    poses as ``robust_pose`` to rounding; a frame whose check fails goes to the same IRLS, one with a
-    top eigenvalue near double (degenerate geometry) to ``robust_pose`` itself.
+    times its weights, times ``solvers.rigid.HORN_MAP``), and every residual is linear in the top
+    eigenvectors' outer products q_j q_j^T (the rotation entries, ``ROTATION_MAP``) plus a linear map
+    of the points. A frame is one product, one batched ``eigh`` and two products, where the batched
+    ``_fit_with_deleted`` takes some thirty array calls. A frame that fails the check starts IRLS from
+    the same leave-one-out fit ``robust_pose`` picks (its fits' residuals at every marker: two more
+    products) and iterates on the markers in use only. Same check, poses and weights as
+    ``robust_pose`` to rounding; a top eigenvalue near double (degenerate geometry) goes to
+    ``robust_pose`` itself.
     """
 
     CACHE = 64  # use masks kept (a stable set of <= 12 markers shows few)
@@ -234,47 +236,82 @@ class FrameFit:
         A = ref[None] - (Wn @ ref)[:, None, :]  # (J, m, 3): the reference centred per fit
         Q = np.einsum("ji,jia,abn->jnib", W, A, HORN_MAP.reshape(3, 3, 16)).reshape(J * 16, 3 * m)
         rot = ROTATION_MAP.reshape(16, 3, 3)
-        # residual rows: fit 0 at every used marker, then fit j + 1 at the marker it leaves out
-        Z = np.zeros((J, 16, m + J - 1, 3))
-        Z[0, :, :m] = np.einsum("nca,ia->nic", rot, A[0])
-        L = np.zeros((m + J - 1, 3, m, 3))
-        L[:m] = Wn[0][None, None, :, None] * np.eye(3)[None, :, None, :]
-        L[np.arange(m), :, np.arange(m), :] -= np.eye(3)
-        for j in range(1, J):
-            Z[j, :, m + j - 1] = rot @ A[j, j - 1]
-            L[m + j - 1] = Wn[j][None, :, None] * np.eye(3)[:, None, :]
-            L[m + j - 1, :, j - 1, :] -= np.eye(3)
-        n = 3 * (m + J - 1)
+        # every fit's residual at every used marker: Z (on q_j q_j^T) + L (on the centred points)
+        Z = np.zeros((J, 16, J, m, 3))
+        L = np.zeros((J, m, 3, m, 3))
+        for j in range(J):
+            Z[j, :, j] = np.einsum("nca,ia->nic", rot, A[j])
+            L[j] = Wn[j][None, None, :, None] * np.eye(3)[None, :, None, :]
+            L[j, np.arange(m), :, np.arange(m), :] -= np.eye(3)
+        Z, L = Z.reshape(J * 16, J * m, 3), L.reshape(J * m, 3, 3 * m)
+        check = np.concatenate([np.arange(m), np.arange(1, J) * (m + 1) - 1])  # fit 0's, then the deleted ones
+        maps = [(np.ascontiguousarray(Z[:, rows].reshape(J * 16, -1)), np.ascontiguousarray(L[rows].reshape(-1, 3 * m)))
+                for rows in (check, slice(None))]  # the check's residuals; every fit's at every marker
         w = use.astype(np.float64)
         w.setflags(write=False)
-        return (left, Wn[0].copy(), Q, Z.reshape(J * 16, n), L.reshape(n, 3 * m), J, ref.mean(0), w)
+        return left, Wn, Q, maps, J, Wn @ ref, w
 
     def fit(self, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """R, t and the per-marker weights for one frame: ``pts`` (k, 3), ``use`` (k,) bool, 3 or more set.
 
-        Markers not in use may hold anything (NaN too): ``robust_pose`` sees them as zeros.
+        Markers not in use may hold anything (NaN too): ``robust_pose`` sees them as zeros. The weights
+        of a frame that passes the check are a shared read-only array.
         """
+        if np.count_nonzero(use) < 3:
+            return robust_pose(self.reference, np.where(use[:, None], pts, 0.0), use, self.iterations, self.floor_mm)
         key = use.tobytes()
         prep = self._masks.get(key)
         if prep is None:
             if len(self._masks) >= self.CACHE:
                 self._masks.clear()
             prep = self._masks[key] = self._prepare(use)
-        left, w0, Q, Z, L, J, c0, w = prep
+        left, Wn, Q, ((Zc, Lc), (Z, L)), J, cs, w = prep
+        m = len(left)
         P = pts[left]
-        cb = w0 @ P
+        cb = Wn[0] @ P
         p = (P - cb).reshape(-1)
         ev, V = np.linalg.eigh((Q @ p).reshape(J, 4, 4))
         top = ev[:, 3]  # N is traceless, so 3 x the largest top eigenvalue bounds every |eigenvalue|
-        if len(left) < 3 or not (top - ev[:, 2]).min() > 3.0 * DEGENERATE * top.max():
+        if not (top - ev[:, 2]).min() > 3.0 * DEGENERATE * top.max():
             return robust_pose(self.reference, np.where(use[:, None], pts, 0.0), use, self.iterations, self.floor_mm)
         q = V[:, :, 3]
-        o = np.einsum("ji,jk->jik", q, q).reshape(-1)
-        d = (o @ Z + L @ p).reshape(-1, 3)
-        if math.sqrt(np.einsum("ic,ic->i", d, d).max()) > CHECK_SCALES * self.floor_mm:
-            return _irls(self.reference, np.where(use[:, None], pts, 0.0), use, self.iterations, self.floor_mm)
-        R0 = (o[:16] @ ROTATION_MAP).reshape(3, 3)
-        return R0, cb - R0 @ c0, w
+        o = np.einsum("ji,jk->jik", q, q).reshape(J, 16)
+        d = (o.reshape(-1) @ Zc + Lc @ p).reshape(-1, 3)
+        if math.sqrt(np.einsum("ic,ic->i", d, d).max()) <= CHECK_SCALES * self.floor_mm:
+            R0 = (o[0] @ ROTATION_MAP).reshape(3, 3)
+            return R0, cb - R0 @ cs[0], w
+        b = 0
+        if J > 1:  # robust_pose's start: the leave-one-out fit whose median residual halves the plain fit's
+            d = (o.reshape(-1) @ Z + L @ p).reshape(J, m, 3)
+            srt = np.sort(np.sqrt(np.einsum("jic,jic->ji", d, d)), axis=1)
+            score = 0.5 * (srt[:, (m - 1) // 2] + srt[:, m // 2])
+            score[0] *= 0.5
+            b = int(np.argmin(score))
+        R = (o[b] @ ROTATION_MAP).reshape(3, 3)
+        t = cb + Wn[b] @ p.reshape(m, 3) - R @ cs[b]
+        R, t, wu = _irls_one(self.reference[left], P, R, t, self.iterations, self.floor_mm)
+        out = np.zeros(len(use))
+        out[left] = wu
+        return R, t, out
+
+
+def _irls_one(ref, pts, R, t, iterations, floor_mm):
+    """``_irls``'s iterations for one frame's markers in use, from the start ``R``, ``t``."""
+    m = len(ref)
+    lo, hi = (m - 1) // 2, m // 2
+    w = np.ones(m)
+    for _ in range(iterations):
+        d = ref @ R.T + t - pts
+        r = np.sqrt(np.einsum("ic,ic->i", d, d))
+        srt = np.sort(r).tolist()
+        u = r / (TUKEY_C * max(MAD_TO_SIGMA * (0.5 * (srt[lo] + srt[hi])), floor_mm))
+        w = 1.0 - u * u
+        w *= w
+        w[u >= 1.0] = 0.0
+        if np.count_nonzero(w) < 3:
+            w = np.minimum(1.0, 1.0 / np.maximum(u, 1e-12))
+        R, t = kabsch(ref, pts, w)
+    return R, t, w
 
 
 def _irls(ref, pts, use, iterations, floor_mm):
