@@ -19,7 +19,7 @@ import numpy as np
 
 SMALL_BATCH = 48  # below this many fits one LAPACK eigh call beats the elementwise Newton
 NEWTON_MAX = 12  # from the bound a good fit converges in 2-4 steps; slower rows (double roots) go to the SVD
-_DEGENERATE = 1e-9  # adjugate diagonal below this x the scale^3: top eigenvalue not simple
+DEGENERATE = 1e-9  # adjugate diagonal below this x the scale^3: top eigenvalue not simple
 
 
 def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -68,35 +68,40 @@ def rotation_from_covariance(H: np.ndarray, bound: np.ndarray | None = None) -> 
     return R.reshape(*lead, 3, 3)
 
 
-# Horn's N as a linear map of H's 9 entries (Sxx Sxy Sxz Syx Syy Syz Szx Szy Szz) -> N's 16
-_HORN = np.zeros((9, 16))
+# Horn's N as a linear map of H's 9 entries (Sxx Sxy Sxz Syx Syy Syz Szx Szy Szz) -> N's 16 (public: the
+# streamed head fit folds it into its own prepared products)
+HORN_MAP = np.zeros((9, 16))
 for _row, _col, _entries in (
         (0, 0, "+xx +yy +zz"), (0, 1, "+yz -zy"), (0, 2, "+zx -xz"), (0, 3, "+xy -yx"),
         (1, 1, "+xx -yy -zz"), (1, 2, "+xy +yx"), (1, 3, "+zx +xz"),
         (2, 2, "-xx +yy -zz"), (2, 3, "+yz +zy"), (3, 3, "-xx -yy +zz")):
     for _e in _entries.split():
         _k = 3 * "xyz".index(_e[1]) + "xyz".index(_e[2])
-        _HORN[_k, 4 * _row + _col] += 1.0 if _e[0] == "+" else -1.0
+        HORN_MAP[_k, 4 * _row + _col] += 1.0 if _e[0] == "+" else -1.0
         if _row != _col:
-            _HORN[_k, 4 * _col + _row] += 1.0 if _e[0] == "+" else -1.0
+            HORN_MAP[_k, 4 * _col + _row] += 1.0 if _e[0] == "+" else -1.0
 # rotation matrix entries as a linear map of the quaternion's outer product q q^T (q = w, x, y, z)
-_QUAT_R = np.zeros((16, 9))
+ROTATION_MAP = np.zeros((16, 9))
 for _k, _terms in enumerate(("+ww +xx -yy -zz", "+xy +xy -wz -wz", "+xz +xz +wy +wy",
                              "+xy +xy +wz +wz", "+ww -xx +yy -zz", "+yz +yz -wx -wx",
                              "+xz +xz -wy -wy", "+yz +yz +wx +wx", "+ww -xx -yy +zz")):
     for _e in _terms.split():
-        _QUAT_R[4 * "wxyz".index(_e[1]) + "wxyz".index(_e[2]), _k] += 1.0 if _e[0] == "+" else -1.0
+        ROTATION_MAP[4 * "wxyz".index(_e[1]) + "wxyz".index(_e[2]), _k] += 1.0 if _e[0] == "+" else -1.0
+
+
+HORN_MAP.setflags(write=False)
+ROTATION_MAP.setflags(write=False)
 
 
 def _quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
     """(B, 4) unit quaternions (w, x, y, z) -> (B, 3, 3)."""
-    return ((q[:, :, None] * q[:, None, :]).reshape(-1, 16) @ _QUAT_R).reshape(-1, 3, 3)
+    return ((q[:, :, None] * q[:, None, :]).reshape(-1, 16) @ ROTATION_MAP).reshape(-1, 3, 3)
 
 
 def _rotation_eigh(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    ev, V = np.linalg.eigh((flat @ _HORN).reshape(-1, 4, 4))
+    ev, V = np.linalg.eigh((flat @ HORN_MAP).reshape(-1, 4, 4))
     scale = np.abs(ev).max(-1)
-    bad = ~(ev[:, 3] - ev[:, 2] > _DEGENERATE * scale)
+    bad = ~(ev[:, 3] - ev[:, 2] > DEGENERATE * scale)
     return _quaternion_to_rotation(V[:, :, 3]), bad
 
 
@@ -127,7 +132,7 @@ def _rotation_newton(flat: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, n
     q /= np.sqrt(np.maximum(np.einsum("bi,bi->b", q, q), 1e-300))[:, None]
     scale = np.maximum(np.abs(lam), np.sqrt(np.maximum(-0.5 * c2, 0.0)))
     top = np.take_along_axis(diag, col[None], 0)[0]
-    return _quaternion_to_rotation(q), moving | ~(top > _DEGENERATE * scale**3)
+    return _quaternion_to_rotation(q), moving | ~(top > DEGENERATE * scale**3)
 
 
 def _det4(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33):

@@ -61,3 +61,19 @@ def test_offline_suite_runs_a_whole_take_file_end_to_end(tmp_path, demo):
     assert np.abs(whole["weights"] - stepped["weights"]).max() <= 1e-8 and whole["weight_rmse"] < 1
     g = gap_fill_baseline(take_path, profile_path)
     assert g["max_difference_mm"] < 50 and g["per_gap_spline_s"] > 0
+
+
+def test_head_fit_ab_makes_its_hostile_frames_and_compares_two_trees():
+    from scipy.spatial.transform import Rotation
+
+    from benchmarks.head_fit import compare, hostile
+    from livecap.calibration.stabilise import HeadStabiliser
+
+    rng = np.random.default_rng(0)
+    ref = rng.normal(0, 50, (10, 3))
+    stable = np.arange(10) < 6
+    pos = np.einsum("tij,nj->tni", Rotation.random(250, random_state=0).as_matrix(), ref) + 300.0
+    pos, valid = hostile(pos, np.ones((250, 10), bool), stable)
+    assert (~valid).any() and np.isnan(pos).any() and valid[:, stable].sum(1).min() == 0
+    row = compare(pos, valid, HeadStabiliser(ref, stable), HeadStabiliser, count=200)
+    assert row["max |dR|"] == 0.0 and row["max |dt| mm"] == 0.0 and row["p50 ratio"] > 0

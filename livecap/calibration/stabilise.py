@@ -16,10 +16,12 @@ in all, the last good pose is held.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from solvers.rigid import kabsch, rotation_from_covariance
+from solvers.rigid import DEGENERATE, HORN_MAP, ROTATION_MAP, kabsch, rotation_from_covariance
 
 TUKEY_C = 4.685  # 95 % efficiency at the Gaussian
 MAD_TO_SIGMA = 1.4826
@@ -197,6 +199,125 @@ def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: i
     return R, t, w
 
 
+class FrameFit:
+    """``robust_pose`` for one streamed frame against a fixed reference, the use mask's work done once.
+
+    The check's fits (the plain one and, for 5-12 markers, each leave-one-out fit with 4 or more
+    markers left) are linear in the centred observed points up to their rotations: every fit's Horn
+    matrix N_j (Horn 1987 §4) is one prepared product with them (the reference centred per fit,
+    times its weights, times ``solvers.rigid.HORN_MAP``), and every residual is linear in the top
+    eigenvectors' outer products q_j q_j^T (the rotation entries, ``ROTATION_MAP``) plus a linear map
+    of the points. A frame is one product, one batched ``eigh`` and two products, where the batched
+    ``_fit_with_deleted`` takes some thirty array calls. A frame that fails the check starts IRLS from
+    the same leave-one-out fit ``robust_pose`` picks (its fits' residuals at every marker: two more
+    products) and iterates on the markers in use only. Same check, poses and weights as
+    ``robust_pose`` to rounding; a top eigenvalue near double (degenerate geometry) goes to
+    ``robust_pose`` itself.
+    """
+
+    CACHE = 64  # use masks kept (a stable set of <= 12 markers shows few; each costs ~0.15 ms to prepare)
+
+    def __init__(self, reference: np.ndarray, iterations: int = 3, floor_mm: float = 1.0) -> None:
+        self.reference = np.asarray(reference, dtype=np.float64)
+        self.iterations = int(iterations)
+        self.floor_mm = float(floor_mm)
+        self._masks: dict[bytes, tuple] = {}
+        k = len(self.reference)
+        if 4 <= k <= LEAVE_ONE_OUT_MAX:  # every marker, and each one missing: ready before the first frame
+            for use in np.concatenate([np.ones((1, k), bool), ~np.eye(k, dtype=bool)]):
+                self._masks[use.tobytes()] = self._prepare(use)
+
+    def _prepare(self, use: np.ndarray) -> tuple:
+        k = len(use)
+        left = np.flatnonzero(use)
+        m = len(left)
+        ref = self.reference[left]
+        W = np.ones((1, m))
+        if 5 <= k <= LEAVE_ONE_OUT_MAX and m >= 5:  # leaving one out leaves 4 or more
+            W = np.concatenate([W, 1.0 - np.eye(m)])  # fit j + 1 leaves used marker j out
+        J = len(W)
+        Wn = W / W.sum(1, keepdims=True)
+        A = ref[None] - (Wn @ ref)[:, None, :]  # (J, m, 3): the reference centred per fit
+        Q = np.einsum("ji,jia,abn->jnib", W, A, HORN_MAP.reshape(3, 3, 16)).reshape(J * 16, 3 * m)
+        rot = ROTATION_MAP.reshape(16, 3, 3)
+        # every fit's residual at every used marker: Z (on q_j q_j^T) + L (on the centred points)
+        Z = np.zeros((J, 16, J, m, 3))
+        L = np.zeros((J, m, 3, m, 3))
+        for j in range(J):
+            Z[j, :, j] = np.einsum("nca,ia->nic", rot, A[j])
+            L[j] = Wn[j][None, None, :, None] * np.eye(3)[None, :, None, :]
+            L[j, np.arange(m), :, np.arange(m), :] -= np.eye(3)
+        Z, L = Z.reshape(J * 16, J * m, 3), L.reshape(J * m, 3, 3 * m)
+        check = np.concatenate([np.arange(m), np.arange(1, J) * (m + 1) - 1])  # fit 0's, then the deleted ones
+        maps = [(np.ascontiguousarray(Z[:, rows].reshape(J * 16, -1)), np.ascontiguousarray(L[rows].reshape(-1, 3 * m)))
+                for rows in (check, slice(None))]  # the check's residuals; every fit's at every marker
+        w = use.astype(np.float64)
+        w.setflags(write=False)
+        return left, Wn, Q, maps, J, Wn @ ref, w
+
+    def fit(self, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """R, t and the per-marker weights for one frame: ``pts`` (k, 3), ``use`` (k,) bool, 3 or more set.
+
+        Markers not in use may hold anything (NaN too): ``robust_pose`` sees them as zeros. The weights
+        of a frame that passes the check are a shared read-only array.
+        """
+        if np.count_nonzero(use) < 3:
+            return robust_pose(self.reference, np.where(use[:, None], pts, 0.0), use, self.iterations, self.floor_mm)
+        key = use.tobytes()
+        prep = self._masks.get(key)
+        if prep is None:
+            if len(self._masks) >= self.CACHE:
+                self._masks.clear()
+            prep = self._masks[key] = self._prepare(use)
+        left, Wn, Q, ((Zc, Lc), (Z, L)), J, cs, w = prep
+        m = len(left)
+        P = pts[left]
+        cb = Wn[0] @ P
+        p = (P - cb).reshape(-1)
+        ev, V = np.linalg.eigh((Q @ p).reshape(J, 4, 4))
+        top = ev[:, 3]  # N is traceless, so 3 x the largest top eigenvalue bounds every |eigenvalue|
+        if not (top - ev[:, 2]).min() > 3.0 * DEGENERATE * top.max():
+            return robust_pose(self.reference, np.where(use[:, None], pts, 0.0), use, self.iterations, self.floor_mm)
+        q = V[:, :, 3]
+        o = np.einsum("ji,jk->jik", q, q).reshape(J, 16)
+        d = (o.reshape(-1) @ Zc + Lc @ p).reshape(-1, 3)
+        if math.sqrt(np.einsum("ic,ic->i", d, d).max()) <= CHECK_SCALES * self.floor_mm:
+            R0 = (o[0] @ ROTATION_MAP).reshape(3, 3)
+            return R0, cb - R0 @ cs[0], w
+        b = 0
+        if J > 1:  # robust_pose's start: the leave-one-out fit whose median residual halves the plain fit's
+            d = (o.reshape(-1) @ Z + L @ p).reshape(J, m, 3)
+            srt = np.sort(np.sqrt(np.einsum("jic,jic->ji", d, d)), axis=1)
+            score = 0.5 * (srt[:, (m - 1) // 2] + srt[:, m // 2])
+            score[0] *= 0.5
+            b = int(np.argmin(score))
+        R = (o[b] @ ROTATION_MAP).reshape(3, 3)
+        t = cb + Wn[b] @ p.reshape(m, 3) - R @ cs[b]
+        R, t, wu = _irls_one(self.reference[left], P, R, t, self.iterations, self.floor_mm)
+        out = np.zeros(len(use))
+        out[left] = wu
+        return R, t, out
+
+
+def _irls_one(ref, pts, R, t, iterations, floor_mm):
+    """``_irls``'s iterations for one frame's markers in use, from the start ``R``, ``t``."""
+    m = len(ref)
+    lo, hi = (m - 1) // 2, m // 2
+    w = np.ones(m)
+    for _ in range(iterations):
+        d = ref @ R.T + t - pts
+        r = np.sqrt(np.einsum("ic,ic->i", d, d))
+        srt = np.sort(r).tolist()
+        u = r / (TUKEY_C * max(MAD_TO_SIGMA * (0.5 * (srt[lo] + srt[hi])), floor_mm))
+        w = 1.0 - u * u
+        w *= w
+        w[u >= 1.0] = 0.0
+        if np.count_nonzero(w) < 3:
+            w = np.minimum(1.0, 1.0 / np.maximum(u, 1e-12))
+        R, t = kabsch(ref, pts, w)
+    return R, t, w
+
+
 def _irls(ref, pts, use, iterations, floor_mm):
     """IRLS with Tukey's biweight from the leave-one-out start (Huber where Tukey keeps < 3)."""
     R, t = _initial(ref, pts, use)
@@ -231,6 +352,7 @@ class HeadStabiliser:
         self.floor_mm = float(floor_mm)
         self._stable_idx = np.flatnonzero(self.stable)
         self._stable_ref = self.reference[self._stable_idx]
+        self._frame_fit = FrameFit(self._stable_ref, self.iterations, self.floor_mm) if self.iterations > 0 else None
         self.reset()
 
     def reset(self) -> None:
@@ -299,18 +421,21 @@ class HeadStabiliser:
         positions = np.asarray(positions, dtype=np.float64)
         valid = np.asarray(valid, dtype=bool) & np.isfinite(positions).all(-1)
         sv = valid[self._stable_idx]
-        if sv.sum() >= 3:
-            R, t, w = self._fit(self._stable_ref, positions[self._stable_idx], sv)
-            self.weights[:] = 0.0
+        if np.count_nonzero(sv) >= 3:
+            if self._frame_fit is not None:
+                R, t, w = self._frame_fit.fit(positions[self._stable_idx], sv)
+            else:
+                R, t, w = self._fit(self._stable_ref, positions[self._stable_idx], sv)
+            self.weights.fill(0.0)
             self.weights[self._stable_idx] = w
-        elif valid.sum() >= 3:
+        elif np.count_nonzero(valid) >= 3:
             R, t, w = self._fit(self.reference, np.where(valid[:, None], positions, 0.0), valid)
             self.weights = w
         else:
             R, t = self._R, self._t
-            self.weights[:] = 0.0
+            self.weights.fill(0.0)
         self._R, self._t = R, t
-        local = (np.where(valid[:, None], positions, 0.0) - t) @ R
+        local = (positions - t) @ R  # rows are independent: a missing marker's NaN stays in its row
         local[~valid] = 0.0
         return local, R.copy(), t.copy()
 
