@@ -295,6 +295,28 @@ def test_frame_fit_equals_robust_pose(seed, k, jump, noise, missing):
         np.testing.assert_allclose(w, w0, rtol=0, atol=tol)
 
 
+def test_frame_fit_cache_keeps_the_prepared_sets_when_full():
+    """Many visibility sets (8 stable markers, random gaps) overflow the cache: the oldest others leave,
+    the all-seen and one-missing sets stay, and every pose still equals ``robust_pose``'s."""
+    from livecap.calibration.stabilise import FrameFit
+
+    rng = np.random.default_rng(3)
+    k = 8
+    ref = rng.normal(0, 50, (k, 3))
+    fit = FrameFit(ref, 3, 1.0)
+    kept = list(fit._masks)
+    for _ in range(300):
+        use = rng.random(k) > 0.4
+        use[rng.choice(k, 3, replace=False)] = True
+        pts = ref @ Rotation.random(random_state=rng.integers(2**32)).as_matrix().T + rng.normal(0, 0.3, (k, 3))
+        R, t, _ = fit.fit(pts, use)
+        R0, t0, _ = robust_pose(ref, np.where(use[:, None], pts, 0.0), use)
+        np.testing.assert_allclose(R, R0, atol=1e-9)
+        np.testing.assert_allclose(t, t0, atol=1e-9)
+        assert len(fit._masks) <= FrameFit.CACHE
+    assert len(kept) == k + 1 and all(key in fit._masks for key in kept)
+
+
 def test_frame_fit_degenerate_stable_markers_match_robust_pose():
     """Collinear or coincident stable markers (a top eigenvalue near double) take ``robust_pose``'s own path."""
     from livecap.calibration.stabilise import FrameFit

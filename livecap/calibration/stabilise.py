@@ -16,6 +16,7 @@ in all, the last good pose is held.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -226,6 +227,7 @@ class FrameFit:
         if 4 <= k <= LEAVE_ONE_OUT_MAX:  # every marker, and each one missing: ready before the first frame
             for use in np.concatenate([np.ones((1, k), bool), ~np.eye(k, dtype=bool)]):
                 self._masks[use.tobytes()] = self._prepare(use)
+        self._kept = len(self._masks)  # these stay; others leave first in, first out
 
     def _prepare(self, use: np.ndarray) -> tuple:
         k = len(use)
@@ -267,7 +269,7 @@ class FrameFit:
         prep = self._masks.get(key)
         if prep is None:
             if len(self._masks) >= self.CACHE:
-                self._masks.clear()
+                del self._masks[next(itertools.islice(self._masks, self._kept, None))]
             prep = self._masks[key] = self._prepare(use)
         left, Wn, Q, ((Zc, Lc), (Z, L)), J, cs, w = prep
         m = len(left)
