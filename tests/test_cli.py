@@ -52,32 +52,3 @@ def test_bad_file_is_one_clear_line(tmp_path):
     r = livecap("info", str(tmp_path / "bad.c3d"))
     assert r.returncode == 1
     assert "bad.c3d" in r.stderr and "Traceback" not in r.stderr
-
-
-def test_solve_converts_the_modes_seconds_at_the_takes_rate(short_demo, tmp_path):
-    """A take recorded at another rate than the calibration's: `solve` builds the mode at the take's
-    rate (its marker filter window and IMM are in seconds), not the profile's tuned 120 Hz."""
-    from livecap.calibration.profile import Profile
-    from livecap.core.take import Take
-    from livecap.modes.registry import build_solver
-    from livecap.offline.solve import solve_take
-    from transport.takefile import read_take, write_take
-
-    rig, take_path, profile_path = short_demo / "demo_rig.npz", short_demo / "demo_take.c3d", tmp_path / "p.npz"
-    r = livecap("calibrate", str(short_demo / "demo_neutral.c3d"), "--rig", str(rig), "--tune", str(take_path),
-                "--out", str(profile_path))
-    assert r.returncode == 0, r.stderr
-    take = read_take(take_path)
-    slow = Take(take.labels, take.positions[::2], take.valid[::2], take.rate / 2, 0)
-    write_take(slow, tmp_path / "slow.c3d")
-    r = livecap("solve", str(tmp_path / "slow.c3d"), "--rig", str(rig), "--profile", str(profile_path),
-                "--out", str(tmp_path / "w.csv"))
-    assert r.returncode == 0, r.stderr
-    _, W, _ = read_weights_csv(tmp_path / "w.csv")
-    profile = Profile.load(profile_path)
-    assert profile.settings["robust"]["rate"] == 120.0
-    slow = read_take(tmp_path / "slow.c3d")
-    at_60 = solve_take(slow, profile, build_solver("robust", profile, {"rate": 60.0})).weights
-    at_120 = solve_take(slow, profile, build_solver("robust", profile, {})).weights
-    assert np.abs(at_60 - at_120).max() > 1e-3
-    assert np.abs(W - at_60).max() < 1e-5  # the CSV's precision

@@ -16,7 +16,7 @@ from distributed.diagnostics.plugin import WorkerPlugin
 from livecap.batch.jobs import Job
 from livecap.batch.outputs import write_output
 from livecap.batch.stats import take_stats
-from livecap.cli.common import at_take_rate, load_rig, profile_for
+from livecap.cli.common import load_rig, profile_for
 from livecap.modes.registry import build_solver
 from livecap.offline.solve import solve_take
 from transport.takefile import read_take
@@ -95,7 +95,7 @@ class SolverCache(WorkerPlugin):
             return key, self.profiles[key]
 
     def solver(self, job: Job, profile_key, profile, options: dict):
-        key = (profile_key, job.mode, job.options, options.get("rate"), threading.get_ident())
+        key = (profile_key, job.mode, job.options, threading.get_ident())
         solver = self.solvers.get(key)
         if solver is None or not hasattr(solver, "reset"):
             solver = build_solver(job.mode, profile, options)
@@ -163,7 +163,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
         rig, layout = cache.rig(args)
         take = read_take(job.take)
         notes = _check_labels(job.take, take.labels, layout.labels)
-        options = at_take_rate(solve_options(args), take)
+        options = solve_options(args)
         if args.profile:
             profile_key, profile = cache.profile(args.profile)
             solver = cache.solver(job, profile_key, profile, options)

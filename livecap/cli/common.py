@@ -87,12 +87,4 @@ def solver_options(args: argparse.Namespace) -> dict:
     return {} if ridge is None else {"ridge": ridge}
 
 
-def at_take_rate(options: dict, take: Take) -> dict:
-    """``options`` with the take's frame rate. The modes' time constants are in seconds (marker filter
-    window, IMM process noise and sojourn, 1€ cut-offs) and were converted at the calibration take's
-    rate; a take recorded at another rate needs its own (demo rig, calibrated at 120 Hz, robust on the
-    take at 60 Hz: weight RMSE 0.056 -> 0.050, at 30 Hz 0.067 -> 0.050; docs/modes.md)."""
-    return {**options, "rate": float(take.rate)}
-
-
 progress_bar = progress.progress_bar  # kept here for the commands that import it from common

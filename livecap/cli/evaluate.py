@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.cli.common import add_calibration_arguments, at_take_rate, load_rig, profile_for, progress_bar
+from livecap.cli.common import add_calibration_arguments, load_rig, profile_for, progress_bar
 from livecap.demo import DEMO_RIG, DEMO_TAKE, truth_path
 from livecap.demo.performance import GroundTruth, PerformanceSettings
 from livecap.modes.registry import MODES, build_solver
@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     profile = profile_for(args, rig, layout, take)
     sel, targets, _, _ = prepare_targets(take, profile)
     valid = sel.valid  # the gap-filled mask, exactly what `livecap solve` hands the solver
-    options: dict = at_take_rate({}, take)
+    options: dict = {}
     keys_path = args.keys or (_demo_keys(rig, layout) if demo else None)
     if keys_path:
         from livecap.calibration.keys import load_keys

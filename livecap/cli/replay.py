@@ -15,7 +15,6 @@ import numpy as np
 from livecap.calibration.stabilise import to_quaternion
 from livecap.cli.common import (
     add_take_solve_arguments,
-    at_take_rate,
     load_rig,
     profile_for,
     progress_bar,
@@ -100,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     rig, layout = load_rig(args)
     take = read_take(args.take)
     profile = profile_for(args, rig, layout, take)
-    solver = build_solver(args.mode, profile, at_take_rate(solver_options(args), take))
+    solver = build_solver(args.mode, profile, solver_options(args))
     sel, targets, R, t = prepare_targets(take, profile)
     with stage(f"solving {take.n_frames} frames ({args.mode})"):
         W, latency = _solve(solver, targets, sel.valid)

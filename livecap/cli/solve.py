@@ -9,7 +9,6 @@ import numpy as np
 
 from livecap.cli.common import (
     add_take_solve_arguments,
-    at_take_rate,
     load_rig,
     profile_for,
     progress_bar,
@@ -58,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
 
         take = labelled_take(args, take)
     profile = profile_for(args, rig, layout, take)
-    solver = build_solver(args.mode, profile, at_take_rate(solve_options(args), take))
+    solver = build_solver(args.mode, profile, solve_options(args))
     with progress_bar(f"solving ({args.mode})", take.n_frames) as update:
         solved = solve_take(take, profile, solver, progress=update)
     if Path(args.out).suffix.lower() == ".glb":
