@@ -235,23 +235,22 @@ class StreamingMarkerKalman:
         self._ri = len(self.s.r_grid) // 2
         self.noise_mm = float(np.sqrt(np.median(self.s.r_grid)))  # the shared r chosen so far
 
-    def choose(self) -> tuple[int, np.ndarray]:
-        """(r index, lambda index per marker) of the best discounted likelihood: -2 log-likelihood
-        c log r + sum log s + sum e^2 / s / r, minimised over the allowed lambdas per (r, marker)
-        (c log r does not depend on lambda), then summed over the markers per r."""
-        cost = self.energy * self.inv_r  # r x marker x lambda: reductions over the contiguous axis
+    def _cost(self, ri: int | slice = slice(None)) -> np.ndarray:
+        """-2 log-likelihood less c log r per (r, marker, lambda), for the r at ``ri`` (all by
+        default): sum log s + sum e^2 / s / r, infinite for the lambdas that r may not choose."""
+        cost = self.energy * self.inv_r[ri]  # marker x lambda per r: reductions over the contiguous axis
         cost += self.log_s
-        cost += self.excluded
+        cost += self.excluded[ri]
+        return cost
+
+    def choose(self) -> tuple[int, np.ndarray]:
+        """(r index, lambda index per marker) of the best discounted likelihood: the cost minimised over
+        the lambdas per (r, marker) (c log r does not depend on lambda), c log r added, summed over the
+        markers per r."""
+        cost = self._cost()
         total = (cost.min(2) + self.log_r * self.count).sum(1)
         ri = int(total.argmin())
         return ri, cost[ri].argmin(1)
-
-    def _pick(self, ri: int) -> np.ndarray:
-        """``choose``'s lambda per marker for a given r."""
-        cost = self.energy * self.inv_r[ri, 0, 0]
-        cost += self.log_s
-        cost += self.excluded[ri]
-        return cost.argmin(1)
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Filtered (lag 0) or one-frame-smoothed (lag 1) markers n x 3 and their validity."""
@@ -278,7 +277,7 @@ class StreamingMarkerKalman:
         if self.t < R_SETTLE_FRAMES or self.t % R_EVERY == 0:
             self._ri, pick = self.choose()
         else:  # the shared r changes on the take's noise, not from frame to frame
-            pick = self._pick(self._ri)
+            pick = self._cost(self._ri).argmin(1)
         self.noise_mm = float(np.sqrt(self.s.r_grid[self._ri]))
         flat = pick * self.n + self._idx  # each marker's chosen filter in the K x n arrays, flattened
         ok = b.started & (self.unseen <= self.s.max_gap_frames)
