@@ -45,9 +45,14 @@ COMPARED = 1000  # frames of the stream on which the two trees' weights are comp
 
 
 def _build(mode: str, profile, box: type, target, valid):
-    """The mode's solver, with its workspace for ``valid``'s pattern (made on the first step) on ``box``."""
+    """The mode's solver, with its workspace for ``valid``'s pattern (made on the first step) on ``box``.
+
+    FrameQP makes a BoxQP for each new visibility pattern through the name ``solvers.qp.BoxQP``, at the
+    step that first sees it: whoever steps this solver on a stream with gaps sets that name to ``box``
+    first (``compare`` does so at each block), or the later patterns' workspaces get this tree's class.
+    """
     keep = solvers.qp.BoxQP
-    solvers.qp.BoxQP = box  # FrameQP makes one per visibility pattern, through this name
+    solvers.qp.BoxQP = box
     try:
         solver = build_solver(mode, profile, {})
         solver.step(target, valid)
@@ -68,11 +73,12 @@ def compare(mode: str, n: int, m: int, before: type, count: int, block: int = 25
     T = len(targets)
     flat = targets.reshape(T, -1)
     pinv = np.linalg.pinv(profile.basis)
-    runs = {k: _build(mode, profile, box, targets[0], valid[0])
-            for k, box in (("before", before), ("after", solvers.qp.BoxQP))}
+    boxes = {"before": before, "after": solvers.qp.BoxQP}
+    runs = {k: _build(mode, profile, box, targets[0], valid[0]) for k, box in boxes.items()}
     out, t0 = {}, time.perf_counter()
     for name, s in runs.items():  # accuracy and equality from reset solvers, then warm for timing
         s.reset()
+        solvers.qp.BoxQP = boxes[name]
         out[name] = np.array([s.step(targets[i], valid[i]) for i in range(COMPARED)])
     if (time.perf_counter() - t0) / (2 * COMPARED) > 1e-3:  # milliseconds a call: fewer timed calls
         count, block = min(count, 300), 50
@@ -86,6 +92,7 @@ def compare(mode: str, n: int, m: int, before: type, count: int, block: int = 25
         order = list(calls) if r % 2 == 0 else list(reversed(calls))
         for k in order:
             fn, (wall, cpu) = calls[k], samples[k]
+            solvers.qp.BoxQP = boxes.get(k, boxes["after"])
             start = r * block
             for i in range(start, start + block):
                 c0, t0 = thread(), clock()
@@ -93,6 +100,7 @@ def compare(mode: str, n: int, m: int, before: type, count: int, block: int = 25
                 t1, c1 = clock(), thread()
                 wall.append(t1 - t0)
                 cpu.append(c1 - c0)
+    solvers.qp.BoxQP = boxes["after"]
     res = {k: _stats(*v) for k, v in samples.items()}
     for k in runs:
         res[k]["rmse"] = rmse[k]

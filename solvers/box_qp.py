@@ -218,7 +218,7 @@ class BoxQP:
             g *= self._sgn
             if inside and _MIN(g) >= -self.tol:
                 return self._done(it, y)
-            tol = self.tol + 1e-12 * max(_MAX(fc), -_MIN(fc))  # rounding in g grows with |f|
+            tol = self._gtol(fc)
             J = (g < -tol).nonzero()[0]
             n_bad = len(J)
             if not inside:
@@ -257,6 +257,10 @@ class BoxQP:
         g -= nfc
         return y, g, nfc
 
+    def _gtol(self, fc: np.ndarray) -> float:
+        """The tolerance on the gradient's sign: rounding in g grows with |f + c| (no |fc| temporary)."""
+        return self.tol + 1e-12 * max(_MAX(fc), -_MIN(fc))
+
     def _keep(self, y: np.ndarray) -> None:
         """``y`` (the subproblem's buffer) becomes the current point: the two buffers swap."""
         if y is self._s:
@@ -286,7 +290,7 @@ class BoxQP:
             self._keep(y)
             g *= self._sgn
             j = int(np.argmin(g))
-            if g[j] < -(self.tol + 1e-12 * float(np.abs(fc).max())):  # the most violated bound enters F
+            if g[j] < -self._gtol(fc):  # the most violated bound enters F
                 self._add(np.array([j]))
                 continue
             return self._done(it, y)
