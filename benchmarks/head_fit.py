@@ -5,12 +5,15 @@ prepared single-frame fit; its ``solvers.rigid`` imports resolve to this tree's,
 and from this tree, on the same frames: the bundled demo take (``livecap generate`` seed 0, 10 s at
 120 Hz, its own calibrated profile) and the same take made hostile (a stable marker jumping 5-20 mm
 for a few frames now and then, one missing for a while, fewer than 3 stable
-markers so every visible marker fits, none at all so the pose is held). The two are timed in
+markers so every visible marker fits, none at all so the pose is held), and ``real``: the ICT rig driven
+by a real Live Link Face performance (``livecap generate --rig ../shared/realdata/ict-face --curves
+../shared/realdata/performance/S07-001.csv``, 4058 frames at 60 Hz, 5 % missing), calibrated on its neutral
+take (skipped with the reason when ../shared is absent). The two are timed in
 alternating blocks of frames, so the machine's load falls on both alike; thread CPU per call
 (``time.thread_time_ns``), p50 / p99 in µs, beside the largest difference of the two trees' poses
 (rotation entries, translation mm) and stabilised markers (mm) over every frame:
 
-    python -m benchmarks.head_fit [--quick] [--takes demo,hostile] [--before REV] [--json FILE]
+    python -m benchmarks.head_fit [--quick] [--takes demo,hostile,real] [--before REV] [--json FILE]
 """
 
 from __future__ import annotations
@@ -31,13 +34,14 @@ from benchmarks.timing import machine, table
 from livecap.calibration.stabilise import HeadStabiliser
 
 BLOCK = 200  # frames per timed block; the trees take turns block by block
+ROOT = Path(__file__).resolve().parents[1]
+REALDATA = Path(os.environ.get("LIVECAP_SHARED") or ROOT.parent / "shared") / "realdata"
 
 
 def old_stabiliser(rev: str) -> type:
     """``HeadStabiliser`` as livecap/calibration/stabilise.py defines it at git revision ``rev``."""
-    root = Path(__file__).resolve().parents[1]
     path = "livecap/calibration/stabilise.py"
-    src = subprocess.run(["git", "show", f"{rev}:{path}"], cwd=root, check=True, capture_output=True,
+    src = subprocess.run(["git", "show", f"{rev}:{path}"], cwd=ROOT, check=True, capture_output=True,
                          text=True).stdout
     mod = types.ModuleType(f"stabilise_{rev}")
     exec(compile(src, f"{rev}:{path}", "exec"), mod.__dict__)
@@ -61,6 +65,28 @@ def demo_take():
         take = read_take(work / DEMO_TAKE).select(layout.labels)
         profile = calibrate(rig, layout, estimate_neutral(take, layout.stable, 120))
     return np.array(take.positions, np.float64), np.array(take.valid, bool), profile.stabiliser()
+
+
+def real_take():
+    """The ICT rig driven by the S07-001 performance (``livecap generate --curves``), calibrated on its
+    neutral take as ``livecap calibrate`` does; None and the reason when ../shared/realdata is absent."""
+    from livecap.calibration.profile import calibrate, estimate_neutral
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
+    from transport.takefile import read_take
+
+    rig_dir, curves = REALDATA / "ict-face", REALDATA / "performance" / "S07-001.csv"
+    if not (rig_dir / "neutral.obj").exists() or not curves.exists():
+        return None, f"skipped: {rig_dir} or {curves} not found (../shared/realdata is not beside this checkout)"
+    with tempfile.TemporaryDirectory() as tmp:
+        subprocess.run([sys.executable, "-m", "livecap", "generate", "--rig", str(rig_dir), "--curves", str(curves),
+                        "--out", tmp], cwd=ROOT, check=True, capture_output=True)
+        rig = Rig.load(rig_dir)
+        layout = MarkerLayout.load(rig_dir / "markers.json", rig)
+        take = read_take(Path(tmp) / "S07-001.c3d").select(layout.labels)
+        neutral = read_take(Path(tmp) / "S07-001_neutral.c3d").select(layout.labels)
+    profile = calibrate(rig, layout, estimate_neutral(neutral, layout.stable))
+    return (np.array(take.positions, np.float64), np.array(take.valid, bool), profile.stabiliser()), ""
 
 
 def hostile(pos: np.ndarray, valid: np.ndarray, stable: np.ndarray, seed: int = 0):
@@ -119,18 +145,23 @@ def compare(pos: np.ndarray, valid: np.ndarray, stab: HeadStabiliser, before: ty
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="2400 timed frames per tree and take instead of 12000")
-    ap.add_argument("--takes", default="demo,hostile")
+    ap.add_argument("--takes", default="demo,hostile,real")
     ap.add_argument("--before", default="b1dfbd9")
     ap.add_argument("--json")
     args = ap.parse_args()
     before = old_stabiliser(args.before)
     count = 2400 if args.quick else 12000
     pos, valid, stab = demo_take()
-    takes = {"demo": (pos, valid), "hostile": hostile(pos, valid, stab.stable)}
+    takes = {"demo": (pos, valid, stab), "hostile": (*hostile(pos, valid, stab.stable), stab)}
+    if "real" in args.takes.split(","):
+        takes["real"], why = real_take()
+        if takes["real"] is None:
+            print(f"real: {why}")
     load = os.getloadavg()
     rows = []
     for name in args.takes.split(","):
-        rows.append({"take": name, **compare(*takes[name], stab, before, count)})
+        if takes[name] is not None:
+            rows.append({"take": name, **compare(*takes[name], before, count)})
     load_end = os.getloadavg()
     cols = ["take", "before_cpu_p50_us", "after_cpu_p50_us", "p50 ratio", "before_cpu_p99_us", "after_cpu_p99_us",
             "p99 ratio", "max |dR|", "max |dt| mm", "max |d local| mm"]

@@ -241,18 +241,17 @@ class FrameFit:
         Wn = W / W.sum(1, keepdims=True)
         A = ref[None] - (Wn @ ref)[:, None, :]  # (J, m, 3): the reference centred per fit
         Q = np.einsum("ji,jia,abn->jnib", W, A, HORN_MAP.reshape(3, 3, 16)).reshape(J * 16, 3 * m)
-        rot = ROTATION_MAP.reshape(16, 3, 3)
-        # every fit's residual at every used marker: Z (on q_j q_j^T) + L (on the centred points)
-        Z = np.zeros((J, 16, J, m, 3))
-        L = np.zeros((J, m, 3, m, 3))
-        for j in range(J):
-            Z[j, :, j] = np.einsum("nca,ia->nic", rot, A[j])
-            L[j] = Wn[j][None, None, :, None] * np.eye(3)[None, :, None, :]
-            L[j, np.arange(m), :, np.arange(m), :] -= np.eye(3)
-        Z, L = Z.reshape(J * 16, J * m, 3), L.reshape(J * m, 3, 3 * m)
-        check = np.concatenate([np.arange(m), np.arange(1, J) * (m + 1) - 1])  # fit 0's, then the deleted ones
-        maps = [(np.ascontiguousarray(Z[:, rows].reshape(J * 16, -1)), np.ascontiguousarray(L[rows].reshape(-1, 3 * m)))
-                for rows in (check, slice(None))]  # the check's residuals; every fit's at every marker
+        # fit j's residual at used marker i: Z_j (on its own q_j q_j^T) + Wn_j @ centred points - centred point i
+        Z = np.einsum("nca,jia->jnic", ROTATION_MAP.reshape(16, 3, 3), A)  # (J, 16, m, 3)
+        # the check's residuals as two products: fit 0's at every marker, then each leave-one-out fit's at
+        # its deleted marker
+        Zc = np.zeros((J, 16, m + J - 1, 3))
+        Zc[0, :, :m] = Z[0]
+        Zc[np.arange(1, J), :, m + np.arange(J - 1)] = Z[np.arange(1, J), :, np.arange(J - 1)]
+        Lc = np.concatenate([np.repeat(Wn[:1], m, 0), Wn[1:]])
+        Lc[np.arange(m + J - 1), np.concatenate([np.arange(m), np.arange(J - 1)])] -= 1.0
+        Lc = np.einsum("ri,cd->rcid", Lc, np.eye(3)).reshape(-1, 3 * m)
+        maps = (Zc.reshape(J * 16, -1), Lc), Z.reshape(J, 16, 3 * m)
         w = use.astype(np.float64)
         w.setflags(write=False)
         return left, Wn, Q, maps, J, Wn @ ref, w
@@ -271,7 +270,7 @@ class FrameFit:
             if len(self._masks) >= self.CACHE:
                 del self._masks[next(itertools.islice(self._masks, self._kept, None))]
             prep = self._masks[key] = self._prepare(use)
-        left, Wn, Q, ((Zc, Lc), (Z, L)), J, cs, w = prep
+        left, Wn, Q, ((Zc, Lc), Z), J, cs, w = prep
         m = len(left)
         P = pts[left]
         cb = Wn[0] @ P
@@ -288,7 +287,8 @@ class FrameFit:
             return R0, cb - R0 @ cs[0], w
         b = 0
         if J > 1:  # robust_pose's start: the leave-one-out fit whose median residual halves the plain fit's
-            d = (o.reshape(-1) @ Z + L @ p).reshape(J, m, 3)
+            pc = p.reshape(m, 3)
+            d = np.matmul(o[:, None], Z).reshape(J, m, 3) + (Wn @ pc)[:, None] - pc
             srt = np.sort(np.sqrt(np.einsum("jic,jic->ji", d, d)), axis=1)
             score = 0.5 * (srt[:, (m - 1) // 2] + srt[:, m // 2])
             score[0] *= 0.5
