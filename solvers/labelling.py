@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial.transform import Rotation
 
 from solvers.rigid import kabsch
 
@@ -141,12 +142,6 @@ def _principal_axes(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return vecs, np.sqrt(np.maximum(vals, 0.0) / len(p))
 
 
-def _about(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rotation by ``angle`` about the unit ``axis`` (Rodrigues)."""
-    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * K @ K
-
-
 def start_rotations(axes_q: np.ndarray, sd_q: np.ndarray, axes_n: np.ndarray, close: float = CLOSE_AXES,
                     step_deg: float = 30.0) -> list[np.ndarray]:
     """Rotations from the model's principal axes onto the cloud's: the 24 axis permutations and
@@ -157,12 +152,11 @@ def start_rotations(axes_q: np.ndarray, sd_q: np.ndarray, axes_n: np.ndarray, cl
     from about 15 degrees."""
     base = [axes_q @ M @ axes_n.T for M in _AXIS_ROTATIONS]
     out = list(base)
-    turns = [math.radians(a) for a in np.arange(step_deg, 90.0, step_deg)]
+    turns = np.radians(np.arange(step_deg, 90.0, step_deg))
     for k in range(3):
         a, b = np.delete(sd_q, k)
         if min(a, b) > 0 and max(a, b) / min(a, b) < close:
-            for angle in turns:
-                T = _about(axes_q[:, k], angle)
+            for T in Rotation.from_rotvec(turns[:, None] * axes_q[:, k]).as_matrix():
                 out += [T @ R for R in base]
     return out
 
