@@ -588,11 +588,10 @@ class MarkerLabeller:
         if len(points) < max(3, int(s.min_labelled * self.n)):
             return index
         lo, hi = s.scale_range
-        axes_n, _ = _principal_axes(self.neutral)
+        axes_n, sd_n = _principal_axes(self.neutral)
         axes_q, sd_q = _principal_axes(points)
-        spread = np.sqrt(((points - points.mean(0)) ** 2).sum(1).mean()
-                         / ((self.neutral - self.neutral.mean(0)) ** 2).sum(1).mean())
-        scale0 = min(max(float(spread), lo), hi)
+        spread = math.sqrt((sd_q @ sd_q) / (sd_n @ sd_n))  # ratio of RMS radii about the centroids
+        scale0 = min(max(spread, lo), hi)
         starts = [(scale0, R) for R in start_rotations(axes_q, sd_q, axes_n)]
         if self.initialisations > 0:  # a lost track: its last pose is a candidate too
             starts.append((self.scale, self.R))
