@@ -14,8 +14,10 @@ squares, clipped to the rig's limits).
 
 Without a track (first frame, or after too many poorly labelled frames) the neutral
 constellation is fitted to the cloud: the principal axes of both give 24 axis-aligned rotation
-candidates, each refined by a similarity ICP whose steps are the same gated assignment
-(Besl & McKay 1992; Umeyama 1991 for the scale), and the best is kept.
+candidates (also turned by 30 and 60 degrees about an axis whose other two spreads are close, see
+``start_rotations``), each refined by a similarity ICP whose steps are the same gated assignment
+(Besl & McKay 1992; Umeyama 1991 for the scale): every start for the first few steps, the best
+few to the end, and the best is kept.
 """
 
 from __future__ import annotations
