@@ -14,8 +14,10 @@ squares, clipped to the rig's limits).
 
 Without a track (first frame, or after too many poorly labelled frames) the neutral
 constellation is fitted to the cloud: the principal axes of both give 24 axis-aligned rotation
-candidates, each refined by a similarity ICP whose steps are the same gated assignment
-(Besl & McKay 1992; Umeyama 1991 for the scale), and the best is kept.
+candidates (also turned by 30 and 60 degrees about an axis whose other two spreads are close, see
+``start_rotations``), each refined by a similarity ICP whose steps are the same gated assignment
+(Besl & McKay 1992; Umeyama 1991 for the scale): every start for the first few steps, the best
+few to the end, and the best is kept.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial.transform import Rotation
 
 from solvers.rigid import kabsch
 
@@ -141,12 +144,6 @@ def _principal_axes(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return vecs, np.sqrt(np.maximum(vals, 0.0) / len(p))
 
 
-def _about(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rotation by ``angle`` about the unit ``axis`` (Rodrigues)."""
-    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * K @ K
-
-
 def start_rotations(axes_q: np.ndarray, sd_q: np.ndarray, axes_n: np.ndarray, close: float = CLOSE_AXES,
                     step_deg: float = 30.0) -> list[np.ndarray]:
     """Rotations from the model's principal axes onto the cloud's: the 24 axis permutations and
@@ -157,12 +154,11 @@ def start_rotations(axes_q: np.ndarray, sd_q: np.ndarray, axes_n: np.ndarray, cl
     from about 15 degrees."""
     base = [axes_q @ M @ axes_n.T for M in _AXIS_ROTATIONS]
     out = list(base)
-    turns = [math.radians(a) for a in np.arange(step_deg, 90.0, step_deg)]
+    turns = np.radians(np.arange(step_deg, 90.0, step_deg))
     for k in range(3):
         a, b = np.delete(sd_q, k)
         if min(a, b) > 0 and max(a, b) / min(a, b) < close:
-            for angle in turns:
-                T = _about(axes_q[:, k], angle)
+            for T in Rotation.from_rotvec(turns[:, None] * axes_q[:, k]).as_matrix():
                 out += [T @ R for R in base]
     return out
 
@@ -594,11 +590,10 @@ class MarkerLabeller:
         if len(points) < max(3, int(s.min_labelled * self.n)):
             return index
         lo, hi = s.scale_range
-        axes_n, _ = _principal_axes(self.neutral)
+        axes_n, sd_n = _principal_axes(self.neutral)
         axes_q, sd_q = _principal_axes(points)
-        spread = np.sqrt(((points - points.mean(0)) ** 2).sum(1).mean()
-                         / ((self.neutral - self.neutral.mean(0)) ** 2).sum(1).mean())
-        scale0 = min(max(float(spread), lo), hi)
+        spread = math.sqrt((sd_q @ sd_q) / (sd_n @ sd_n))  # ratio of RMS radii about the centroids
+        scale0 = min(max(spread, lo), hi)
         starts = [(scale0, R) for R in start_rotations(axes_q, sd_q, axes_n)]
         if self.initialisations > 0:  # a lost track: its last pose is a candidate too
             starts.append((self.scale, self.R))
