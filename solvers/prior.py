@@ -65,6 +65,23 @@ class PCAPrior:
         return cls(0.5 * (P + P.T), w_mean, lam, E)
 
     @classmethod
+    def from_moments(cls, basis: np.ndarray, mean: np.ndarray, cov: np.ndarray, threshold: float = 1e-6) -> PCAPrior:
+        """The same PCA from a weight mean (m) and covariance (m x m) instead of frames: the faces'
+        covariance is B cov B^T (a Gaussian prior learned from animation, Lewis et al. 2014 §7.8-7.9,
+        seen through this actor's basis)."""
+        B = np.asarray(basis, dtype=np.float64)
+        cov = np.asarray(cov, dtype=np.float64)
+        if np.shape(mean) != (B.shape[1],) or cov.shape != (B.shape[1], B.shape[1]):
+            raise ValueError(f"prior mean {np.shape(mean)} / covariance {cov.shape} do not fit {B.shape[1]} shapes")
+        lam, V = np.linalg.eigh(B @ (0.5 * (cov + cov.T)) @ B.T)
+        lam, V = lam[::-1], V[:, ::-1]
+        keep = lam > threshold * max(lam[0], 1e-300)
+        E, lam = V[:, keep], lam[keep]
+        EB = E.T @ B
+        P = EB.T @ (EB / lam[:, None])
+        return cls(0.5 * (P + P.T), np.asarray(mean, dtype=np.float64), lam, E)
+
+    @classmethod
     def from_shapes(cls, basis: np.ndarray, threshold: float = 1e-6, include_neutral: bool = True) -> PCAPrior:
         """The rig's shapes as training frames (Seol §5, §7: "all the target blendshapes").
 

@@ -179,3 +179,4 @@ def test_streaming_pose_refit_is_the_batch_refit_of_one_frame_and_carries_part_o
     np.testing.assert_allclose(half[valid], 0.5 * (x + out)[valid], atol=1e-12)
     valid[:4] = False  # one stable marker left: the last correction is kept
     np.testing.assert_allclose(pose.refit(x, valid, w)[valid], out[valid], atol=1e-12)
+

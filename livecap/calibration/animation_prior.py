@@ -40,17 +40,37 @@ class AnimationPrior:
         var, axes = np.linalg.eigh(self.cov)
         return (axes / np.sqrt(np.maximum(var, VARIANCE_FLOOR))).T
 
+    def check(self, names: Sequence[str]) -> None:
+        """Refuse a prior over other shapes, or one whose covariance is not positive definite."""
+        if list(self.names) != list(names):
+            raise ValueError("animation prior was built for another rig's shapes (livecap prior build --rig)")
+        m = len(self.names)
+        if np.shape(self.mean) != (m,) or np.shape(self.cov) != (m, m):
+            raise ValueError(f"animation prior mean {np.shape(self.mean)} / covariance {np.shape(self.cov)} "
+                             f"do not fit {m} shapes")
+        if not (np.isfinite(self.mean).all() and np.isfinite(self.cov).all()):
+            raise ValueError("animation prior holds NaN or infinite values")
+        if np.linalg.eigvalsh(self.cov)[0] <= 0:
+            raise ValueError("animation prior covariance is not positive definite")
+
+    def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
+        return {f"{prefix}names": np.array(self.names), f"{prefix}mean": self.mean, f"{prefix}cov": self.cov,
+                f"{prefix}frames": np.array(self.frames), f"{prefix}sources": np.array(self.sources)}
+
+    @classmethod
+    def from_arrays(cls, z, prefix: str = "") -> AnimationPrior:
+        return cls(tuple(str(n) for n in z[f"{prefix}names"]), np.asarray(z[f"{prefix}mean"], float),
+                   np.asarray(z[f"{prefix}cov"], float), int(z[f"{prefix}frames"]),
+                   tuple(str(s) for s in z[f"{prefix}sources"]))
+
     def save(self, path: str | Path) -> None:
-        np.savez_compressed(path, names=np.array(self.names), mean=self.mean, cov=self.cov, frames=self.frames,
-                            sources=np.array(self.sources))
+        np.savez_compressed(path, **self.to_arrays())
 
     @classmethod
     def load(cls, path: str | Path) -> AnimationPrior:
         try:
-            z = np.load(path, allow_pickle=False)
-            return cls(tuple(str(n) for n in z["names"]), z["mean"], z["cov"], int(z["frames"]),
-                       tuple(str(s) for s in z["sources"]))
-        except (OSError, KeyError, ValueError) as exc:
+            return cls.from_arrays(np.load(path, allow_pickle=False))
+        except (OSError, KeyError, ValueError, TypeError) as exc:
             raise ValueError(f"{path}: not an animation prior ({exc})") from None
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from livecap.calibration.animation_prior import AnimationPrior
 from livecap.calibration.stabilise import MAD_TO_SIGMA, HeadStabiliser
 from livecap.calibration.warp import ProportionWarp, WarpError, warp_rig
 from livecap.core.markers import MarkerLayout
@@ -41,7 +42,9 @@ class Profile:
     ``warp`` (the fitted proportion warp) and ``marker_rig`` (the rig at the marker sites warped
     into the actor's proportions, with in-betweens and correctives, for nonlinear solvers:
     ``marker_rig.evaluate(w) - marker_rig.neutral`` is the model of a target) are optional:
-    profiles written before they existed load with None.
+    profiles written before they existed load with None. ``prior``: a Gaussian prior on the weights
+    learned from real animation (``livecap calibrate --prior``; Lewis et al. 2014 §7.8-7.9), which
+    makes the default mode the dense ``kalman`` fit (livecap.modes.registry.resolve_mode).
     """
 
     labels: list[str]
@@ -55,6 +58,7 @@ class Profile:
     settings: dict = field(default_factory=dict)
     warp: ProportionWarp | None = None
     marker_rig: Rig | None = None
+    prior: AnimationPrior | None = None
 
     @property
     def n_markers(self) -> int:
@@ -72,6 +76,8 @@ class Profile:
             extra.update(self.warp.to_arrays("warp_"))
         if self.marker_rig is not None:
             extra.update(_rig_arrays(self.marker_rig, "mr_"))
+        if self.prior is not None:
+            extra.update(self.prior.to_arrays("prior_"))
         np.savez_compressed(
             path, labels=np.array(self.labels), names=np.array(self.names),
             source_neutral=self.source_neutral, stable=self.stable, basis=self.basis,
@@ -86,9 +92,10 @@ class Profile:
             names = [str(s) for s in z["names"]]
             warp = ProportionWarp.from_arrays(z, "warp_") if "warp_centres" in z else None
             mrig = _rig_from_arrays(z, "mr_", names) if "mr_neutral" in z else None
+            prior = AnimationPrior.from_arrays(z, "prior_") if "prior_mean" in z else None
             profile = cls([str(s) for s in z["labels"]], names, z["source_neutral"],
                           z["stable"], z["basis"], z["lower"], z["upper"], z["target_sites"],
-                          json.loads(str(z["settings"])), warp, mrig)
+                          json.loads(str(z["settings"])), warp, mrig, prior)
         except (OSError, KeyError, ValueError, TypeError, EOFError, zipfile.BadZipFile) as exc:
             raise CalibrationError(f"{path}: not a livecap profile ({exc})") from None
         profile.check(str(path))
@@ -110,6 +117,11 @@ class Profile:
                 raise CalibrationError(f"{where}: profile {name} holds NaN or infinite values")
         if int(np.count_nonzero(self.stable)) < 3:
             raise CalibrationError(f"{where}: profile has fewer than 3 stable markers (head motion cannot be removed)")
+        if self.prior is not None:
+            try:
+                self.prior.check(self.names)
+            except ValueError as exc:
+                raise CalibrationError(f"{where}: {exc}") from None
 
 
 def rig_fingerprint(rig: Rig) -> str:

@@ -6,7 +6,7 @@ import argparse
 import shlex
 import time
 
-from livecap.modes.registry import DEFAULT_MODE, MODES
+from livecap.modes.registry import DEFAULT_MODE, MODE_HELP, MODES_AND_AUTO
 
 
 def register(sub) -> None:
@@ -27,7 +27,7 @@ def register(sub) -> None:
     p.add_argument("--neutral-seconds", type=float, default=1.0,
                    help="without a profile: each take calibrates on its first seconds, as 'livecap solve' does")
     p.add_argument("--out", required=True, help="output folder: DIR/<take stem>.<format>, DIR/summary.*")
-    p.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES), help=f"solver mode (default {DEFAULT_MODE})")
+    p.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES_AND_AUTO), help=MODE_HELP)
     p.add_argument("--format", default="csv", choices=["csv", "jsonl", "glb"], help="output format (default csv)")
     p.add_argument("--solve-options", default="", metavar="FLAGS",
                    help="further 'livecap solve' flags for every take, quoted: --solve-options '--ridge 0.01'")

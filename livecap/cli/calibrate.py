@@ -8,10 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
+from livecap.calibration.animation_prior import AnimationPrior
 from livecap.calibration.profile import WARPS, Profile, calibrate, estimate_neutral
 from livecap.cli.common import add_rig_arguments, check_labels, load_rig, progress_bar, tune_on_take
 from livecap.cli.progress import stage
-from livecap.modes.registry import DEFAULT_MODE, MODES
+from livecap.modes.registry import DEFAULT_MODE, MODES_AND_AUTO, resolve_mode
 from livecap.modes.robust import ROBUST_MODES
 from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS
 from transport.takefile import read_take
@@ -37,6 +38,8 @@ def register(sub) -> None:
                    "select the noise level and regularisation from it and store them in the profile "
                    "(default: from the neutral take)")
     p.add_argument("--plain-stabilise", action="store_true", help="plain Kabsch instead of the robust fit")
+    p.add_argument("--prior", metavar="PRIOR.npz", help="animation prior for this rig ('livecap prior build'): stored "
+                   "in the profile; every solve with it then defaults to the dense kalman fit under that prior")
     p.set_defaults(func=run_calibrate)
 
     r = sub.add_parser("calibration-report", help="solve a take with and without each calibration step",
@@ -51,7 +54,7 @@ def register(sub) -> None:
     r.add_argument("--neutral-seconds", type=float, default=1.0,
                    help="neutral span at the start of the take when neither --neutral nor --profile (default 1)")
     r.add_argument("--truth", help="ground truth .npz (default: <take>.truth.npz when present)")
-    r.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES),
+    r.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES_AND_AUTO),
                    help=f"solver mode (default {DEFAULT_MODE}, as for solve; lsq is the unregularised baseline)")
     r.add_argument("--ridge", type=float, help="ridge weight (default: the mode's, or the one tuning selected)")
     r.add_argument("--stride", type=int, default=1, help="solve every STRIDE-th frame only (quicker; default 1)")
@@ -77,6 +80,12 @@ def run_calibrate(args: argparse.Namespace) -> int:
                 "pose_smoothing_seconds": args.pose_smoothing,
                 "neutral_take": str(args.neutral), "neutral_frames": frames or take.n_frames}
     profile = calibrate(rig, layout, neutral, settings, warp=args.warp, smoothing=args.smoothing)
+    if args.prior:
+        profile.prior = AnimationPrior.load(args.prior)
+        try:
+            profile.prior.check(profile.names)
+        except ValueError as exc:
+            raise ValueError(f"{args.prior}: {exc} (rig {args.rig})") from None
     tune_path = args.tune or args.neutral  # every profile carries the noise estimate every mode needs
     with stage(f"tuning on {tune_path}"):
         tuned = tune_on_take(profile, read_take(args.tune) if args.tune else take)
@@ -93,6 +102,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
     print(f"basis     {profile.basis.shape[0]} x {profile.basis.shape[1]} "
           f"({len(profile.marker_rig.inbetweens)} in-betweens, {len(profile.marker_rig.correctives)} correctives "
           "warped too)")
+    if profile.prior is not None:
+        print(f"prior     {args.prior}: {profile.prior.frames} frames of {len(profile.prior.sources)} performances; "
+              f"default mode {resolve_mode(DEFAULT_MODE, profile)}")
     print(f"profile   {args.out}")
     return 0
 
@@ -154,9 +166,10 @@ def run_report(args: argparse.Namespace) -> int:
     tuned: dict[int, dict] = {}
 
     def make_solver(p: Profile):  # each variant's profile tuned on the take for the modes that read the noise
-        if id(p) not in tuned and args.mode in ("movement", *ROBUST_MODES):
+        mode = resolve_mode(args.mode, p)
+        if id(p) not in tuned and mode in ("movement", *ROBUST_MODES):
             tuned[id(p)] = tune_on_take(p, take)
-        return build_solver(args.mode, p, {} if args.ridge is None else {"ridge": args.ridge})
+        return build_solver(mode, p, {} if args.ridge is None else {"ridge": args.ridge})
 
     results = compare(take, rig, layout, neutral, make_solver, truth, progress=progress_bar)
     width = max(len(r.variant.name) for r in results)

@@ -41,13 +41,12 @@ def add_rig_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_take_solve_arguments(p: argparse.ArgumentParser) -> None:
     """A take, its rig, calibration and the solver mode: what every take-solving command takes."""
-    from livecap.modes.registry import DEFAULT_MODE, MODES
+    from livecap.modes.registry import DEFAULT_MODE, MODE_HELP, MODES_AND_AUTO
 
     p.add_argument("take", help="marker take: .c3d, .trc or .csv")
     add_rig_arguments(p)
     add_calibration_arguments(p)
-    p.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES),
-                   help=f"solver mode (default {DEFAULT_MODE})")
+    p.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES_AND_AUTO), help=MODE_HELP)
     p.add_argument("--ridge", type=float,
                    help="ridge weight lambda (default: the mode's, or the one calibration selected)")
 

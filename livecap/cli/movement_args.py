@@ -13,8 +13,9 @@ def add_movement_arguments(p: argparse.ArgumentParser, stream: bool = True) -> N
     g = p.add_argument_group("movement matching (--mode movement, Seol et al. 2012)")
     g.add_argument("--alpha", type=float, help=f"weight of the PCA prior (default {D.alpha}; 0 disables it)")
     g.add_argument("--beta", type=float, help=f"weight of the position (Sobolev) term (default {D.beta})")
-    g.add_argument("--prior", help="prior training data: 'shapes' (default: the rig's shapes and the neutral), "
-                   "'none', or a weights CSV of plausible target animation")
+    g.add_argument("--prior", help="prior: an animation prior .npz ('livecap prior build'; movement and kalman), "
+                   "'profile' (the one 'calibrate --prior' stored), 'shapes' (movement's default: the rig's shapes "
+                   "and the neutral), 'none', or a weights CSV of plausible target animation")
     g.add_argument("--prior-threshold", type=float, help="drop PCA eigenvalues below this fraction of the "
                    f"largest (default {D.prior_threshold:g})")
     g.add_argument("--start", choices=["neutral", "free", "fit"], help="boundary at the first frame "
@@ -48,7 +49,7 @@ def movement_options(args: argparse.Namespace) -> dict:
     if getattr(args, "plain", False):
         opts["robust"] = False
     prior = getattr(args, "prior", None)
-    if prior is not None and prior not in ("shapes", "none") and not prior.endswith(".npz"):  # .npz: prior build
+    if prior is not None and prior not in ("shapes", "none", "profile") and not prior.endswith(".npz"):
         names, weights, _ = read_weights_csv(prior)
         prior = {"names": names, "weights": weights}
     opts["prior"] = prior

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 REALDATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "realdata"
-DEFAULT_MODES = ["robust", "robust-lag", "movement"]
+DEFAULT_MODES = ["auto", "robust", "robust-lag", "movement"]
 
 
 def _realdata() -> Path:
@@ -45,8 +45,9 @@ def register(sub) -> None:
     p.add_argument("--start", type=float, default=10.0, help="seconds into each CSV (clamped to fit; default 10)")
     p.add_argument("--modes", nargs="+", default=DEFAULT_MODES, help=f"modes (default {' '.join(DEFAULT_MODES)})")
     p.add_argument("--json", help="write every row as JSON")
-    p.add_argument("--no-prior", action="store_true", help="modes that take a prior (kalman) get none; by default "
-                   "they get one built from the other files (leave one file out)")
+    p.add_argument("--no-prior", action="store_true", help="the profile carries no animation prior (so auto is "
+                   "robust, kalman fits under a ridge); by default it carries one built from the other files "
+                   "(leave one file out), as 'livecap calibrate --prior' stores it")
     p.set_defaults(func=run)
 
 
@@ -92,11 +93,12 @@ def run(args: argparse.Namespace) -> int:
                 ct = curves_take(rig, layout, f, s, mapping)
                 options = {"kalman": {"rate": ct.take.rate}}  # the IMM's process noise is per second
                 others = [o for o in files if o != f]
-                if not args.no_prior and others and "kalman" in args.modes:
+                prior = None
+                if not args.no_prior and others:
                     from livecap.calibration.animation_prior import build_prior
 
-                    options["kalman"]["prior"] = build_prior(others, rig.names, rig.lower, rig.upper, mapping)
-                rows = evaluate_curve_take(rig, layout, ct, args.modes, options)
+                    prior = build_prior(others, rig.names, rig.lower, rig.upper, mapping)
+                rows = evaluate_curve_take(rig, layout, ct, args.modes, options, prior)
                 oracle = rows[0]
                 took = time.perf_counter() - t0
                 print(f"{rig_name} {noise:g} mm {f.name} ({ct.take.n_frames} frames, {took:.0f} s): "

@@ -18,7 +18,7 @@ from livecap.cli.common import load_rig, tune_on_take
 from livecap.live.checks import check_overlap, check_profile_rig
 from livecap.live.pipeline import Pipeline
 from livecap.live.session import load_session
-from livecap.modes.registry import DEFAULT_MODE, MODES
+from livecap.modes.registry import DEFAULT_MODE, MODE_HELP, MODES_AND_AUTO
 
 log = logging.getLogger(__name__)
 
@@ -66,8 +66,7 @@ def register(sub) -> None:
     cal.add_argument("--neutral-seconds", type=float, default=1.0,
                      help="seconds at the start of the stream taken as the neutral face (default 1)")
     sol = p.add_argument_group("solver")
-    sol.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES),
-                   help=f"solver mode (default {DEFAULT_MODE})")
+    sol.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES_AND_AUTO), help=MODE_HELP)
     sol.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                      help="solver option (repeatable), e.g. --option ridge=0.01")
     out = p.add_argument_group("sinks")

@@ -18,7 +18,7 @@ from livecap.cli.movement_args import add_movement_arguments, movement_options
 from livecap.core.headpose import NeutralPose
 from livecap.core.rig import Rig
 from livecap.modes.per_frame import QPSettings, check_keys
-from livecap.modes.registry import build_solver
+from livecap.modes.registry import build_solver, resolve_mode
 from livecap.offline.solve import SolvedTake, solve_take
 from transport.gltf import write_glb
 from transport.takefile import read_take
@@ -57,8 +57,10 @@ def run(args: argparse.Namespace) -> int:
 
         take = labelled_take(args, take)
     profile = profile_for(args, rig, layout, take)
-    solver = build_solver(args.mode, profile, solve_options(args))
-    with progress_bar(f"solving ({args.mode})", take.n_frames) as update:
+    options = solve_options(args)
+    mode = resolve_mode(args.mode, profile, options)
+    solver = build_solver(mode, profile, options)
+    with progress_bar(f"solving ({mode})", take.n_frames) as update:
         solved = solve_take(take, profile, solver, progress=update)
     if Path(args.out).suffix.lower() == ".glb":
         write_solved_glb(args.out, rig, solved, max(1, int(args.neutral_seconds * solved.rate)))

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -138,18 +139,24 @@ class MarkerKalmanSolver:
         fit.reset()
         return np.array([fit.step(smoothed[t], ok[t]) for t in range(len(targets))]), smoothed
 
+def animation_prior_option(options: Mapping | None) -> AnimationPrior | None:
+    """The animation prior an option ``prior`` gives (an AnimationPrior or the path of one, .npz), else
+    None (movement's ``prior`` values -- 'shapes', 'none', weight curves -- are not animation priors)."""
+    prior = (options or {}).get("prior")
+    if isinstance(prior, str | Path) and str(prior).endswith(".npz"):
+        return AnimationPrior.load(prior)
+    return prior if isinstance(prior, AnimationPrior) else None
+
+
 def kalman_mode(profile: Profile, options: Mapping | None = None) -> MarkerKalmanSolver:
-    """Option ``prior`` (AnimationPrior or its path); ``rate`` (Hz; default the profile's tuned rate,
-    else the robust modes' default) sets the IMM's per-frame process noise."""
+    """Option ``prior`` (AnimationPrior or its path; default the profile's, else a ridge); ``rate`` (Hz;
+    default the profile's tuned rate, else the robust modes' default) sets the IMM's per-frame process noise."""
     options = options or {}
-    prior = options.get("prior")
-    if isinstance(prior, str):
-        prior = AnimationPrior.load(prior)
+    prior = animation_prior_option(options) or profile.prior
     if prior is None:
         mean, precision = np.zeros(len(profile.names)), np.eye(len(profile.names))
     else:
-        if list(prior.names) != list(profile.names):
-            raise ValueError("prior was built for another rig's shapes (livecap prior build --rig)")
+        prior.check(profile.names)
         mean, precision = prior.mean, np.linalg.inv(prior.cov)
     r = robust_settings(profile, {"rate": options.get("rate")})
     motion = WeightMotion(float(r.rate), float(r.hold_accel), float(r.move_accel), float(r.sojourn))

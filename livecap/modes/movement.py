@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from livecap.calibration.animation_prior import AnimationPrior
 from livecap.calibration.profile import Profile
 from livecap.modes.robust import robust_settings, warn_untuned
 from livecap.modes.robust_movement import BOUND_TOL, RobustMovement, smoother_beta
@@ -93,9 +94,20 @@ def marker_weights(labels: list[str], spec: Mapping[str, float] | None) -> np.nd
 
 
 def build_prior(profile: Profile, spec, threshold: float) -> PCAPrior | None:
-    """``"shapes"`` (the rig's shapes + neutral as frames), ``"none"``, or a T x m weight animation."""
+    """``"shapes"`` (the rig's shapes + neutral as frames), ``"none"``, ``"profile"`` (the animation prior
+    ``calibrate --prior`` stored), an animation prior (``livecap prior build``'s .npz), or a T x m weight
+    animation."""
     if spec is None or (isinstance(spec, str) and spec == "none"):
         return None
+    if isinstance(spec, str) and spec == "profile":
+        if profile.prior is None:
+            raise ValueError("prior 'profile': the profile carries no animation prior (livecap calibrate --prior)")
+        spec = profile.prior
+    if isinstance(spec, str) and spec.endswith(".npz"):
+        spec = AnimationPrior.load(spec)
+    if isinstance(spec, AnimationPrior):
+        spec.check(profile.names)
+        return PCAPrior.from_moments(profile.basis, spec.mean, spec.cov, threshold)
     if isinstance(spec, str):
         if spec != "shapes":
             raise ValueError(f"unknown prior {spec!r}: use 'shapes', 'none' or a weights CSV")

@@ -10,14 +10,17 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from livecap.calibration.profile import Profile
-from livecap.modes.marker_kalman import kalman_mode
+from livecap.modes.marker_kalman import animation_prior_option, kalman_mode
 from livecap.modes.movement import build_movement
 from livecap.modes.per_frame import lsq_mode, qp_mode, rbf_mode
 from livecap.modes.robust import ROBUST_MODES
 
-# The streaming mode a user gets without choosing: the most accurate one that runs per frame
-# with at most a frame of latency (docs/robustness.md; `livecap evaluate` compares them all).
-DEFAULT_MODE = "robust"
+# The mode a user gets without choosing (docs/modes.md "The default mode"; measured leave one file out
+# on real performances in docs/robustness.md): ``kalman`` -- a dense fit under a Gaussian prior -- when
+# an animation prior learned from real acting is given (profile or option), else ``robust`` -- the
+# sparse L1 fit -- which wins where nothing says the acting is dense. Both run per frame with at most
+# one frame of latency and have an offline form.
+DEFAULT_MODE = "auto"
 
 MODES: dict[str, Callable] = {
     "lsq": lsq_mode,
@@ -28,11 +31,21 @@ MODES: dict[str, Callable] = {
     "kalman": kalman_mode,  # marker-space Kalman filter / RTS smoother -> bounded QP (issue 15)
 }
 MODES.update(ROBUST_MODES)  # noise-robust modes (livecap/modes/robust.py, docs/robustness.md)
+MODES_AND_AUTO = [DEFAULT_MODE, *MODES]  # what --mode accepts
+MODE_HELP = f"solver mode (default {DEFAULT_MODE}: kalman when an animation prior is given, else robust)"
+
+
+def resolve_mode(mode: str, profile: Profile, options: dict | None = None) -> str:
+    """The mode ``auto`` stands for with this profile and options; any other name unchanged."""
+    if mode != DEFAULT_MODE:
+        return mode
+    return "kalman" if profile.prior is not None or animation_prior_option(options) is not None else "robust"
 
 
 def build_solver(mode: str, profile: Profile, options: dict | None = None):
+    mode = resolve_mode(mode, profile, options)
     try:
         factory = MODES[mode]
     except KeyError:
-        raise ValueError(f"unknown solver mode {mode!r} (choose from {sorted(MODES)})") from None
+        raise ValueError(f"unknown solver mode {mode!r} (choose from {sorted(MODES_AND_AUTO)})") from None
     return factory(profile, options or {})

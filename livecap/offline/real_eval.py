@@ -16,11 +16,12 @@ from scipy.optimize import lsq_linear
 from scipy.signal import find_peaks
 from scipy.spatial.transform import Rotation
 
+from livecap.calibration.animation_prior import AnimationPrior
 from livecap.calibration.profile import Profile, calibrate, estimate_neutral
 from livecap.core.markers import MarkerLayout
 from livecap.core.rig import Rig
 from livecap.demo.curves_take import CurveTake
-from livecap.modes.registry import build_solver
+from livecap.modes.registry import build_solver, resolve_mode
 from livecap.offline.metrics import jitter, weight_rmse
 from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS, prepare_targets
 
@@ -84,15 +85,19 @@ def score(label: str, rig: Rig, ct: CurveTake, W: np.ndarray, seconds: float) ->
 
 
 def evaluate_curve_take(rig: Rig, layout: MarkerLayout, ct: CurveTake, modes: list[str],
-                        options: dict[str, dict] | None = None) -> list[Row]:
-    """The oracle and every mode in ``modes`` (plain profile from the neutral take) on one take;
-    ``options`` per mode (e.g. a prior trained on the other files)."""
+                        options: dict[str, dict] | None = None, prior: AnimationPrior | None = None) -> list[Row]:
+    """The oracle and every mode in ``modes`` (plain profile from the neutral take, carrying ``prior`` as
+    ``livecap calibrate --prior`` stores it, e.g. one trained on the other files) on one take; ``options``
+    per mode (``auto`` takes the options of the mode it stands for and is labelled ``auto=<mode>``)."""
     t0 = time.perf_counter()
     rows = [score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), time.perf_counter() - t0)]
     profile = plain_profile(rig, layout, ct)
+    profile.prior = prior
     take, targets, _, _ = prepare_targets(ct.take, profile)
-    for mode in modes:
-        solver = build_solver(mode, profile, (options or {}).get(mode, {}))
+    for name in modes:
+        resolved = resolve_mode(name, profile)
+        mode = name if resolved == name else f"{name}={resolved}"
+        solver = build_solver(resolved, profile, (options or {}).get(resolved, {}))
         if hasattr(solver, "step"):  # streamed frame by frame; output aligned by the mode's latency
             t0 = time.perf_counter()
             W = np.stack([solver.step(targets[i], take.valid[i]) for i in range(take.n_frames)])

@@ -1,0 +1,85 @@
+"""The default mode: kalman under an animation prior stored by `calibrate --prior`, else robust (issue 15)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from livecap.calibration.animation_prior import AnimationPrior
+from livecap.calibration.profile import Profile
+from livecap.cli import main
+from tests.test_curves_take import short_csv  # noqa: F401 - fixture
+from transport.weights_csv import read_weights_csv
+
+
+def test_calibrate_prior_is_stored_and_makes_the_default_mode_kalman(tmp_path, short_csv, capsys):  # noqa: F811
+    """`calibrate --prior` stores the animation prior in the profile; a solve with that profile and no
+    --mode then runs kalman under it (equal to --mode kalman --prior), without it robust."""
+    rig = "recordings/demo_rig.npz"
+    prior = tmp_path / "p.npz"
+    assert main(["prior", "build", str(short_csv), "--rig", rig, "--out", str(prior)]) == 0
+    assert main(["generate", "--curves", str(short_csv), "--seconds", "2", "--out", str(tmp_path)]) == 0
+    take, neutral = tmp_path / f"{short_csv.stem}.c3d", tmp_path / f"{short_csv.stem}_neutral.c3d"
+    assert main(["calibrate", str(neutral), "--rig", rig, "--out", str(tmp_path / "with.npz"),
+                 "--prior", str(prior)]) == 0
+    assert "default mode kalman" in capsys.readouterr().out
+    assert main(["calibrate", str(neutral), "--rig", rig, "--out", str(tmp_path / "plain.npz")]) == 0
+    stored = Profile.load(tmp_path / "with.npz").prior
+    built = AnimationPrior.load(prior)
+    assert stored is not None and stored.names == built.names and np.array_equal(stored.cov, built.cov)
+    assert Profile.load(tmp_path / "plain.npz").prior is None
+
+    def solve(profile: str, out: str, *extra: str) -> np.ndarray:
+        assert main(["solve", str(take), "--rig", rig, "--profile", str(tmp_path / profile),
+                     "--out", str(tmp_path / out), *extra]) == 0
+        return read_weights_csv(tmp_path / out)[1]
+
+    default_with = solve("with.npz", "a.csv")
+    assert "solving (kalman)" in capsys.readouterr().err
+    assert np.array_equal(default_with, solve("plain.npz", "k.csv", "--mode", "kalman", "--prior", str(prior)))
+    assert np.array_equal(solve("plain.npz", "b.csv"), solve("plain.npz", "r.csv", "--mode", "robust"))
+    assert not np.array_equal(default_with, solve("with.npz", "r2.csv", "--mode", "robust"))
+
+
+def test_a_prior_for_another_rig_is_refused_with_the_file_named(tmp_path, short_csv, capsys):  # noqa: F811
+    prior = tmp_path / "p.npz"
+    assert main(["prior", "build", str(short_csv), "--rig", "recordings/demo_rig.npz", "--out", str(prior)]) == 0
+    p = AnimationPrior.load(prior)
+    AnimationPrior(p.names[:-1], p.mean[:-1], p.cov[:-1, :-1], p.frames, p.sources).save(prior)
+    assert main(["generate", "--curves", str(short_csv), "--seconds", "1", "--out", str(tmp_path)]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(tmp_path / f"{short_csv.stem}_neutral.c3d"), "--rig", "recordings/demo_rig.npz",
+                 "--out", str(tmp_path / "a.npz"), "--prior", str(prior)]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "p.npz: animation prior was built for another rig" in err[0]
+    assert not (tmp_path / "a.npz").exists()
+
+
+def test_movement_takes_the_animation_prior_from_a_file_or_the_profile(tmp_path, short_csv):  # noqa: F811
+    """An animation prior (mean, covariance) seen through the basis is the PCA prior of frames with those
+    moments (Seol §5 from Lewis §7.8-7.9's Gaussian), and movement solves with it."""
+    from livecap.calibration.profile import Profile
+    from livecap.modes.movement import build_prior
+    from solvers.prior import PCAPrior
+
+    rng = np.random.default_rng(0)
+    B = rng.normal(size=(30, 6))
+    W = rng.normal(size=(500, 6))
+    frames = PCAPrior.from_animation(B, W)
+    moments = PCAPrior.from_moments(B, W.mean(0), np.cov(W, rowvar=False, bias=True))
+    assert np.allclose(frames.precision, moments.precision, atol=1e-9 * np.abs(frames.precision).max())
+    assert np.allclose(frames.eigenvalues, moments.eigenvalues)
+
+    prior = tmp_path / "p.npz"
+    assert main(["prior", "build", str(short_csv), "--rig", "recordings/demo_rig.npz", "--out", str(prior)]) == 0
+    assert main(["generate", "--curves", str(short_csv), "--seconds", "2", "--out", str(tmp_path)]) == 0
+    neutral = tmp_path / f"{short_csv.stem}_neutral.c3d"
+    assert main(["calibrate", str(neutral), "--rig", "recordings/demo_rig.npz", "--out", str(tmp_path / "a.npz"),
+                 "--prior", str(prior)]) == 0
+    profile = Profile.load(tmp_path / "a.npz")
+    from_file, from_profile = build_prior(profile, str(prior), 1e-6), build_prior(profile, "profile", 1e-6)
+    assert np.array_equal(from_file.precision, from_profile.precision)
+    assert not np.allclose(from_file.precision, build_prior(profile, "shapes", 1e-6).precision)
+    take = tmp_path / f"{short_csv.stem}.c3d"
+    assert main(["solve", str(take), "--rig", "recordings/demo_rig.npz", "--profile", str(tmp_path / "a.npz"),
+                 "--mode", "movement", "--prior", "profile", "--out", str(tmp_path / "m.csv")]) == 0
+    assert np.isfinite(read_weights_csv(tmp_path / "m.csv")[1]).all()
