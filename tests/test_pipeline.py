@@ -45,6 +45,33 @@ def test_pipeline_matches_offline_solve(setup):
         assert np.isfinite(stats["timing"][stage]["p99_ms"])
 
 
+@pytest.mark.parametrize("mode", ["kalman", "robust-lag"])
+def test_a_lagged_mode_publishes_each_frame_with_its_own_pose_and_markers(setup, mode):
+    """kalman (1 frame) and robust-lag streamed (4) return frame t - L's weights at frame t: the pipeline
+    pairs them with frame t - L's number, time, head pose and markers, and skips the first L outputs."""
+    _, _, take, profile = setup
+    cap = Capture()
+    stats = Pipeline(take.frames(), [cap], profile=profile, mode=mode).run()
+    solver = build_solver(mode, profile)
+    lag = solver.latency_frames
+    assert lag >= 1 and stats["frames_out"] == take.n_frames - lag == len(cap.results)
+    assert [r.frame for r in cap.results] == list(range(take.first_frame, take.first_frame + take.n_frames - lag))
+    offline = solve_take(take, profile, build_solver("lsq", profile), max_gap_seconds=0, pose_smoothing_seconds=0)
+    q = np.stack([r.head_rotation for r in cap.results])
+    np.testing.assert_allclose(np.abs(np.einsum("ti,ti->t", q, offline.head_rotation[:len(q)])), 1.0, atol=1e-9)
+    stepped = np.stack([solver.step(*f) for f in zip(*_targets(take, profile), strict=True)])[lag:]
+    np.testing.assert_allclose(np.stack([r.weights for r in cap.results]), stepped, atol=1e-9)
+
+
+def _targets(take, profile):
+    stab = profile.stabiliser()
+    out = []
+    for i in range(take.n_frames):
+        local, _, _ = stab.step(take.positions[i], take.valid[i])
+        out.append(np.where(take.valid[i][:, None], local - profile.source_neutral, 0.0))
+    return out, list(take.valid)
+
+
 def test_calibrates_on_the_stream_then_solves_every_frame(setup):
     rig, layout, take, _ = setup
     cap = Capture()

@@ -33,7 +33,7 @@ import os
 import signal
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -68,6 +68,12 @@ class StageTiming:
         s = self.samples[:k] * 1e3
         p50, p99 = np.percentile(s, [50, 99])
         return {"p50_ms": float(p50), "p99_ms": float(p99), "max_ms": float(s.max())}
+
+
+def solver_latency(solver) -> int:
+    """Frames between a solver's input and the frame its ``step`` output belongs to (0 when it says none)."""
+    lag = getattr(solver, "latency_frames", getattr(solver, "lookahead", 0))
+    return int(lag) if isinstance(lag, int | np.integer) else 0
 
 
 class Pipeline:
@@ -122,6 +128,7 @@ class Pipeline:
         self._bounds = (np.asarray(profile.lower, dtype=float) + BOUND_TOL, np.asarray(profile.upper, dtype=float)
                         - BOUND_TOL)
         self._solver = build_solver(self.mode, profile, self.options)
+        self._lagged: deque = deque(maxlen=solver_latency(self._solver) + 1)
 
     def _calibrate(self) -> bool:
         frames = self._buffer
@@ -190,18 +197,25 @@ class Pipeline:
 
     # ------------------------------------------------------------------ the loop
     def solve_frame(self, frame: MarkerFrame) -> SolveResult | None:
+        """Stabilise and solve one frame. A solver with ``latency_frames`` L returns the weights of the
+        frame L steps back; they are published with that frame's number, time, head pose and markers
+        (so sinks get weights and pose in step), and its first L outputs, which belong to no frame, are not."""
         t0 = time.perf_counter()
         local, R, t = self._stabiliser.step(frame.positions, frame.valid)
-        valid = frame.valid
-        target = np.where(valid[:, None], local - self._neutral, 0.0)
+        target = np.where(frame.valid[:, None], local - self._neutral, 0.0)
+        self._lagged.append((frame, local, R, t, target))
         t_step = time.perf_counter()
         try:
-            w = np.asarray(self._solver.step(target, valid), dtype=float)
+            w = np.asarray(self._solver.step(target, frame.valid), dtype=float)
         except Exception as exc:  # a solver bug must not end a live session
             self._error("solver_error", f"frame {frame.frame}: {type(exc).__name__}: {exc}")
             return None
         self._step_time = time.perf_counter() - t_step
         self.timing["step"].add(self._step_time)
+        if len(self._lagged) < self._lagged.maxlen:
+            return None
+        frame, local, R, t, target = self._lagged[0]
+        valid = frame.valid
         if not np.isfinite(w).all():
             self._error("solver_nonfinite", f"frame {frame.frame}: solver returned NaN/inf")
             return None
