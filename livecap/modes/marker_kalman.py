@@ -19,10 +19,12 @@ Offline the IMM runs forwards and backwards and the two are averaged (zero phase
 
 The stabiliser's residual head-pose error is fitted with the expression: six linearised rigid
 columns beside the basis, unbounded and outside the prior, in the same QP (solvers.pose_refine).
-Issue 15 (ICT, 0.5 mm, six real performances): streamed vertex p95 1.02 -> 0.79 x the oracle against
-the Kabsch/solve alternation it replaced, offline 0.71 -> 0.43 x. Offline, the pose fitted on the
-smoothed markers is undone on the raw ones and the take smoothed and solved again (POSE_PASSES), so
-the smoother's noise choice does not see the pose error.
+Issue 15 (ICT, six real performances, ``livecap realeval``): against the Kabsch/solve alternation it
+replaced, streamed vertex p95 1.02 -> 0.79 x the oracle at 0.5 mm, offline 0.71 -> 0.43 x; with the
+stream's hidden markers dropped after 2 frames (solvers.marker_kalman) as well, streamed 0.66 x at
+0.5 mm and 1.50 -> 0.72 x at 0.2 mm. Offline, the pose fitted on the smoothed markers is undone on the
+raw ones and the take smoothed and solved again (POSE_PASSES), so the smoother's noise choice does
+not see the pose error.
 
 Streamed cost (issue 15): the marker bank runs over q / r only (solvers.marker_kalman), the held-out
 strength is tried every STRENGTH_TRIAL_EVERY-th frame, and pose and expression are one QP solve: one
