@@ -1,77 +1,58 @@
-"""Head pose fitted jointly with the expression, by alternation.
+"""Head pose fitted jointly with the expression: six rigid columns beside the blendshape basis.
 
 The "stable" markers are not rigid: they move with expression (ICT's nose bridge 1.6 mm with
-browInnerUp), so a rigid fit to their neutral positions leaves the expression in the pose and the
-pose error in every marker. Given solved weights, the basis predicts where the stable markers
-should be; re-fitting the rigid correction to those predictions and solving again alternates
-between pose and expression (block coordinate descent on one objective; Seol et al. 2012 §3.1
-fit the pose to the neutral only, which is the first step of this).
+browInnerUp), so the stabiliser's rigid fit to their neutral positions leaves part of the
+expression in the pose and the pose error in every marker (Seol et al. 2012 §3.1 fit the pose to
+the neutral only). The residual correction is small (the stabiliser has removed the head motion),
+so it is linearised about the stabilised frame: a small translation t and rotation w move neutral
+marker p by t + w x (p - c), six columns that do not depend on the frame. Appended to the basis,
+unbounded and outside the weights' prior, they make pose and expression ONE bounded least-squares
+fit over all visible markers (Gauss-Newton's first step for the joint problem; Nocedal & Wright
+2006 §10.3): the prior, not the few stable markers, decides what is expression and what is pose.
 
-Streamed (``StreamingPoseRefit``) the alternation starts from part of the last frame's correction.
-Offline the correction is fitted on the *smoothed* markers (``pose_from``) and applied to the raw
-ones: fitted on the raw stable markers it carries their noise into every marker as a rigid jitter,
-which the smoother then reads as a larger marker noise (issue 15, ICT 0.5 mm: chosen noise 0.5 -> 0.7 mm,
-blink peaks 0.63 -> 0.46).
+Each frame's correction is fitted from scratch, so it cannot accumulate. The alternation it
+replaces (Kabsch of the stable markers onto the ones the solved expression predicts, then solve
+again) had to carry its correction from frame to frame to pay, and carried in full it drifted to
+17 degrees on a synthetic rig whose stable markers the shapes move (issue 15, docs/robustness.md).
+Linearisation error: |w|^2 |p - c| / 2, 0.01 mm at 1 degree and 80 mm.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from solvers.rigid import kabsch
-
-
-def refit_pose(targets: np.ndarray, valid: np.ndarray, weights: np.ndarray, neutral: np.ndarray,
-               stable: np.ndarray, basis: np.ndarray, pose_from: np.ndarray | None = None) -> np.ndarray:
-    """Targets (T x n x 3, displacements from ``neutral`` in the head frame) moved by the rigid
-    correction that best maps each frame's stable markers (of ``pose_from``, default the targets)
-    onto neutral + basis @ weights."""
-    out = np.array(targets, dtype=np.float64, copy=True)
-    src = out if pose_from is None else np.asarray(pose_from, dtype=np.float64)
-    stable = np.asarray(stable, bool)
-    for t in range(len(out)):
-        m = stable & valid[t]
-        if m.sum() < 3:
-            continue
-        pred = (basis @ weights[t]).reshape(-1, 3)
-        R, tr = kabsch((neutral + src[t])[m], (neutral + pred)[m])
-        out[t] = np.where(valid[t][:, None], (neutral + out[t]) @ R.T + tr - neutral, 0.0)
-    return out
+N_POSE = 6  # translation x y z (mm), then rotation x y z (mm of arc at the markers' rms radius)
 
 
-class StreamingPoseRefit:
-    """The same alternation streamed, its start carried from frame to frame: ``apply`` moves a
-    frame's markers part of the way by the last frame's correction, the pose error changing slowly;
-    ``refit`` fits the correction afresh from the frame's own markers to the stable markers the solved
-    expression predicts, and applies it. If a re-fit from a start s gives c + g s along some direction
-    (g: how much of the start the expression gives back), two re-fits from the identity give
-    c (1 + g); carrying a fraction b of the last correction settles at c / (1 - b g), which for
-    b = 0.3 is below c (1 + g) for every g <= 2.3 (b = 1 diverges at g = 1, b = 0.5 at g = 2). Measured
-    (issue 15) on a synthetic rig whose four stable markers the shapes move (no head motion, so every
-    correction is error): rotation p95 7.4 degrees with two re-fits from the identity, 13.9 carried
-    half way, 4.7 carried 0.3 of the way, 23 carried in full."""
+class RigidColumns:
+    """The six rigid motions of the neutral markers (3n x 6), about their centroid ``c``; rotation
+    columns scaled by the rms radius so that all six are in mm at the markers (a balanced Hessian)."""
 
-    def __init__(self, neutral: np.ndarray, stable: np.ndarray, basis: np.ndarray) -> None:
+    def __init__(self, neutral: np.ndarray) -> None:
         self.neutral = np.asarray(neutral, dtype=np.float64)
-        self.stable = np.flatnonzero(np.asarray(stable, bool))
-        self.basis_stable = np.asarray(basis, dtype=np.float64).reshape(len(self.neutral), 3, -1)[self.stable]
-        self.reset()
+        self.centre = self.neutral.mean(0)
+        p = self.neutral - self.centre
+        self.radius = float(np.sqrt((p**2).sum(1).mean())) or 1.0
+        J = np.zeros((len(p), 3, N_POSE))
+        J[:, :, :3] = np.eye(3)
+        J[:, :, 3:] = np.swapaxes(np.cross(np.eye(3)[None], p[:, None]), 1, 2) / self.radius  # e_k x p
+        self.matrix = J.reshape(3 * len(p), N_POSE)
 
-    def reset(self) -> None:
-        self.R, self.t = np.eye(3), np.zeros(3)
+    def augment(self, basis: np.ndarray, lower: np.ndarray, upper: np.ndarray, mean: np.ndarray,
+                precision: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Basis, limits, prior mean and precision of the joint fit: the pose unbounded, no prior on it."""
+        m = np.shape(basis)[1]
+        P = np.zeros((m + N_POSE, m + N_POSE))
+        P[:m, :m] = precision
+        inf = np.full(N_POSE, np.inf)
+        return (np.hstack([basis, self.matrix]), np.r_[lower, -inf], np.r_[upper, inf],
+                np.r_[mean, np.zeros(N_POSE)], P)
 
-    def apply(self, x: np.ndarray, valid: np.ndarray, carry: float = 1.0) -> np.ndarray:
-        """Markers (n x 3, displacements from the neutral) moved ``carry`` of the way by the current
-        correction, 0 where invalid."""
-        moved = (self.neutral + x) @ self.R.T + self.t - self.neutral
-        return np.where(valid[:, None], x + carry * (moved - x) if carry != 1.0 else moved, 0.0)
-
-    def refit(self, x: np.ndarray, valid: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        """The correction re-fitted to ``weights``' stable markers, applied to ``x`` (the last one is
-        kept while fewer than 3 stable markers are valid)."""
-        m = valid[self.stable]
-        if m.sum() >= 3:
-            idx = self.stable[m]
-            pred = self.neutral[idx] + self.basis_stable[m] @ weights
-            self.R, self.t = kabsch(self.neutral[idx] + x[idx], pred)
-        return self.apply(x, valid)
+    def remove(self, targets: np.ndarray, valid: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """Targets (T x n x 3, displacements from the neutral) with each frame's fitted rigid motion
+        (T x 6) undone exactly (rotation by its rotation vector), 0 where invalid."""
+        R = Rotation.from_rotvec(pose[:, 3:] / self.radius).as_matrix()
+        q = self.neutral + np.asarray(targets, dtype=np.float64) - self.centre - pose[:, None, :3]
+        out = np.einsum("tnj,tji->tni", q, R) + self.centre - self.neutral  # R^T q per frame
+        return np.where(valid[..., None], out, 0.0)

@@ -10,9 +10,7 @@ from hypothesis import strategies as st
 from livecap.calibration.animation_prior import AnimationPrior
 from livecap.cli import main
 from solvers.marker_kalman import StreamingMarkerKalman, bridged, smooth_take
-from solvers.pose_refine import refit_pose
 from solvers.prior_strength import HeldOutStrength
-from solvers.rigid import kabsch
 from tests.test_curves_take import short_csv  # noqa: F401 - fixture
 
 
@@ -99,24 +97,70 @@ def test_local_process_noise_keeps_a_blink_and_smooths_the_still_face():
     assert np.sqrt(np.mean(still ** 2)) < 0.25 * 0.3
 
 
-def test_pose_refit_from_the_smoothed_markers_keeps_the_raw_noise_out_of_the_pose():
-    rng = np.random.default_rng(3)
-    neutral = rng.normal(0, 30, (12, 3))
-    stable = np.arange(12) < 6
-    basis = np.zeros((36, 2))
-    angle = 0.02
-    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
-    moved = (neutral @ R.T + [0.5, -0.3, 0.2] - neutral)[None].repeat(50, 0)  # a pose error, no expression
-    noise = rng.normal(0, 0.5, moved.shape)
-    valid = np.ones((50, 12), bool)
-    W = np.zeros((50, 2))
-    fixed = refit_pose(moved + noise, valid, W, neutral, stable, basis, pose_from=moved)
-    raw = refit_pose(moved + noise, valid, W, neutral, stable, basis)
-    R0, t0 = kabsch(neutral + moved[0], neutral)  # the true correction
-    expected = (neutral + moved + noise) @ R0.T + t0 - neutral
-    assert np.allclose(fixed, expected, atol=1e-6)  # from noise-free smoothed markers: the true correction
-    # fitted on the raw stable markers, each frame's correction follows their noise: a rigid jitter
-    assert np.sqrt(np.mean((raw - expected)[:, ~stable] ** 2)) > 0.15
+def _face(seed: int = 3, n: int = 40, m: int = 8):
+    """A synthetic profile whose six 'stable' markers the shapes move (as ICT's nose bridge does)."""
+    from livecap.calibration.profile import Profile
+
+    rng = np.random.default_rng(seed)
+    neutral = rng.normal(0, 40, (n, 3))
+    basis = rng.normal(0, 2.0, (3 * n, m))
+    basis[:18] *= 0.4  # the stable markers move less, but move
+    return Profile([f"m{i}" for i in range(n)], [f"s{k}" for k in range(m)], neutral, np.arange(n) < 6, basis,
+                   np.zeros(m), np.ones(m), neutral.copy())
+
+
+def _moved(neutral: np.ndarray, x: np.ndarray, pose: np.ndarray, radius: float) -> np.ndarray:
+    """Displacements ``x`` seen after the exact rigid motion ``pose`` (about the neutral's centroid)."""
+    from scipy.spatial.transform import Rotation
+
+    c = neutral.mean(0)
+    R = Rotation.from_rotvec(pose[3:] / radius).as_matrix()
+    return (neutral + x - c) @ R.T + c + pose[:3] - neutral
+
+
+def test_joint_pose_fit_recovers_a_small_rigid_motion_and_the_weights():
+    from solvers.pose_refine import RigidColumns
+    from solvers.qp import FrameQP
+
+    p = _face()
+    cols = RigidColumns(p.source_neutral)
+    w = np.array([0.1, 0.6, 0.0, 0.3, 0.9, 0.2, 0.0, 0.5])
+    pose = np.array([0.8, -0.5, 0.3, 0.0, 0.0, 0.0])
+    pose[3:] = np.radians([1.0, -0.7, 0.5]) * cols.radius  # about a degree
+    target = _moved(p.source_neutral, (p.basis @ w).reshape(-1, 3), pose, cols.radius)
+    valid = np.ones(len(target), bool)
+    valid[[7, 20]] = False
+    B, lower, upper, mean, precision = cols.augment(p.basis, p.lower, p.upper, np.zeros(8), np.eye(8))
+    z = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=1e-6).step(target, valid)
+    assert np.abs(z[:8] - w).max() < 0.01
+    assert np.abs(z[8:] - pose).max() < 0.02  # mm (linearisation: ~0.01 mm at a degree)
+    plain = FrameQP(p.basis, p.lower, p.upper, prior=(np.zeros(8), np.eye(8)), prior_weight=1e-6).step(target, valid)
+    assert np.abs(plain - w).max() > 0.1  # without the pose columns the pose error goes into the weights
+    exact = cols.remove(target[None], valid[None], pose[None])[0]  # the true motion undone exactly
+    np.testing.assert_allclose(exact[valid], (p.basis @ w).reshape(-1, 3)[valid], atol=1e-9)
+    assert not exact[~valid].any()
+
+
+def test_streamed_joint_pose_does_not_drift_when_the_head_is_still():
+    """Every frame's pose is fitted afresh with the expression, so it cannot accumulate: the Kabsch /
+    solve alternation carried in full drifted to 17 degrees on a rig like this (issue 15)."""
+    from livecap.modes.marker_kalman import kalman_mode
+
+    p = _face()
+    rng = np.random.default_rng(5)
+    T = 900
+    W = np.clip(0.5 + 0.4 * np.sin(np.arange(T)[:, None] * rng.uniform(0.01, 0.06, 8) + rng.uniform(0, 6, 8)), 0, 1)
+    X = (W @ p.basis.T).reshape(T, -1, 3) + rng.normal(0, 0.2, (T, 40, 3))
+    solver = kalman_mode(p, {"rate": 60.0})
+    poses, out = [], []
+    for t in range(T):
+        out.append(solver.step(X[t], np.ones(40, bool)))
+        poses.append(solver.head_correction.copy())
+    poses, out = np.array(poses), np.array(out)
+    assert np.abs(poses[:, :3]).max() < 0.3  # mm
+    assert np.degrees(np.abs(poses[:, 3:]).max() / solver.pose.radius) < 0.3
+    assert np.abs(poses[-300:]).mean() <= 2 * np.abs(poses[60:360]).mean() + 1e-3
+    assert np.sqrt(np.mean((out[1:] - W[:-1]) ** 2)) < 0.05  # one frame of latency
 
 
 def test_weight_motion_stage_follows_a_ramp_without_lag_and_cuts_noise():
@@ -160,23 +204,13 @@ def test_streaming_lambda_bank_equals_the_full_r_by_q_bank():
         np.testing.assert_allclose(out, bank.x[pick, np.arange(5)], atol=1e-9)
 
 
-def test_streaming_pose_refit_is_the_batch_refit_of_one_frame_and_carries_part_of_it():
-    from solvers.pose_refine import StreamingPoseRefit
-
-    rng = np.random.default_rng(8)
-    neutral = rng.normal(0, 30, (12, 3))
-    stable = np.arange(12) < 5
-    basis = rng.normal(0, 1, (36, 3))
-    x = rng.normal(0, 0.5, (12, 3))
-    valid = np.ones(12, bool)
-    valid[[1, 9]] = False
-    w = np.array([0.2, 0.5, 0.1])
-    pose = StreamingPoseRefit(neutral, stable, basis)
-    np.testing.assert_allclose(pose.apply(x, valid), np.where(valid[:, None], x, 0.0), atol=1e-12)  # the identity
-    out = pose.refit(x, valid, w)
-    np.testing.assert_allclose(out, refit_pose(x[None], valid[None], w[None], neutral, stable, basis)[0], atol=1e-9)
-    half = pose.apply(x, valid, 0.5)
-    np.testing.assert_allclose(half[valid], 0.5 * (x + out)[valid], atol=1e-12)
-    valid[:4] = False  # one stable marker left: the last correction is kept
-    np.testing.assert_allclose(pose.refit(x, valid, w)[valid], out[valid], atol=1e-12)
-
+def test_stream_reports_a_hidden_marker_missing_after_two_frames_where_the_smoother_bridges_it():
+    """Extrapolating a hidden marker at constant velocity cost more than fitting without it (issue 15:
+    ICT 0.2 mm, weight RMSE 0.68 -> 0.45 x the oracle when the stream stopped after 2 frames, not 15)."""
+    truth, noisy = _walk(80, 3, 0.2, 9)
+    valid = np.ones((80, 3), bool)
+    valid[40:46, 1] = False  # hidden for six frames
+    f = StreamingMarkerKalman(3, lag=0)
+    oks = np.array([f.step(noisy[t], valid[t])[1] for t in range(80)])
+    assert oks[40:42, 1].all() and not oks[42:46, 1].any() and oks[46:, 1].all()
+    assert smooth_take(noisy, valid)[1][:, 1].all()  # offline the gap is interpolated from both ends

@@ -17,11 +17,18 @@ adds about a tenth), not the pose re-fit; the IMM cuts it to 3.3 x / 2.2 x at no
 and no added lag (it holds while innovations look like noise and follows at once when they do not).
 Offline the IMM runs forwards and backwards and the two are averaged (zero phase).
 
+The stabiliser's residual head-pose error is fitted with the expression: six linearised rigid
+columns beside the basis, unbounded and outside the prior, in the same QP (solvers.pose_refine).
+Issue 15 (ICT, six real performances, ``livecap realeval``): against the Kabsch/solve alternation it
+replaced, streamed vertex p95 1.02 -> 0.79 x the oracle at 0.5 mm, offline 0.71 -> 0.43 x; with the
+stream's hidden markers dropped after 2 frames (solvers.marker_kalman) as well, streamed 0.66 x at
+0.5 mm and 1.50 -> 0.72 x at 0.2 mm. Offline, the pose fitted on the smoothed markers is undone on the
+raw ones and the take smoothed and solved again (POSE_PASSES), so the smoother's noise choice does
+not see the pose error.
+
 Streamed cost (issue 15): the marker bank runs over q / r only (solvers.marker_kalman), the held-out
-strength is tried every STRENGTH_TRIAL_EVERY-th frame, and the pose alternation starts from 0.3 of
-the last frame's correction with one re-fit (solvers.pose_refine.StreamingPoseRefit): two QP solves
-and one rigid fit a frame plus half a trial, instead of four solves and two fits; 2.1-2.8 x less
-thread CPU at 60 markers (docs/robustness.md, "`kalman` streamed cost").
+strength is tried every STRENGTH_TRIAL_EVERY-th frame, and pose and expression are one QP solve: one
+solve a frame plus half a trial (docs/robustness.md, "`kalman` streamed cost", "joint pose").
 """
 
 from __future__ import annotations
@@ -36,7 +43,7 @@ from livecap.calibration.animation_prior import AnimationPrior
 from livecap.calibration.profile import Profile
 from livecap.modes.robust import robust_settings
 from solvers.marker_kalman import KalmanSettings, StreamingMarkerKalman, smooth_take
-from solvers.pose_refine import StreamingPoseRefit, refit_pose
+from solvers.pose_refine import RigidColumns
 from solvers.prior_strength import HeldOutStrength
 from solvers.qp import FrameQP
 from solvers.tracking import IMMFilter, dwna_variance
@@ -44,8 +51,7 @@ from solvers.tracking import IMMFilter, dwna_variance
 STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it balances)
 STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
 STRENGTH_TRIAL_EVERY = 2  # streaming: frames per held-out strength trial (4: demo take RMSE +13 %, see docs)
-POSE_CARRY = 0.3  # streaming: the part of the last frame's pose correction that starts the next (pose_refine)
-POSE_REFITS = 2  # offline pose/expression alternations (issue 15: ICT 0.2 mm vertex p95 0.66 -> 0.43 -> 0.35 mm)
+POSE_PASSES = 2  # offline: joint solves, the pose undone on the raw markers between (3: no better, issue 15)
 
 
 @dataclass(frozen=True)
@@ -64,7 +70,8 @@ class WeightMotion:
 
 class MarkerKalmanSolver:
     """``step``: filtered markers of frame t - 1 -> weights (``latency_frames`` = 1);
-    ``solve``: the whole take RTS-smoothed -> weights per frame."""
+    ``solve``: the whole take RTS-smoothed -> weights per frame. ``head_correction``: the residual head
+    motion fitted with the last streamed frame (solvers.pose_refine: translation mm, rotation mm of arc)."""
 
     latency_frames = 1
 
@@ -73,25 +80,26 @@ class MarkerKalmanSolver:
         self.profile, self.mean, self.precision, self.settings = profile, mean, precision, settings
         self.motion = motion
         self.norms = np.maximum(np.linalg.norm(profile.basis, axis=0), 1e-9)
+        self.pose = RigidColumns(profile.source_neutral)
+        self.m = len(profile.names)
         self.lower, self.upper = profile.lower, profile.upper
+        self.joint = self.pose.augment(profile.basis, profile.lower, profile.upper, mean, precision)  # B, limits, prior
         self.filter = StreamingMarkerKalman(profile.n_markers, settings, lag=self.latency_frames)
-        self.pose = StreamingPoseRefit(profile.source_neutral, profile.stable, profile.basis)
         self.chosen: dict = {}
         self.reset()
 
     def _selector(self, decay: float) -> HeldOutStrength:
-        return HeldOutStrength(self.profile.basis, self.lower, self.upper, self.mean, self.precision, STRENGTHS,
-                               decay=decay)
+        return HeldOutStrength(*self.joint, STRENGTHS, decay=decay)
 
     def _fit(self, k: int) -> FrameQP:
         if k not in self._fits:
-            self._fits[k] = FrameQP(self.profile.basis, self.lower, self.upper, prior=(self.mean, self.precision),
-                                    prior_weight=float(STRENGTHS[k]))
+            B, lower, upper, mean, precision = self.joint
+            self._fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(STRENGTHS[k]))
         return self._fits[k]
 
     def reset(self) -> None:
         self.filter.reset()
-        self.pose.reset()
+        self.head_correction = np.zeros(6)
         self.selector = self._selector(0.5 ** (STRENGTH_TRIAL_EVERY / STREAM_HALF_LIFE_FRAMES))
         self._frame = 0
         self._fits: dict[int, FrameQP] = {}
@@ -105,31 +113,31 @@ class MarkerKalmanSolver:
         if self._frame % STRENGTH_TRIAL_EVERY == 0:
             self.selector.observe(x, ok)
         self._frame += 1
-        fit = self._fit(self.selector.best)
-        w = fit.step(self.pose.apply(x, ok, POSE_CARRY), ok)
-        w = fit.step(self.pose.refit(x, ok, w), ok)
+        z = self._fit(self.selector.best).step(x, ok)
+        w, self.head_correction = z[:self.m], z[self.m:]
         noise = self.filter.noise_mm
         if self._imm is None or self._imm[0] != noise:  # noise settles in the first frames; rarely changes after
             self._imm = (noise, self.motion.imm(noise, self.norms))
         return self._imm[1].step(w)
 
     def solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
-        """RTS-smoothed markers -> prior fit; then POSE_REFITS times: head pose re-fitted on the smoothed
-        markers to the stable markers the expression predicts (solvers.pose_refine), applied to the raw
-        markers, smoothed and solved again; last the IMM forwards and backwards, averaged."""
-        p = self.profile
+        """RTS-smoothed markers -> joint pose and prior fit; POSE_PASSES times, the pose fitted on the
+        smoothed markers undone on the raw ones (fitted on the raw ones it would carry their noise into
+        every marker as a rigid jitter); last the IMM forwards and backwards, averaged."""
         valid = np.asarray(valid, bool)
         d = np.asarray(targets, float)
-        for i in range(POSE_REFITS + 1):
-            W, smoothed = self._solve_once(d, valid)
-            if i < POSE_REFITS:
-                d = refit_pose(d, valid, W, p.source_neutral, p.stable, p.basis, pose_from=smoothed)
+        for i in range(POSE_PASSES):
+            Z = self._solve_once(d, valid)
+            if i < POSE_PASSES - 1:
+                d = self.pose.remove(d, valid, Z[:, self.m:])
+        W = Z[:, :self.m]
         noise = self.chosen["noise_mm"]
         forward = self.motion.imm(noise, self.norms).filter(W)
         backward = self.motion.imm(noise, self.norms).filter(W[::-1])[::-1]
         return 0.5 * (forward + backward)
 
-    def _solve_once(self, targets: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _solve_once(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """Weights and pose (T x (m + 6)) of the RTS-smoothed take."""
         smoothed, ok, self.chosen = smooth_take(targets, valid, self.settings)
         sel = self._selector(1.0)
         for t in range(len(targets)):
@@ -137,7 +145,7 @@ class MarkerKalmanSolver:
         self.chosen["prior_weight"] = float(STRENGTHS[sel.best])
         fit = self._fit(sel.best)
         fit.reset()
-        return np.array([fit.step(smoothed[t], ok[t]) for t in range(len(targets))]), smoothed
+        return np.array([fit.step(smoothed[t], ok[t]) for t in range(len(targets))])
 
 def animation_prior_option(options: Mapping | None) -> AnimationPrior | None:
     """The animation prior an option ``prior`` gives (an AnimationPrior or the path of one, .npz), else
