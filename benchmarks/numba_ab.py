@@ -1,15 +1,19 @@
-"""The compiled IMM weight stage (solvers/imm_kernels.py) against the whole-array numpy one of a git revision,
-A/B in one process (issue 18: robust p99 at 72x150, offline ICT 5 % / 30 %).
+"""The compiled (numba) kernels against the numpy code of a git revision, A/B in one process (issue 18:
+robust p99 at 72x150, offline ICT 5 % / 30 %).
 
-Per-frame: the ``robust`` mode on benchmarks/synthetic.py streams at solve_latency's sizes, built once, its
-weight stage either this tree's ``IMMFilter`` or the class from ``--before`` (default 4eeff2c, before it was
-compiled) with the same parameters; the two solvers are stepped in alternating blocks (the load falls on both
-alike), wall and thread-CPU p50 / p99 per ``step`` (µs), and the IMM step alone on the fitted weights. Offline:
-generated 30 s ICT takes (as benchmarks.offline makes them, ../shared/realdata) at 5 % and 30 % occlusion,
-read + ``solve_take`` + write per variant in alternation, best of ``--repeats``; x real time on wall and on
-process CPU. Each row has the largest weight difference between the two:
+``--parts`` picks what the "before" solver takes from ``--before`` (default 4eeff2c, before the kernels):
+``imm``, the IMM weight stage (solvers/tracking.py ``IMMFilter``, same parameters), ``box``, the box QP
+(solvers/box_qp.py ``BoxQP``, put in ``solvers.qp`` while that solver builds and steps, so every visibility
+pattern's workspace gets it), or both; "after" is this tree.
 
-    python -m benchmarks.imm_ab [--quick] [--sizes 72x150] [--takes 0.05,0.3] [--before REV] [--json PATH]
+Per-frame: the ``robust`` mode on benchmarks/synthetic.py streams at solve_latency's sizes, the two solvers
+stepped in alternating blocks (the load falls on both alike), wall and thread-CPU p50 / p99 per ``step`` (µs),
+with ``imm`` also the IMM step alone on the fitted weights. Offline: generated 30 s ICT takes (as
+benchmarks.offline makes them, ../shared/realdata) at 0, 5 and 30 % occlusion, read + ``solve_take`` + write per
+variant in alternation, best of ``--repeats``; x real time on wall and on process CPU. Each row has the largest
+weight difference between the two:
+
+    python -m benchmarks.numba_ab [--parts imm,box] [--quick] [--sizes 72x150] [--takes 0.05,0.3] [--json PATH]
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+import solvers.qp
 from benchmarks.solve_latency import SIZES
 from benchmarks.synthetic import synthetic_profile, synthetic_stream
 from livecap.modes.registry import build_solver
@@ -34,13 +39,35 @@ from solvers.tracking import IMMFilter
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def old_imm(rev: str) -> type:
-    """``IMMFilter`` as solvers/tracking.py defines it at git revision ``rev``."""
-    src = subprocess.run(["git", "show", f"{rev}:solvers/tracking.py"], cwd=ROOT, check=True, capture_output=True,
-                         text=True).stdout
-    mod = types.ModuleType(f"tracking_{rev}")
-    exec(compile(src, f"{rev}:solvers/tracking.py", "exec"), mod.__dict__)
-    return mod.IMMFilter
+def old_class(rev: str, path: str, name: str) -> type:
+    """Class ``name`` as file ``path`` defines it at git revision ``rev``."""
+    src = subprocess.run(["git", "show", f"{rev}:{path}"], cwd=ROOT, check=True, capture_output=True, text=True).stdout
+    mod = types.ModuleType(f"{Path(path).stem}_{rev}")
+    exec(compile(src, f"{rev}:{path}", "exec"), mod.__dict__)
+    return getattr(mod, name)
+
+
+class Variant:
+    """What one arm uses: its IMM class (None: this tree's) and its BoxQP class (set while it runs)."""
+
+    def __init__(self, imm: type | None, box: type) -> None:
+        self.imm, self.box = imm, box
+
+    def build(self, profile):
+        solvers.qp.BoxQP = self.box
+        s = build_solver("robust", profile, {})
+        if self.imm is not None:
+            s.weight_filter = twin(s.weight_filter, self.imm)
+        return s
+
+    def __call__(self, fn):
+        """``fn`` wrapped to run with this arm's BoxQP in ``solvers.qp`` (new patterns' workspaces take it)."""
+
+        def run(*a):
+            solvers.qp.BoxQP = self.box
+            return fn(*a)
+
+        return run
 
 
 def twin(f: IMMFilter, before: type):
@@ -72,29 +99,30 @@ def _alternate(calls: dict, count: int, block: int) -> dict:
             for k, (w, c) in samples.items()}
 
 
-def per_frame(n: int, m: int, before: type, count: int, block: int = 250) -> dict:
+def per_frame(n: int, m: int, arms: dict, count: int, block: int = 250) -> dict:
     profile = synthetic_profile(n, m)
     targets, valid, truth = synthetic_stream(profile, 3000)
     T = len(targets)
-    runs = {"before": build_solver("robust", profile, {}), "after": build_solver("robust", profile, {})}
-    runs["before"].weight_filter = twin(runs["after"].weight_filter, before)
+    runs = {k: arm.build(profile) for k, arm in arms.items()}
     out = {}
     for k, s in runs.items():
         s.reset()
-        out[k] = np.array([s.step(targets[i], valid[i]) for i in range(1000)])
-    W = np.array([runs["after"].inner.step(targets[i], valid[i]) for i in range(T)])  # fitted weights
-    imms = {"imm before": twin(runs["after"].weight_filter, before), "imm after": runs["after"].weight_filter}
-    for f in imms.values():
-        f.reset()
-        f.step(W[0])
-    calls = {**{k: (lambda i, s=s: s.step(targets[i % T], valid[i % T])) for k, s in runs.items()},
-             **{k: (lambda i, f=f: f.step(W[i % T])) for k, f in imms.items()}}
+        out[k] = np.array([arms[k](s.step)(targets[i], valid[i]) for i in range(1000)])
+    calls = {k: arms[k](lambda i, s=s: s.step(targets[i % T], valid[i % T])) for k, s in runs.items()}
+    if arms["before"].imm is not None:  # the IMM step alone on the fitted weights
+        W = np.array([runs["after"].inner.step(targets[i], valid[i]) for i in range(T)])
+        imms = {"imm before": twin(runs["after"].weight_filter, arms["before"].imm),
+                "imm after": runs["after"].weight_filter}
+        for f in imms.values():
+            f.reset()
+            f.step(W[0])
+        calls.update({k: (lambda i, f=f: f.step(W[i % T])) for k, f in imms.items()})
     res = _alternate(calls, count, block)
     return {"size": f"{n}x{m}", "max_abs_diff": float(np.abs(out["before"] - out["after"]).max()),
             "rmse": float(np.sqrt(np.mean((out["after"][:300] - truth[:300]) ** 2))), **res}
 
 
-def offline(occlusion: float, before: type, repeats: int, folder: Path) -> dict | None:
+def offline(occlusion: float, arms: dict, repeats: int, folder: Path) -> dict | None:
     from benchmarks.offline import ICT, _profile, _rigs, _take
     from livecap.calibration.profile import Profile
     from livecap.offline.solve import solve_take
@@ -114,11 +142,9 @@ def offline(occlusion: float, before: type, repeats: int, folder: Path) -> dict 
             cpu0, t0 = time.process_time(), time.perf_counter()
             take = read_take(take_path)
             profile = Profile.load(profile_path)
-            solver = build_solver("robust", profile)
-            if k == "before":
-                solver.weight_filter = twin(solver.weight_filter, before)
+            solver = arms[k].build(profile)
             t1 = time.perf_counter()
-            solved = solve_take(take, profile, solver)
+            solved = arms[k](solve_take)(take, profile, solver)
             t2 = time.perf_counter()
             write_weights_csv(folder / f"{k}.csv", solved.names, solved.weights, solved.rate, solved.first_frame)
             t3, cpu = time.perf_counter(), time.process_time() - cpu0
@@ -141,22 +167,28 @@ def main() -> int:
     ap.add_argument("--takes", default="0,0.05,0.3", help="ICT take occlusions ('' for none)")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--before", default="4eeff2c")
+    ap.add_argument("--parts", default="imm,box", help="what 'before' takes from --before: imm, box or both")
     ap.add_argument("--json")
     args = ap.parse_args()
-    before = old_imm(args.before)
+    parts = set(filter(None, args.parts.split(",")))
+    after_box = solvers.qp.BoxQP
+    arms = {"before": Variant(old_class(args.before, "solvers/tracking.py", "IMMFilter") if "imm" in parts else None,
+                              old_class(args.before, "solvers/box_qp.py", "BoxQP") if "box" in parts else after_box),
+            "after": Variant(None, after_box)}
     count = 1000 if args.quick else 6000
-    out = {"before": args.before, "load_start": os.getloadavg(), "per_frame": [], "offline": []}
+    out = {"before": args.before, "parts": sorted(parts), "load_start": os.getloadavg(), "per_frame": [],
+           "offline": []}
     for size in filter(None, args.sizes.split(",")):
         n, m = (int(v) for v in size.split("x"))
-        row = per_frame(n, m, before, count)
+        row = per_frame(n, m, arms, count)
         out["per_frame"].append(row)
         print(f"robust {row['size']:9s} " + "  ".join(
             f"{k} {row[k]['p50_us']:.1f}/{row[k]['p99_us']:.1f} (CPU {row[k]['cpu_p50_us']:.1f}/"
-            f"{row[k]['cpu_p99_us']:.1f})" for k in ("before", "after", "imm before", "imm after"))
+            f"{row[k]['cpu_p99_us']:.1f})" for k in ("before", "after", "imm before", "imm after") if k in row)
             + f"  max|diff| {row['max_abs_diff']:.1e}  load {os.getloadavg()[0]:.2f}", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         for occ in (float(v) for v in filter(None, args.takes.split(","))):
-            row = offline(occ, before, args.repeats, Path(tmp))
+            row = offline(occ, arms, args.repeats, Path(tmp))
             if row is None:
                 break
             out["offline"].append(row)
