@@ -83,7 +83,7 @@ class BoxQP:
     def warm(self, x: np.ndarray) -> None:
         """Start the next solve from the feasible point ``x``: free where strictly inside the box."""
         self._meta[0] = self._k.warm(self.H, self._V, self._I, np.ascontiguousarray(x, dtype=np.float64))
-        self._meta[1] = 1
+        self._meta[1] = 0  # no row of the factor holds
 
     def solve(self, f: np.ndarray) -> np.ndarray | None:
         """The minimiser for linear term ``f`` (None if the iteration limit is reached or H_FF is singular).

@@ -27,24 +27,25 @@ _BLOCK = 8  # more entering variables than this (and than |F|): the primal metho
 
 
 @numba.njit(cache=True, nogil=True)
-def _factor(H, I, k, L):
-    """Cholesky factor of H_FF in L's lower triangle (row-major); False if H_FF is not positive definite."""
+def _factor(H, I, k, L, start):
+    """Rows ``start`` .. k-1 of the Cholesky factor of H_FF in L's lower triangle (row-major; row i depends only
+    on rows < i, so rows that F's change left in place are kept: a variable appended costs O(k^2)). Returns the
+    number of leading rows now valid: k, or the row at which H_FF is not positive definite."""
     F = I[FREE]
-    for j in range(k):
-        fj = F[j]
-        s = H[fj, fj]
-        for p in range(j):
-            s -= L[j, p] * L[j, p]
-        if not s > 0.0:
-            return False
-        d = math.sqrt(s)
-        L[j, j] = d
-        for i in range(j + 1, k):
-            t = H[F[i], fj]
+    for i in range(start, k):
+        Hi = H[F[i]]
+        for j in range(i):
+            t = Hi[F[j]]
             for p in range(j):
                 t -= L[i, p] * L[j, p]
-            L[i, j] = t / d
-    return True
+            L[i, j] = t / L[j, j]
+        s = Hi[F[i]]
+        for p in range(i):
+            s -= L[i, p] * L[i, p]
+        if not s > 0.0:
+            return i
+        L[i, i] = math.sqrt(s)
+    return k
 
 
 @numba.njit(cache=True, nogil=True)
@@ -122,7 +123,7 @@ def _remove(H, V, I, k, n):
     takes each one's place (F's order is free: the factor is recomputed at the next pass)."""
     F, y, nc = I[FREE], V[Y], V[NC]
     m = H.shape[0]
-    for q in range(n - 1, -1, -1):
+    for q in range(n - 1, -1, -1):  # the factor's rows from the first of these positions on no longer hold
         p = I[LEAVING, q]
         v = F[p]
         if I[ABOVE, q]:
@@ -178,28 +179,31 @@ def _done(V, I, k, x):
 
 
 @numba.njit(cache=True, nogil=True)
-def _grown(L, k):
-    """L with room for a k x k factor (capacity doubles, never shrinks)."""
+def _grown(L, k, valid):
+    """L with room for a k x k factor (capacity doubles, never shrinks; the valid rows carried over)."""
     if k <= L.shape[0]:
         return L
-    return np.empty((max(k, 2 * L.shape[0]), max(k, 2 * L.shape[0])))
+    cap = max(k, 2 * L.shape[0])
+    out = np.empty((cap, cap))
+    out[:valid, :valid] = L[:valid, :valid]
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
 def solve(H, V, I, meta, L, f, x, tol, max_iter):
     """The passes of one solve (see the module doc); x written on success. Returns (ok, passes, L), passes -1
-    when H_FF is not positive definite; meta = [k, dirty] is the state between calls."""
-    k, dirty = meta[0], meta[1]
+    when H_FF is not positive definite; meta = [k, rows of the factor valid] is the state between calls."""
+    k, valid = meta[0], meta[1]
     m = H.shape[0]
     best, tries = m + 1, _TRIES
     it = 1
     while it <= max_iter:
-        if dirty:
-            L = _grown(L, k)
-            if not _factor(H, I, k, L):
-                meta[0], meta[1] = k, 1
+        if valid < k:
+            L = _grown(L, k, valid)
+            valid = _factor(H, I, k, L, valid)
+            if valid < k:
+                meta[0], meta[1] = k, valid
                 return False, -1, L  # H_FF not positive definite: no pass counted (-1)
-            dirty = 0
         big = _subproblem(H, V, I, k, L, f)
         inside = k == 0 or _inside(V, I, k)
         g, sgn = V[G], V[SGN]
@@ -210,7 +214,7 @@ def solve(H, V, I, meta, L, f, x, tol, max_iter):
         if inside and worst >= -tol:
             _keep(V, k)
             _done(V, I, k, x)
-            meta[0], meta[1] = k, 0
+            meta[0], meta[1] = k, valid
             return True, it, L
         gtol = tol + 1e-12 * big
         nJ = 0
@@ -231,7 +235,7 @@ def solve(H, V, I, meta, L, f, x, tol, max_iter):
         if n_bad == 0:
             _keep(V, k)
             _done(V, I, k, x)
-            meta[0], meta[1] = k, 0
+            meta[0], meta[1] = k, valid
             return True, it, L
         if n_bad < best and nJ <= max(_BLOCK, k):
             best, tries = n_bad, _TRIES
@@ -242,11 +246,11 @@ def solve(H, V, I, meta, L, f, x, tol, max_iter):
         _keep(V, k)
         if nP:
             k = _remove(H, V, I, k, nP)
+            valid = min(valid, I[LEAVING, 0])
         if nJ:
             k = _add(H, V, I, k, nJ)
-        dirty = 1
         it += 1
-    meta[0], meta[1] = k, dirty
+    meta[0], meta[1] = k, valid
     return False, max_iter, L
 
 
@@ -257,15 +261,15 @@ def _primal(H, V, I, meta, L, f, x, tol, max_iter, k, start):
     _keep(V, k)
     _done(V, I, k, x)
     k = warm(H, V, I, x)
-    dirty = 1
+    valid = 0
     it = start + 1
     while it <= max_iter:
-        if dirty:
-            L = _grown(L, k)
-            if not _factor(H, I, k, L):
-                meta[0], meta[1] = k, 1
+        if valid < k:
+            L = _grown(L, k, valid)
+            valid = _factor(H, I, k, L, valid)
+            if valid < k:
+                meta[0], meta[1] = k, valid
                 return False, -1, L  # H_FF not positive definite: no pass counted (-1)
-            dirty = 0
         big = _subproblem(H, V, I, k, L, f)
         if k and not _inside(V, I, k):  # step towards y until the first limit; blocking variables leave F
             F, y, cur = I[FREE], V[S], V[Y]
@@ -290,7 +294,8 @@ def _primal(H, V, I, meta, L, f, x, tol, max_iter, k, start):
                         nP += 1
                 cur[p] += alpha * d
             k = _remove(H, V, I, k, nP)
-            dirty = 1
+            if nP:
+                valid = min(valid, I[LEAVING, 0])
             it += 1
             continue
         _keep(V, k)
@@ -303,11 +308,10 @@ def _primal(H, V, I, meta, L, f, x, tol, max_iter, k, start):
         if g_min < -(tol + 1e-12 * big):  # the most violated bound enters F
             I[ENTERING, 0] = j_min
             k = _add(H, V, I, k, 1)
-            dirty = 1
             it += 1
             continue
         _done(V, I, k, x)
-        meta[0], meta[1] = k, 0
+        meta[0], meta[1] = k, valid
         return True, it, L
-    meta[0], meta[1] = k, dirty
+    meta[0], meta[1] = k, valid
     return False, max_iter, L
