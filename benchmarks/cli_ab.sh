@@ -9,8 +9,9 @@ out=$(mktemp -d)
 run() {  # tree label
   local t0 t1
   t0=$(date +%s.%N)
-  /usr/bin/time -f "%U %S" -o "$out/time" env PYTHONPATH="$1" OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 \
-    "$py" -m livecap solve "$take" --rig "$rig" --profile "$profile" --out "$out/$2.csv" >/dev/null 2>&1
+  # from inside the tree: `python -m` puts the working directory first on sys.path, before PYTHONPATH
+  (cd "$1" && /usr/bin/time -f "%U %S" -o "$out/time" env PYTHONPATH="$1" OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 \
+    "$py" -m livecap solve "$take" --rig "$rig" --profile "$profile" --out "$out/$2.csv" >/dev/null 2>&1)
   t1=$(date +%s.%N)
   echo "$2 wall $(echo "$t1 - $t0" | bc) cpu $(awk '{print $1 + $2}' "$out/time")"
 }
@@ -19,4 +20,6 @@ for i in $(seq "$reps"); do
   if [ -n "$cold" ]; then rm -f "$after"/solvers/__pycache__/*.nbi "$after"/solvers/__pycache__/*.nbc; fi
   run "$after" after
 done
+cmp -s "$out/before.csv" "$out/after.csv" && echo "weights CSV: identical" || \
+  echo "weights CSV: differ (compare with benchmarks.numba_ab's max |diff|)"
 rm -rf "$out"

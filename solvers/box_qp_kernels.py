@@ -24,9 +24,11 @@ N_ROWS = 15
 FREE, ENTERING, LEAVING, ABOVE = range(4)
 _TRIES = 3  # passes without fewer infeasibilities before the primal method takes over
 _BLOCK = 8  # more entering variables than this (and than |F|): the primal method, one at a time
+# helpers called only from the kernels: no CPython wrapper to compile
+_inner = numba.njit(cache=True, nogil=True, no_cpython_wrapper=True, no_cfunc_wrapper=True)
 
 
-@numba.njit(cache=True, nogil=True)
+@_inner
 def _factor(H, I, k, L, start):
     """Rows ``start`` .. k-1 of the Cholesky factor of H_FF in L's lower triangle (row-major; row i depends only
     on rows < i, so rows that F's change left in place are kept: a variable appended costs O(k^2)). Returns the
@@ -48,7 +50,7 @@ def _factor(H, I, k, L, start):
     return k
 
 
-@numba.njit(cache=True, nogil=True)
+@_inner
 def _subproblem(H, V, I, k, L, f):
     """S[:k] = y on F with the bounded variables fixed (H_FF y = -fc_F), G = H x + f, NFC = -(f + c);
     returns max |f + c| (the gradient tolerance grows with it)."""
@@ -69,7 +71,8 @@ def _subproblem(H, V, I, k, L, f):
         for p in range(i + 1, k):
             t -= L[p, i] * y[p]
         y[i] = t / L[i, i]
-    g[:] = 0.0
+    for j in range(m):
+        g[j] = 0.0
     for p in range(k):
         yp, row = y[p], H[F[p]]
         for j in range(m):
@@ -79,7 +82,7 @@ def _subproblem(H, V, I, k, L, f):
     return big
 
 
-@numba.njit(cache=True, nogil=True)
+@_inner
 def _inside(V, I, k):
     F, y = I[FREE], V[S]
     for p in range(k):
@@ -89,13 +92,14 @@ def _inside(V, I, k):
     return True
 
 
-@numba.njit(cache=True, nogil=True)
+@_inner
 def _keep(V, k):
     """The subproblem's solution becomes the current point."""
-    V[Y, :k] = V[S, :k]
+    for p in range(k):
+        V[Y, p] = V[S, p]
 
 
-@numba.njit(cache=True, nogil=True)
+@_inner
 def _add(H, V, I, k, n):
     """Variables I[ENTERING, :n] enter F at their current limits (appended; refactored at the next pass)."""
     F, y, nc = I[FREE], V[Y], V[NC]
@@ -117,7 +121,7 @@ def _add(H, V, I, k, n):
     return k
 
 
-@numba.njit(cache=True, nogil=True)
+@_inner
 def _remove(H, V, I, k, n):
     """Positions I[LEAVING, :n] (ascending) of F leave it, to the upper limit where I[ABOVE]; the last position
     takes each one's place (F's order is free: the factor is recomputed at the next pass)."""
@@ -170,22 +174,25 @@ def warm(H, V, I, x):
     return k
 
 
-@numba.njit(cache=True, nogil=True)
+@_inner
 def _done(V, I, k, x):
     F, y = I[FREE], V[Y]
-    x[:] = V[XB]
+    for j in range(x.shape[0]):
+        x[j] = V[XB, j]
     for p in range(k):
         x[F[p]] = V[REF, F[p]] + y[p]
 
 
-@numba.njit(cache=True, nogil=True)
+@_inner
 def _grown(L, k, valid):
     """L with room for a k x k factor (capacity doubles, never shrinks; the valid rows carried over)."""
     if k <= L.shape[0]:
         return L
     cap = max(k, 2 * L.shape[0])
     out = np.empty((cap, cap))
-    out[:valid, :valid] = L[:valid, :valid]
+    for i in range(valid):  # loops, not a slice assignment: that alone took seconds to compile
+        for j in range(i + 1):
+            out[i, j] = L[i, j]
     return out
 
 
@@ -196,7 +203,7 @@ def solve(H, V, I, meta, L, f, x, tol, max_iter):
     k, valid = meta[0], meta[1]
     m = H.shape[0]
     best, tries = m + 1, _TRIES
-    it = 1
+    it = max_iter - max_iter + 1  # 1, typed int64: a literal would compile _primal a second time for it
     while it <= max_iter:
         if valid < k:
             L = _grown(L, k, valid)
@@ -254,14 +261,14 @@ def solve(H, V, I, meta, L, f, x, tol, max_iter):
     return False, max_iter, L
 
 
-@numba.njit(cache=True, nogil=True)
+@_inner
 def _primal(H, V, I, meta, L, f, x, tol, max_iter, k, start):
     """Primal active-set passes (Nocedal & Wright §16.5) from the current partition's clipped point."""
     m = H.shape[0]
     _keep(V, k)
     _done(V, I, k, x)
     k = warm(H, V, I, x)
-    valid = 0
+    valid = k - k  # 0, typed int64 (a literal 0 would compile _grown and _factor again for it)
     it = start + 1
     while it <= max_iter:
         if valid < k:
@@ -307,7 +314,7 @@ def _primal(H, V, I, meta, L, f, x, tol, max_iter, k, start):
                 j_min, g_min = j, g[j]
         if g_min < -(tol + 1e-12 * big):  # the most violated bound enters F
             I[ENTERING, 0] = j_min
-            k = _add(H, V, I, k, 1)
+            k = _add(H, V, I, k, I[ENTERING, 0] * 0 + 1)  # one, typed int64 (not a literal: no second compile)
             it += 1
             continue
         _done(V, I, k, x)
