@@ -1,5 +1,5 @@
 """The whole-array numpy IMM (solvers/tracking.py before it was compiled, 4eeff2c): the reference that
-``solvers.imm_kernels`` is tested against (tests/test_tracking.py) and timed against (benchmarks/numba_ab.py loads it from git)."""
+``solvers.imm_kernels`` is tested against (tests/test_tracking.py); benchmarks/numba_ab.py loads it from git."""
 
 from __future__ import annotations
 
