@@ -14,7 +14,8 @@ warm-started primal active-set method of ``solvers.box_qp`` on the free weights:
 frame's free set and the Cholesky factor of its block carry over, so a frame costs O(m 3n) for the
 linear term plus O(k m) for the optimality check (k free weights). DAQP (the fastest general library in
 benchmarks/qp_libraries.py) takes over, warm, where the active set moves by many weights a frame
-and most weights are free (its C updates beat numpy there), and if the active-set solve fails.
+and hundreds of weights are free (its factor updates beat refactoring there), and if the active-set
+solve fails.
 Missing markers drop their rows (a new pattern's H is the all-markers H downdated by them);
 workspaces are cached per visibility pattern in a bounded LRU.
 """
@@ -193,19 +194,20 @@ class FrameQP:
         self._prev = x
         return x.copy()
 
-    # Where the active set moves a lot per frame and most weights are free (an unregularised fit of
-    # noisy markers), each of BoxQP's passes costs O(k^2) numpy work while DAQP, a dual method whose
-    # work grows with the *bounded* weights, updates its factors in C: above a running mean of 3
-    # iterations per frame with at least a third of the weights free, DAQP (warm) takes over;
-    # below 2, BoxQP takes back.
-    _CHURN_DAQP, _CHURN_BOX = 3.0, 2.0
+    # Where the active set moves a lot per frame and hundreds of weights are free (an unregularised fit
+    # of noisy markers at 1000 shapes), each of BoxQP's passes refactors a block of O(k^3) while DAQP,
+    # a dual method whose work grows with the *bounded* weights, updates its factors: above a running
+    # mean of 3 iterations per frame with at least _FREE_DAQP weights free, DAQP (warm) takes over;
+    # below 2, BoxQP takes back. Measured (docs/performance.md, "Compiled kernels (numba)"): the
+    # compiled BoxQP is faster than DAQP at k = 76-169 free weights (at 34 at p50 only), ~100x slower at 367.
+    _CHURN_DAQP, _CHURN_BOX, _FREE_DAQP = 3.0, 2.0, 256
 
     def _solve(self, key: bytes, ws: _Workspace, f: np.ndarray) -> np.ndarray | None:
         x = None
         if self._daqp_key is not None:
             use_daqp = self.churn > self._CHURN_BOX
         else:
-            use_daqp = self.churn > self._CHURN_DAQP and 3 * len(ws.box.F) >= self.m
+            use_daqp = self.churn > self._CHURN_DAQP and len(ws.box.F) >= self._FREE_DAQP
         if not use_daqp:
             if key != self._last_key:  # another pattern's solver: start it from where we are
                 ws.box.warm(self._prev)

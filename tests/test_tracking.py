@@ -1,10 +1,11 @@
 """Constant-velocity Kalman and IMM weight filters (solvers/tracking.py): their defining properties."""
 
 import numpy as np
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from solvers.tracking import IMMFilter, KalmanCV, alpha_beta_gains, dwna_variance
+from tests.imm_reference import NumpyIMMFilter
 
 
 def batch_posterior_last(y: np.ndarray, q: float, r: float, v_var: float) -> float:
@@ -96,3 +97,34 @@ def test_offset_equivariance(offset, seed):
     Y = np.random.default_rng(seed).normal(size=(30, 3)).cumsum(0) * 0.1
     for make in (lambda: KalmanCV(1e-3, 0.05), lambda: IMMFilter(1e-6, 1e-2, 0.05)):
         np.testing.assert_allclose(make().filter(Y + offset), make().filter(Y) + offset, atol=1e-9)
+
+
+def _imm_pair(seed: int, shape: tuple, per_channel: bool, sojourn: float) -> tuple:
+    rng = np.random.default_rng(seed)
+    r = rng.uniform(1e-4, 1e-1, shape) if per_channel else float(rng.uniform(1e-4, 1e-1))
+    q_hold, q_move = 10 ** rng.uniform(-10, -6), 10 ** rng.uniform(-5, -2)
+    return IMMFilter(q_hold, q_move, r, sojourn), NumpyIMMFilter(q_hold, q_move, r, sojourn)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**16), st.sampled_from([(1,), (7,), (53,), (4, 3)]), st.booleans(),
+       st.floats(1.5, 500), st.sampled_from([0.0, 0.05, 0.5]))
+def test_compiled_imm_equals_the_numpy_reference(seed, shape, per_channel, sojourn, missing):
+    """The compiled IMM (solvers/imm_kernels.py) gives the whole-array numpy version's weights, stepped and
+    over a whole take, with missing samples (NaN where not valid) and onsets (steps) in the input."""
+    rng = np.random.default_rng(seed + 1)
+    T = 60
+    Y = np.cumsum(rng.normal(0, 0.05, (T, *shape)), 0) + rng.normal(0, 0.02, (T, *shape))
+    Y[T // 2:] += rng.normal(0, 1, shape) * (rng.random(shape) < 0.3)  # onsets
+    valid = rng.random((T, *shape)) >= missing
+    Y[~valid] = np.nan
+    new, ref = _imm_pair(seed, shape, per_channel, sojourn)
+    expected = ref.filter(Y, valid)
+    np.testing.assert_allclose(new.filter(Y, valid), expected, rtol=0, atol=1e-12)
+    new.reset()
+    stepped = np.stack([new.step(Y[t], valid[t]) for t in range(T)])
+    np.testing.assert_allclose(stepped, expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(new.move_probability, ref.move_probability, rtol=0, atol=1e-12)
+    if missing == 0.0:  # valid omitted: the same numbers
+        np.testing.assert_allclose(new.filter(Y), expected, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(new.filter(Y[::-1]), ref.filter(Y[::-1]), rtol=0, atol=1e-12)

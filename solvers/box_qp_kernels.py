@@ -1,0 +1,324 @@
+"""Compiled (numba) passes of the box QP (``solvers.box_qp.BoxQP``; the method is described there).
+
+As numpy calls a pass cost ~20 calls of per-call overhead on k ~ 16 free weights; here one call runs every
+pass of a solve (docs/performance.md, "Compiled kernels (numba)"). The state lives in a few arrays (rows named
+below) that the kernels update in place; ``cache=True`` keeps the machine code in ``__pycache__``. Kept apart
+from the class so that importing ``solvers.box_qp`` (every CLI command does, through the mode registry) does
+not import numba: the class imports this module when a first solver is made.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+# rows of the per-variable state V (m columns): limits, the reference point and y's limits (y = x - ref in
+# [YLO, SPAN]), H ref, minus the gradient offset c (f + c = the gradient at y = 0 on F), the multiplier signs
+# (0 on F and fixed variables), the bounded variables' values, at the upper limit (1.0), fixed (lo == hi),
+# the gradient, minus f + c, the point on F (by position) and the subproblem's solution (by position)
+LO, HI, REF, SPAN, YLO, HREF, NC, SGN, XB, UP, FIXED, G, NFC, Y, S = range(15)
+N_ROWS = 15
+# rows of the integer state I: F (by position), then scratch: entering variables, leaving positions, to upper
+FREE, ENTERING, LEAVING, ABOVE = range(4)
+_TRIES = 3  # passes without fewer infeasibilities before the primal method takes over
+_BLOCK = 8  # more entering variables than this (and than |F|): the primal method, one at a time
+# helpers called only from the kernels: no CPython wrapper to compile
+_inner = numba.njit(cache=True, nogil=True, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+
+
+@_inner
+def _factor(H, I, k, L, start):
+    """Rows ``start`` .. k-1 of the Cholesky factor of H_FF in L's lower triangle (row-major; row i depends only
+    on rows < i, so rows that F's change left in place are kept: a variable appended costs O(k^2)). Returns the
+    number of leading rows now valid: k, or the row at which H_FF is not positive definite."""
+    F = I[FREE]
+    for i in range(start, k):
+        Hi = H[F[i]]
+        for j in range(i):
+            t = Hi[F[j]]
+            for p in range(j):
+                t -= L[i, p] * L[j, p]
+            L[i, j] = t / L[j, j]
+        s = Hi[F[i]]
+        for p in range(i):
+            s -= L[i, p] * L[i, p]
+        if not s > 0.0:
+            return i
+        L[i, i] = math.sqrt(s)
+    return k
+
+
+@_inner
+def _subproblem(H, V, I, k, L, f):
+    """S[:k] = y on F with the bounded variables fixed (H_FF y = -fc_F), G = H x + f, NFC = -(f + c);
+    returns max |f + c| (the gradient tolerance grows with it)."""
+    m = H.shape[0]
+    F, nfc, g, y = I[FREE], V[NFC], V[G], V[S]
+    big = 0.0
+    for j in range(m):
+        v = V[NC, j] - f[j]
+        nfc[j] = v
+        big = max(big, abs(v))
+    for i in range(k):  # forward: L z = -fc_F
+        t = nfc[F[i]]
+        for p in range(i):
+            t -= L[i, p] * y[p]
+        y[i] = t / L[i, i]
+    for i in range(k - 1, -1, -1):  # back: L' y = z
+        t = y[i]
+        for p in range(i + 1, k):
+            t -= L[p, i] * y[p]
+        y[i] = t / L[i, i]
+    for j in range(m):
+        g[j] = 0.0
+    for p in range(k):
+        yp, row = y[p], H[F[p]]
+        for j in range(m):
+            g[j] += yp * row[j]
+    for j in range(m):
+        g[j] -= nfc[j]
+    return big
+
+
+@_inner
+def _inside(V, I, k):
+    F, y = I[FREE], V[S]
+    for p in range(k):
+        v = F[p]
+        if y[p] < V[YLO, v] or y[p] > V[SPAN, v]:
+            return False
+    return True
+
+
+@_inner
+def _keep(V, k):
+    """The subproblem's solution becomes the current point."""
+    for p in range(k):
+        V[Y, p] = V[S, p]
+
+
+@_inner
+def _add(H, V, I, k, n):
+    """Variables I[ENTERING, :n] enter F at their current limits (appended; refactored at the next pass)."""
+    F, y, nc = I[FREE], V[Y], V[NC]
+    m = H.shape[0]
+    for q in range(n):
+        j = I[ENTERING, q]
+        F[k] = j
+        if V[UP, j] != 0.0:
+            span = V[SPAN, j]
+            y[k] = span
+            row = H[j]
+            for c in range(m):
+                nc[c] += span * row[c]
+            V[UP, j] = 0.0
+        else:
+            y[k] = 0.0
+        V[SGN, j] = 0.0
+        k += 1
+    return k
+
+
+@_inner
+def _remove(H, V, I, k, n):
+    """Positions I[LEAVING, :n] (ascending) of F leave it, to the upper limit where I[ABOVE]; the last position
+    takes each one's place (F's order is free: the factor is recomputed at the next pass)."""
+    F, y, nc = I[FREE], V[Y], V[NC]
+    m = H.shape[0]
+    for q in range(n - 1, -1, -1):  # the factor's rows from the first of these positions on no longer hold
+        p = I[LEAVING, q]
+        v = F[p]
+        if I[ABOVE, q]:
+            V[UP, v] = 1.0
+            V[SGN, v] = -1.0
+            V[XB, v] = V[HI, v]
+            span, row = V[SPAN, v], H[v]
+            for c in range(m):
+                nc[c] -= span * row[c]
+        else:
+            V[SGN, v] = 1.0
+            V[XB, v] = V[REF, v]
+        k -= 1
+        if p != k:
+            F[p], y[p] = F[k], y[k]
+    return k
+
+
+@numba.njit(cache=True, nogil=True)
+def warm(H, V, I, x):
+    """Start from the feasible point clip(x): free where strictly inside the box; returns |F|."""
+    m = H.shape[0]
+    F, y, nc = I[FREE], V[Y], V[NC]
+    k = 0
+    for j in range(m):
+        lo, hi = V[LO, j], V[HI, j]
+        v = min(max(x[j], lo), hi)
+        up = v >= hi and V[FIXED, j] == 0.0
+        V[UP, j] = 1.0 if up else 0.0
+        V[XB, j] = hi if up else V[REF, j]
+        nc[j] = -V[HREF, j]
+        if v > lo and v < hi:
+            F[k] = j
+            y[k] = v - V[REF, j]
+            k += 1
+            V[SGN, j] = 0.0
+        else:
+            V[SGN, j] = 0.0 if V[FIXED, j] != 0.0 else (-1.0 if up else 1.0)
+    for u in range(m):
+        if V[UP, u] != 0.0:
+            span, row = V[SPAN, u], H[u]
+            for c in range(m):
+                nc[c] -= span * row[c]
+    return k
+
+
+@_inner
+def _done(V, I, k, x):
+    F, y = I[FREE], V[Y]
+    for j in range(x.shape[0]):
+        x[j] = V[XB, j]
+    for p in range(k):
+        x[F[p]] = V[REF, F[p]] + y[p]
+
+
+@_inner
+def _grown(L, k, valid):
+    """L with room for a k x k factor (capacity doubles, never shrinks; the valid rows carried over)."""
+    if k <= L.shape[0]:
+        return L
+    cap = max(k, 2 * L.shape[0])
+    out = np.empty((cap, cap))
+    for i in range(valid):  # loops, not a slice assignment: that alone took seconds to compile
+        for j in range(i + 1):
+            out[i, j] = L[i, j]
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def solve(H, V, I, meta, L, f, x, tol, max_iter):
+    """The passes of one solve (see the module doc); x written on success. Returns (ok, passes, L), passes -1
+    when H_FF is not positive definite; meta = [k, rows of the factor valid] is the state between calls."""
+    k, valid = meta[0], meta[1]
+    m = H.shape[0]
+    best, tries = m + 1, _TRIES
+    it = max_iter - max_iter + 1  # 1, typed int64: a literal would compile _primal a second time for it
+    while it <= max_iter:
+        if valid < k:
+            L = _grown(L, k, valid)
+            valid = _factor(H, I, k, L, valid)
+            if valid < k:
+                meta[0], meta[1] = k, valid
+                return False, -1, L  # H_FF not positive definite: no pass counted (-1)
+        big = _subproblem(H, V, I, k, L, f)
+        inside = k == 0 or _inside(V, I, k)
+        g, sgn = V[G], V[SGN]
+        worst = np.inf
+        for j in range(m):
+            g[j] *= sgn[j]
+            worst = min(worst, g[j])
+        if inside and worst >= -tol:
+            _keep(V, k)
+            _done(V, I, k, x)
+            meta[0], meta[1] = k, valid
+            return True, it, L
+        gtol = tol + 1e-12 * big
+        nJ = 0
+        for j in range(m):
+            if g[j] < -gtol:
+                I[ENTERING, nJ] = j
+                nJ += 1
+        nP = 0
+        if not inside:
+            F, y = I[FREE], V[S]
+            for p in range(k):
+                v = F[p]
+                above = y[p] > V[SPAN, v]
+                if y[p] < V[YLO, v] or above:
+                    I[LEAVING, nP], I[ABOVE, nP] = p, 1 if above else 0
+                    nP += 1
+        n_bad = nJ + nP
+        if n_bad == 0:
+            _keep(V, k)
+            _done(V, I, k, x)
+            meta[0], meta[1] = k, valid
+            return True, it, L
+        if n_bad < best and nJ <= max(_BLOCK, k):
+            best, tries = n_bad, _TRIES
+        elif tries > 0 and nJ <= max(_BLOCK, k):
+            tries -= 1
+        else:  # not converging, or far from the solution (a cold start): one variable at a time
+            return _primal(H, V, I, meta, L, f, x, tol, max_iter, k, it)
+        _keep(V, k)
+        if nP:
+            k = _remove(H, V, I, k, nP)
+            valid = min(valid, I[LEAVING, 0])
+        if nJ:
+            k = _add(H, V, I, k, nJ)
+        it += 1
+    meta[0], meta[1] = k, valid
+    return False, max_iter, L
+
+
+@_inner
+def _primal(H, V, I, meta, L, f, x, tol, max_iter, k, start):
+    """Primal active-set passes (Nocedal & Wright §16.5) from the current partition's clipped point."""
+    m = H.shape[0]
+    _keep(V, k)
+    _done(V, I, k, x)
+    k = warm(H, V, I, x)
+    valid = k - k  # 0, typed int64 (a literal 0 would compile _grown and _factor again for it)
+    it = start + 1
+    while it <= max_iter:
+        if valid < k:
+            L = _grown(L, k, valid)
+            valid = _factor(H, I, k, L, valid)
+            if valid < k:
+                meta[0], meta[1] = k, valid
+                return False, -1, L  # H_FF not positive definite: no pass counted (-1)
+        big = _subproblem(H, V, I, k, L, f)
+        if k and not _inside(V, I, k):  # step towards y until the first limit; blocking variables leave F
+            F, y, cur = I[FREE], V[S], V[Y]
+            alpha = 1.0
+            for p in range(k):
+                v = F[p]
+                d = y[p] - cur[p]
+                if y[p] < V[YLO, v]:
+                    alpha = min(alpha, max((V[YLO, v] - cur[p]) / d, 0.0))
+                elif y[p] > V[SPAN, v]:
+                    alpha = min(alpha, max((V[SPAN, v] - cur[p]) / d, 0.0))
+            reach = alpha * (1 + 1e-12) + 1e-300
+            nP = 0
+            for p in range(k):
+                v = F[p]
+                d = y[p] - cur[p]
+                below, above = y[p] < V[YLO, v], y[p] > V[SPAN, v]
+                if below or above:
+                    t = max(((V[YLO, v] if below else V[SPAN, v]) - cur[p]) / d, 0.0)
+                    if t <= reach:
+                        I[LEAVING, nP], I[ABOVE, nP] = p, 1 if above else 0
+                        nP += 1
+                cur[p] += alpha * d
+            k = _remove(H, V, I, k, nP)
+            if nP:
+                valid = min(valid, I[LEAVING, 0])
+            it += 1
+            continue
+        _keep(V, k)
+        g, sgn = V[G], V[SGN]
+        j_min, g_min = 0, np.inf
+        for j in range(m):
+            g[j] *= sgn[j]
+            if g[j] < g_min:
+                j_min, g_min = j, g[j]
+        if g_min < -(tol + 1e-12 * big):  # the most violated bound enters F
+            I[ENTERING, 0] = j_min
+            k = _add(H, V, I, k, I[ENTERING, 0] * 0 + 1)  # one, typed int64 (not a literal: no second compile)
+            it += 1
+            continue
+        _done(V, I, k, x)
+        meta[0], meta[1] = k, valid
+        return True, it, L
+    meta[0], meta[1] = k, valid
+    return False, max_iter, L
