@@ -129,6 +129,21 @@ class Pipeline:
                         - BOUND_TOL)
         self._solver = build_solver(self.mode, profile, self.options)
         self._lagged: deque = deque(maxlen=solver_latency(self._solver) + 1)
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """One step on a neutral frame, then ``reset``: the solver's compiled kernels load (or, after an
+        install, compile: seconds) here rather than on the stream's first frame."""
+        if not hasattr(self._solver, "reset"):
+            return
+        n = len(self.labels)
+        t0 = time.perf_counter()
+        try:
+            self._solver.step(np.zeros((n, 3)), np.ones(n, bool))
+        except Exception as exc:  # a solver that cannot step a neutral frame still gets the stream
+            log.warning("solver warm-up failed (%s: %s)", type(exc).__name__, exc)
+        self._solver.reset()
+        log.debug("solver warm-up %.3f s", time.perf_counter() - t0)
 
     def _calibrate(self) -> bool:
         frames = self._buffer
