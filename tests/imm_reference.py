@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from solvers.tracking import IMMFilter
 
-class NumpyIMMFilter:
+
+class NumpyIMMFilter(IMMFilter):
     """IMM of two constant-velocity models per channel: 'hold' (process noise ``q_hold``) and 'move'
     (``q_move``), Markov switching with mean sojourn ``sojourn_frames`` in either mode
     (Bar-Shalom et al. 2001 §11.6.6: interaction/mixing, mode-matched filtering, mode probability
@@ -17,21 +19,6 @@ class NumpyIMMFilter:
     covariance is ``a_j (1 - a_j) d d'`` (d the difference of the two means), so a step is ~40
     whole-array operations on preallocated buffers, all channels and both models at once.
     """
-
-    def __init__(self, q_hold: float | np.ndarray, q_move: float | np.ndarray, r: float | np.ndarray,
-                 sojourn_frames: float = 100.0, p_move: float = 0.1) -> None:
-        self.q = (np.asarray(q_hold, dtype=np.float64), np.asarray(q_move, dtype=np.float64))
-        self.r = np.asarray(r, dtype=np.float64)
-        if np.any(self.r <= 0) or np.any(self.q[0] < 0) or np.any(self.q[1] < 0):
-            raise ValueError("IMM filter needs r > 0 and q >= 0")
-        if not sojourn_frames > 1:
-            raise ValueError(f"IMM mean sojourn must exceed one frame, got {sojourn_frames}")
-        stay = 1.0 - 1.0 / float(sojourn_frames)
-        self.transition = np.array([[stay, 1 - stay], [1 - stay, stay]])  # [from, to]
-        self.p_move = float(p_move)
-        self.reset()
-
-    latency_frames = 0  # both models are constant-velocity: no steady-state lag on a ramp
 
     _PREDICT = np.array([[1.0, 2.0, 1.0], [0.0, 1.0, 1.0], [0.0, 0.0, 1.0]])  # F P F' on (p00, p01, p11)
 
