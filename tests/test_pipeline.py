@@ -65,6 +65,32 @@ def test_a_lagged_mode_publishes_each_frame_with_its_own_pose_and_markers(setup,
     np.testing.assert_allclose(np.stack([r.weights for r in cap.results]), stepped, atol=1e-9)
 
 
+def test_a_solver_error_leaves_the_lagged_pairing_intact(setup):
+    """A frame whose step raised was never seen by the solver: it must not enter the queue that pairs the
+    lagged weights with their frames (robust-lag, 4 frames; the 11th step raises)."""
+    _, _, take, profile = setup
+    cap = Capture()
+    p = Pipeline(take.frames(), [cap], profile=profile, mode="robust-lag")
+    real, calls = p._solver.step, [0]
+
+    def flaky(target, valid):
+        calls[0] += 1
+        if calls[0] == 11:
+            raise FloatingPointError("boom")
+        return real(target, valid)
+
+    p._solver.step = flaky
+    stats = p.run()
+    assert stats["errors"]["solver_error"] == 1
+    skipped = take.first_frame + 10
+    solver = build_solver("robust-lag", profile)
+    fed = [(t, v) for i, (t, v) in enumerate(zip(*_targets(take, profile), strict=True)) if i != 10]
+    stepped = np.stack([solver.step(t, v) for t, v in fed])[4:]
+    frames = [f for f in range(take.first_frame, take.first_frame + take.n_frames) if f != skipped][:len(stepped)]
+    assert [r.frame for r in cap.results] == frames
+    np.testing.assert_allclose(np.stack([r.weights for r in cap.results]), stepped, atol=1e-9)
+
+
 def _targets(take, profile):
     stab = profile.stabiliser()
     out = []

@@ -70,7 +70,7 @@ class StageTiming:
         return {"p50_ms": float(p50), "p99_ms": float(p99), "max_ms": float(s.max())}
 
 
-def solver_latency(solver) -> int:
+def solver_latency(solver: object) -> int:
     """Frames between a solver's input and the frame its ``step`` output belongs to (0 when it says none)."""
     lag = getattr(solver, "latency_frames", getattr(solver, "lookahead", 0))
     return int(lag) if isinstance(lag, int | np.integer) else 0
@@ -140,9 +140,9 @@ class Pipeline:
         t0 = time.perf_counter()
         try:
             self._solver.step(np.zeros((n, 3)), np.ones(n, bool))
+            self._solver.reset()
         except Exception as exc:  # a solver that cannot step a neutral frame still gets the stream
             log.warning("solver warm-up failed (%s: %s)", type(exc).__name__, exc)
-        self._solver.reset()
         log.debug("solver warm-up %.3f s", time.perf_counter() - t0)
 
     def _calibrate(self) -> bool:
@@ -218,13 +218,13 @@ class Pipeline:
         t0 = time.perf_counter()
         local, R, t = self._stabiliser.step(frame.positions, frame.valid)
         target = np.where(frame.valid[:, None], local - self._neutral, 0.0)
-        self._lagged.append((frame, local, R, t, target))
         t_step = time.perf_counter()
         try:
             w = np.asarray(self._solver.step(target, frame.valid), dtype=float)
         except Exception as exc:  # a solver bug must not end a live session
             self._error("solver_error", f"frame {frame.frame}: {type(exc).__name__}: {exc}")
             return None
+        self._lagged.append((frame, local, R, t, target))  # only frames the solver has seen
         self._step_time = time.perf_counter() - t_step
         self.timing["step"].add(self._step_time)
         if len(self._lagged) < self._lagged.maxlen:
