@@ -170,6 +170,8 @@ class IMMFilter:
         ok = None if valid is None else np.require(np.broadcast_to(valid, y.shape), bool, "CW").reshape(-1)
         if self._state is None:
             return self._start(y, np.ones(y.shape, bool) if ok is None else ok.reshape(y.shape))
+        if y.size != self._state.shape[1]:  # the compiled step indexes the state by channel, unchecked
+            raise ValueError(f"IMM filter tracks {self._state.shape[1]} channels, got a sample of {y.size}")
         out = np.empty(y.shape)
         self._kernels.imm_step(self._state, y.reshape(-1), self._all if ok is None else ok, self.transition,
                                out.reshape(-1))

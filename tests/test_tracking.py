@@ -1,6 +1,7 @@
 """Constant-velocity Kalman and IMM weight filters (solvers/tracking.py): their defining properties."""
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -128,3 +129,11 @@ def test_compiled_imm_equals_the_numpy_reference(seed, shape, per_channel, sojou
     if missing == 0.0:  # valid omitted: the same numbers
         np.testing.assert_allclose(new.filter(Y), expected, rtol=0, atol=1e-12)
         np.testing.assert_allclose(new.filter(Y[::-1]), ref.filter(Y[::-1]), rtol=0, atol=1e-12)
+
+
+def test_imm_refuses_a_sample_of_another_channel_count():
+    """The compiled step indexes its state by channel: a longer sample must be an error, not a read past it."""
+    f = IMMFilter(1e-4, 1e-2, 0.01)
+    f.step(np.zeros(3))
+    with pytest.raises(ValueError, match="tracks 3 channels, got a sample of 6"):
+        f.step(np.zeros(6))
