@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from livecap.calibration.animation_prior import AnimationPrior
 from livecap.calibration.profile import Profile
@@ -83,3 +84,39 @@ def test_movement_takes_the_animation_prior_from_a_file_or_the_profile(tmp_path,
     assert main(["solve", str(take), "--rig", "recordings/demo_rig.npz", "--profile", str(tmp_path / "a.npz"),
                  "--mode", "movement", "--prior", "profile", "--out", str(tmp_path / "m.csv")]) == 0
     assert np.isfinite(read_weights_csv(tmp_path / "m.csv")[1]).all()
+
+
+def test_prior_options_of_kalman_and_auto(tmp_path, short_csv):  # noqa: F811
+    """'none' turns a stored prior off (auto is then robust, kalman a ridge); 'profile' needs a stored prior;
+    movement's priors ('shapes', weight curves) are refused by kalman with a message saying so."""
+    from livecap.modes.marker_kalman import kalman_prior
+    from livecap.modes.registry import resolve_mode
+
+    prior = tmp_path / "p.npz"
+    assert main(["prior", "build", str(short_csv), "--rig", "recordings/demo_rig.npz", "--out", str(prior)]) == 0
+    assert main(["generate", "--curves", str(short_csv), "--seconds", "1", "--out", str(tmp_path)]) == 0
+    neutral = tmp_path / f"{short_csv.stem}_neutral.c3d"
+    assert main(["calibrate", str(neutral), "--rig", "recordings/demo_rig.npz", "--out", str(tmp_path / "a.npz"),
+                 "--prior", str(prior)]) == 0
+    with_prior = Profile.load(tmp_path / "a.npz")
+    plain = Profile(**{**vars(with_prior), "prior": None})
+    assert resolve_mode("auto", with_prior) == "kalman"
+    assert resolve_mode("auto", with_prior, {"prior": "none"}) == "robust"
+    assert kalman_prior(with_prior, {"prior": "none"}) is None
+    assert kalman_prior(with_prior, {"prior": "profile"}) is with_prior.prior
+    assert resolve_mode("auto", plain, {"prior": str(prior)}) == "kalman"
+    with pytest.raises(ValueError, match="profile carries no animation prior"):
+        kalman_prior(plain, {"prior": "profile"})
+    for movement_prior, what in (("shapes", "'shapes'"), ({"names": ["a"], "weights": [[0.0]]}, "weight curves")):
+        with pytest.raises(ValueError, match=f"not {what} \\(that is a movement prior\\)"):
+            kalman_prior(with_prior, {"prior": movement_prior})
+
+    # the noise-robust movement wrapper (a tuned profile) streams through its inner solver, which trails
+    # by its lookahead: the live pipeline pairs frames by it
+    from livecap.live.pipeline import solver_latency
+    from livecap.modes.movement import build_movement
+    from livecap.modes.robust_movement import RobustMovement
+
+    assert isinstance(build_movement(plain, {}), RobustMovement)
+    assert solver_latency(build_movement(plain, {"lookahead": 4})) == 4
+    assert solver_latency(build_movement(plain, {})) == 0

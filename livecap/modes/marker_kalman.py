@@ -147,20 +147,34 @@ class MarkerKalmanSolver:
         fit.reset()
         return np.array([fit.step(smoothed[t], ok[t]) for t in range(len(targets))])
 
-def animation_prior_option(options: Mapping | None) -> AnimationPrior | None:
-    """The animation prior an option ``prior`` gives (an AnimationPrior or the path of one, .npz), else
-    None (movement's ``prior`` values -- 'shapes', 'none', weight curves -- are not animation priors)."""
-    prior = (options or {}).get("prior")
-    if isinstance(prior, str | Path) and str(prior).endswith(".npz"):
-        return AnimationPrior.load(prior)
-    return prior if isinstance(prior, AnimationPrior) else None
+def kalman_prior(profile: Profile, options: Mapping | None = None) -> AnimationPrior | None:
+    """The animation prior ``kalman`` fits under: option ``prior`` -- an AnimationPrior or its .npz
+    (``livecap prior build``), 'profile' (the one ``calibrate --prior`` stored), 'none' (a ridge instead) --
+    else the profile's. Movement's other priors ('shapes', weight curves) are refused by name."""
+    spec = (options or {}).get("prior")
+    if spec is None:
+        return profile.prior
+    if isinstance(spec, AnimationPrior):
+        return spec
+    if isinstance(spec, str | Path):
+        if str(spec) == "none":
+            return None
+        if str(spec) == "profile":
+            if profile.prior is None:
+                raise ValueError("prior 'profile': the profile carries no animation prior (livecap calibrate --prior)")
+            return profile.prior
+        if str(spec).endswith(".npz"):
+            return AnimationPrior.load(spec)
+    what = "weight curves" if isinstance(spec, Mapping) else repr(spec)
+    raise ValueError(f"kalman fits under an animation prior (a .npz from 'livecap prior build', 'profile' or "
+                     f"'none'), not {what} (that is a movement prior)")
 
 
 def kalman_mode(profile: Profile, options: Mapping | None = None) -> MarkerKalmanSolver:
-    """Option ``prior`` (AnimationPrior or its path; default the profile's, else a ridge); ``rate`` (Hz;
+    """Option ``prior`` (see :func:`kalman_prior`; without one, a ridge); ``rate`` (Hz;
     default the profile's tuned rate, else the robust modes' default) sets the IMM's per-frame process noise."""
     options = options or {}
-    prior = animation_prior_option(options) or profile.prior
+    prior = kalman_prior(profile, options)
     if prior is None:
         mean, precision = np.zeros(len(profile.names)), np.eye(len(profile.names))
     else:

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from livecap.calibration.profile import Profile
-from livecap.modes.marker_kalman import animation_prior_option, kalman_mode
+from livecap.modes.marker_kalman import kalman_mode, kalman_prior
 from livecap.modes.movement import build_movement
 from livecap.modes.per_frame import lsq_mode, qp_mode, rbf_mode
 from livecap.modes.robust import ROBUST_MODES
@@ -39,7 +39,7 @@ def resolve_mode(mode: str, profile: Profile, options: dict | None = None) -> st
     """The mode ``auto`` stands for with this profile and options; any other name unchanged."""
     if mode != DEFAULT_MODE:
         return mode
-    return "kalman" if profile.prior is not None or animation_prior_option(options) is not None else "robust"
+    return "kalman" if kalman_prior(profile, options) is not None else "robust"
 
 
 def build_solver(mode: str, profile: Profile, options: dict | None = None):

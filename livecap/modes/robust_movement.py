@@ -132,6 +132,11 @@ class RobustMovement:
         E[seg] = np.where(free[seg, None], filtered, E[seg])
         return E
 
+    @property
+    def lookahead(self) -> int:
+        """Frames ``step`` trails its input: the inner solver's (a live session pairs each frame by it)."""
+        return int(self.inner.lookahead)
+
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         return self.inner.step(target, valid)
 
