@@ -158,7 +158,9 @@ def run(quick: bool = False, modes: tuple[str, ...] = ()) -> dict:
 
     seconds = 5.0 if quick else 30.0
     modes = tuple(m for m in modes if m) or (*MODES, STREAMED)
-    res: dict = {"take_seconds": seconds, "default_mode": DEFAULT_MODE, "load_average": os.getloadavg(),
+    res: dict = {"take_seconds": seconds,
+                 "default_mode": f"{DEFAULT_MODE} (robust: these profiles carry no animation prior)",
+                 "load_average": os.getloadavg(),
                  "rigs": {}, "skipped": {}}
     rigs = _rigs()
     if "ict" not in rigs:

@@ -147,7 +147,7 @@ def _remove(H, V, I, k, n):
 
 
 @numba.njit(cache=True, nogil=True)
-def warm(H, V, I, x):
+def warm(H: np.ndarray, V: np.ndarray, I: np.ndarray, x: np.ndarray) -> int:
     """Start from the feasible point clip(x): free where strictly inside the box; returns |F|."""
     m = H.shape[0]
     F, y, nc = I[FREE], V[Y], V[NC]
@@ -197,7 +197,8 @@ def _grown(L, k, valid):
 
 
 @numba.njit(cache=True, nogil=True)
-def solve(H, V, I, meta, L, f, x, tol, max_iter):
+def solve(H: np.ndarray, V: np.ndarray, I: np.ndarray, meta: np.ndarray, L: np.ndarray, f: np.ndarray,
+          x: np.ndarray, tol: float, max_iter: int) -> tuple[bool, int, np.ndarray]:
     """The passes of one solve (see the module doc); x written on success. Returns (ok, passes, L), passes -1
     when H_FF is not positive definite; meta = [k, rows of the factor valid] is the state between calls."""
     k, valid = meta[0], meta[1]

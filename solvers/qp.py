@@ -199,7 +199,8 @@ class FrameQP:
     # a dual method whose work grows with the *bounded* weights, updates its factors: above a running
     # mean of 3 iterations per frame with at least _FREE_DAQP weights free, DAQP (warm) takes over;
     # below 2, BoxQP takes back. Measured (docs/performance.md, "Compiled kernels (numba)"): the
-    # compiled BoxQP is faster than DAQP at k = 76-169 free weights (at 34 at p50 only), ~100x slower at 367.
+    # compiled BoxQP is faster than DAQP at k = 76-169 free weights (at 34 at p50 only), ~100x slower at 367
+    # (measured before it kept the factor rows a change leaves; 256 lies untested between 169 and 367).
     _CHURN_DAQP, _CHURN_BOX, _FREE_DAQP = 3.0, 2.0, 256
 
     def _solve(self, key: bytes, ws: _Workspace, f: np.ndarray) -> np.ndarray | None:

@@ -8,7 +8,7 @@ curves never drive get a variance floor so the covariance is invertible.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -58,7 +58,7 @@ class AnimationPrior:
                 f"{prefix}frames": np.array(self.frames), f"{prefix}sources": np.array(self.sources)}
 
     @classmethod
-    def from_arrays(cls, z, prefix: str = "") -> AnimationPrior:
+    def from_arrays(cls, z: Mapping[str, np.ndarray], prefix: str = "") -> AnimationPrior:
         return cls(tuple(str(n) for n in z[f"{prefix}names"]), np.asarray(z[f"{prefix}mean"], float),
                    np.asarray(z[f"{prefix}cov"], float), int(z[f"{prefix}frames"]),
                    tuple(str(s) for s in z[f"{prefix}sources"]))

@@ -148,8 +148,10 @@ def run_report(args: argparse.Namespace) -> int:
     rig, layout = load_rig(args)
     take = read_take(args.take)
     truth = _load_truth(args)
+    prior = None
     if args.profile:
-        neutral = Profile.load(args.profile).source_neutral
+        loaded = Profile.load(args.profile)
+        neutral, prior = loaded.source_neutral, loaded.prior
         origin = f"profile {args.profile}"
     elif args.neutral:
         neutral = estimate_neutral(read_take(args.neutral).select(layout.labels), layout.stable)
@@ -165,8 +167,12 @@ def run_report(args: argparse.Namespace) -> int:
                         head_translation=truth.head_translation[::stride])
     tuned: dict[int, dict] = {}
 
+    resolved: list[str] = []
+
     def make_solver(p: Profile):  # each variant's profile tuned on the take for the modes that read the noise
+        p.prior = p.prior or prior  # --profile's animation prior, as solve with that profile would use
         mode = resolve_mode(args.mode, p)
+        resolved.append(mode)
         if id(p) not in tuned and mode in ("movement", *ROBUST_MODES):
             tuned[id(p)] = tune_on_take(p, take)
         return build_solver(mode, p, {} if args.ridge is None else {"ridge": args.ridge})
@@ -174,9 +180,10 @@ def run_report(args: argparse.Namespace) -> int:
     results = compare(take, rig, layout, neutral, make_solver, truth, progress=progress_bar)
     width = max(len(r.variant.name) for r in results)
     same = _same_as(results)
+    mode = resolved[0] if resolved else args.mode
     print(f"take {args.take}: {take.n_frames} frames{f' (every {stride}th)' if stride > 1 else ''}, "
           f"{take.n_markers} markers, {(~take.valid).mean() * 100:.1f}% missing; neutral from {origin}; "
-          f"mode {args.mode}" + (f" ridge {args.ridge:g}" if args.ridge is not None else ""))
+          f"mode {mode}" + (f" ridge {args.ridge:g}" if args.ridge is not None else ""))
     base = results[0]
     if truth is not None:
         print(f"\n{'per-frame weight error (RMS over shapes)':{width + 2}s}    mean  median     p95     max   RMSE  "
