@@ -55,7 +55,7 @@ def test_a_lagged_mode_publishes_each_frame_with_its_own_pose_and_markers(setup,
     stats = Pipeline(take.frames(), [cap], profile=profile, mode=mode).run()
     solver = build_solver(mode, profile)
     lag = int(solver.latency_frames)
-    assert lag == {"kalman": 1, "robust-lag": 4, "robust": 0}[mode]
+    assert lag == {"kalman": 1, "robust-lag": 4, "robust": 0}[mode] and stats["mode"] == mode
     assert stats["frames_out"] == take.n_frames - lag == len(cap.results)
     assert [r.frame for r in cap.results] == list(range(take.first_frame, take.first_frame + take.n_frames - lag))
     offline = solve_take(take, profile, build_solver("lsq", profile), max_gap_seconds=0, pose_smoothing_seconds=0)
@@ -63,6 +63,12 @@ def test_a_lagged_mode_publishes_each_frame_with_its_own_pose_and_markers(setup,
     np.testing.assert_allclose(np.abs(np.einsum("ti,ti->t", q, offline.head_rotation[:len(q)])), 1.0, atol=1e-9)
     stepped = np.stack([solver.step(*f) for f in zip(*_targets(take, profile), strict=True)])[lag:]
     np.testing.assert_allclose(np.stack([r.weights for r in cap.results]), stepped, atol=1e-9)
+
+
+def test_auto_resolves_with_the_profile_and_the_report_says_to_what(setup):
+    _, _, take, profile = setup
+    p = Pipeline(take.frames(), [Capture()], profile=profile, mode="auto", max_frames=5)
+    assert p.run()["mode"] == "robust" and "mode robust" in p.report().splitlines()[0]
 
 
 def test_a_solver_error_leaves_the_lagged_pairing_intact(setup):

@@ -43,7 +43,7 @@ from livecap.calibration.profile import CalibrationError, Profile
 from livecap.calibration.stabilise import to_quaternion
 from livecap.core.result import BOUND_TOL, SolveResult
 from livecap.core.take import MarkerFrame, Take
-from livecap.modes.registry import build_solver
+from livecap.modes.registry import build_solver, resolve_mode
 
 log = logging.getLogger("livecap.live.pipeline")
 
@@ -111,6 +111,7 @@ class Pipeline:
         self._stop = threading.Event()
         self._buffer: list[MarkerFrame] = []
         self._solver = None
+        self.solver_mode: str | None = None  # the mode ``mode`` resolved to with the profile (auto: kalman or robust)
         self._step_time = 0.0
         self._started = 0.0
         self._cpu0 = 0.0
@@ -127,7 +128,8 @@ class Pipeline:
         self._basis = np.asarray(profile.basis, dtype=float)
         self._bounds = (np.asarray(profile.lower, dtype=float) + BOUND_TOL, np.asarray(profile.upper, dtype=float)
                         - BOUND_TOL)
-        self._solver = build_solver(self.mode, profile, self.options)
+        self.solver_mode = resolve_mode(self.mode, profile, self.options)
+        self._solver = build_solver(self.solver_mode, profile, self.options)
         self._lagged: deque = deque(maxlen=solver_latency(self._solver) + 1)
         self._warm_up()
 
@@ -328,6 +330,7 @@ class Pipeline:
         bad = getattr(self.source, "bad", None)
         elapsed = max(time.monotonic() - self._started, 1e-9) if self._started else 0.0
         return {
+            "mode": self.solver_mode,
             "frames_in": self.frames_in,
             "frames_out": self.frames_out,
             "stale": self.stale,
@@ -344,7 +347,7 @@ class Pipeline:
     def report(self) -> str:
         st = self.stats()
         lines = [f"frames in {st['frames_in']}, out {st['frames_out']}, {st['seconds']:.1f} s, "
-                 f"driver CPU {st['cpu_seconds']:.2f} s"]
+                 f"driver CPU {st['cpu_seconds']:.2f} s, mode {st['mode'] or self.mode + ' (not calibrated)'}"]
         if self.skip_stale:
             lines.append(f"stale frames skipped (solver behind the stream): {st['stale']}")
         lines.append(f"{'stage':10s} {'p50 ms':>9s} {'p99 ms':>9s} {'max ms':>9s}")
