@@ -58,11 +58,7 @@ class PCAPrior:
         _, sv, Vt = np.linalg.svd(X, full_matrices=False)
         lam = sv**2 / len(W)
         keep = lam > threshold * max(lam[0], 1e-300)
-        E = Vt[keep].T
-        lam = lam[keep]
-        EB = E.T @ B  # h x m
-        P = EB.T @ (EB / lam[:, None])
-        return cls(0.5 * (P + P.T), w_mean, lam, E)
+        return cls._from_axes(B, Vt[keep].T, lam[keep], w_mean)
 
     @classmethod
     def from_moments(cls, basis: np.ndarray, mean: np.ndarray, cov: np.ndarray, threshold: float = 1e-6) -> PCAPrior:
@@ -76,10 +72,14 @@ class PCAPrior:
         lam, V = np.linalg.eigh(B @ (0.5 * (cov + cov.T)) @ B.T)
         lam, V = lam[::-1], V[:, ::-1]
         keep = lam > threshold * max(lam[0], 1e-300)
-        E, lam = V[:, keep], lam[keep]
-        EB = E.T @ B
+        return cls._from_axes(B, V[:, keep], lam[keep], np.asarray(mean, dtype=np.float64))
+
+    @classmethod
+    def _from_axes(cls, B: np.ndarray, E: np.ndarray, lam: np.ndarray, w_mean: np.ndarray) -> PCAPrior:
+        """The prior of principal axes E (3n x h) with variances lam, as a quadratic form in the weights."""
+        EB = E.T @ B  # h x m
         P = EB.T @ (EB / lam[:, None])
-        return cls(0.5 * (P + P.T), np.asarray(mean, dtype=np.float64), lam, E)
+        return cls(0.5 * (P + P.T), w_mean, lam, E)
 
     @classmethod
     def from_shapes(cls, basis: np.ndarray, threshold: float = 1e-6, include_neutral: bool = True) -> PCAPrior:

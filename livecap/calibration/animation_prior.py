@@ -74,6 +74,20 @@ class AnimationPrior:
             raise ValueError(f"{path}: not an animation prior ({exc})") from None
 
 
+def prior_from_spec(spec, stored: AnimationPrior | None):
+    """What a ``prior`` option names, for the modes that read animation priors: 'profile' is the prior
+    ``calibrate --prior`` stored (an error when there is none), a .npz path is loaded; anything else is
+    returned as it is, for the mode to interpret."""
+    if isinstance(spec, str | Path):
+        if str(spec) == "profile":
+            if stored is None:
+                raise ValueError("prior 'profile': the profile carries no animation prior (livecap calibrate --prior)")
+            return stored
+        if str(spec).endswith(".npz"):
+            return AnimationPrior.load(spec)
+    return spec
+
+
 def build_prior(curves: Sequence[str | Path], names: Sequence[str], lower: np.ndarray, upper: np.ndarray,
                 mapping: dict | None = None, rate: float = 60.0) -> AnimationPrior:
     """Mean and full covariance of the curves' frames, mapped onto ``names`` and clipped to the limits."""

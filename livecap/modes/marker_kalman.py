@@ -35,11 +35,10 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from livecap.calibration.animation_prior import AnimationPrior
+from livecap.calibration.animation_prior import AnimationPrior, prior_from_spec
 from livecap.calibration.profile import Profile
 from livecap.modes.robust import robust_settings
 from solvers.marker_kalman import KalmanSettings, StreamingMarkerKalman, smooth_take
@@ -154,17 +153,11 @@ def kalman_prior(profile: Profile, options: Mapping | None = None) -> AnimationP
     spec = (options or {}).get("prior")
     if spec is None:
         return profile.prior
+    spec = prior_from_spec(spec, profile.prior)
     if isinstance(spec, AnimationPrior):
         return spec
-    if isinstance(spec, str | Path):
-        if str(spec) == "none":
-            return None
-        if str(spec) == "profile":
-            if profile.prior is None:
-                raise ValueError("prior 'profile': the profile carries no animation prior (livecap calibrate --prior)")
-            return profile.prior
-        if str(spec).endswith(".npz"):
-            return AnimationPrior.load(spec)
+    if isinstance(spec, str) and spec == "none":
+        return None
     what = "weight curves" if isinstance(spec, Mapping) else repr(spec)
     raise ValueError(f"kalman fits under an animation prior (a .npz from 'livecap prior build', 'profile' or "
                      f"'none'), not {what} (that is a movement prior)")

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from livecap.calibration.animation_prior import AnimationPrior
+from livecap.calibration.animation_prior import AnimationPrior, prior_from_spec
 from livecap.calibration.profile import Profile
 from livecap.modes.robust import robust_settings, warn_untuned
 from livecap.modes.robust_movement import BOUND_TOL, RobustMovement, smoother_beta
@@ -99,12 +99,7 @@ def build_prior(profile: Profile, spec, threshold: float) -> PCAPrior | None:
     animation."""
     if spec is None or (isinstance(spec, str) and spec == "none"):
         return None
-    if isinstance(spec, str) and spec == "profile":
-        if profile.prior is None:
-            raise ValueError("prior 'profile': the profile carries no animation prior (livecap calibrate --prior)")
-        spec = profile.prior
-    if isinstance(spec, str) and spec.endswith(".npz"):
-        spec = AnimationPrior.load(spec)
+    spec = prior_from_spec(spec, profile.prior)
     if isinstance(spec, AnimationPrior):
         spec.check(profile.names)
         return PCAPrior.from_moments(profile.basis, spec.mean, spec.cov, threshold)
