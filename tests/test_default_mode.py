@@ -12,6 +12,18 @@ from tests.test_curves_take import short_csv  # noqa: F401 - fixture
 from transport.weights_csv import read_weights_csv
 
 
+def _calibrated_with_prior(tmp_path, short_csv, seconds: str):  # noqa: F811
+    """A prior built from ``short_csv``, a take it drives on the demo rig, and a profile calibrated on the
+    take's neutral with that prior stored: (prior, take, profile) paths."""
+    prior = tmp_path / "p.npz"
+    assert main(["prior", "build", str(short_csv), "--rig", "recordings/demo_rig.npz", "--out", str(prior)]) == 0
+    assert main(["generate", "--curves", str(short_csv), "--seconds", seconds, "--out", str(tmp_path)]) == 0
+    neutral = tmp_path / f"{short_csv.stem}_neutral.c3d"
+    assert main(["calibrate", str(neutral), "--rig", "recordings/demo_rig.npz", "--out", str(tmp_path / "a.npz"),
+                 "--prior", str(prior)]) == 0
+    return prior, tmp_path / f"{short_csv.stem}.c3d", tmp_path / "a.npz"
+
+
 def test_calibrate_prior_is_stored_and_makes_the_default_mode_kalman(tmp_path, short_csv, capsys):  # noqa: F811
     """`calibrate --prior` stores the animation prior in the profile; a solve with that profile and no
     --mode then runs kalman under it (equal to --mode kalman --prior), without it robust."""
@@ -58,7 +70,6 @@ def test_a_prior_for_another_rig_is_refused_with_the_file_named(tmp_path, short_
 def test_movement_takes_the_animation_prior_from_a_file_or_the_profile(tmp_path, short_csv):  # noqa: F811
     """An animation prior (mean, covariance) seen through the basis is the PCA prior of frames with those
     moments (Seol §5 from Lewis §7.8-7.9's Gaussian), and movement solves with it."""
-    from livecap.calibration.profile import Profile
     from livecap.modes.movement import build_prior
     from solvers.prior import PCAPrior
 
@@ -70,17 +81,11 @@ def test_movement_takes_the_animation_prior_from_a_file_or_the_profile(tmp_path,
     assert np.allclose(frames.precision, moments.precision, atol=1e-9 * np.abs(frames.precision).max())
     assert np.allclose(frames.eigenvalues, moments.eigenvalues)
 
-    prior = tmp_path / "p.npz"
-    assert main(["prior", "build", str(short_csv), "--rig", "recordings/demo_rig.npz", "--out", str(prior)]) == 0
-    assert main(["generate", "--curves", str(short_csv), "--seconds", "2", "--out", str(tmp_path)]) == 0
-    neutral = tmp_path / f"{short_csv.stem}_neutral.c3d"
-    assert main(["calibrate", str(neutral), "--rig", "recordings/demo_rig.npz", "--out", str(tmp_path / "a.npz"),
-                 "--prior", str(prior)]) == 0
+    prior, take, _ = _calibrated_with_prior(tmp_path, short_csv, "2")
     profile = Profile.load(tmp_path / "a.npz")
     from_file, from_profile = build_prior(profile, str(prior), 1e-6), build_prior(profile, "profile", 1e-6)
     assert np.array_equal(from_file.precision, from_profile.precision)
     assert not np.allclose(from_file.precision, build_prior(profile, "shapes", 1e-6).precision)
-    take = tmp_path / f"{short_csv.stem}.c3d"
     assert main(["solve", str(take), "--rig", "recordings/demo_rig.npz", "--profile", str(tmp_path / "a.npz"),
                  "--mode", "movement", "--prior", "profile", "--out", str(tmp_path / "m.csv")]) == 0
     assert np.isfinite(read_weights_csv(tmp_path / "m.csv")[1]).all()
@@ -92,12 +97,7 @@ def test_prior_options_of_kalman_and_auto(tmp_path, short_csv):  # noqa: F811
     from livecap.modes.marker_kalman import kalman_prior
     from livecap.modes.registry import resolve_mode
 
-    prior = tmp_path / "p.npz"
-    assert main(["prior", "build", str(short_csv), "--rig", "recordings/demo_rig.npz", "--out", str(prior)]) == 0
-    assert main(["generate", "--curves", str(short_csv), "--seconds", "1", "--out", str(tmp_path)]) == 0
-    neutral = tmp_path / f"{short_csv.stem}_neutral.c3d"
-    assert main(["calibrate", str(neutral), "--rig", "recordings/demo_rig.npz", "--out", str(tmp_path / "a.npz"),
-                 "--prior", str(prior)]) == 0
+    prior, _, _ = _calibrated_with_prior(tmp_path, short_csv, "1")
     with_prior = Profile.load(tmp_path / "a.npz")
     plain = Profile(**{**vars(with_prior), "prior": None})
     assert resolve_mode("auto", with_prior) == "kalman"
