@@ -18,7 +18,10 @@ import pytest
 from benchmarks.synthetic import rom_keys, synthetic_profile, synthetic_stream
 from livecap.modes.registry import build_solver
 
-LIVE_MODES = ("robust", "qp", "movement-stream", "rbf", "robust-lag")
+LIVE_MODES = ("robust", "qp", "movement-stream", "rbf", "robust-lag", "kalman")
+# kalman settles later: after a 500-frame warm-up, frames 200-2000 kept 34-68 KB more (its marker bank's state
+# arrays, held where the first 200 frames had not yet replaced them); after a 2000-frame one, 0.03-0.6 KB: not growth
+WARMUP = {"kalman": 2000}
 SLACK = 4 * 1024  # bytes between N = 200 and N = 2000: 1800 more frames keeping even 8 bytes each exceed it
 BOUND = 512 * 1024  # bytes: what state replaced since the start and a frame's temporaries may hold
 
@@ -58,8 +61,8 @@ def _solver_step(mode: str, occluded: bool):
     return lambda i: solver.step(targets[i % len(targets)], valid[i % len(valid)])
 
 
-def assert_steady(step) -> None:
-    (g_short, p_short), (g_long, p_long) = traced(step, 200), traced(step, 2000)
+def assert_steady(step, warmup: int = 500) -> None:
+    (g_short, p_short), (g_long, p_long) = traced(step, 200, warmup), traced(step, 2000, warmup)
     assert g_long - g_short < SLACK, f"{g_long - g_short} bytes more kept after 2000 frames than after 200"
     assert p_long - p_short < SLACK, f"peak {p_long - p_short} bytes higher over 2000 frames than over 200"
     assert max(g_long, p_long) < BOUND, f"{g_long} bytes kept, peak {p_long} bytes above the start"
@@ -68,7 +71,7 @@ def assert_steady(step) -> None:
 @pytest.mark.parametrize("occluded", [False, True], ids=["all-seen", "occluded"])
 @pytest.mark.parametrize("mode", LIVE_MODES)
 def test_steady_state_holds_no_growing_memory(mode, occluded):
-    assert_steady(_solver_step(mode, occluded))
+    assert_steady(_solver_step(mode, occluded), WARMUP.get(mode, 500))
 
 
 @pytest.mark.parametrize("kept", [lambda w: w, lambda w: None], ids=["weights", "a-reference"])
