@@ -14,9 +14,6 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.demo.curves_take import arkit_to_rig
-from transport.llf_csv import read_llf_csv
-
 VARIANCE_FLOOR = 1e-4  # (0.01)^2: a shape no curve moves may still move a little
 
 
@@ -91,6 +88,9 @@ def prior_from_spec(spec, stored: AnimationPrior | None):
 def build_prior(curves: Sequence[str | Path], names: Sequence[str], lower: np.ndarray, upper: np.ndarray,
                 mapping: dict | None = None, rate: float = 60.0) -> AnimationPrior:
     """Mean and full covariance of the curves' frames, mapped onto ``names`` and clipped to the limits."""
+    from livecap.demo.curves_take import arkit_to_rig  # here, not above: every profile load imports this module
+    from transport.llf_csv import read_llf_csv
+
     A = arkit_to_rig(list(names), mapping)
     W = np.concatenate([np.clip(read_llf_csv(c).resample(rate)[0] @ A.T, lower, upper) for c in curves])
     cov = np.cov(W, rowvar=False) + VARIANCE_FLOOR * np.eye(len(names))

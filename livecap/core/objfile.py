@@ -56,9 +56,10 @@ def _read_regular(text: str) -> tuple[np.ndarray, np.ndarray] | None:
     size = len(idx) // len(fl)
     if size < 3 or size * len(fl) != len(idx) or idx.min() <= 0:
         return None
-    one_size = re.compile(rf"^f +{_INDEX}(?: +{_INDEX}){{{size - 1}}}[ \t]*$", re.M)
-    if len(one_size.findall(text)) != len(fl):
-        return None
+    if not all(f.count(" ") == size - 1 for f in fl):  # else a line of other size or spacing: the full check
+        one_size = re.compile(rf"^f +{_INDEX}(?: +{_INDEX}){{{size - 1}}}[ \t]*$", re.M)
+        if len(one_size.findall(text)) != len(fl):
+            return None
     faces = idx.reshape(-1, size) - 1
     fan = [np.stack([faces[:, 0], faces[:, k], faces[:, k + 1]], axis=1) for k in range(1, size - 1)]
     return v.reshape(-1, 3), np.stack(fan, axis=1).reshape(-1, 3)
