@@ -15,10 +15,12 @@ timed on 300 calls):
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 import types
 from pathlib import Path
@@ -31,12 +33,28 @@ from benchmarks.synthetic import synthetic_profile, synthetic_stream
 from livecap.modes.registry import build_solver
 
 
-def old_box_qp(rev: str) -> type:
-    """``BoxQP`` as solvers/box_qp.py defines it at git revision ``rev``."""
+def _git_show(rev: str, path: str) -> str | None:
     root = Path(__file__).resolve().parents[1]
-    src = subprocess.run(["git", "show", f"{rev}:solvers/box_qp.py"], cwd=root, check=True, capture_output=True,
-                         text=True).stdout
+    out = subprocess.run(["git", "show", f"{rev}:{path}"], cwd=root, capture_output=True, text=True)
+    return out.stdout if out.returncode == 0 else None
+
+
+def old_box_qp(rev: str) -> type:
+    """``BoxQP`` as solvers/box_qp.py defines it at git revision ``rev``, on that revision's compiled kernels
+    (solvers/box_qp_kernels.py, written to a temporary file so that numba can cache them) where it has them."""
+    src = _git_show(rev, "solvers/box_qp.py")
+    if src is None:
+        raise SystemExit(f"no solvers/box_qp.py at {rev}")
     mod = types.ModuleType(f"box_qp_{rev}")
+    kernels = _git_show(rev, "solvers/box_qp_kernels.py")
+    if kernels is not None:
+        path = Path(tempfile.gettempdir()) / f"box_qp_kernels_{rev}.py"
+        if not path.exists() or path.read_text() != kernels:
+            path.write_text(kernels)
+        spec = importlib.util.spec_from_file_location(path.stem, path)
+        mod._kernels = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod._kernels)
+        src = src.replace("from solvers import box_qp_kernels as k", "k = _kernels")
     exec(compile(src, f"{rev}:solvers/box_qp.py", "exec"), mod.__dict__)
     return mod.BoxQP
 

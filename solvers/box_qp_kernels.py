@@ -17,15 +17,17 @@ import numpy as np
 # rows of the per-variable state V (m columns): limits, the reference point and y's limits (y = x - ref in
 # [YLO, SPAN]), H ref, minus the gradient offset c (f + c = the gradient at y = 0 on F), the multiplier signs
 # (0 on F and fixed variables), the bounded variables' values, at the upper limit (1.0), fixed (lo == hi),
-# the gradient, minus f + c, the point on F (by position) and the subproblem's solution (by position)
-LO, HI, REF, SPAN, YLO, HREF, NC, SGN, XB, UP, FIXED, G, NFC, Y, S = range(15)
-N_ROWS = 15
+# the gradient, minus f + c, the point on F (by position), the subproblem's solution (by position) and scratch
+LO, HI, REF, SPAN, YLO, HREF, NC, SGN, XB, UP, FIXED, G, NFC, Y, S, W = range(16)
+N_ROWS = 16
 # rows of the integer state I: F (by position), then scratch: entering variables, leaving positions, to upper
 FREE, ENTERING, LEAVING, ABOVE = range(4)
 _TRIES = 3  # passes without fewer infeasibilities before the primal method takes over
 _BLOCK = 8  # more entering variables than this (and than |F|): the primal method, one at a time
 # helpers called only from the kernels: no CPython wrapper to compile
-_inner = numba.njit(cache=True, nogil=True, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+# (sums in any order, multiply-adds fused: the dot products vectorise; no assumption about NaN or inf)
+_FAST = {"reassoc", "contract"}
+_inner = numba.njit(cache=True, nogil=True, no_cpython_wrapper=True, no_cfunc_wrapper=True, fastmath=_FAST)
 
 
 @_inner
@@ -122,31 +124,72 @@ def _add(H, V, I, k, n):
 
 
 @_inner
-def _remove(H, V, I, k, n):
-    """Positions I[LEAVING, :n] (ascending) of F leave it, to the upper limit where I[ABOVE]; the last position
-    takes each one's place (F's order is free: the factor is recomputed at the next pass)."""
+def _delete(L, p, valid, w):
+    """Row and column p (< valid) out of the factor's first ``valid`` rows: the rows below move up one and
+    their trailing block takes the rank-1 update by the deleted column (Golub & Van Loan, Matrix
+    Computations, 4th ed. 2013, §6.5.4), O((valid - p)^2) instead of refactoring rows p .. valid - 1."""
+    for i in range(p + 1, valid):
+        w[i] = L[i, p]
+        for j in range(p):
+            L[i - 1, j] = L[i, j]
+        for j in range(p + 1, i + 1):
+            L[i - 1, j - 1] = L[i, j]
+    for j in range(p, valid - 1):
+        a, b = L[j, j], w[j + 1]
+        r = math.sqrt(a * a + b * b)
+        c, s = r / a, b / a
+        L[j, j] = r
+        for i in range(j + 1, valid - 1):
+            t = (L[i, j] + s * w[i + 1]) / c
+            L[i, j] = t
+            w[i + 1] = c * w[i + 1] - s * t
+
+
+@_inner
+def _remove(H, V, I, k, n, L, valid):
+    """Positions I[LEAVING, :n] (ascending) of F leave it, to the upper limit where I[ABOVE]; F keeps its order.
+    The factor follows by deletions where their O((valid - p)^2) costs undercut refactoring from the first
+    position (then only rows before it are kept). Returns (|F|, rows of the factor valid)."""
     F, y, nc = I[FREE], V[Y], V[NC]
     m = H.shape[0]
-    for q in range(n - 1, -1, -1):  # the factor's rows from the first of these positions on no longer hold
-        p = I[LEAVING, q]
-        v = F[p]
-        if I[ABOVE, q]:
-            V[UP, v] = 1.0
-            V[SGN, v] = -1.0
-            V[XB, v] = V[HI, v]
-            span, row = V[SPAN, v], H[v]
-            for c in range(m):
-                nc[c] -= span * row[c]
+    first = I[LEAVING, 0]
+    if first < valid:
+        update, v = 0.0, valid
+        for q in range(n - 1, -1, -1):
+            p = I[LEAVING, q]
+            if p < v:
+                update += 3.0 * (v - p) * (v - p)
+                v -= 1
+        if update < (valid * valid * valid - first * first * first) / 3.0:
+            for q in range(n - 1, -1, -1):
+                p = I[LEAVING, q]
+                if p < valid:
+                    _delete(L, p, valid, V[W])
+                    valid -= 1
         else:
-            V[SGN, v] = 1.0
-            V[XB, v] = V[REF, v]
-        k -= 1
-        if p != k:
-            F[p], y[p] = F[k], y[k]
-    return k
+            valid = first
+    q, out = 0, 0
+    for p in range(k):
+        if q < n and I[LEAVING, q] == p:
+            v = F[p]
+            if I[ABOVE, q]:
+                V[UP, v] = 1.0
+                V[SGN, v] = -1.0
+                V[XB, v] = V[HI, v]
+                span, row = V[SPAN, v], H[v]
+                for c in range(m):
+                    nc[c] -= span * row[c]
+            else:
+                V[SGN, v] = 1.0
+                V[XB, v] = V[REF, v]
+            q += 1
+        else:
+            F[out], y[out] = F[p], y[p]
+            out += 1
+    return out, valid
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def warm(H: np.ndarray, V: np.ndarray, I: np.ndarray, x: np.ndarray) -> int:
     """Start from the feasible point clip(x): free where strictly inside the box; returns |F|."""
     m = H.shape[0]
@@ -196,7 +239,7 @@ def _grown(L, k, valid):
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def solve(H: np.ndarray, V: np.ndarray, I: np.ndarray, meta: np.ndarray, L: np.ndarray, f: np.ndarray,
           x: np.ndarray, tol: float, max_iter: int) -> tuple[bool, int, np.ndarray]:
     """The passes of one solve (see the module doc); x written on success. Returns (ok, passes, L), passes -1
@@ -253,8 +296,7 @@ def solve(H: np.ndarray, V: np.ndarray, I: np.ndarray, meta: np.ndarray, L: np.n
             return _primal(H, V, I, meta, L, f, x, tol, max_iter, k, it)
         _keep(V, k)
         if nP:
-            k = _remove(H, V, I, k, nP)
-            valid = min(valid, I[LEAVING, 0])
+            k, valid = _remove(H, V, I, k, nP, L, valid)
         if nJ:
             k = _add(H, V, I, k, nJ)
         it += 1
@@ -301,9 +343,8 @@ def _primal(H, V, I, meta, L, f, x, tol, max_iter, k, start):
                         I[LEAVING, nP], I[ABOVE, nP] = p, 1 if above else 0
                         nP += 1
                 cur[p] += alpha * d
-            k = _remove(H, V, I, k, nP)
             if nP:
-                valid = min(valid, I[LEAVING, 0])
+                k, valid = _remove(H, V, I, k, nP, L, valid)
             it += 1
             continue
         _keep(V, k)
