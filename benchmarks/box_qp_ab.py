@@ -52,7 +52,7 @@ def old_box_qp(rev: str) -> type:
         if not path.exists() or path.read_text() != kernels:
             path.write_text(kernels)
         spec = importlib.util.spec_from_file_location(path.stem, path)
-        mod._kernels = importlib.util.module_from_spec(spec)
+        mod._kernels = sys.modules[spec.name] = importlib.util.module_from_spec(spec)  # numba's cache imports it
         spec.loader.exec_module(mod._kernels)
         src = src.replace("from solvers import box_qp_kernels as k", "k = _kernels")
     exec(compile(src, f"{rev}:solvers/box_qp.py", "exec"), mod.__dict__)

@@ -23,6 +23,7 @@ N_ROWS = 16
 # rows of the integer state I: F (by position), then scratch: entering variables, leaving positions, to upper
 FREE, ENTERING, LEAVING, ABOVE = range(4)
 _TRIES = 3  # passes without fewer infeasibilities before the primal method takes over
+_UPDATE = 7.0  # cost of a rank-1 update's element in units of the factor's multiply-adds (measured)
 _BLOCK = 8  # more entering variables than this (and than |F|): the primal method, one at a time
 # helpers called only from the kernels: no CPython wrapper to compile
 # (sums in any order, multiply-adds fused: the dot products vectorise; no assumption about NaN or inf)
@@ -68,11 +69,12 @@ def _subproblem(H, V, I, k, L, f):
         for p in range(i):
             t -= L[i, p] * y[p]
         y[i] = t / L[i, i]
-    for i in range(k - 1, -1, -1):  # back: L' y = z
-        t = y[i]
-        for p in range(i + 1, k):
-            t -= L[p, i] * y[p]
-        y[i] = t / L[i, i]
+    for i in range(k - 1, -1, -1):  # back: L' y = z, by rows of L (contiguous)
+        yi = y[i] / L[i, i]
+        y[i] = yi
+        Li = L[i]
+        for p in range(i):
+            y[p] -= yi * Li[p]
     for j in range(m):
         g[j] = 0.0
     for p in range(k):
@@ -148,26 +150,28 @@ def _delete(L, p, valid, w):
 @_inner
 def _remove(H, V, I, k, n, L, valid):
     """Positions I[LEAVING, :n] (ascending) of F leave it, to the upper limit where I[ABOVE]; F keeps its order.
-    The factor follows by deletions where their O((valid - p)^2) costs undercut refactoring from the first
-    position (then only rows before it are kept). Returns (|F|, rows of the factor valid)."""
+    The factor follows: rows from some leaving position p_t on are left to be refactored, and the deletions
+    before it are rank-1 updates of the rows up to p_t (``_delete``), p_t chosen to minimise the estimated
+    cost (an update element costs ~_UPDATE factor multiply-adds: strided, measured). Returns (|F|, rows of the
+    factor valid)."""
     F, y, nc = I[FREE], V[Y], V[NC]
     m = H.shape[0]
-    first = I[LEAVING, 0]
-    if first < valid:
-        update, v = 0.0, valid
-        for q in range(n - 1, -1, -1):
-            p = I[LEAVING, q]
-            if p < v:
-                update += 3.0 * (v - p) * (v - p)
-                v -= 1
-        if update < (valid * valid * valid - first * first * first) / 3.0:
-            for q in range(n - 1, -1, -1):
-                p = I[LEAVING, q]
-                if p < valid:
-                    _delete(L, p, valid, V[W])
-                    valid -= 1
-        else:
-            valid = first
+    best, cut, t_best = np.inf, valid, 0
+    s1, s2, t = 0.0, 0.0, 0
+    while True:  # t deletions updated, the factor refactored from the next one's position (or none)
+        at = I[LEAVING, t] if t < n and I[LEAVING, t] < valid else valid
+        cost = _UPDATE * (t * at * at - 2.0 * at * s1 + s2) + (valid * valid * valid - at * at * at) / 6.0
+        if cost < best:
+            best, cut, t_best = cost, at, t
+        if at == valid:
+            break
+        s1 += at
+        s2 += at * at
+        t += 1
+    for q in range(t_best - 1, -1, -1):
+        _delete(L, I[LEAVING, q], cut, V[W])
+        cut -= 1
+    valid = cut
     q, out = 0, 0
     for p in range(k):
         if q < n and I[LEAVING, q] == p:
