@@ -23,7 +23,7 @@ N_ROWS = 16
 # rows of the integer state I: F (by position), then scratch: entering variables, leaving positions, to upper
 FREE, ENTERING, LEAVING, ABOVE = range(4)
 _TRIES = 3  # passes without fewer infeasibilities before the primal method takes over
-_UPDATE = 7.0  # cost of a rank-1 update's element in units of the factor's multiply-adds (measured)
+_UPDATE = 15.0  # cost of a rank-1 update's element in units of the factor's multiply-adds (measured)
 _BLOCK = 8  # more entering variables than this (and than |F|): the primal method, one at a time
 # helpers called only from the kernels: no CPython wrapper to compile
 # (sums in any order, multiply-adds fused: the dot products vectorise; no assumption about NaN or inf)
@@ -35,21 +35,50 @@ _inner = numba.njit(cache=True, nogil=True, no_cpython_wrapper=True, no_cfunc_wr
 def _factor(H, I, k, L, start):
     """Rows ``start`` .. k-1 of the Cholesky factor of H_FF in L's lower triangle (row-major; row i depends only
     on rows < i, so rows that F's change left in place are kept: a variable appended costs O(k^2)). Returns the
-    number of leading rows now valid: k, or the row at which H_FF is not positive definite."""
+    number of leading rows now valid: k, or the row at which H_FF is not positive definite. Four rows at a time
+    share each earlier row's loads (three times faster than one at a time at k ~ 80)."""
     F = I[FREE]
-    for i in range(start, k):
-        Hi = H[F[i]]
-        for j in range(i):
-            t = Hi[F[j]]
-            for p in range(j):
-                t -= L[i, p] * L[j, p]
-            L[i, j] = t / L[j, j]
-        s = Hi[F[i]]
-        for p in range(i):
-            s -= L[i, p] * L[i, p]
-        if not s > 0.0:
-            return i
-        L[i, i] = math.sqrt(s)
+    i0 = start
+    while i0 < k:
+        R = min(4, k - i0)
+        if R == 4:  # the block's columns before it, four dot products per earlier row
+            Ha, Hb, Hc, Hd = H[F[i0]], H[F[i0 + 1]], H[F[i0 + 2]], H[F[i0 + 3]]
+            La, Lb, Lc, Ld = L[i0], L[i0 + 1], L[i0 + 2], L[i0 + 3]
+            for j in range(i0):
+                Lj, fj = L[j], F[j]
+                ta, tb, tc, td = Ha[fj], Hb[fj], Hc[fj], Hd[fj]
+                for p in range(j):
+                    lp = Lj[p]
+                    ta -= La[p] * lp
+                    tb -= Lb[p] * lp
+                    tc -= Lc[p] * lp
+                    td -= Ld[p] * lp
+                d = Lj[j]
+                La[j], Lb[j], Lc[j], Ld[j] = ta / d, tb / d, tc / d, td / d
+        else:
+            for i in range(i0, i0 + R):
+                Hi, Li = H[F[i]], L[i]
+                for j in range(i0):
+                    Lj = L[j]
+                    t = Hi[F[j]]
+                    for p in range(j):
+                        t -= Li[p] * Lj[p]
+                    Li[j] = t / Lj[j]
+        for i in range(i0, i0 + R):  # the block's own triangle, row by row
+            Hi, Li = H[F[i]], L[i]
+            for j in range(i0, i):
+                Lj = L[j]
+                t = Hi[F[j]]
+                for p in range(j):
+                    t -= Li[p] * Lj[p]
+                Li[j] = t / Lj[j]
+            s = Hi[F[i]]
+            for p in range(i):
+                s -= Li[p] * Li[p]
+            if not s > 0.0:
+                return i
+            Li[i] = math.sqrt(s)
+        i0 += R
     return k
 
 
