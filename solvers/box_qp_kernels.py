@@ -105,13 +105,18 @@ def _subproblem(H, V, I, k, L, f):
         for p in range(i):
             y[p] -= yi * Li[p]
     for j in range(m):
-        g[j] = 0.0
-    for p in range(k):
-        yp, row = y[p], H[F[p]]
+        g[j] = -nfc[j]
+    p = 0
+    while p + 4 <= k:  # four rows of H per sweep of g: one load and store of g per four multiply-adds
+        ya, yb, yc, yd = y[p], y[p + 1], y[p + 2], y[p + 3]
+        Ha, Hb, Hc, Hd = H[F[p]], H[F[p + 1]], H[F[p + 2]], H[F[p + 3]]
         for j in range(m):
-            g[j] += yp * row[j]
-    for j in range(m):
-        g[j] -= nfc[j]
+            g[j] += ya * Ha[j] + yb * Hb[j] + yc * Hc[j] + yd * Hd[j]
+        p += 4
+    for q in range(p, k):
+        yq, row = y[q], H[F[q]]
+        for j in range(m):
+            g[j] += yq * row[j]
     return big
 
 
