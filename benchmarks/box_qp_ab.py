@@ -1,10 +1,11 @@
 """The box QP of a git revision against this tree's, A/B in one process (issue 18 item 3, wave 4).
 
 Each mode is built twice on the same synthetic stream (benchmarks/synthetic.py): once with this tree's
-``solvers.box_qp.BoxQP`` and once with the class from ``--before`` (default 118c8ce, main before the
-box QP kept a Cholesky factor instead of an updated inverse), put in ``solvers.qp`` while that solver is
-built. The two are timed in alternating blocks, so the machine's load falls on both alike, next to the
-prefactored pinv product (the floor) timed in the same blocks. Per row: wall and thread-CPU p50 / p99 (µs),
+``solvers.box_qp.BoxQP`` and once with the class from ``--before`` (default 56fe5c0, main before the
+factor's rank-1 deletions and vectorised loops; 118c8ce is main before the box QP kept a Cholesky factor),
+on that revision's compiled kernels where it has them, put in ``solvers.qp`` while that solver is built.
+The two are timed in alternating blocks, so the machine's load falls on both alike, next to the prefactored
+pinv product (the floor) timed in the same blocks. Per row: wall and thread-CPU p50 / p99 (µs),
 the weight RMSE against the stream's truth (first 300 frames from a reset solver) and the largest
 difference between the two trees' weights over the first 1000 frames (a mode slower than 1 ms a call is
 timed on 300 calls):
@@ -133,7 +134,7 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="1000 timed calls per solver instead of 6000")
     ap.add_argument("--modes", default="robust,qp")
     ap.add_argument("--sizes", default=",".join(f"{n}x{m}" for n, m in SIZES))
-    ap.add_argument("--before", default="118c8ce")
+    ap.add_argument("--before", default="56fe5c0")
     ap.add_argument("--json")
     args = ap.parse_args()
     before = old_box_qp(args.before)
