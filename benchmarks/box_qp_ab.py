@@ -1,10 +1,11 @@
 """The box QP of a git revision against this tree's, A/B in one process (issue 18 item 3, wave 4).
 
 Each mode is built twice on the same synthetic stream (benchmarks/synthetic.py): once with this tree's
-``solvers.box_qp.BoxQP`` and once with the class from ``--before`` (default 118c8ce, main before the
-box QP kept a Cholesky factor instead of an updated inverse), put in ``solvers.qp`` while that solver is
-built. The two are timed in alternating blocks, so the machine's load falls on both alike, next to the
-prefactored pinv product (the floor) timed in the same blocks. Per row: wall and thread-CPU p50 / p99 (µs),
+``solvers.box_qp.BoxQP`` and once with the class from ``--before`` (default 56fe5c0, main before the
+factor's rank-1 deletions and vectorised loops; 118c8ce is main before the box QP kept a Cholesky factor),
+on that revision's compiled kernels where it has them, put in ``solvers.qp`` while that solver is built.
+The two are timed in alternating blocks, so the machine's load falls on both alike, next to the prefactored
+pinv product (the floor) timed in the same blocks. Per row: wall and thread-CPU p50 / p99 (µs),
 the weight RMSE against the stream's truth (first 300 frames from a reset solver) and the largest
 difference between the two trees' weights over the first 1000 frames (a mode slower than 1 ms a call is
 timed on 300 calls):
@@ -15,10 +16,12 @@ timed on 300 calls):
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 import types
 from pathlib import Path
@@ -31,12 +34,28 @@ from benchmarks.synthetic import synthetic_profile, synthetic_stream
 from livecap.modes.registry import build_solver
 
 
-def old_box_qp(rev: str) -> type:
-    """``BoxQP`` as solvers/box_qp.py defines it at git revision ``rev``."""
+def _git_show(rev: str, path: str) -> str | None:
     root = Path(__file__).resolve().parents[1]
-    src = subprocess.run(["git", "show", f"{rev}:solvers/box_qp.py"], cwd=root, check=True, capture_output=True,
-                         text=True).stdout
+    out = subprocess.run(["git", "show", f"{rev}:{path}"], cwd=root, capture_output=True, text=True)
+    return out.stdout if out.returncode == 0 else None
+
+
+def old_box_qp(rev: str) -> type:
+    """``BoxQP`` as solvers/box_qp.py defines it at git revision ``rev``, on that revision's compiled kernels
+    (solvers/box_qp_kernels.py, written to a temporary file so that numba can cache them) where it has them."""
+    src = _git_show(rev, "solvers/box_qp.py")
+    if src is None:
+        raise SystemExit(f"no solvers/box_qp.py at {rev}")
     mod = types.ModuleType(f"box_qp_{rev}")
+    kernels = _git_show(rev, "solvers/box_qp_kernels.py")
+    if kernels is not None:
+        path = Path(tempfile.gettempdir()) / f"box_qp_kernels_{rev}.py"
+        if not path.exists() or path.read_text() != kernels:
+            path.write_text(kernels)
+        spec = importlib.util.spec_from_file_location(path.stem, path)
+        mod._kernels = sys.modules[spec.name] = importlib.util.module_from_spec(spec)  # numba's cache imports it
+        spec.loader.exec_module(mod._kernels)
+        src = src.replace("from solvers import box_qp_kernels as k", "k = _kernels")
     exec(compile(src, f"{rev}:solvers/box_qp.py", "exec"), mod.__dict__)
     return mod.BoxQP
 
@@ -115,7 +134,7 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="1000 timed calls per solver instead of 6000")
     ap.add_argument("--modes", default="robust,qp")
     ap.add_argument("--sizes", default=",".join(f"{n}x{m}" for n, m in SIZES))
-    ap.add_argument("--before", default="118c8ce")
+    ap.add_argument("--before", default="56fe5c0")
     ap.add_argument("--json")
     args = ap.parse_args()
     before = old_box_qp(args.before)

@@ -6,9 +6,11 @@ The per-frame blendshape fit (Curio et al. 2006 §2.3; Lewis et al. 2014 §5.2) 
 with H fixed per marker-visibility pattern and only f changing per frame; from one frame to the
 next the set of weights strictly inside their limits (the free set F) rarely changes, and it is
 small when the fit is sparse (most shapes rest at a bound). This solver works on F alone: it keeps
-the Cholesky factor of H_FF (recomputed when variables enter or leave F: O(k^3 / 3) for k = |F|,
-no O(m^3), and never drifts as an updated inverse does), so a frame whose free set is unchanged
-costs two k x k triangular solves, one k x m product and the KKT check. A dual active-set solver
+the Cholesky factor of H_FF, in F's order: a variable entering F appends a row (O(k^2) for k = |F|), one
+leaving deletes its row and column by a rank-1 update of the rows after it (O((k - p)^2) at position p;
+Golub & Van Loan, Matrix Computations, 4th ed. 2013, §6.5.4) or, where that is estimated dearer, the rows
+from its position are refactored; no O(m^3), and no drift as an updated inverse has. A frame whose free
+set is unchanged costs two k x k triangular solves, one k x m product and the KKT check. A dual active-set solver
 such as DAQP works on the *active* bounds instead, which at 1000 shapes with ~25 free means
 factorising ~975 constraints.
 

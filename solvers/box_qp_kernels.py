@@ -4,7 +4,9 @@ As numpy calls a pass cost ~20 calls of per-call overhead on k ~ 16 free weights
 pass of a solve (docs/performance.md, "Compiled kernels (numba)"). The state lives in a few arrays (rows named
 below) that the kernels update in place; ``cache=True`` keeps the machine code in ``__pycache__``. Kept apart
 from the class so that importing ``solvers.box_qp`` (every CLI command does, through the mode registry) does
-not import numba: the class imports this module when a first solver is made.
+not import numba: the class imports this module when a first solver is made. The inner loops are written for
+the compiler to vectorise (sums reassociated, ``_FAST``; four factor rows, or four rows of H, per sweep) and
+along rows (the factor is row-major): docs/performance.md, "The qp mode's box QP near the floor".
 """
 
 from __future__ import annotations
@@ -17,36 +19,68 @@ import numpy as np
 # rows of the per-variable state V (m columns): limits, the reference point and y's limits (y = x - ref in
 # [YLO, SPAN]), H ref, minus the gradient offset c (f + c = the gradient at y = 0 on F), the multiplier signs
 # (0 on F and fixed variables), the bounded variables' values, at the upper limit (1.0), fixed (lo == hi),
-# the gradient, minus f + c, the point on F (by position) and the subproblem's solution (by position)
-LO, HI, REF, SPAN, YLO, HREF, NC, SGN, XB, UP, FIXED, G, NFC, Y, S = range(15)
-N_ROWS = 15
+# the gradient, minus f + c, the point on F (by position), the subproblem's solution (by position) and scratch
+LO, HI, REF, SPAN, YLO, HREF, NC, SGN, XB, UP, FIXED, G, NFC, Y, S, W = range(16)
+N_ROWS = 16
 # rows of the integer state I: F (by position), then scratch: entering variables, leaving positions, to upper
 FREE, ENTERING, LEAVING, ABOVE = range(4)
 _TRIES = 3  # passes without fewer infeasibilities before the primal method takes over
+_UPDATE = 15.0  # a rank-1 update element costs this many factor multiply-adds (strided; 7-30 measured alike)
 _BLOCK = 8  # more entering variables than this (and than |F|): the primal method, one at a time
 # helpers called only from the kernels: no CPython wrapper to compile
-_inner = numba.njit(cache=True, nogil=True, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+# (sums in any order, multiply-adds fused: the dot products vectorise; no assumption about NaN or inf)
+_FAST = {"reassoc", "contract"}
+_inner = numba.njit(cache=True, nogil=True, no_cpython_wrapper=True, no_cfunc_wrapper=True, fastmath=_FAST)
 
 
 @_inner
 def _factor(H, I, k, L, start):
     """Rows ``start`` .. k-1 of the Cholesky factor of H_FF in L's lower triangle (row-major; row i depends only
     on rows < i, so rows that F's change left in place are kept: a variable appended costs O(k^2)). Returns the
-    number of leading rows now valid: k, or the row at which H_FF is not positive definite."""
+    number of leading rows now valid: k, or the row at which H_FF is not positive definite. Four rows at a time
+    share each earlier row's loads (three times faster than one at a time at k ~ 80)."""
     F = I[FREE]
-    for i in range(start, k):
-        Hi = H[F[i]]
-        for j in range(i):
-            t = Hi[F[j]]
-            for p in range(j):
-                t -= L[i, p] * L[j, p]
-            L[i, j] = t / L[j, j]
-        s = Hi[F[i]]
-        for p in range(i):
-            s -= L[i, p] * L[i, p]
-        if not s > 0.0:
-            return i
-        L[i, i] = math.sqrt(s)
+    i0 = start
+    while i0 < k:
+        R = min(4, k - i0)
+        if R == 4:  # the block's columns before it, four dot products per earlier row
+            Ha, Hb, Hc, Hd = H[F[i0]], H[F[i0 + 1]], H[F[i0 + 2]], H[F[i0 + 3]]
+            La, Lb, Lc, Ld = L[i0], L[i0 + 1], L[i0 + 2], L[i0 + 3]
+            for j in range(i0):
+                Lj, fj = L[j], F[j]
+                ta, tb, tc, td = Ha[fj], Hb[fj], Hc[fj], Hd[fj]
+                for p in range(j):
+                    lp = Lj[p]
+                    ta -= La[p] * lp
+                    tb -= Lb[p] * lp
+                    tc -= Lc[p] * lp
+                    td -= Ld[p] * lp
+                d = Lj[j]
+                La[j], Lb[j], Lc[j], Ld[j] = ta / d, tb / d, tc / d, td / d
+        else:
+            for i in range(i0, i0 + R):
+                Hi, Li = H[F[i]], L[i]
+                for j in range(i0):
+                    Lj = L[j]
+                    t = Hi[F[j]]
+                    for p in range(j):
+                        t -= Li[p] * Lj[p]
+                    Li[j] = t / Lj[j]
+        for i in range(i0, i0 + R):  # the block's own triangle, row by row
+            Hi, Li = H[F[i]], L[i]
+            for j in range(i0, i):
+                Lj = L[j]
+                t = Hi[F[j]]
+                for p in range(j):
+                    t -= Li[p] * Lj[p]
+                Li[j] = t / Lj[j]
+            s = Hi[F[i]]
+            for p in range(i):
+                s -= Li[p] * Li[p]
+            if not s > 0.0:
+                return i
+            Li[i] = math.sqrt(s)
+        i0 += R
     return k
 
 
@@ -66,19 +100,25 @@ def _subproblem(H, V, I, k, L, f):
         for p in range(i):
             t -= L[i, p] * y[p]
         y[i] = t / L[i, i]
-    for i in range(k - 1, -1, -1):  # back: L' y = z
-        t = y[i]
-        for p in range(i + 1, k):
-            t -= L[p, i] * y[p]
-        y[i] = t / L[i, i]
+    for i in range(k - 1, -1, -1):  # back: L' y = z, by rows of L (contiguous)
+        yi = y[i] / L[i, i]
+        y[i] = yi
+        Li = L[i]
+        for p in range(i):
+            y[p] -= yi * Li[p]
     for j in range(m):
-        g[j] = 0.0
-    for p in range(k):
-        yp, row = y[p], H[F[p]]
+        g[j] = -nfc[j]
+    p = 0
+    while p + 4 <= k:  # four rows of H per sweep of g: one load and store of g per four multiply-adds
+        ya, yb, yc, yd = y[p], y[p + 1], y[p + 2], y[p + 3]
+        Ha, Hb, Hc, Hd = H[F[p]], H[F[p + 1]], H[F[p + 2]], H[F[p + 3]]
         for j in range(m):
-            g[j] += yp * row[j]
-    for j in range(m):
-        g[j] -= nfc[j]
+            g[j] += ya * Ha[j] + yb * Hb[j] + yc * Hc[j] + yd * Hd[j]
+        p += 4
+    for q in range(p, k):
+        yq, row = y[q], H[F[q]]
+        for j in range(m):
+            g[j] += yq * row[j]
     return big
 
 
@@ -122,31 +162,74 @@ def _add(H, V, I, k, n):
 
 
 @_inner
-def _remove(H, V, I, k, n):
-    """Positions I[LEAVING, :n] (ascending) of F leave it, to the upper limit where I[ABOVE]; the last position
-    takes each one's place (F's order is free: the factor is recomputed at the next pass)."""
+def _delete(L, p, valid, w):
+    """Row and column p (< valid) out of the factor's first ``valid`` rows: the rows below move up one and
+    their trailing block takes the rank-1 update by the deleted column (Golub & Van Loan, Matrix
+    Computations, 4th ed. 2013, §6.5.4), O((valid - p)^2) instead of refactoring rows p .. valid - 1."""
+    for i in range(p + 1, valid):
+        w[i] = L[i, p]
+        for j in range(p):
+            L[i - 1, j] = L[i, j]
+        for j in range(p + 1, i + 1):
+            L[i - 1, j - 1] = L[i, j]
+    for j in range(p, valid - 1):
+        a, b = L[j, j], w[j + 1]
+        r = math.sqrt(a * a + b * b)
+        c, s = r / a, b / a
+        L[j, j] = r
+        for i in range(j + 1, valid - 1):
+            t = (L[i, j] + s * w[i + 1]) / c
+            L[i, j] = t
+            w[i + 1] = c * w[i + 1] - s * t
+
+
+@_inner
+def _remove(H, V, I, k, n, L, valid):
+    """Positions I[LEAVING, :n] (ascending) of F leave it, to the upper limit where I[ABOVE]; F keeps its order.
+    The factor follows: rows from some leaving position p_t on are left to be refactored, and the deletions
+    before it are rank-1 updates of the rows up to p_t (``_delete``), p_t chosen to minimise the estimated
+    cost (an update element costs ~_UPDATE factor multiply-adds: strided, measured). Returns (|F|, rows of the
+    factor valid)."""
     F, y, nc = I[FREE], V[Y], V[NC]
     m = H.shape[0]
-    for q in range(n - 1, -1, -1):  # the factor's rows from the first of these positions on no longer hold
-        p = I[LEAVING, q]
-        v = F[p]
-        if I[ABOVE, q]:
-            V[UP, v] = 1.0
-            V[SGN, v] = -1.0
-            V[XB, v] = V[HI, v]
-            span, row = V[SPAN, v], H[v]
-            for c in range(m):
-                nc[c] -= span * row[c]
+    best, cut, t_best = np.inf, valid, 0
+    s1, s2, t = 0.0, 0.0, 0
+    while True:  # t deletions updated, the factor refactored from the next one's position (or none)
+        at = I[LEAVING, t] if t < n and I[LEAVING, t] < valid else valid
+        cost = _UPDATE * (t * at * at - 2.0 * at * s1 + s2) + (valid * valid * valid - at * at * at) / 6.0
+        if cost < best:
+            best, cut, t_best = cost, at, t
+        if at == valid:
+            break
+        s1 += at
+        s2 += at * at
+        t += 1
+    for q in range(t_best - 1, -1, -1):
+        _delete(L, I[LEAVING, q], cut, V[W])
+        cut -= 1
+    valid = cut
+    q, out = 0, 0
+    for p in range(k):
+        if q < n and I[LEAVING, q] == p:
+            v = F[p]
+            if I[ABOVE, q]:
+                V[UP, v] = 1.0
+                V[SGN, v] = -1.0
+                V[XB, v] = V[HI, v]
+                span, row = V[SPAN, v], H[v]
+                for c in range(m):
+                    nc[c] -= span * row[c]
+            else:
+                V[SGN, v] = 1.0
+                V[XB, v] = V[REF, v]
+            q += 1
         else:
-            V[SGN, v] = 1.0
-            V[XB, v] = V[REF, v]
-        k -= 1
-        if p != k:
-            F[p], y[p] = F[k], y[k]
-    return k
+            F[out], y[out] = F[p], y[p]
+            out += 1
+    return out, valid
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def warm(H: np.ndarray, V: np.ndarray, I: np.ndarray, x: np.ndarray) -> int:
     """Start from the feasible point clip(x): free where strictly inside the box; returns |F|."""
     m = H.shape[0]
@@ -196,7 +279,7 @@ def _grown(L, k, valid):
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def solve(H: np.ndarray, V: np.ndarray, I: np.ndarray, meta: np.ndarray, L: np.ndarray, f: np.ndarray,
           x: np.ndarray, tol: float, max_iter: int) -> tuple[bool, int, np.ndarray]:
     """The passes of one solve (see the module doc); x written on success. Returns (ok, passes, L), passes -1
@@ -253,8 +336,7 @@ def solve(H: np.ndarray, V: np.ndarray, I: np.ndarray, meta: np.ndarray, L: np.n
             return _primal(H, V, I, meta, L, f, x, tol, max_iter, k, it)
         _keep(V, k)
         if nP:
-            k = _remove(H, V, I, k, nP)
-            valid = min(valid, I[LEAVING, 0])
+            k, valid = _remove(H, V, I, k, nP, L, valid)
         if nJ:
             k = _add(H, V, I, k, nJ)
         it += 1
@@ -301,9 +383,8 @@ def _primal(H, V, I, meta, L, f, x, tol, max_iter, k, start):
                         I[LEAVING, nP], I[ABOVE, nP] = p, 1 if above else 0
                         nP += 1
                 cur[p] += alpha * d
-            k = _remove(H, V, I, k, nP)
             if nP:
-                valid = min(valid, I[LEAVING, 0])
+                k, valid = _remove(H, V, I, k, nP, L, valid)
             it += 1
             continue
         _keep(V, k)
