@@ -55,7 +55,11 @@ def old_box_qp(rev: str) -> type:
         spec = importlib.util.spec_from_file_location(path.stem, path)
         mod._kernels = sys.modules[spec.name] = importlib.util.module_from_spec(spec)  # numba's cache imports it
         spec.loader.exec_module(mod._kernels)
-        src = src.replace("from solvers import box_qp_kernels as k", "k = _kernels")
+        spelled = "from solvers import box_qp_kernels as k"
+        if spelled not in src:
+            raise RuntimeError(f"{rev}:solvers/box_qp.py does not import its kernels as {spelled!r}: "
+                               "its BoxQP would run this tree's kernels")
+        src = src.replace(spelled, "k = _kernels")
     exec(compile(src, f"{rev}:solvers/box_qp.py", "exec"), mod.__dict__)
     return mod.BoxQP
 

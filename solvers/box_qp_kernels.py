@@ -175,12 +175,12 @@ def _delete(L, p, valid, w):
     for j in range(p, valid - 1):
         a, b = L[j, j], w[j + 1]
         r = math.sqrt(a * a + b * b)
-        c, s = r / a, b / a
+        c, s = a / r, b / r  # a Givens rotation: |c|, |s| <= 1, so nearly collinear rows lose nothing (review)
         L[j, j] = r
         for i in range(j + 1, valid - 1):
-            t = (L[i, j] + s * w[i + 1]) / c
-            L[i, j] = t
-            w[i + 1] = c * w[i + 1] - s * t
+            li, wi = L[i, j], w[i + 1]
+            L[i, j] = c * li + s * wi
+            w[i + 1] = c * wi - s * li
 
 
 @_inner

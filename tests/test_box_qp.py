@@ -238,3 +238,30 @@ def test_an_unregularised_churning_stream_matches_daqp_frame_by_frame():
         np.testing.assert_allclose(x, np.clip(_daqp(H, f, profile.lower, profile.upper), profile.lower,
                                                profile.upper), atol=1e-9)
     assert changed > 15 * len(targets)  # the regime of the test: dozens of weights change side per frame
+
+
+def test_a_weight_leaving_beside_a_nearly_collinear_one_keeps_the_factor_exact():
+    """Shape 31 = shape 30 + 1e-7 noise: H is near singular (cond ~1e15) but H_FF after 30 leaves is not (~50).
+    The rank-1 deletion must not lose digits there (review: a rotation by r / a lost 1e-10 of the factor)."""
+    rng = np.random.default_rng(1)
+    m, p = 40, 30
+    B = rng.normal(size=(60, m))
+    B[:, p + 1] = B[:, p] + 1e-7 * rng.normal(size=60)
+    H = B.T @ B
+    lo, hi = np.full(m, -10.0), np.full(m, 10.0)
+    x_in = rng.uniform(-1, 1, m)
+    qp = BoxQP(H, lo, hi)
+    qp.warm(x_in)
+    qp.solve(-H @ x_in)
+    x_out = x_in.copy()
+    x_out[p] = -11.0  # weight p now wants to go below its limit: it leaves F, the rest stay free
+    f = -H @ x_out
+    x = qp.solve(f)
+    F, valid = qp.F, int(qp._meta[1])
+    assert len(F) == m - 1 and p not in F and valid > p
+    exact = np.linalg.cholesky(H[np.ix_(F, F)])
+    assert np.abs(np.tril(qp._L[:valid, :valid]) - exact[:valid, :valid]).max() < 1e-13 * np.abs(exact).max()
+    keep = np.arange(m) != p
+    want = np.full(m, lo[p])
+    want[keep] = np.linalg.solve(H[np.ix_(keep, keep)], -(f[keep] + H[keep, p] * lo[p]))
+    np.testing.assert_allclose(x, want, rtol=0, atol=1e-12)
