@@ -35,13 +35,17 @@ class HeldOutStrength:
                 qp.step(np.zeros(3 * n), self.fold_of != f)
             qp.reset()
 
-    def observe(self, target: np.ndarray, valid: np.ndarray) -> None:
+    def observe(self, target: np.ndarray, valid: np.ndarray, start: np.ndarray | None = None) -> None:
+        """``start``: a solution near this frame's (e.g. the last frame's fit) to start the trial's QP from;
+        by default the trial starts from this strength's last trial, ``len(grid)`` trials ago."""
         g = self.t % len(self.grid)
         held = (self.fold_of == (self.t // len(self.grid)) % self.folds) & np.asarray(valid, bool)
         self.t += 1
         train = np.asarray(valid, bool) & ~held
         if not held.any() or train.sum() < 3:
             return
+        if start is not None:
+            self.qps[g].warm(start)
         w = self.qps[g].step(target, train)
         rows = np.repeat(held, 3)
         r = self.basis[rows] @ w - np.asarray(target, float).reshape(-1)[rows]
