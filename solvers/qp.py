@@ -30,6 +30,7 @@ from collections import OrderedDict
 import numpy as np
 
 from solvers.box_qp import BoxQP
+from solvers.qp_kernels import smallest_eigenvalue
 
 log = logging.getLogger(__name__)
 
@@ -56,12 +57,14 @@ class _CondBound:
     >= c on the rest S: with s^2 = lambda_min(H_UU) (how well the seen markers fix U) and b = ||J_S|| <= the
     all-markers norm, z'Hz >= c|z_S|^2 + max(0, s|z_U| - b|z_S|)^2 >= c s^2 / (c + b^2 + s^2) |z|^2 (the
     2 x 2 matrix [[c + b^2, -s b], [-s b, s^2]]'s determinant over its trace). With trace(H) >= lambda_max
-    it bounds cond(H) with one |U| x |U| eigensolve per visibility pattern instead of a Cholesky of H;
+    it bounds cond(H) with one |U| x |U| eigensolve (compiled) per visibility pattern instead of a Cholesky of H;
     with U empty it is c (a ridge or full prior)."""
 
     def __init__(self, const: np.ndarray, weighted_basis: np.ndarray) -> None:
         free = ~np.any(const, axis=1)
         self.U, S = np.flatnonzero(free), np.flatnonzero(~free)
+        contiguous = len(self.U) and self.U[-1] - self.U[0] == len(self.U) - 1
+        self._block = (slice(self.U[0], self.U[-1] + 1),) * 2 if contiguous else np.ix_(self.U, self.U)
         self.c = _lambda_min(const[np.ix_(S, S)]) if len(S) else 0.0
         self.b2 = 0.0
         if len(self.U) and self.c > 0:
@@ -73,7 +76,7 @@ class _CondBound:
             return 0.0
         if not len(self.U):
             return self.c
-        s2 = float(np.linalg.eigvalsh(H[np.ix_(self.U, self.U)])[0])
+        s2 = smallest_eigenvalue(np.ascontiguousarray(H[self._block]))
         return self.c * s2 / (self.c + self.b2 + s2) if s2 > 0 else 0.0
 
 

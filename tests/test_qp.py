@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import lsq_linear
@@ -144,3 +145,17 @@ def test_a_warm_start_changes_the_passes_not_the_solution():
     warm.warm(cold.step(target, np.ones(12, bool)))
     np.testing.assert_allclose(warm.step(target, seen), _reference(B[np.repeat(seen, 3)], lo, hi,
                                                                  s[np.repeat(seen, 3)], 1e-3), atol=1e-6)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 8), spread=st.sampled_from([1.0, 1e-4, 1e-9]))
+def test_compiled_smallest_eigenvalue_matches_eigvalsh_and_never_exceeds_it(seed, n, spread):
+    from solvers.qp_kernels import smallest_eigenvalue
+
+    rng = np.random.default_rng(seed)
+    Q = np.linalg.qr(rng.normal(size=(n, n)))[0]
+    lam = np.sort(rng.uniform(spread, 1, n)) * 10.0 ** rng.integers(-3, 4)
+    A = (Q * lam) @ Q.T
+    A = (A + A.T) / 2
+    got, ref = smallest_eigenvalue(A), np.linalg.eigvalsh(A)[0]
+    assert got <= ref and got == pytest.approx(ref, abs=1e-10 * lam.sum())
