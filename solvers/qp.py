@@ -171,7 +171,9 @@ class FrameQP:
     def warm(self, x: np.ndarray) -> None:
         """Start the next solve from ``x`` (clipped to the limits), e.g. a nearby problem's solution."""
         self._prev = np.minimum(np.maximum(np.asarray(x, dtype=np.float64), self.lower), self.upper)
-        self._last_key = self._daqp_key = None
+        self._last_key = None
+        if self._daqp_key is not None:  # DAQP keeps the stream (its active set churns), its constraint states from x
+            self._daqp_key = b""
 
     @property
     def cached_patterns(self) -> int:
