@@ -169,11 +169,16 @@ class FrameQP:
         self.churn = 1.0  # running mean of self.iterations: how much the active set moves per frame
 
     def warm(self, x: np.ndarray) -> None:
-        """Start the next solve from ``x`` (clipped to the limits), e.g. a nearby problem's solution."""
+        """Start the next solve from ``x`` (clipped to the limits), e.g. a nearby problem's solution. Not where
+        hundreds of weights were free: a nearer start lowers the churn that hands such solves to DAQP, and the box
+        QP's passes on them cost more than DAQP's (kalman's trials at 72 x 1000, docs/performance.md
+        "`kalman`'s streamed step")."""
+        ws = getattr(self, "_last_ws", None)
+        if self._daqp_key is not None or (ws is not None and ws._box is not None
+                                          and len(ws.box.F) >= self._FREE_DAQP):
+            return
         self._prev = np.minimum(np.maximum(np.asarray(x, dtype=np.float64), self.lower), self.upper)
         self._last_key = None
-        if self._daqp_key is not None:  # DAQP keeps the stream (its active set churns), its constraint states from x
-            self._daqp_key = b""
 
     @property
     def cached_patterns(self) -> int:
