@@ -26,6 +26,10 @@ class HeldOutStrength:
         self.qps = [FrameQP(basis, lower, upper, prior=(mean, precision), prior_weight=float(a)) for a in self.grid]
         self.fold_of = np.random.default_rng(seed).permutation(n) % folds
         self.folds, self.decay = folds, decay
+        self._fold_markers = [np.flatnonzero(self.fold_of == f) for f in range(folds)]
+        self._outside = [self.fold_of != f for f in range(folds)]
+        self._fold_rows = [np.flatnonzero(np.repeat(self.fold_of == f, 3)) for f in range(folds)]
+        self._fold_basis = [self.basis[r] for r in self._fold_rows]  # the rows a trial predicts when all are seen
         self.err = np.zeros(len(self.grid))
         self.count = np.zeros(len(self.grid))
         self.t = 0
@@ -35,19 +39,27 @@ class HeldOutStrength:
                 qp.step(np.zeros(3 * n), self.fold_of != f)
             qp.reset()
 
-    def observe(self, target: np.ndarray, valid: np.ndarray) -> None:
+    def observe(self, target: np.ndarray, valid: np.ndarray, start: np.ndarray | None = None) -> None:
+        """``start``: a solution near this frame's (e.g. the last frame's fit) to start the trial's QP from;
+        by default the trial starts from this strength's last trial, ``len(grid)`` trials ago."""
         g = self.t % len(self.grid)
-        held = (self.fold_of == (self.t // len(self.grid)) % self.folds) & np.asarray(valid, bool)
+        f = (self.t // len(self.grid)) % self.folds
         self.t += 1
-        train = np.asarray(valid, bool) & ~held
-        if not held.any() or train.sum() < 3:
+        valid = np.asarray(valid, bool)
+        seen = valid[self._fold_markers[f]]  # the fold's markers seen: those held out
+        n_held = int(np.count_nonzero(seen))
+        train = valid & self._outside[f]
+        if not n_held or np.count_nonzero(train) < 3:
             return
+        if start is not None:
+            self.qps[g].warm(start)
         w = self.qps[g].step(target, train)
-        rows = np.repeat(held, 3)
-        r = self.basis[rows] @ w - np.asarray(target, float).reshape(-1)[rows]
+        rows = self._fold_rows[f] if n_held == len(seen) else self._fold_rows[f][np.repeat(seen, 3)]
+        basis = self._fold_basis[f] if n_held == len(seen) else self.basis[rows]
+        r = basis @ w - np.asarray(target, float).reshape(-1)[rows]
         self.err *= self.decay
         self.count *= self.decay
         self.err[g] += float(r @ r)
-        self.count[g] += int(held.sum())
+        self.count[g] += n_held
         if (self.count > 0).all():
             self.best = int(np.argmin(self.err / self.count))

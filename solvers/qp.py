@@ -22,6 +22,7 @@ workspaces are cached per visibility pattern in a bounded LRU.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 from collections import OrderedDict
@@ -29,19 +30,65 @@ from collections import OrderedDict
 import numpy as np
 
 from solvers.box_qp import BoxQP
+from solvers.qp_kernels import smallest_eigenvalue
 
 log = logging.getLogger(__name__)
+
+
+_LAMBDA_MIN: dict[bytes, float] = {}  # smallest eigenvalue per matrix content: FrameQPs at several strengths share one
+
+
+def _lambda_min(A: np.ndarray) -> float:
+    """Smallest eigenvalue of the symmetric ``A``, cached by content (an eigensolve at a 1000-shape rig)."""
+    if not A.size:
+        return np.inf
+    diag = np.diagonal(A)
+    if not np.any(A - np.diag(diag)):
+        return float(diag.min())
+    key = hashlib.blake2b(np.ascontiguousarray(A).tobytes(), digest_size=16).digest() + bytes(str(A.shape), "ascii")
+    if key not in _LAMBDA_MIN:
+        _LAMBDA_MIN[key] = float(np.linalg.eigvalsh(A)[0])
+    return _LAMBDA_MIN[key]
+
+
+class _CondBound:
+    """A lower bound on lambda_min(H), H = J'J + C, J the seen rows of the (marker-weighted) basis, C fixed,
+    zero on the rows and columns of the unpenalised variables U (the pose columns of solvers.pose_refine) and
+    >= c on the rest S: with s^2 = lambda_min(H_UU) (how well the seen markers fix U) and b = ||J_S|| <= the
+    all-markers norm, z'Hz >= c|z_S|^2 + max(0, s|z_U| - b|z_S|)^2 >= c s^2 / (c + b^2 + s^2) |z|^2 (the
+    2 x 2 matrix [[c + b^2, -s b], [-s b, s^2]]'s determinant over its trace). With trace(H) >= lambda_max
+    it bounds cond(H) with one |U| x |U| eigensolve (compiled) per visibility pattern instead of a Cholesky of H;
+    with U empty it is c (a ridge or full prior)."""
+
+    def __init__(self, const: np.ndarray, weighted_basis: np.ndarray) -> None:
+        free = ~np.any(const, axis=1)
+        self.U, S = np.flatnonzero(free), np.flatnonzero(~free)
+        contiguous = len(self.U) and self.U[-1] - self.U[0] == len(self.U) - 1
+        self._block = (slice(self.U[0], self.U[-1] + 1),) * 2 if contiguous else np.ix_(self.U, self.U)
+        self.c = _lambda_min(const[np.ix_(S, S)]) if len(S) else 0.0
+        self.b2 = 0.0
+        if len(self.U) and self.c > 0:
+            JS = weighted_basis[:, S]
+            self.b2 = float(np.linalg.eigvalsh(JS @ JS.T if JS.shape[0] < JS.shape[1] else JS.T @ JS)[-1])
+
+    def lambda_min(self, H: np.ndarray) -> float:
+        if not self.c > 0:
+            return 0.0
+        if not len(self.U):
+            return self.c
+        s2 = smallest_eigenvalue(np.ascontiguousarray(H[self._block]))
+        return self.c * s2 / (self.c + self.b2 + s2) if s2 > 0 else 0.0
 
 
 class _Workspace:
     """One visibility pattern: H, the linear-term matrix, the active-set solver and DAQP, each built on
     first use (with many markers missing most patterns are seen once, often while DAQP has taken over)."""
 
-    __slots__ = ("H", "BtD", "floor", "rows", "_limits", "_box", "_daqp")
+    __slots__ = ("H", "floor", "rows", "_limits", "_box", "_daqp")
 
-    def __init__(self, H: np.ndarray, BtD: np.ndarray, floor: float, rows: np.ndarray | None,
-                 lower: np.ndarray, upper: np.ndarray) -> None:
-        self.H, self.BtD, self.floor, self.rows = H, BtD, floor, rows
+    def __init__(self, H: np.ndarray, floor: float, rows: np.ndarray | None, lower: np.ndarray,
+                 upper: np.ndarray) -> None:
+        self.H, self.floor, self.rows = H, floor, rows
         self._limits = (lower, upper)
         self._box: BoxQP | None = None
         self._daqp = None
@@ -104,9 +151,7 @@ class FrameQP:
         # previous weights keeps it positive definite and holds those shapes where they were.
         scale = float(np.mean(np.einsum("ij,ij->j", self.basis, self.basis))) or 1.0
         self._floor = 1e-9 * scale
-        diag = np.diagonal(self._const)
-        # H = B'M^2B + const >= const: a positive diagonal const bounds cond(H) by trace(H) / min(const)
-        self._const_min = float(diag.min()) if self.m and not np.any(self._const - np.diag(diag)) else 0.0
+        self._cond = _CondBound(self._const, self.basis * np.sqrt(self._row_w)[:, None])
         self._H_all: np.ndarray | None = None  # H with every marker seen; other patterns downdate it
         self.linear = np.zeros(self.m)  # a linear term callers may change per frame (e.g. an L1 penalty)
         self.cache_size = int(cache_size)
@@ -122,6 +167,18 @@ class FrameQP:
         self._last_key: bytes | None = None  # pattern of the last successful solve: its solver is warm
         self._daqp_key: bytes | None = None  # the same for DAQP (used while the active set churns)
         self.churn = 1.0  # running mean of self.iterations: how much the active set moves per frame
+
+    def warm(self, x: np.ndarray) -> None:
+        """Start the next solve from ``x`` (clipped to the limits), e.g. a nearby problem's solution. Not where
+        hundreds of weights were free: a nearer start lowers the churn that hands such solves to DAQP, and the box
+        QP's passes on them cost more than DAQP's (kalman's trials at 72 x 1000, docs/performance.md
+        "`kalman`'s streamed step")."""
+        ws = getattr(self, "_last_ws", None)
+        if self._daqp_key is not None or (ws is not None and ws._box is not None
+                                          and len(ws.box.F) >= self._FREE_DAQP):
+            return
+        self._prev = np.minimum(np.maximum(np.asarray(x, dtype=np.float64), self.lower), self.upper)
+        self._last_key = None
 
     @property
     def cached_patterns(self) -> int:
@@ -146,7 +203,7 @@ class FrameQP:
             Bv = self.basis[rows]
             H = Bv.T @ (Bv * self._row_w[rows, None]) + self._const
         floor = 0.0
-        if not (self._const_min > 0 and np.trace(H) <= 1e12 * self._const_min):
+        if np.trace(H) > 1e12 * self._cond.lambda_min(H):
             try:  # (max / min Cholesky diagonal)^2 bounds cond(H) from below: no SVD per new pattern
                 d = np.diagonal(np.linalg.cholesky(H))
                 if d.min() <= 0 or (d.max() / d.min()) ** 2 > 1e12:
@@ -154,8 +211,7 @@ class FrameQP:
             except np.linalg.LinAlgError:
                 floor = self._floor
                 H = H + floor * np.eye(self.m)
-        BtD = self._BtD if rows.all() else self._BtD * rows[None, :]
-        ws = _Workspace(H, BtD, floor, None if seen.all() else rows, self.lower, self.upper)
+        ws = _Workspace(H, floor, None if seen.all() else rows, self.lower, self.upper)
         self._models[key] = ws
         if len(self._models) > self.cache_size:
             self._models.popitem(last=False)
@@ -181,7 +237,7 @@ class FrameQP:
             ws = self._workspace(key, seen)
         if ws.rows is not None:
             s = np.where(ws.rows, s, 0.0)
-        f = ws.BtD @ s
+        f = self._BtD @ s  # s is 0 on the rows of missing markers
         np.subtract(self.linear, f, out=f)
         if self._prior_f is not None:
             f -= self._prior_f

@@ -214,3 +214,23 @@ def test_stream_reports_a_hidden_marker_missing_after_two_frames_where_the_smoot
     oks = np.array([f.step(noisy[t], valid[t])[1] for t in range(80)])
     assert oks[40:42, 1].all() and not oks[42:46, 1].any() and oks[46:, 1].all()
     assert smooth_take(noisy, valid)[1][:, 1].all()  # offline the gap is interpolated from both ends
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 9), noise=st.sampled_from([0.05, 0.3, 1.0]),
+       missing=st.floats(0.0, 0.6), lag=st.sampled_from([0, 1]))
+def test_compiled_stream_step_equals_the_numpy_reference(seed, n, noise, missing, lag):
+    """The compiled bank (solvers.marker_kalman_kernels) against the whole-array numpy version it replaced:
+    the same markers, validity and noise choice every frame, through late first sightings and gaps."""
+    from tests.marker_kalman_reference import NumpyStreamingMarkerKalman
+
+    truth, noisy = _walk(90, n, noise, seed)
+    valid = np.random.default_rng(seed + 1).random((90, n)) > missing
+    f, ref = StreamingMarkerKalman(n, lag=lag), NumpyStreamingMarkerKalman(n, lag=lag)
+    for t in range(90):
+        (x, ok), (x_ref, ok_ref) = f.step(noisy[t], valid[t]), ref.step(noisy[t], valid[t])
+        np.testing.assert_array_equal(ok, ok_ref)
+        np.testing.assert_allclose(x, x_ref, rtol=0, atol=1e-12 * (1 + np.abs(x_ref).max()))
+        assert f.noise_mm == ref.noise_mm
+    f.reset()
+    assert np.array_equal(f.step(noisy[0], valid[0])[0][valid[0]], noisy[0][valid[0]])

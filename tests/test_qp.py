@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import lsq_linear
@@ -110,3 +111,51 @@ def test_qp_mode_on_demo_profile(demo):
     w_true[[1, 5, 9]] = [0.8, 0.3, 0.5]
     target = (profile.basis @ w_true).reshape(-1, 3)
     np.testing.assert_allclose(solver.step(target, np.ones(layout.n_markers, bool)), w_true, atol=2e-3)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(2, 12), m=st.integers(1, 10), free=st.integers(0, 4),
+       alpha=st.sampled_from([1e-3, 0.1, 10.0]), missing=st.floats(0.0, 0.8))
+def test_cond_bound_is_below_the_smallest_eigenvalue(seed, n, m, free, alpha, missing):
+    """_CondBound's lambda_min(H) lower bound (fixed part PD on S, zero on the unpenalised U, as the pose
+    columns beside a prior) must hold on every visibility pattern, so a skipped conditioning check is safe."""
+    from solvers.qp import _CondBound
+
+    rng = np.random.default_rng(seed)
+    B = rng.normal(0, 3, (3 * n, m + free))
+    A = rng.normal(size=(m, m))
+    C = np.zeros((m + free, m + free))
+    C[:m, :m] = alpha * (A @ A.T / m + 0.01 * np.eye(m))
+    bound = _CondBound(C, B)
+    rows = np.repeat(rng.random(n) > missing, 3)
+    H = B[rows].T @ B[rows] + C
+    assert bound.lambda_min(H) <= np.linalg.eigvalsh(H)[0] * (1 + 1e-9) + 1e-12
+
+
+def test_a_warm_start_changes_the_passes_not_the_solution():
+    """FrameQP.warm (the held-out trials start from the last frame's fit) must give the solution of a start
+    from anywhere else."""
+    B, lo, hi, s = _problem(3, 12, 9)
+    seen = np.ones(12, bool)
+    seen[[2, 7]] = False
+    cold, warm = FrameQP(B, lo, hi, ridge=1e-3), FrameQP(B, lo, hi, ridge=1e-3)
+    cold.step(np.zeros(36), np.ones(12, bool))
+    warm.step(np.zeros(36), np.ones(12, bool))
+    target = s.reshape(12, 3)
+    warm.warm(cold.step(target, np.ones(12, bool)))
+    np.testing.assert_allclose(warm.step(target, seen), _reference(B[np.repeat(seen, 3)], lo, hi,
+                                                                 s[np.repeat(seen, 3)], 1e-3), atol=1e-6)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 8), spread=st.sampled_from([1.0, 1e-4, 1e-9]))
+def test_compiled_smallest_eigenvalue_matches_eigvalsh_and_never_exceeds_it(seed, n, spread):
+    from solvers.qp_kernels import smallest_eigenvalue
+
+    rng = np.random.default_rng(seed)
+    Q = np.linalg.qr(rng.normal(size=(n, n)))[0]
+    lam = np.sort(rng.uniform(spread, 1, n)) * 10.0 ** rng.integers(-3, 4)
+    A = (Q * lam) @ Q.T
+    A = (A + A.T) / 2
+    got, ref = smallest_eigenvalue(A), np.linalg.eigvalsh(A)[0]
+    assert got <= ref and got == pytest.approx(ref, abs=1e-10 * lam.sum())

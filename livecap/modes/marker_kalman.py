@@ -101,6 +101,7 @@ class MarkerKalmanSolver:
         self.head_correction = np.zeros(6)
         self.selector = self._selector(0.5 ** (STRENGTH_TRIAL_EVERY / STREAM_HALF_LIFE_FRAMES))
         self._frame = 0
+        self._z: np.ndarray | None = None  # the last frame's weights and pose: where the next trial starts
         self._fits: dict[int, FrameQP] = {}
         self._imm: tuple[float, IMMFilter] | None = None
         for k in range(len(STRENGTHS)):  # build every workspace now, not on the first frames
@@ -110,9 +111,9 @@ class MarkerKalmanSolver:
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         x, ok = self.filter.step(target, valid)
         if self._frame % STRENGTH_TRIAL_EVERY == 0:
-            self.selector.observe(x, ok)
+            self.selector.observe(x, ok, self._z)
         self._frame += 1
-        z = self._fit(self.selector.best).step(x, ok)
+        z = self._z = self._fit(self.selector.best).step(x, ok)
         w, self.head_correction = z[:self.m], z[self.m:]
         noise = self.filter.noise_mm
         if self._imm is None or self._imm[0] != noise:  # noise settles in the first frames; rarely changes after

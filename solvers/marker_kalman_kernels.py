@@ -1,0 +1,132 @@
+"""Compiled (numba) frame step of the streaming marker filter bank (``solvers.marker_kalman.StreamingMarkerKalman``).
+
+Why compiled: a frame is 21 constant-velocity filters (the lambda = q / r bank) over every marker's three
+coordinates, the discounted likelihood sums, the choice of the shared r and of each marker's filter, and the
+one-frame fixed-lag smoothing step (Bar-Shalom, Li & Kirubarajan 2001 §6.2.2 for the filter). As whole-array
+numpy calls it was ~60 calls a frame on arrays of a few thousand numbers: 150-220 µs a frame at 72 markers
+(docs/performance.md, "kalman's streamed step"); here one loop over markers and filters.
+
+The bank's state is double-buffered: frame t reads buffer ``cur`` (the filtered state of t - 1, which the
+smoothing step needs) and writes the other. The numbers equal the whole-array version's to rounding
+(tests/test_marker_kalman.py compares it with the numpy reference in tests/marker_kalman_reference.py).
+``cache=True`` keeps the machine code in ``__pycache__`` so only a process's first run compiles.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+X, V = 0, 1  # rows of the (buffer, row, filter, marker, coordinate) state
+P00, P01, P11 = 0, 1, 2  # rows of the (buffer, row, filter, marker) covariances
+
+
+@numba.njit(cache=True, nogil=True)
+def step(XV: np.ndarray, P: np.ndarray, cur: int, lam: np.ndarray, p11_start: float, started: np.ndarray,
+         sightings: np.ndarray, unseen: np.ndarray, count: np.ndarray, log_s: np.ndarray, energy: np.ndarray,
+         z: np.ndarray, valid: np.ndarray, predict: bool, decay: float) -> None:
+    """One frame of the bank in place: from buffer ``cur`` into the other, predicted (unless the first frame)
+    and corrected with ``z`` (n x 3) where ``valid``; a marker's first sighting starts its filters there
+    (velocity unknown); the discounted sums (``count``, ``log_s``, ``energy``; n x K) take the innovations
+    of markers seen at least twice before."""
+    K, n = lam.shape[0], z.shape[0]
+    new = 1 - cur
+    last_s, last_log = np.full(K, np.nan), np.zeros(K)  # markers seen alike share s: one log per filter
+    for i in range(n):
+        first = valid[i] and not started[i]
+        upd = valid[i] and not first
+        use = upd and sightings[i] >= 2
+        for k in range(K):
+            q = lam[k]
+            p00, p01, p11 = P[cur, P00, k, i], P[cur, P01, k, i], P[cur, P11, k, i]
+            if predict:
+                a00 = p00 + 2 * p01 + p11 + q / 3
+                a01 = p01 + p11 + q / 2
+                p11 = p11 + q
+                p00, p01 = a00, a01
+            if first:
+                p00, p01, p11 = 1.0, 0.0, p11_start
+            s = p00 + 1.0
+            k0, k1 = (p00 / s, p01 / s) if upd else (0.0, 0.0)
+            ee = 0.0
+            for c in range(3):
+                x, v = XV[cur, X, k, i, c], XV[cur, V, k, i, c]
+                if predict:
+                    x = x + v
+                if first:
+                    x, v = z[i, c], 0.0
+                e = z[i, c] - x if upd else 0.0
+                ee += e * e
+                XV[new, X, k, i, c] = x + k0 * e
+                XV[new, V, k, i, c] = v + k1 * e
+            P[new, P00, k, i] = p00 - k0 * p00
+            P[new, P01, k, i] = p01 - k0 * p01
+            P[new, P11, k, i] = p11 - k1 * p01
+            log_s[i, k] *= decay
+            energy[i, k] *= decay
+            if use:
+                if s != last_s[k]:
+                    last_s[k], last_log[k] = s, math.log(s)
+                log_s[i, k] += 3.0 * last_log[k]
+                energy[i, k] += ee / s
+        count[i] = decay * count[i] + (3.0 if use else 0.0)
+        started[i] = started[i] or valid[i]
+        sightings[i] += valid[i]
+        unseen[i] = 0 if valid[i] else unseen[i] + 1
+
+
+@numba.njit(cache=True, nogil=True)
+def choose(log_s: np.ndarray, energy: np.ndarray, count: np.ndarray, inv_r: np.ndarray, log_r: np.ndarray,
+           excluded: np.ndarray, ri: int, every_r: bool, pick: np.ndarray) -> int:
+    """Each marker's filter (``pick``) and the shared r's index (returned): the least -2 log-likelihood
+    ``log_s + energy / r`` over the lambdas that r allows per marker; with ``every_r`` the r whose sum over
+    the markers, ``c log r`` added, is least, else the r at ``ri`` kept."""
+    n, K = log_s.shape
+    best_total, best_r = np.inf, ri
+    for j in range(inv_r.shape[0] if every_r else 0):
+        total = 0.0
+        for i in range(n):
+            best = np.inf
+            for k in range(K):
+                c = energy[i, k] * inv_r[j] + log_s[i, k] + excluded[j, k]
+                if c < best:
+                    best = c
+            total += best + log_r[j] * count[i]
+        if total < best_total:
+            best_total, best_r = total, j
+    for i in range(n):
+        best, arg = np.inf, 0
+        for k in range(K):
+            c = energy[i, k] * inv_r[best_r] + log_s[i, k] + excluded[best_r, k]
+            if c < best:
+                best, arg = c, k
+        pick[i] = arg
+    return best_r
+
+
+@numba.njit(cache=True, nogil=True)
+def output(XV: np.ndarray, P: np.ndarray, cur: int, lam: np.ndarray, pick: np.ndarray, smooth: bool,
+           out: np.ndarray) -> None:
+    """Each marker's chosen filter (``pick``) in ``out`` (n x 3): its filtered state of this frame (buffer
+    ``cur``), or with ``smooth`` the previous frame's smoothed by this one (one Rauch-Tung-Striebel step,
+    F = [[1, 1], [0, 1]]; the prediction recomputed from the previous buffer as the step made it)."""
+    old = 1 - cur
+    for i in range(out.shape[0]):
+        k = pick[i]
+        if not smooth:
+            for c in range(3):
+                out[i, c] = XV[cur, X, k, i, c]
+            continue
+        q = lam[k]
+        f00, f01, f11 = P[old, P00, k, i], P[old, P01, k, i], P[old, P11, k, i]
+        a00 = f00 + 2 * f01 + f11 + q / 3
+        a01 = f01 + f11 + q / 2
+        a11 = f11 + q
+        det = a00 * a11 - a01 * a01
+        j00 = ((f00 + f01) * a11 - f01 * a01) / det
+        j01 = (-(f00 + f01) * a01 + f01 * a00) / det
+        for c in range(3):
+            fx, fv = XV[old, X, k, i, c], XV[old, V, k, i, c]
+            out[i, c] = fx + j00 * (XV[cur, X, k, i, c] - (fx + fv)) + j01 * (XV[cur, V, k, i, c] - fv)

@@ -1,0 +1,55 @@
+"""Compiled (numba) helper of ``solvers.qp``'s workspace building: the smallest eigenvalue of a small symmetric
+block (the unpenalised pose columns' 6 x 6), once per new visibility pattern.
+
+Why compiled: numpy's ``eigvalsh`` costs 10-50 µs of call overhead on a 6 x 6 (docs/performance.md,
+"kalman's streamed step"); cyclic Jacobi rotations (Golub & Van Loan 2013 §8.5.2) in a loop take a few.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, nogil=True)
+def smallest_eigenvalue(A_in: np.ndarray) -> float:
+    """The smallest eigenvalue of the symmetric ``A_in`` (cyclic Jacobi, to rounding), less a margin of
+    1e-12 of its trace so that it never exceeds the true one."""
+    A = A_in.copy()
+    n = A.shape[0]
+    scale = 0.0
+    for i in range(n):
+        scale += abs(A[i, i])
+    for _ in range(60):
+        off = 0.0
+        for p in range(n):
+            for q in range(p + 1, n):
+                off += A[p, q] * A[p, q]
+        if off <= 1e-36 * scale * scale:
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = A[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+                if abs(theta) > 1e150:
+                    t = 0.5 / theta
+                else:
+                    t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                    if theta < 0.0:
+                        t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(n):
+                    akp, akq = A[k, p], A[k, q]
+                    A[k, p], A[k, q] = c * akp - s * akq, s * akp + c * akq
+                for k in range(n):
+                    apk, aqk = A[p, k], A[q, k]
+                    A[p, k], A[q, k] = c * apk - s * aqk, s * apk + c * aqk
+    low = np.inf
+    for i in range(n):
+        low = min(low, A[i, i])
+    return low - 1e-12 * scale
