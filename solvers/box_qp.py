@@ -42,29 +42,43 @@ class BoxQP:
     solve from any feasible point ``x`` instead (another workspace's solution, a reset).
     """
 
-    def __init__(self, H: np.ndarray, lower: np.ndarray, upper: np.ndarray, max_iter: int | None = None) -> None:
+    def __init__(self, H: np.ndarray, lower: np.ndarray, upper: np.ndarray, max_iter: int | None = None,
+                 limit_rows: np.ndarray | None = None) -> None:
+        """``limit_rows``: :meth:`limit_rows` of these limits, when many solvers share them (one per visibility
+        pattern in solvers.qp), so that a new one only does what depends on H."""
         self.H = np.ascontiguousarray(H, dtype=np.float64)
         self.m = self.H.shape[0]
         if self.H.shape != (self.m, self.m):
             raise ValueError(f"H must be square, got {self.H.shape}")
-        self.lo = np.asarray(lower, dtype=np.float64).reshape(self.m)
-        self.hi = np.asarray(upper, dtype=np.float64).reshape(self.m)
         from solvers import box_qp_kernels as k
 
         self._k = k
-        V = np.zeros((k.N_ROWS, self.m))
-        V[k.LO], V[k.HI], V[k.FIXED] = self.lo, self.hi, self.lo == self.hi
-        ref = np.where(np.isfinite(self.lo), self.lo, np.where(np.isfinite(self.hi), self.hi, 0.0))
-        V[k.REF] = ref
-        V[k.SPAN] = np.where(np.isfinite(self.hi), self.hi - ref, np.inf)  # y = x - ref in [ylo, span]
-        V[k.YLO] = np.where(np.isfinite(self.lo), self.lo - ref, -np.inf)
-        V[k.HREF] = self.H @ ref if np.any(ref) else 0.0
+        V = self.limit_rows(lower, upper, self.m) if limit_rows is None else limit_rows.copy()
+        self.lo, self.hi = V[k.LO], V[k.HI]
+        ref = V[k.REF]
+        if np.any(ref):
+            V[k.HREF] = self.H @ ref
         self._V, self._I, self._meta = V, np.zeros((4, self.m), np.int64), np.zeros(2, np.int64)
         self._L = np.empty((min(self.m, 32), min(self.m, 32)))
-        self.tol = 1e-11 * float(max(1.0, np.abs(np.diagonal(self.H)).max()))
+        self.tol = 1e-11 * max(1.0, float(np.abs(self.H.diagonal()).max(initial=0.0)))
         self.max_iter = 3 * self.m + 10 if max_iter is None else int(max_iter)
         self.iterations = 0
         self.warm(np.zeros(self.m))
+
+    @staticmethod
+    def limit_rows(lower: np.ndarray, upper: np.ndarray, m: int) -> np.ndarray:
+        """The solver's per-variable state rows that depend on the limits alone (the kernels' V; H ref left 0)."""
+        from solvers import box_qp_kernels as k
+
+        lo = np.asarray(lower, dtype=np.float64).reshape(m)
+        hi = np.asarray(upper, dtype=np.float64).reshape(m)
+        V = np.zeros((k.N_ROWS, m))
+        V[k.LO], V[k.HI], V[k.FIXED] = lo, hi, lo == hi
+        ref = np.where(np.isfinite(lo), lo, np.where(np.isfinite(hi), hi, 0.0))
+        V[k.REF] = ref
+        V[k.SPAN] = np.where(np.isfinite(hi), hi - ref, np.inf)  # y = x - ref in [ylo, span]
+        V[k.YLO] = np.where(np.isfinite(lo), lo - ref, -np.inf)
+        return V
 
     @property
     def F(self) -> np.ndarray:

@@ -86,17 +86,17 @@ class _Workspace:
 
     __slots__ = ("H", "floor", "rows", "_limits", "_box", "_daqp")
 
-    def __init__(self, H: np.ndarray, floor: float, rows: np.ndarray | None, lower: np.ndarray,
-                 upper: np.ndarray) -> None:
+    def __init__(self, H: np.ndarray, floor: float, rows: np.ndarray | None, limits: tuple) -> None:
         self.H, self.floor, self.rows = H, floor, rows
-        self._limits = (lower, upper)
+        self._limits = limits  # lower, upper and BoxQP.limit_rows of them: shared by every pattern
         self._box: BoxQP | None = None
         self._daqp = None
 
     @property
     def box(self) -> BoxQP:
         if self._box is None:
-            self._box = BoxQP(self.H, *self._limits)
+            lower, upper, limit_rows = self._limits
+            self._box = BoxQP(self.H, lower, upper, limit_rows=limit_rows)
         return self._box
 
     def daqp(self, f: np.ndarray, lower: np.ndarray, upper: np.ndarray,
@@ -153,6 +153,7 @@ class FrameQP:
         self._floor = 1e-9 * scale
         self._cond = _CondBound(self._const, self.basis * np.sqrt(self._row_w)[:, None])
         self._H_all: np.ndarray | None = None  # H with every marker seen; other patterns downdate it
+        self._limits: tuple | None = None
         self.linear = np.zeros(self.m)  # a linear term callers may change per frame (e.g. an L1 penalty)
         self.cache_size = int(cache_size)
         self._models: OrderedDict[bytes, _Workspace] = OrderedDict()
@@ -211,7 +212,9 @@ class FrameQP:
             except np.linalg.LinAlgError:
                 floor = self._floor
                 H = H + floor * np.eye(self.m)
-        ws = _Workspace(H, floor, None if seen.all() else rows, self.lower, self.upper)
+        if self._limits is None:
+            self._limits = (self.lower, self.upper, BoxQP.limit_rows(self.lower, self.upper, self.m))
+        ws = _Workspace(H, floor, None if seen.all() else rows, self._limits)
         self._models[key] = ws
         if len(self._models) > self.cache_size:
             self._models.popitem(last=False)
