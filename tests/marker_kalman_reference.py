@@ -1,11 +1,12 @@
-"""The whole-array numpy streaming marker filter (solvers/marker_kalman.py before its frame step was compiled):
-the reference that ``solvers.marker_kalman_kernels`` is tested against (tests/test_marker_kalman.py)."""
+"""The whole-array numpy marker filters (solvers/marker_kalman.py before they were compiled): the streaming bank,
+the reference ``solvers.marker_kalman_kernels`` is tested against, and the offline smoother's passes, the reference
+of ``solvers.marker_smoother_kernels`` (tests/test_marker_kalman.py)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from solvers.marker_kalman import R_EVERY, R_SETTLE_FRAMES, KalmanSettings, _Bank
+from solvers.marker_kalman import R_EVERY, R_SETTLE_FRAMES, KalmanSettings, _choose, _grid, _rts, bridged
 
 
 class NumpyStreamingMarkerKalman:
@@ -109,3 +110,110 @@ class NumpyStreamingMarkerKalman:
         prev_ok = self.prev if self.prev is not None else ok
         self.prev = ok
         return x, prev_ok
+
+
+class _Bank:
+    """K filters (rows) over n markers' 3 coordinates, vectorised; ``r``, ``q`` per row (K,) or per
+    row and marker (K, n). A marker's three coordinates share their visibility and noise, so their
+    covariances are equal: kept once per marker (K x n), the states per coordinate (K x n x 3)."""
+
+    def __init__(self, r: np.ndarray, q: np.ndarray, n: int, p11_start: float = 1e2) -> None:
+        self.r, self.q = (r, q) if np.ndim(r) == 2 else (r[:, None], q[:, None])
+        k = len(self.r)
+        self.p11_start = p11_start  # velocity variance at a marker's first sighting
+        self.x = np.zeros((k, n, 3))
+        self.v = np.zeros((k, n, 3))
+        self.p00 = np.full((k, n), 1e6)
+        self.p01 = np.zeros((k, n))
+        self.p11 = np.full((k, n), p11_start)
+        self.started = np.zeros(n, dtype=bool)
+
+    def predict(self) -> None:
+        """New arrays, never in place: callers keep the previous state by reference."""
+        self.x = self.x + self.v
+        p00 = self.p00 + 2 * self.p01 + self.p11 + self.q / 3
+        p01 = self.p01 + self.p11 + self.q / 2
+        self.p00, self.p01, self.p11 = p00, p01, self.p11 + self.q
+
+    def update(self, z: np.ndarray, seen: np.ndarray) -> np.ndarray:
+        """Update with ``z`` (n x 3) where ``seen`` (n,); returns the innovation log-likelihood
+        (K x n x 3, 0 where unseen)."""
+        e, s, upd = self.correct(z, seen)
+        return np.where(upd[:, None], -0.5 * (np.log(s)[..., None] + e * e / s[..., None]), 0.0)
+
+    def correct(self, z: np.ndarray, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The update without the likelihood: innovations (K x n x 3, 0 where not updated), their
+        variances (K x n) and which markers were updated (n,; not at their first sighting)."""
+        first = seen & ~self.started
+        if first.any():  # start at the first sighting, velocity unknown (on copies: see predict)
+            self.x, self.v = self.x.copy(), self.v.copy()
+            self.p00, self.p01, self.p11 = self.p00.copy(), self.p01.copy(), self.p11.copy()
+            self.x[:, first] = z[first]
+            self.v[:, first] = 0.0
+            self.p00[:, first] = np.broadcast_to(self.r, self.p00.shape)[:, first]
+            self.p01[:, first] = 0.0
+            self.p11[:, first] = self.p11_start
+            self.started |= first
+        upd = seen & ~first
+        s = self.p00 + self.r
+        k0, k1 = self.p00 / s, self.p01 / s
+        if upd.all():
+            e = z - self.x
+        else:
+            e = np.where(upd[:, None], z - self.x, 0.0)
+            k0, k1 = np.where(upd, k0, 0.0), np.where(upd, k1, 0.0)
+        self.x = self.x + k0[..., None] * e
+        self.v = self.v + k1[..., None] * e
+        p01 = self.p01
+        self.p00 = self.p00 - k0 * self.p00
+        self.p01 = p01 - k0 * p01
+        self.p11 = self.p11 - k1 * p01
+        return e, s, upd
+
+
+def numpy_smooth_take(targets: np.ndarray, valid: np.ndarray, settings: KalmanSettings | None = None
+                ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """RTS-smoothed targets (T x n x 3), the validity after gap bridging, and the chosen noise.
+
+    ``r`` (shared) by the whole take's likelihood; ``q`` per marker and frame by the likelihood of
+    the fixed-``q`` filters' innovations over ``settings.local_frames`` either side (a local model
+    choice, as an IMM's mode probabilities; Bar-Shalom et al. 2001 §11.6.6); then one filter with
+    that time-varying ``q`` and the RTS pass."""
+    s = settings or KalmanSettings()
+    T, n, _ = targets.shape
+    z = np.asarray(targets, float)
+    seen = np.asarray(valid, bool)
+    r, q = _grid(s)
+    bank = _Bank(r, q, n)
+    ll = np.zeros((len(r), n, 3))
+    for t in range(T):
+        if t:
+            bank.predict()
+        ll += bank.update(z[t], seen[t])
+    ri, _ = _choose(ll, n, len(s.r_grid))
+    qg, r0 = np.asarray(s.q_grid, float), float(s.r_grid[ri])
+    bank = _Bank(np.full(len(qg), r0), qg, n)
+    cum = np.zeros((T + 1, len(qg), n))
+    for t in range(T):
+        if t:
+            bank.predict()
+        cum[t + 1] = cum[t] + bank.update(z[t], seen[t]).sum(2)
+    h = int(s.local_frames)
+    frames = np.arange(T)
+    local = cum[np.minimum(frames + h + 1, T)] - cum[np.maximum(frames - h, 0)]  # T x q x n
+    qt = qg[local.argmax(1)]  # T x n
+    chosen = _Bank(np.full((1, n), r0), qt[:1].copy(), n)
+    xs, ps, xp, pp = [], [], [], []
+    for t in range(T):
+        if t:
+            chosen.q = qt[t][None]
+            chosen.predict()
+        xp.append(np.stack([chosen.x[0].ravel(), chosen.v[0].ravel()]))
+        pp.append(np.stack([chosen.p00[0], chosen.p01[0], chosen.p11[0]]))
+        chosen.update(z[t], seen[t])
+        xs.append(np.stack([chosen.x[0].ravel(), chosen.v[0].ravel()]))
+        ps.append(np.stack([chosen.p00[0], chosen.p01[0], chosen.p11[0]]))
+    per_coordinate = [np.repeat(np.array(a), 3, axis=2) for a in (ps, pp)]
+    out = _rts(np.array(xs), per_coordinate[0], np.array(xp), per_coordinate[1])
+    return out.reshape(T, n, 3), bridged(valid, s.max_gap_frames), {
+        "noise_mm": float(np.sqrt(r0)), "q_per_marker": np.median(qt, axis=0)}

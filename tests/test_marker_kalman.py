@@ -179,7 +179,8 @@ def test_streaming_lambda_bank_equals_the_full_r_by_q_bank():
     """The streaming filter runs one bank over lambda = q / r and gets every r's likelihood from three
     sums; a bank of every allowed (r, q = lambda r) pair, its velocity prior scaled by r (the same
     filters), with the likelihood per coordinate, must give the same markers and noise."""
-    from solvers.marker_kalman import _Bank, _choose
+    from solvers.marker_kalman import _choose
+    from tests.marker_kalman_reference import _Bank
 
     truth, noisy = _walk(300, 5, 0.3, 6)
     valid = np.random.default_rng(7).random((300, 5)) > 0.1
@@ -234,3 +235,24 @@ def test_compiled_stream_step_equals_the_numpy_reference(seed, n, noise, missing
         assert f.noise_mm == ref.noise_mm
     f.reset()
     assert np.array_equal(f.step(noisy[0], valid[0])[0][valid[0]], noisy[0][valid[0]])
+
+
+@settings(max_examples=25, deadline=None)
+@given(T=st.integers(3, 150), n=st.integers(1, 5), missing=st.floats(0.0, 0.6), noise=st.floats(0.05, 2.0),
+       seed=st.integers(0, 2**31 - 1))
+def test_the_compiled_offline_smoother_equals_the_numpy_passes(T, n, missing, noise, seed):
+    """smooth_take's three passes compiled (solvers.marker_smoother_kernels) against the numpy ones: same noise and
+    q choices, same smoothed markers to rounding, on tracks with gaps (unseen samples hold garbage)."""
+    from tests.marker_kalman_reference import numpy_smooth_take
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(T)[:, None, None] / 60.0
+    z = 5 * np.sin(2 * np.pi * rng.uniform(0.2, 3, (1, n, 3)) * t) + rng.normal(0, noise, (T, n, 3))
+    seen = rng.random((T, n)) >= missing
+    z[~seen] = np.nan
+    x, ok, info = smooth_take(z, seen)
+    x0, ok0, info0 = numpy_smooth_take(z, seen)
+    assert info["noise_mm"] == info0["noise_mm"]
+    np.testing.assert_array_equal(info["q_per_marker"], info0["q_per_marker"])
+    np.testing.assert_array_equal(ok, ok0)
+    np.testing.assert_allclose(x, x0, rtol=0, atol=1e-9 * max(1.0, float(np.nanmax(np.abs(x0)))))

@@ -1,0 +1,83 @@
+"""Compiled (numba) forward passes of the offline marker smoother (``solvers.marker_kalman.smooth_take``).
+
+Why compiled: ``smooth_take`` runs a bank of constant-velocity filters over every frame of a take three times (the
+shared r's choice over the whole (r, q) grid, the local q choice, then the chosen filter recorded for the
+Rauch-Tung-Striebel pass; Bar-Shalom, Li & Kirubarajan 2001 §6.2.2). As whole-array numpy calls that was ~40 calls
+a frame on arrays of up to 105 filters x n markers x 3: 3.7 s of the 5.0 s `kalman` took over a 30 s ICT take
+(issue 18, docs/performance.md "The offline marker smoother compiled"). Here one loop over frames, filters and
+markers does the same arithmetic in the same order; only ``log`` may differ from numpy's in the last bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, nogil=True)
+def bank_take(z, seen, r, q, p11_start, ll, cum, xs, ps, xp, pp):
+    """K filters (rows of ``r`` (K, n)) over the take ``z`` (T, n, 3) seen where ``seen`` (T, n); frame t > 0 is
+    predicted with ``q[min(t, len(q) - 1)]`` (q: (Tq, K, n)). A marker's first sighting starts its filters there
+    (velocity unknown, velocity variance ``p11_start``). Outputs, each skipped when given empty:
+    ``ll`` (K, n, 3) += every frame's innovation log-likelihoods; ``cum`` (T + 1, K, n) their running sum over
+    frames, coordinates summed; for K = 1 the filtered (``xs`` (T, 2, 3n), ``ps`` (T, 3, n)) and predicted
+    (``xp``, ``pp``) states, as (value, velocity) and (p00, p01, p11)."""
+    T, n, _ = z.shape
+    K = r.shape[0]
+    x, v = np.zeros((K, n, 3)), np.zeros((K, n, 3))
+    p00, p01, p11 = np.full((K, n), 1e6), np.zeros((K, n)), np.full((K, n), p11_start)
+    started = np.zeros(n, dtype=np.bool_)
+    want_ll, want_cum, record = ll.size > 0, cum.size > 0, xs.size > 0
+    Tq = q.shape[0]
+    for t in range(T):
+        qt = q[min(t, Tq - 1)]
+        if want_cum:
+            cum[t + 1] = cum[t]
+        for k in range(K):
+            last_s, last_log = np.nan, 0.0  # markers seen alike have equal covariances: one log for them
+            for i in range(n):
+                if t:
+                    for c in range(3):
+                        x[k, i, c] = x[k, i, c] + v[k, i, c]
+                    a, b, d, w = p00[k, i], p01[k, i], p11[k, i], qt[k, i]
+                    p00[k, i] = a + 2 * b + d + w / 3
+                    p01[k, i] = b + d + w / 2
+                    p11[k, i] = d + w
+                if record:
+                    for c in range(3):
+                        xp[t, 0, 3 * i + c], xp[t, 1, 3 * i + c] = x[k, i, c], v[k, i, c]
+                    pp[t, 0, i], pp[t, 1, i], pp[t, 2, i] = p00[k, i], p01[k, i], p11[k, i]
+                if seen[t, i] and not started[i]:
+                    for c in range(3):
+                        x[k, i, c], v[k, i, c] = z[t, i, c], 0.0
+                    p00[k, i], p01[k, i], p11[k, i] = r[k, i], 0.0, p11_start
+                elif seen[t, i]:
+                    s = p00[k, i] + r[k, i]
+                    k0, k1 = p00[k, i] / s, p01[k, i] / s
+                    if s != last_s:
+                        last_s, last_log = s, math.log(s)
+                    log_s = last_log
+                    frame = 0.0
+                    for c in range(3):
+                        e = z[t, i, c] - x[k, i, c]
+                        x[k, i, c] = x[k, i, c] + k0 * e
+                        v[k, i, c] = v[k, i, c] + k1 * e
+                        like = -0.5 * (log_s + e * e / s)
+                        if want_ll:
+                            ll[k, i, c] += like
+                        frame += like
+                    if want_cum:
+                        cum[t + 1, k, i] = cum[t, k, i] + frame
+                    b = p01[k, i]
+                    p00[k, i] = p00[k, i] - k0 * p00[k, i]
+                    p01[k, i] = b - k0 * b
+                    p11[k, i] = p11[k, i] - k1 * b
+                if record:
+                    for c in range(3):
+                        xs[t, 0, 3 * i + c], xs[t, 1, 3 * i + c] = x[k, i, c], v[k, i, c]
+                    ps[t, 0, i], ps[t, 1, i], ps[t, 2, i] = p00[k, i], p01[k, i], p11[k, i]
+        for i in range(n):
+            if seen[t, i]:
+                started[i] = True
