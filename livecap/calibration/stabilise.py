@@ -20,6 +20,7 @@ import itertools
 import math
 
 import numpy as np
+from numpy.linalg import _umath_linalg
 from scipy.spatial.transform import Rotation
 
 from solvers.rigid import DEGENERATE, HORN_MAP, ROTATION_MAP, kabsch, rotation_from_covariance
@@ -27,6 +28,9 @@ from solvers.rigid import DEGENERATE, HORN_MAP, ROTATION_MAP, kabsch, rotation_f
 TUKEY_C = 4.685  # 95 % efficiency at the Gaussian
 MAD_TO_SIGMA = 1.4826
 CHECK_SCALES = 3.0  # a residual beyond 3 floors sends the frame through the robust refit
+# numpy.linalg.eigh's own kernel: the wrapper's checks and error state cost more than 7 4 x 4 solves. The matrices are
+# finite (markers in use are), and a failed solve's NaN fails the degeneracy test below and goes to robust_pose.
+_eigh = _umath_linalg.eigh_lo
 LEAVE_ONE_OUT_MAX = 12  # leave-one-out starts only for small marker sets (stable markers)
 _DROP = {k: ~np.eye(k, dtype=bool) for k in range(5, LEAVE_ONE_OUT_MAX + 1)}  # row j leaves marker j out
 
@@ -272,15 +276,15 @@ class FrameFit:
             prep = self._masks[key] = self._prepare(use)
         left, Wn, Q, ((Zc, Lc), Z), J, cs, w = prep
         m = len(left)
-        P = pts[left]
+        P = pts if m == len(pts) else pts[left]
         cb = Wn[0] @ P
         p = (P - cb).reshape(-1)
-        ev, V = np.linalg.eigh((Q @ p).reshape(J, 4, 4))
+        ev, V = _eigh((Q @ p).reshape(J, 4, 4), signature="d->dd")
         top = ev[:, 3]  # N is traceless, so 3 x the largest top eigenvalue bounds every |eigenvalue|
         if not (top - ev[:, 2]).min() > 3.0 * DEGENERATE * top.max():
             return robust_pose(self.reference, np.where(use[:, None], pts, 0.0), use, self.iterations, self.floor_mm)
         q = V[:, :, 3]
-        o = np.einsum("ji,jk->jik", q, q).reshape(J, 16)
+        o = (q[:, :, None] * q[:, None, :]).reshape(J, 16)
         d = (o.reshape(-1) @ Zc + Lc @ p).reshape(-1, 3)
         if math.sqrt(np.einsum("ic,ic->i", d, d).max()) <= CHECK_SCALES * self.floor_mm:
             R0 = (o[0] @ ROTATION_MAP).reshape(3, 3)
@@ -421,7 +425,9 @@ class HeadStabiliser:
         """One streamed frame: (stabilised (n, 3), R, t). Works on the stable subset only (k tiny
         SVDs), holds the last good pose when fewer than 3 markers are visible, never raises."""
         positions = np.asarray(positions, dtype=np.float64)
-        valid = np.asarray(valid, dtype=bool) & np.isfinite(positions).all(-1)
+        valid = np.asarray(valid, dtype=bool)
+        if not math.isfinite(positions.sum()):  # one reduction for the usual all-finite frame
+            valid = valid & np.isfinite(positions).all(-1)
         sv = valid[self._stable_idx]
         if np.count_nonzero(sv) >= 3:
             if self._frame_fit is not None:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import signal
 import threading
@@ -238,7 +239,8 @@ class Pipeline:
             return None
         # fitted minus observed per marker; no copy of the basis rows (this runs every frame)
         miss = (self._basis @ w).reshape(-1, 3) - target
-        rms = float(np.sqrt(np.einsum("ij,ij->i", miss, miss)[valid].mean() / 3.0)) if valid.any() else 0.0
+        seen = np.einsum("ij,ij->i", miss, miss)[valid]
+        rms = math.sqrt(seen.sum() / len(seen) / 3.0) if len(seen) else 0.0  # ndarray.mean, bit for bit
         solve_time = time.perf_counter() - t0
         self.timing["solve"].add(solve_time)
         at_bound = (w >= self._bounds[1]).astype(np.int8) - (w <= self._bounds[0])
