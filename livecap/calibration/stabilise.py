@@ -20,7 +20,6 @@ import itertools
 import math
 
 import numpy as np
-from numpy.linalg import _umath_linalg
 from scipy.spatial.transform import Rotation
 
 from solvers.rigid import DEGENERATE, HORN_MAP, ROTATION_MAP, kabsch, rotation_from_covariance
@@ -28,9 +27,6 @@ from solvers.rigid import DEGENERATE, HORN_MAP, ROTATION_MAP, kabsch, rotation_f
 TUKEY_C = 4.685  # 95 % efficiency at the Gaussian
 MAD_TO_SIGMA = 1.4826
 CHECK_SCALES = 3.0  # a residual beyond 3 floors sends the frame through the robust refit
-# numpy.linalg.eigh's own kernel: the wrapper's checks and error state cost more than 7 4 x 4 solves. The matrices are
-# finite (markers in use are), and a failed solve's NaN fails the degeneracy test below and goes to robust_pose.
-_eigh = _umath_linalg.eigh_lo
 LEAVE_ONE_OUT_MAX = 12  # leave-one-out starts only for small marker sets (stable markers)
 _DROP = {k: ~np.eye(k, dtype=bool) for k in range(5, LEAVE_ONE_OUT_MAX + 1)}  # row j leaves marker j out
 
@@ -277,18 +273,13 @@ class FrameFit:
         left, Wn, Q, ((Zc, Lc), Z), J, cs, w = prep
         m = len(left)
         P = pts if m == len(pts) else pts[left]
-        cb = Wn[0] @ P
-        p = (P - cb).reshape(-1)
-        ev, V = _eigh((Q @ p).reshape(J, 4, 4), signature="d->dd")
-        top = ev[:, 3]  # N is traceless, so 3 x the largest top eigenvalue bounds every |eigenvalue|
-        if not (top - ev[:, 2]).min() > 3.0 * DEGENERATE * top.max():
+        kern = _KERNELS[0] if _KERNELS else _load_kernels()
+        outcome, R0, t0, o, p, cb = kern.check_fit(P, Wn, Q, Zc, Lc, cs, ROTATION_MAP, CHECK_SCALES * self.floor_mm,
+                                                    DEGENERATE)
+        if outcome == kern.PASSED:
+            return R0, t0, w
+        if outcome == kern.DEGENERATE_TOP:
             return robust_pose(self.reference, np.where(use[:, None], pts, 0.0), use, self.iterations, self.floor_mm)
-        q = V[:, :, 3]
-        o = (q[:, :, None] * q[:, None, :]).reshape(J, 16)
-        d = (o.reshape(-1) @ Zc + Lc @ p).reshape(-1, 3)
-        if math.sqrt(np.einsum("ic,ic->i", d, d).max()) <= CHECK_SCALES * self.floor_mm:
-            R0 = (o[0] @ ROTATION_MAP).reshape(3, 3)
-            return R0, cb - R0 @ cs[0], w
         b = 0
         if J > 1:  # robust_pose's start: the leave-one-out fit whose median residual halves the plain fit's
             pc = p.reshape(m, 3)
@@ -303,6 +294,17 @@ class FrameFit:
         out = np.zeros(len(use))
         out[left] = wu
         return R, t, out
+
+
+_KERNELS: list = []
+
+
+def _load_kernels():
+    """``solvers.rigid_kernels``, imported with the first streamed frame: offline use never loads numba."""
+    from solvers import rigid_kernels
+
+    _KERNELS.append(rigid_kernels)
+    return rigid_kernels
 
 
 def _irls_one(ref, pts, R, t, iterations, floor_mm):

@@ -135,18 +135,19 @@ class Pipeline:
         self._warm_up()
 
     def _warm_up(self) -> None:
-        """One step on a neutral frame, then ``reset``: the solver's compiled kernels load (or, after an
-        install, compile: seconds) here rather than on the stream's first frame."""
-        if not hasattr(self._solver, "reset"):
-            return
+        """The head fit and, when it can ``reset``, the solver step once on the neutral face, then forget it: their
+        compiled kernels load (or, after an install, compile: seconds) here rather than on the stream's first frame."""
         n = len(self.labels)
         t0 = time.perf_counter()
         try:
-            self._solver.step(np.zeros((n, 3)), np.ones(n, bool))
-            self._solver.reset()
+            self._stabiliser.step(self._neutral, np.ones(n, bool))
+            self._stabiliser.reset()
+            if hasattr(self._solver, "reset"):
+                self._solver.step(np.zeros((n, 3)), np.ones(n, bool))
+                self._solver.reset()
         except Exception as exc:  # a solver that cannot step a neutral frame still gets the stream
-            log.warning("solver warm-up failed (%s: %s)", type(exc).__name__, exc)
-        log.debug("solver warm-up %.3f s", time.perf_counter() - t0)
+            log.warning("warm-up failed (%s: %s)", type(exc).__name__, exc)
+        log.debug("warm-up %.3f s", time.perf_counter() - t0)
 
     def _calibrate(self) -> bool:
         frames = self._buffer

@@ -1,0 +1,140 @@
+"""Compiled (numba) kernel of the streamed head fit's check (``livecap.calibration.stabilise.FrameFit``).
+
+Why compiled: a live frame's check is the plain rigid fit and its leave-one-out fits of the stable markers
+(Horn 1987 §4: each rotation the top eigenvector of a symmetric 4 x 4 matrix N_j, linear in the centred points),
+then every marker's residual and deleted residual. As numpy it is ~25 array calls on arrays of 6-12 markers,
+whose per-call cost, several times its tight-loop figure when the driver is paced at 120 Hz, was the head fit's
+cost (docs/performance.md, "The live driver's own cost"). Here it is one call: the same prepared maps, the
+N_j's eigenvectors by cyclic Jacobi rotations (Golub & Van Loan 2013 §8.5) instead of LAPACK's ``dsyevd``.
+Results equal the numpy version to rounding (tests/test_stabilise.py compares them with the numpy reference
+in tests/head_fit_reference.py). ``cache=True`` keeps the machine code in ``__pycache__``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+PASSED, FAILED, DEGENERATE_TOP = 0, 1, 2  # the check's outcomes
+_SWEEPS = 30  # a 4 x 4 converges in 4-6 sweeps; NaN input stops here and reads as degenerate
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _top_two(A, q):
+    """Jacobi on the symmetric 4 x 4 ``A`` (overwritten): the largest two eigenvalues, ``q`` = the top one's
+    unit eigenvector."""
+    V = np.eye(4)
+    for _ in range(_SWEEPS):
+        off = 0.0
+        diag = 0.0
+        for i in range(4):
+            diag += A[i, i] * A[i, i]
+            for j in range(i + 1, 4):
+                off += A[i, j] * A[i, j]
+        if not off > 1e-36 * diag:  # also ends on NaN
+            break
+        for p in range(3):
+            for r in range(p + 1, 4):
+                apr = A[p, r]
+                if apr == 0.0:
+                    continue
+                theta = (A[r, r] - A[p, p]) / (2.0 * apr)
+                tn = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    tn = -tn
+                c = 1.0 / math.sqrt(tn * tn + 1.0)
+                s = tn * c
+                for k in range(4):
+                    akp, akr = A[k, p], A[k, r]
+                    A[k, p] = c * akp - s * akr
+                    A[k, r] = s * akp + c * akr
+                for k in range(4):
+                    apk, ark = A[p, k], A[r, k]
+                    A[p, k] = c * apk - s * ark
+                    A[r, k] = s * apk + c * ark
+                for k in range(4):
+                    vkp, vkr = V[k, p], V[k, r]
+                    V[k, p] = c * vkp - s * vkr
+                    V[k, r] = s * vkp + c * vkr
+    top = 0
+    for i in range(1, 4):
+        if A[i, i] > A[top, top]:
+            top = i
+    second = -np.inf
+    for i in range(4):
+        if i != top and A[i, i] > second:
+            second = A[i, i]
+    norm = 0.0
+    for k in range(4):
+        norm += V[k, top] * V[k, top]
+    norm = math.sqrt(norm)
+    for k in range(4):
+        q[k] = V[k, top] / norm
+    return A[top, top], second
+
+
+@numba.njit(cache=True, nogil=True)
+def check_fit(P, Wn, Q, Zc, Lc, cs, rotation_map, limit, degenerate):
+    """One frame's check against a use mask's prepared maps (``FrameFit._prepare``): ``P`` (m, 3) the points in
+    use. Returns (outcome, R, t, o, p, cb): ``o`` (J, 16) each fit's q q^T, ``p`` the points centred on ``cb``
+    (the plain fit's centroid); R, t the plain fit's when every residual and deleted residual is within ``limit``
+    (``PASSED``), else ``FAILED`` (IRLS starts from ``o``) or ``DEGENERATE_TOP`` (a top eigenvalue near double)."""
+    m = P.shape[0]
+    J = Wn.shape[0]
+    cb = np.zeros(3)
+    for i in range(m):
+        for c in range(3):
+            cb[c] += Wn[0, i] * P[i, c]
+    p = np.empty(3 * m)
+    for i in range(m):
+        for c in range(3):
+            p[3 * i + c] = P[i, c] - cb[c]
+    o = np.empty((J, 16))
+    R = np.zeros((3, 3))
+    t = np.zeros(3)
+    A = np.empty((4, 4))
+    q = np.empty(4)
+    gap = np.inf
+    biggest = -np.inf
+    for j in range(J):
+        for e in range(16):
+            s = 0.0
+            row = 16 * j + e
+            for k in range(3 * m):
+                s += Q[row, k] * p[k]
+            A[e // 4, e % 4] = s
+        top, second = _top_two(A, q)
+        gap = min(gap, top - second)
+        biggest = max(biggest, top)
+        for a in range(4):
+            for b in range(4):
+                o[j, 4 * a + b] = q[a] * q[b]
+    if not gap > 3.0 * degenerate * biggest:
+        return DEGENERATE_TOP, R, t, o, p, cb
+    rows = Zc.shape[1] // 3
+    worst = 0.0
+    for r in range(rows):
+        d2 = 0.0
+        for c in range(3):
+            col = 3 * r + c
+            s = 0.0
+            for j in range(J):
+                for e in range(16):
+                    s += o[j, e] * Zc[16 * j + e, col]
+            for k in range(3 * m):
+                s += Lc[col, k] * p[k]
+            d2 += s * s
+        worst = max(worst, d2)
+    if not math.sqrt(worst) <= limit:
+        return FAILED, R, t, o, p, cb
+    for a in range(3):
+        for b in range(3):
+            s = 0.0
+            for e in range(16):
+                s += o[0, e] * rotation_map[e, 3 * a + b]
+            R[a, b] = s
+    for a in range(3):
+        t[a] = cb[a] - (R[a, 0] * cs[0, 0] + R[a, 1] * cs[0, 1] + R[a, 2] * cs[0, 2])
+    return PASSED, R, t, o, p, cb
