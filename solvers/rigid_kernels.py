@@ -138,3 +138,109 @@ def check_fit(P, Wn, Q, Zc, Lc, cs, rotation_map, limit, degenerate):
     for a in range(3):
         t[a] = cb[a] - (R[a, 0] * cs[0, 0] + R[a, 1] * cs[0, 1] + R[a, 2] * cs[0, 2])
     return PASSED, R, t, o, p, cb
+
+
+@numba.njit(cache=True, nogil=True)
+def _kabsch(src, dst, w):
+    """``solvers.rigid._kabsch_one``: weighted Kabsch by SVD with the reflection guard (Arun et al. 1987)."""
+    m = src.shape[0]
+    ws = 0.0
+    for i in range(m):
+        ws += w[i]
+    if ws <= 0.0:
+        return np.eye(3), np.zeros(3)
+    cs = np.zeros(3)
+    cd = np.zeros(3)
+    for i in range(m):
+        for c in range(3):
+            cs[c] += w[i] * src[i, c]
+            cd[c] += w[i] * dst[i, c]
+    cs /= ws
+    cd /= ws
+    H = np.zeros((3, 3))
+    for i in range(m):
+        for a in range(3):
+            for b in range(3):
+                H[a, b] += (src[i, a] - cs[a]) * ((dst[i, b] - cd[b]) * w[i])
+    U, _, Vt = np.linalg.svd(H)
+    R = Vt.T @ U.T
+    if np.linalg.det(R) < 0.0:
+        for c in range(3):
+            Vt[2, c] = -Vt[2, c]
+        R = Vt.T @ U.T
+    return R, cd - R @ cs
+
+
+@numba.njit(cache=True, nogil=True)
+def _half_median(r, lo, hi):
+    srt = np.sort(r)
+    return 0.5 * (srt[lo] + srt[hi])
+
+
+@numba.njit(cache=True, nogil=True)
+def refit(ref, P, o, p, cb, Wn, Z, cs, rotation_map, iterations, floor_mm, tukey_c, mad_to_sigma):
+    """A frame that failed the check (``FrameFit.fit``): ``robust_pose``'s start, the leave-one-out fit whose
+    median residual halves the plain fit's (scored from ``check_fit``'s ``o``, ``p``, ``cb`` and the prepared
+    residual maps ``Z``), then IRLS with Tukey's biweight (Huber where Tukey keeps < 3) on the markers in use,
+    ``ref`` and ``P`` (m, 3). Returns R, t and the markers' weights."""
+    m = P.shape[0]
+    J = Wn.shape[0]
+    lo, hi = (m - 1) // 2, m // 2
+    pc = p.reshape(m, 3)
+    best = 0
+    if J > 1:
+        r = np.empty(m)
+        low = np.inf
+        for j in range(J):
+            mean = np.zeros(3)
+            for i in range(m):
+                for c in range(3):
+                    mean[c] += Wn[j, i] * pc[i, c]
+            for i in range(m):
+                d2 = 0.0
+                for c in range(3):
+                    s = 0.0
+                    for e in range(16):
+                        s += o[j, e] * Z[j, e, 3 * i + c]
+                    s += mean[c] - pc[i, c]
+                    d2 += s * s
+                r[i] = math.sqrt(d2)
+            score = _half_median(r, lo, hi)
+            if j == 0:
+                score *= 0.5
+            if score < low:
+                low, best = score, j
+    R = np.zeros((3, 3))
+    for a in range(3):
+        for b in range(3):
+            s = 0.0
+            for e in range(16):
+                s += o[best, e] * rotation_map[e, 3 * a + b]
+            R[a, b] = s
+    t = cb.copy()
+    for c in range(3):
+        for i in range(m):
+            t[c] += Wn[best, i] * pc[i, c]
+        t[c] -= R[c, 0] * cs[best, 0] + R[c, 1] * cs[best, 1] + R[c, 2] * cs[best, 2]
+    w = np.ones(m)
+    r = np.empty(m)
+    u = np.empty(m)
+    for _ in range(iterations):
+        for i in range(m):
+            d2 = 0.0
+            for c in range(3):
+                s = R[c, 0] * ref[i, 0] + R[c, 1] * ref[i, 1] + R[c, 2] * ref[i, 2] + t[c] - P[i, c]
+                d2 += s * s
+            r[i] = math.sqrt(d2)
+        scale = max(mad_to_sigma * _half_median(r, lo, hi), floor_mm)
+        kept = 0
+        for i in range(m):
+            u[i] = r[i] / (tukey_c * scale)
+            w[i] = (1.0 - u[i] * u[i]) ** 2 if u[i] < 1.0 else 0.0
+            if w[i] != 0.0:
+                kept += 1
+        if kept < 3:
+            for i in range(m):
+                w[i] = min(1.0, 1.0 / max(u[i], 1e-12))
+        R, t = _kabsch(ref, P, w)
+    return R, t, w

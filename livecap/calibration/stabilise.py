@@ -280,17 +280,8 @@ class FrameFit:
             return R0, t0, w
         if outcome == kern.DEGENERATE_TOP:
             return robust_pose(self.reference, np.where(use[:, None], pts, 0.0), use, self.iterations, self.floor_mm)
-        b = 0
-        if J > 1:  # robust_pose's start: the leave-one-out fit whose median residual halves the plain fit's
-            pc = p.reshape(m, 3)
-            d = np.matmul(o[:, None], Z).reshape(J, m, 3) + (Wn @ pc)[:, None] - pc
-            srt = np.sort(np.sqrt(np.einsum("jic,jic->ji", d, d)), axis=1)
-            score = 0.5 * (srt[:, (m - 1) // 2] + srt[:, m // 2])
-            score[0] *= 0.5
-            b = int(np.argmin(score))
-        R = (o[b] @ ROTATION_MAP).reshape(3, 3)
-        t = cb + Wn[b] @ p.reshape(m, 3) - R @ cs[b]
-        R, t, wu = _irls_one(self.reference[left], P, R, t, self.iterations, self.floor_mm)
+        R, t, wu = kern.refit(self.reference[left], P, o, p, cb, Wn, Z, cs, ROTATION_MAP, self.iterations,
+                              self.floor_mm, TUKEY_C, MAD_TO_SIGMA)
         out = np.zeros(len(use))
         out[left] = wu
         return R, t, out
@@ -305,25 +296,6 @@ def _load_kernels():
 
     _KERNELS.append(rigid_kernels)
     return rigid_kernels
-
-
-def _irls_one(ref, pts, R, t, iterations, floor_mm):
-    """``_irls``'s iterations for one frame's markers in use, from the start ``R``, ``t``."""
-    m = len(ref)
-    lo, hi = (m - 1) // 2, m // 2
-    w = np.ones(m)
-    for _ in range(iterations):
-        d = ref @ R.T + t - pts
-        r = np.sqrt(np.einsum("ic,ic->i", d, d))
-        srt = np.sort(r).tolist()
-        u = r / (TUKEY_C * max(MAD_TO_SIGMA * (0.5 * (srt[lo] + srt[hi])), floor_mm))
-        w = 1.0 - u * u
-        w *= w
-        w[u >= 1.0] = 0.0
-        if np.count_nonzero(w) < 3:
-            w = np.minimum(1.0, 1.0 / np.maximum(u, 1e-12))
-        R, t = kabsch(ref, pts, w)
-    return R, t, w
 
 
 def _irls(ref, pts, use, iterations, floor_mm):
