@@ -140,7 +140,10 @@ class Pipeline:
         n = len(self.labels)
         t0 = time.perf_counter()
         try:
-            self._stabiliser.step(self._neutral, np.ones(n, bool))
+            jumped = self._neutral.copy()  # one stable marker off by 50 mm: the refit's kernel loads too
+            jumped[np.flatnonzero(self._stabiliser.stable)[:1]] += 50.0
+            for pose in (self._neutral, jumped):
+                self._stabiliser.step(pose, np.ones(n, bool))
             self._stabiliser.reset()
             if hasattr(self._solver, "reset"):
                 self._solver.step(np.zeros((n, 3)), np.ones(n, bool))
@@ -244,7 +247,7 @@ class Pipeline:
         rms = math.sqrt(seen.sum() / len(seen) / 3.0) if len(seen) else 0.0  # ndarray.mean, bit for bit
         solve_time = time.perf_counter() - t0
         self.timing["solve"].add(solve_time)
-        at_bound = (w >= self._bounds[1]).astype(np.int8) - (w <= self._bounds[0])
+        at_bound = np.subtract(w >= self._bounds[1], w <= self._bounds[0], dtype=np.int8)
         return SolveResult(frame.frame, frame.timestamp, self._names, w, to_quaternion(R), t,
                            rms, solve_time, local, valid, at_bound)
 
