@@ -447,3 +447,20 @@ def test_compiled_refit_equals_the_numpy_refit(seed, k, jump, noise, missing, ju
     np.testing.assert_allclose(R, R0, rtol=0, atol=tol)
     np.testing.assert_allclose(t, t0, rtol=0, atol=tol)
     np.testing.assert_allclose(w, w0, rtol=0, atol=tol)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 80), st.floats(0.0, 1.0))
+def test_compiled_unrotate_equals_numpy(seed, n, seen):
+    """The streamed step's stabilised markers: ``(positions - t) @ R``, 0 where not valid (NaN there too)."""
+    from solvers.rigid_kernels import unrotate
+
+    rng = np.random.default_rng(seed)
+    R = Rotation.random(random_state=rng.integers(2**32)).as_matrix()
+    t = rng.normal(0, 500, 3)
+    pos = rng.normal(0, 500, (n, 3))
+    valid = rng.random(n) < seen
+    pos[~valid] = rng.choice([0.0, np.nan])
+    want = (pos - t) @ R
+    want[~valid] = 0.0
+    np.testing.assert_allclose(unrotate(pos, valid, R, t), want, rtol=0, atol=1e-10)

@@ -416,10 +416,10 @@ class HeadStabiliser:
         else:
             R, t = self._R, self._t
             self.weights.fill(0.0)
+        R, t = np.ascontiguousarray(R), np.ascontiguousarray(t)  # one compiled variant of unrotate
         self._R, self._t = R, t
-        local = (positions - t) @ R  # rows are independent: a missing marker's NaN stays in its row
-        local[~valid] = 0.0
-        return local, R.copy(), t.copy()
+        kern = _KERNELS[0] if _KERNELS else _load_kernels()
+        return kern.unrotate(positions, valid, R, t), R.copy(), t.copy()
 
 
 def smooth_pose(R: np.ndarray, t: np.ndarray, window: int, order: int = 3) -> tuple[np.ndarray, np.ndarray]:

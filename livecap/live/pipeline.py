@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import signal
 import threading
@@ -126,9 +125,12 @@ class Pipeline:
         self._names = list(profile.names)
         self._stabiliser = profile.stabiliser()
         self._neutral = np.asarray(profile.source_neutral, dtype=float)
-        self._basis = np.asarray(profile.basis, dtype=float)
+        self._basis = np.ascontiguousarray(profile.basis, dtype=float)
         self._bounds = (np.asarray(profile.lower, dtype=float) + BOUND_TOL, np.asarray(profile.upper, dtype=float)
                         - BOUND_TOL)
+        from solvers.residual_kernels import fit_quality  # numba loads with a profile, not with `livecap --help`
+
+        self._fit_quality = fit_quality
         self.solver_mode = resolve_mode(self.mode, profile, self.options)
         self._solver = build_solver(self.solver_mode, profile, self.options)
         self._lagged: deque = deque(maxlen=solver_latency(self._solver) + 1)
@@ -145,6 +147,8 @@ class Pipeline:
             for pose in (self._neutral, jumped):
                 self._stabiliser.step(pose, np.ones(n, bool))
             self._stabiliser.reset()
+            self._fit_quality(self._basis, np.zeros(self._basis.shape[1]), np.zeros((n, 3)), np.ones(n, bool),
+                              *self._bounds)
             if hasattr(self._solver, "reset"):
                 self._solver.step(np.zeros((n, 3)), np.ones(n, bool))
                 self._solver.reset()
@@ -241,13 +245,9 @@ class Pipeline:
         if not np.isfinite(w).all():
             self._error("solver_nonfinite", f"frame {frame.frame}: solver returned NaN/inf")
             return None
-        # fitted minus observed per marker; no copy of the basis rows (this runs every frame)
-        miss = (self._basis @ w).reshape(-1, 3) - target
-        seen = np.einsum("ij,ij->i", miss, miss)[valid]
-        rms = math.sqrt(seen.sum() / len(seen) / 3.0) if len(seen) else 0.0  # ndarray.mean, bit for bit
+        rms, at_bound = self._fit_quality(self._basis, w, target, valid, *self._bounds)
         solve_time = time.perf_counter() - t0
         self.timing["solve"].add(solve_time)
-        at_bound = np.subtract(w >= self._bounds[1], w <= self._bounds[0], dtype=np.int8)
         return SolveResult(frame.frame, frame.timestamp, self._names, w, to_quaternion(R), t,
                            rms, solve_time, local, valid, at_bound)
 
