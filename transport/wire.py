@@ -176,7 +176,7 @@ def decode_markers(payload: bytes, layouts: dict[str, list[str]] | None = None) 
     msg = _unpack_map(payload, "markers")
     frame = int(_number(msg, "frame", int))
     timestamp = float(_number(msg, "timestamp", float))
-    if not np.isfinite(timestamp):
+    if not math.isfinite(timestamp):
         raise NonFinite("timestamp is not finite")
     labels = msg.get("labels")
     lid = msg.get("layout")
