@@ -6,6 +6,8 @@ import threading
 import numpy as np
 import pytest
 import zmq
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from livecap.calibration.profile import calibrate, estimate_neutral
 from livecap.demo.performance import PerformanceSettings, perform
@@ -203,3 +205,24 @@ def test_session_file(tmp_path):
     f.write_text("mode = \n")
     with pytest.raises(SessionError, match="not valid TOML"):
         load_session(f, known)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 40), st.integers(1, 60), st.floats(0.0, 1.0))
+def test_compiled_fit_quality_equals_numpy(seed, n, m, seen):
+    """The pipeline's RMS residual and at-bound flags (compiled) equal the numpy expressions they replaced."""
+    from solvers.residual_kernels import fit_quality
+
+    rng = np.random.default_rng(seed)
+    basis = rng.normal(0, 3, (3 * n, m))
+    w = rng.uniform(-0.2, 1.2, m)
+    w[rng.random(m) < 0.2] = 1.0  # exactly at a bound
+    target = rng.normal(0, 2, (n, 3))
+    valid = rng.random(n) < seen
+    lower, upper = np.zeros(m), np.ones(m)
+    rms, at_bound = fit_quality(basis, w, target, valid, lower, upper)
+    miss = (basis @ w).reshape(-1, 3) - target
+    want = float(np.sqrt(np.einsum("ij,ij->i", miss, miss)[valid].mean() / 3.0)) if valid.any() else 0.0
+    assert rms == pytest.approx(want, rel=1e-12, abs=1e-12)
+    assert at_bound.dtype == np.int8
+    np.testing.assert_array_equal(at_bound, (w >= upper).astype(np.int8) - (w <= lower))

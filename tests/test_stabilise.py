@@ -363,3 +363,104 @@ def test_streamed_head_fit_equals_the_per_frame_robust_pose_on_a_take_with_outli
         np.testing.assert_allclose(t, tb[i], rtol=0, atol=1e-9)
         assert np.isfinite(local).all() and np.all(local[~valid[i]] == 0.0)
     assert not ok[70:73].any() and ok[:70].all()
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 12), st.floats(0.0, 25.0), st.floats(0.0, 1.5),
+       st.integers(0, 3))
+def test_compiled_check_equals_the_numpy_check(seed, k, jump, noise, missing):
+    """The compiled check (Jacobi eigenvectors) takes the numpy check's outcome, with the same fits to rounding."""
+    from livecap.calibration.stabilise import FrameFit
+    from solvers import rigid_kernels
+    from solvers.rigid import DEGENERATE, ROTATION_MAP
+    from tests.head_fit_reference import check_fit
+
+    rng = np.random.default_rng(seed)
+    ref = rng.normal(0, 50, (k, 3))
+    fit = FrameFit(ref, 3, 1.0)
+    pts = ref @ Rotation.random(random_state=rng.integers(2**32)).as_matrix().T + rng.normal(0, 800, 3)
+    pts += rng.normal(0, noise, (k, 3))
+    pts[rng.integers(k)] += jump * rng.normal(size=3) / np.sqrt(3)
+    use = np.ones(k, bool)
+    use[rng.choice(k, min(missing, k - 3), replace=False)] = False
+    left, Wn, Q, ((Zc, Lc), _), _, cs, _ = fit._prepare(use)
+    P = pts[left]
+    got = rigid_kernels.check_fit(P, Wn, Q, Zc, Lc, cs, ROTATION_MAP, 3.0, DEGENERATE)
+    want = check_fit(P, Wn, Q, Zc, Lc, cs)
+    d = (want[3].reshape(-1) @ Zc + Lc @ want[4]).reshape(-1, 3)
+    if abs(np.sqrt((d * d).sum(1)).max() - 3.0) < 1e-9:
+        return  # on the threshold itself rounding may decide either way
+    assert got[0] == want[0]
+    np.testing.assert_allclose(got[3], want[3], rtol=0, atol=1e-11)  # q q^T: the sign of q drops out
+    np.testing.assert_allclose(got[4], want[4], rtol=0, atol=1e-9)  # the centroid's sum in another order (mm)
+    np.testing.assert_allclose(got[5], want[5], rtol=0, atol=1e-9)
+    if want[0] == rigid_kernels.PASSED:
+        np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(got[2], want[2], rtol=0, atol=1e-9)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(1e-6, 1e6))
+def test_jacobi_top_eigenpair_equals_lapacks(seed, scale):
+    """The kernel's 4 x 4 Jacobi: the largest two eigenvalues and the top eigenvector of ``numpy.linalg.eigh``."""
+    from solvers.rigid_kernels import _top_two
+
+    rng = np.random.default_rng(seed)
+    A = rng.normal(0, scale, (4, 4))
+    A = A + A.T
+    ev, V = np.linalg.eigh(A)
+    q = np.empty(4)
+    top, second = _top_two(A.copy(), q)
+    np.testing.assert_allclose([top, second], ev[[3, 2]], rtol=0, atol=1e-12 * np.abs(ev).max())
+    if ev[3] - ev[2] > 1e-6 * np.abs(ev).max():
+        assert abs(abs(q @ V[:, 3]) - 1.0) < 1e-12 * np.abs(ev).max() / (ev[3] - ev[2]) + 1e-15
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 12), st.floats(4.0, 40.0), st.floats(0.0, 1.5),
+       st.integers(0, 3), st.integers(1, 3))
+def test_compiled_refit_equals_the_numpy_refit(seed, k, jump, noise, missing, jumps):
+    """A frame that fails the check: the compiled start and IRLS give the numpy reference's pose and weights."""
+    from livecap.calibration.stabilise import MAD_TO_SIGMA, TUKEY_C, FrameFit
+    from solvers import rigid_kernels
+    from solvers.rigid import DEGENERATE, ROTATION_MAP
+    from tests.head_fit_reference import refit
+
+    rng = np.random.default_rng(seed)
+    ref = rng.normal(0, 50, (k, 3))
+    fit = FrameFit(ref, 3, 1.0)
+    pts = ref @ Rotation.random(random_state=rng.integers(2**32)).as_matrix().T + rng.normal(0, 800, 3)
+    pts += rng.normal(0, noise, (k, 3))
+    pts[rng.choice(k, min(jumps, k), replace=False)] += jump * rng.normal(size=(min(jumps, k), 3)) / np.sqrt(3)
+    use = np.ones(k, bool)
+    use[rng.choice(k, min(missing, k - 3), replace=False)] = False
+    left, Wn, Q, ((Zc, Lc), Z), _, cs, _ = fit._prepare(use)
+    P = pts[left]
+    _, _, _, o, p, cb = rigid_kernels.check_fit(P, Wn, Q, Zc, Lc, cs, ROTATION_MAP, 3.0, DEGENERATE)
+    R, t, w = rigid_kernels.refit(ref[left], P, o, p, cb, Wn, Z, cs, ROTATION_MAP, 3, 1.0, TUKEY_C, MAD_TO_SIGMA)
+    R0, t0, w0 = refit(ref[left], P, o, p, cb, Wn, Z, cs)
+    # a Tukey weight at its cut-off (or a median tie in the start's score) may go either way by rounding
+    s = np.linalg.svd(ref[left] - ref[left].mean(0), compute_uv=False)
+    tol = 1e-9 * max(1.0, 0.05 * s[0] / s[1])
+    if np.abs(w - w0).max() > 1e-6:
+        return
+    np.testing.assert_allclose(R, R0, rtol=0, atol=tol)
+    np.testing.assert_allclose(t, t0, rtol=0, atol=tol)
+    np.testing.assert_allclose(w, w0, rtol=0, atol=tol)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 80), st.floats(0.0, 1.0))
+def test_compiled_unrotate_equals_numpy(seed, n, seen):
+    """The streamed step's stabilised markers: ``(positions - t) @ R``, 0 where not valid (NaN there too)."""
+    from solvers.rigid_kernels import unrotate
+
+    rng = np.random.default_rng(seed)
+    R = Rotation.random(random_state=rng.integers(2**32)).as_matrix()
+    t = rng.normal(0, 500, 3)
+    pos = rng.normal(0, 500, (n, 3))
+    valid = rng.random(n) < seen
+    pos[~valid] = rng.choice([0.0, np.nan])
+    want = (pos - t) @ R
+    want[~valid] = 0.0
+    np.testing.assert_allclose(unrotate(pos, valid, R, t), want, rtol=0, atol=1e-10)

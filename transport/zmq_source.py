@@ -67,6 +67,8 @@ class ZmqSource:
     def _next(self) -> MarkerFrame | None:
         """The next good frame already received, or None (after at most ``DRAIN`` messages)."""
         t0 = time.perf_counter()
+        if not self.sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # the usual empty queue, without raising zmq.Again
+            return None
         for _ in range(DRAIN):
             try:
                 parts = self.sock.recv_multipart(zmq.NOBLOCK)
@@ -95,7 +97,10 @@ class ZmqSource:
             return None  # a longer topic that shares our prefix: not for us
         try:
             pkt = decode_markers(parts[1], self._layouts)
-            frame = self._map.frame(pkt.frame, pkt.timestamp, pkt.labels, pkt.positions, pkt.valid)
+            if pkt.labels == self.labels:  # the session's order (the usual case): the decoded arrays as they are
+                frame = MarkerFrame(pkt.frame, pkt.timestamp, pkt.positions, pkt.valid)
+            else:
+                frame = self._map.frame(pkt.frame, pkt.timestamp, pkt.labels, pkt.positions, pkt.valid)
         except WireError as exc:
             self.bad.skip(exc.kind, str(exc))
             return None
@@ -121,6 +126,8 @@ class ZmqSource:
                 last_good = time.monotonic()
                 limit = self.idle_timeout
                 yield frame
+                if self._ahead is None and self._running:  # wait here: the queue is usually empty after a frame
+                    poller.poll(self.poll_ms)
                 continue
             if limit and time.monotonic() - last_good > limit:
                 return  # checked outside the poll: a flood of garbage does not keep a dead session alive

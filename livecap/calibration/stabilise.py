@@ -272,52 +272,30 @@ class FrameFit:
             prep = self._masks[key] = self._prepare(use)
         left, Wn, Q, ((Zc, Lc), Z), J, cs, w = prep
         m = len(left)
-        P = pts[left]
-        cb = Wn[0] @ P
-        p = (P - cb).reshape(-1)
-        ev, V = np.linalg.eigh((Q @ p).reshape(J, 4, 4))
-        top = ev[:, 3]  # N is traceless, so 3 x the largest top eigenvalue bounds every |eigenvalue|
-        if not (top - ev[:, 2]).min() > 3.0 * DEGENERATE * top.max():
+        P = pts if m == len(pts) else pts[left]
+        kern = _KERNELS[0] if _KERNELS else _load_kernels()
+        outcome, R0, t0, o, p, cb = kern.check_fit(P, Wn, Q, Zc, Lc, cs, ROTATION_MAP, CHECK_SCALES * self.floor_mm,
+                                                    DEGENERATE)
+        if outcome == kern.PASSED:
+            return R0, t0, w
+        if outcome == kern.DEGENERATE_TOP:
             return robust_pose(self.reference, np.where(use[:, None], pts, 0.0), use, self.iterations, self.floor_mm)
-        q = V[:, :, 3]
-        o = np.einsum("ji,jk->jik", q, q).reshape(J, 16)
-        d = (o.reshape(-1) @ Zc + Lc @ p).reshape(-1, 3)
-        if math.sqrt(np.einsum("ic,ic->i", d, d).max()) <= CHECK_SCALES * self.floor_mm:
-            R0 = (o[0] @ ROTATION_MAP).reshape(3, 3)
-            return R0, cb - R0 @ cs[0], w
-        b = 0
-        if J > 1:  # robust_pose's start: the leave-one-out fit whose median residual halves the plain fit's
-            pc = p.reshape(m, 3)
-            d = np.matmul(o[:, None], Z).reshape(J, m, 3) + (Wn @ pc)[:, None] - pc
-            srt = np.sort(np.sqrt(np.einsum("jic,jic->ji", d, d)), axis=1)
-            score = 0.5 * (srt[:, (m - 1) // 2] + srt[:, m // 2])
-            score[0] *= 0.5
-            b = int(np.argmin(score))
-        R = (o[b] @ ROTATION_MAP).reshape(3, 3)
-        t = cb + Wn[b] @ p.reshape(m, 3) - R @ cs[b]
-        R, t, wu = _irls_one(self.reference[left], P, R, t, self.iterations, self.floor_mm)
+        R, t, wu = kern.refit(self.reference[left], P, o, p, cb, Wn, Z, cs, ROTATION_MAP, self.iterations,
+                              self.floor_mm, TUKEY_C, MAD_TO_SIGMA)
         out = np.zeros(len(use))
         out[left] = wu
         return R, t, out
 
 
-def _irls_one(ref, pts, R, t, iterations, floor_mm):
-    """``_irls``'s iterations for one frame's markers in use, from the start ``R``, ``t``."""
-    m = len(ref)
-    lo, hi = (m - 1) // 2, m // 2
-    w = np.ones(m)
-    for _ in range(iterations):
-        d = ref @ R.T + t - pts
-        r = np.sqrt(np.einsum("ic,ic->i", d, d))
-        srt = np.sort(r).tolist()
-        u = r / (TUKEY_C * max(MAD_TO_SIGMA * (0.5 * (srt[lo] + srt[hi])), floor_mm))
-        w = 1.0 - u * u
-        w *= w
-        w[u >= 1.0] = 0.0
-        if np.count_nonzero(w) < 3:
-            w = np.minimum(1.0, 1.0 / np.maximum(u, 1e-12))
-        R, t = kabsch(ref, pts, w)
-    return R, t, w
+_KERNELS: list = []
+
+
+def _load_kernels():
+    """``solvers.rigid_kernels``, imported with the first streamed frame: offline use never loads numba."""
+    from solvers import rigid_kernels
+
+    _KERNELS.append(rigid_kernels)
+    return rigid_kernels
 
 
 def _irls(ref, pts, use, iterations, floor_mm):
@@ -421,7 +399,9 @@ class HeadStabiliser:
         """One streamed frame: (stabilised (n, 3), R, t). Works on the stable subset only (k tiny
         SVDs), holds the last good pose when fewer than 3 markers are visible, never raises."""
         positions = np.asarray(positions, dtype=np.float64)
-        valid = np.asarray(valid, dtype=bool) & np.isfinite(positions).all(-1)
+        valid = np.asarray(valid, dtype=bool)
+        if not math.isfinite(positions.sum()):  # one reduction for the usual all-finite frame
+            valid = valid & np.isfinite(positions).all(-1)
         sv = valid[self._stable_idx]
         if np.count_nonzero(sv) >= 3:
             if self._frame_fit is not None:
@@ -436,10 +416,10 @@ class HeadStabiliser:
         else:
             R, t = self._R, self._t
             self.weights.fill(0.0)
+        R, t = np.ascontiguousarray(R), np.ascontiguousarray(t)  # one compiled variant of unrotate
         self._R, self._t = R, t
-        local = (positions - t) @ R  # rows are independent: a missing marker's NaN stays in its row
-        local[~valid] = 0.0
-        return local, R.copy(), t.copy()
+        kern = _KERNELS[0] if _KERNELS else _load_kernels()
+        return kern.unrotate(positions, valid, R, t), R.copy(), t.copy()
 
 
 def smooth_pose(R: np.ndarray, t: np.ndarray, window: int, order: int = 3) -> tuple[np.ndarray, np.ndarray]:

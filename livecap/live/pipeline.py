@@ -125,27 +125,36 @@ class Pipeline:
         self._names = list(profile.names)
         self._stabiliser = profile.stabiliser()
         self._neutral = np.asarray(profile.source_neutral, dtype=float)
-        self._basis = np.asarray(profile.basis, dtype=float)
+        self._basis = np.ascontiguousarray(profile.basis, dtype=float)
         self._bounds = (np.asarray(profile.lower, dtype=float) + BOUND_TOL, np.asarray(profile.upper, dtype=float)
                         - BOUND_TOL)
+        from solvers.residual_kernels import fit_quality  # numba loads with a profile, not with `livecap --help`
+
+        self._fit_quality = fit_quality
         self.solver_mode = resolve_mode(self.mode, profile, self.options)
         self._solver = build_solver(self.solver_mode, profile, self.options)
         self._lagged: deque = deque(maxlen=solver_latency(self._solver) + 1)
         self._warm_up()
 
     def _warm_up(self) -> None:
-        """One step on a neutral frame, then ``reset``: the solver's compiled kernels load (or, after an
-        install, compile: seconds) here rather than on the stream's first frame."""
-        if not hasattr(self._solver, "reset"):
-            return
+        """The head fit and, when it can ``reset``, the solver step once on the neutral face, then forget it: their
+        compiled kernels load (or, after an install, compile: seconds) here rather than on the stream's first frame."""
         n = len(self.labels)
         t0 = time.perf_counter()
         try:
-            self._solver.step(np.zeros((n, 3)), np.ones(n, bool))
-            self._solver.reset()
+            jumped = self._neutral.copy()  # one stable marker off by 50 mm: the refit's kernel loads too
+            jumped[np.flatnonzero(self._stabiliser.stable)[:1]] += 50.0
+            for pose in (self._neutral, jumped):
+                self._stabiliser.step(pose, np.ones(n, bool))
+            self._stabiliser.reset()
+            self._fit_quality(self._basis, np.zeros(self._basis.shape[1]), np.zeros((n, 3)), np.ones(n, bool),
+                              *self._bounds)
+            if hasattr(self._solver, "reset"):
+                self._solver.step(np.zeros((n, 3)), np.ones(n, bool))
+                self._solver.reset()
         except Exception as exc:  # a solver that cannot step a neutral frame still gets the stream
-            log.warning("solver warm-up failed (%s: %s)", type(exc).__name__, exc)
-        log.debug("solver warm-up %.3f s", time.perf_counter() - t0)
+            log.warning("warm-up failed (%s: %s)", type(exc).__name__, exc)
+        log.debug("warm-up %.3f s", time.perf_counter() - t0)
 
     def _calibrate(self) -> bool:
         frames = self._buffer
@@ -236,12 +245,9 @@ class Pipeline:
         if not np.isfinite(w).all():
             self._error("solver_nonfinite", f"frame {frame.frame}: solver returned NaN/inf")
             return None
-        # fitted minus observed per marker; no copy of the basis rows (this runs every frame)
-        miss = (self._basis @ w).reshape(-1, 3) - target
-        rms = float(np.sqrt(np.einsum("ij,ij->i", miss, miss)[valid].mean() / 3.0)) if valid.any() else 0.0
+        rms, at_bound = self._fit_quality(self._basis, w, target, valid, *self._bounds)
         solve_time = time.perf_counter() - t0
         self.timing["solve"].add(solve_time)
-        at_bound = (w >= self._bounds[1]).astype(np.int8) - (w <= self._bounds[0])
         return SolveResult(frame.frame, frame.timestamp, self._names, w, to_quaternion(R), t,
                            rms, solve_time, local, valid, at_bound)
 
