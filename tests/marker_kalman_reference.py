@@ -6,37 +6,25 @@ from __future__ import annotations
 
 import numpy as np
 
-from solvers.marker_kalman import R_EVERY, R_SETTLE_FRAMES, KalmanSettings, _choose, _grid, _rts, bridged
+from solvers.marker_kalman import (
+    R_EVERY,
+    R_SETTLE_FRAMES,
+    KalmanSettings,
+    StreamingMarkerKalman,
+    _choose,
+    _grid,
+    _rts,
+    bridged,
+)
 
 
-class NumpyStreamingMarkerKalman:
-    """Per-frame marker filter: each marker follows the (r, q) with the best discounted likelihood
-    (r shared). ``lag`` 1 returns frame t - 1 smoothed with frame t.
-
-    A constant-velocity filter's gains depend on ``q`` and ``r`` only through lambda = q / r: its
-    covariances are r times those of the filter (1, lambda), so every r shares that filter's
-    innovations e and their unit variances s, and the log-likelihood of (r, lambda) over the
-    coordinates and frames is -(c log r + sum log s + sum e^2 / (s r)) / 2 from three discounted
-    sums per (lambda, marker). One bank over a lambda grid (the q grid's spacing, spanning every
-    q / r the grids allow) serves every r: 21 filters instead of 7 x 15 (Bar-Shalom et al. 2001
-    §6.2.2 for the filter; the steady state's dependence on q / r alone is their §6.2.3 tracking
-    index). Each r may choose the lambdas whose q = lambda r lies in the q grid's range."""
+class NumpyStreamingMarkerKalman(StreamingMarkerKalman):
+    """The streaming filter (the method: ``StreamingMarkerKalman``) as whole-array numpy calls on a ``_Bank``."""
 
     def __init__(self, n_markers: int, settings: KalmanSettings | None = None, lag: int = 1) -> None:
-        self.s = settings or KalmanSettings()
-        self.n, self.lag = n_markers, lag
+        super().__init__(n_markers, settings, lag)
         self._idx = np.arange(n_markers)
-        r, q = np.asarray(self.s.r_grid, float), np.asarray(self.s.q_grid, float)
-        step = np.log(q[1] / q[0]) if len(q) > 1 else 1.0
-        span = np.log(q.max() / r.min()) - np.log(q.min() / r.max())
-        self.lam = q.min() / r.max() * np.exp(step * np.arange(int(np.ceil(span / step - 1e-9)) + 1))
-        q_of = self.lam[None, :] * r[:, None]  # r x lambda
-        half = np.exp(0.5 * step)
-        allowed = (q_of >= q.min() / half) & (q_of <= q.max() * half)
-        self.excluded = np.where(allowed, 0.0, np.inf)[:, None, :]  # r x 1 x lambda
-        self.log_r, self.inv_r = np.log(r)[:, None], (1.0 / r)[:, None, None]
-        self.p11_start = 1e2 / float(np.median(r))  # _Bank's 1e2 mm^2/frame^2 at the middle r
-        self.reset()
+        self.log_r, self.inv_r = self.log_r[:, None], self.inv_r[:, None, None]
 
     def reset(self) -> None:
         self.bank = _Bank(np.ones(len(self.lam)), self.lam, self.n, p11_start=self.p11_start)
@@ -173,12 +161,7 @@ class _Bank:
 
 def numpy_smooth_take(targets: np.ndarray, valid: np.ndarray, settings: KalmanSettings | None = None
                 ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """RTS-smoothed targets (T x n x 3), the validity after gap bridging, and the chosen noise.
-
-    ``r`` (shared) by the whole take's likelihood; ``q`` per marker and frame by the likelihood of
-    the fixed-``q`` filters' innovations over ``settings.local_frames`` either side (a local model
-    choice, as an IMM's mode probabilities; Bar-Shalom et al. 2001 §11.6.6); then one filter with
-    that time-varying ``q`` and the RTS pass."""
+    """``smooth_take`` (the method is described there) as numpy passes over a ``_Bank``."""
     s = settings or KalmanSettings()
     T, n, _ = targets.shape
     z = np.asarray(targets, float)
