@@ -35,6 +35,7 @@ from solvers.qp_kernels import smallest_eigenvalue
 log = logging.getLogger(__name__)
 
 
+_LAMBDA_MIN_SIZE = 256
 _LAMBDA_MIN: dict[bytes, float] = {}  # smallest eigenvalue per matrix content: FrameQPs at several strengths share one
 
 
@@ -47,6 +48,8 @@ def _lambda_min(A: np.ndarray) -> float:
         return float(diag.min())
     key = hashlib.blake2b(np.ascontiguousarray(A).tobytes(), digest_size=16).digest() + bytes(str(A.shape), "ascii")
     if key not in _LAMBDA_MIN:
+        if len(_LAMBDA_MIN) >= _LAMBDA_MIN_SIZE:  # a batch over many actors' profiles: keep the cache bounded
+            _LAMBDA_MIN.clear()
         _LAMBDA_MIN[key] = float(np.linalg.eigvalsh(A)[0])
     return _LAMBDA_MIN[key]
 
