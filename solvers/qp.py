@@ -224,7 +224,11 @@ class FrameQP:
         return ws
 
     # ------------------------------------------------------------------ per frame
+    def _update_linear(self) -> None:
+        """Set ``linear`` for the coming frame from the state (subclasses: e.g. a hysteresis L1 term)."""
+
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        self._update_linear()
         s = np.asarray(target, dtype=np.float64).reshape(-1)
         seen = np.asarray(valid, dtype=bool).reshape(-1)
         if s.shape[0] != 3 * self.n or seen.shape[0] != self.n:
@@ -235,16 +239,49 @@ class FrameQP:
         if not math.isfinite(np.add.reduce(s)):  # a NaN or inf coordinate (or overflow): drop those markers
             seen = seen & np.isfinite(s.reshape(self.n, 3)).all(axis=1)
             key = seen.tobytes()
-        if key == self._last_key or key == self._daqp_key:
-            ws = self._last_ws
-        else:
-            if key != self._all_seen and not seen.any():
-                return self._prev.copy()
-            ws = self._workspace(key, seen)
+        ws = self._frame_workspace(key, seen)
+        if ws is None:
+            return self._prev.copy()
         if ws.rows is not None:
             s = np.where(ws.rows, s, 0.0)
-        f = self._BtD @ s  # s is 0 on the rows of missing markers
-        np.subtract(self.linear, f, out=f)
+        return self._advance(key, ws, self._BtD @ s).copy()  # s is 0 on the rows of missing markers
+
+    def step_take(self, targets: np.ndarray, valid: np.ndarray, block: int = 1024) -> np.ndarray:
+        """``step`` over every frame of a take in order (T x m weights): the data term B'M^2 s of a block of
+        frames is one matrix product instead of one per frame (the same numbers up to summation order)."""
+        T = len(targets)
+        S = np.asarray(targets, dtype=np.float64).reshape(T, -1)
+        seen_all = np.asarray(valid, dtype=bool).reshape(T, -1)
+        W = np.empty((T, self.m))
+        if S.shape[1] != 3 * self.n or seen_all.shape[1] != self.n:
+            for t in range(T):
+                W[t] = self.step(S[t], seen_all[t])
+            return W
+        keys = [row.tobytes() for row in seen_all]
+        for b in range(0, T, block):
+            e = min(T, b + block)
+            D = np.where(np.repeat(seen_all[b:e], 3, axis=1), S[b:e], 0.0) @ self._BtD.T
+            finite = np.isfinite(D).all(axis=1)
+            for t in range(b, e):
+                if not finite[t - b]:
+                    W[t] = self.step(S[t], seen_all[t])
+                    continue
+                self._update_linear()
+                ws = self._frame_workspace(keys[t], seen_all[t])
+                W[t] = self._prev if ws is None else self._advance(keys[t], ws, D[t - b])
+        return W
+
+    def _frame_workspace(self, key: bytes, seen: np.ndarray) -> _Workspace | None:
+        """The workspace of this frame's pattern (None when no marker is seen: hold the weights)."""
+        if key == self._last_key or key == self._daqp_key:
+            return self._last_ws
+        if key != self._all_seen and not seen.any():
+            return None
+        return self._workspace(key, seen)
+
+    def _advance(self, key: bytes, ws: _Workspace, data: np.ndarray) -> np.ndarray:
+        """Solve the frame whose data term is ``data`` = B'M^2 s (not kept) and make it the previous frame."""
+        f = np.subtract(self.linear, data)
         if self._prior_f is not None:
             f -= self._prior_f
         if self.temporal + ws.floor > 0:
@@ -254,7 +291,7 @@ class FrameQP:
             self.failures += 1
             x = self._fallback(ws, f)
         self._prev = x
-        return x.copy()
+        return x
 
     # Where the active set moves a lot per frame and hundreds of weights are free (an unregularised fit
     # of noisy markers at 1000 shapes), each of BoxQP's passes refactors a block of O(k^3) while DAQP,

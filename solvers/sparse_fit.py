@@ -51,10 +51,9 @@ class HysteresisSparseFit(PriorLeastSquares):
         self._half = (0.5 * self.enter, 0.5 * self.stay)
         self._gap = np.empty(m)
 
-    def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    def _update_linear(self) -> None:
         gap = np.abs(np.subtract(self._prev, self._rest, out=self._gap), out=self._gap)
         self.linear = np.where(gap <= 1e-9, *self._half)  # the L1 term at rest, the smaller one once active
-        return super().step(target, valid)
 
 
 SPARSE_GRID = np.logspace(-1, 2, 7)

@@ -159,3 +159,28 @@ def test_compiled_smallest_eigenvalue_matches_eigvalsh_and_never_exceeds_it(seed
     A = (A + A.T) / 2
     got, ref = smallest_eigenvalue(A), np.linalg.eigvalsh(A)[0]
     assert got <= ref and got == pytest.approx(ref, abs=1e-10 * lam.sum())
+
+
+@pytest.mark.parametrize("temporal", [0.0, 0.3])
+def test_a_take_at_once_equals_stepping_it(temporal):
+    """step_take: the same weights and end state as ``step`` frame by frame, across pattern changes, frames with
+    no marker, NaN coordinates and block boundaries."""
+    from solvers.sparse_fit import HysteresisSparseFit
+
+    B, lo, hi, _ = _problem(5, 10, 8)
+    rng = np.random.default_rng(6)
+    T = 90
+    S = (B @ rng.uniform(lo, hi, (T, 8)).T).T.reshape(T, 10, 3) + rng.normal(0, 0.2, (T, 10, 3))
+    valid = rng.random((T, 10)) > 0.15
+    valid[20] = False
+    S[33, 4, 1] = np.nan
+    S[50, 2] = np.inf
+    valid[50, 2] = False  # a missing marker may hold anything
+    for make in (lambda: FrameQP(B, lo, hi, ridge=0.1, temporal=temporal),
+                 lambda: HysteresisSparseFit(B, lo, hi, 0.1, np.full(8, 2.0), np.full(8, 0.5))):
+        a, b = make(), make()
+        stepped = np.array([a.step(S[t], valid[t]) for t in range(T)])
+        taken = b.step_take(S, valid, block=16)
+        assert np.abs(taken - stepped).max() <= 1e-9
+        assert np.abs(a.step(S[0], valid[0]) - b.step(S[0], valid[0])).max() <= 1e-9
+        assert np.isfinite(taken).all() and np.ptp(taken, axis=0).max() > 0.1

@@ -29,10 +29,7 @@ def whole_take(solver, targets: np.ndarray, valid: np.ndarray) -> np.ndarray | N
     solver.reset()
     mf, fit = solver.marker_filter, solver.inner
     smoothed = causal_poly_take(targets, valid[..., None], mf.window, mf.order)
-    W = np.empty((len(smoothed), fit.m))
-    for t in range(len(smoothed)):
-        W[t] = fit.step(smoothed[t], valid[t])
-    W = solver.weight_filter.filter(W)
+    W = solver.weight_filter.filter(fit.step_take(smoothed, valid))
     if solver.lower is not None:
         np.maximum(W, solver.lower, out=W)
         np.minimum(W, solver.upper, out=W)
