@@ -21,12 +21,12 @@ def read_c3d(path: str | Path) -> Take:
     path = Path(path)
     import ezc3d
 
-    try:
-        c = ezc3d.c3d(str(path))
+    try:  # ezc3d's own c3d object, without the wrapper's copies of analogs, rotations and camera masks
+        c = ezc3d.ezc3d.c3d(str(path))
     except Exception as exc:  # ezc3d raises plain RuntimeError/IOError with terse text
         raise TakeFileError(f"{path}: not a readable C3D file ({exc})") from None
-    params = c["parameters"]["POINT"]
-    points = c["data"]["points"]
+    params = ezc3d.c3d.Parameters(c.parameters())["POINT"]
+    points = c.get_points()
     n = points.shape[1]
     if n == 0:
         raise TakeFileError(f"{path}: C3D file holds no 3D marker points (analog or rotation data only)")
@@ -47,9 +47,9 @@ def read_c3d(path: str | Path) -> Take:
     if not (np.isfinite(rate) and rate > 0):
         raise TakeFileError(f"{path}: POINT:RATE is {rate}, not a frame rate")
     xyz = np.transpose(points[:3], (2, 1, 0)) * scale
-    residuals = c["data"]["meta_points"]["residuals"][0].T
+    residuals = c.get_point_residuals()[0].T
     valid = np.isfinite(xyz).all(axis=2) & (residuals >= 0)
-    first = int(c["header"]["points"]["first_frame"])
+    first = int(c.header().firstFrame())
     return Take(labels, xyz, valid, rate, first)
 
 
