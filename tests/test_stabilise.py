@@ -220,17 +220,23 @@ def test_streamed_fit_with_deleted_residuals_matches_the_batched_form(seed, k, j
     pts[rng.integers(k)] += jump
     use = rng.random(k) > 0.2
     use[:3] = True
-    R, t, r = _fit_with_deleted(ref, pts, use)
+    R, t, r, Rall, tall = _fit_with_deleted(ref, pts, use)
     R0, t0 = kabsch(ref, pts, use)
     np.testing.assert_allclose(R, R0, atol=1e-10)
     np.testing.assert_allclose(t, t0, atol=1e-8)
+    loo = 5 <= k <= LEAVE_ONE_OUT_MAX
+    assert Rall.shape == (k + 1 if loo else 1, 3, 3) and tall.shape == (len(Rall), 3)
+    np.testing.assert_allclose(Rall[0], R0, atol=1e-10)
+    np.testing.assert_allclose(tall[0], t0, atol=1e-8)
     expected = _residuals(ref, pts, R0, t0)
-    for j in np.flatnonzero(use) if 5 <= k <= LEAVE_ONE_OUT_MAX and use.sum() >= 5 else []:
+    for j in np.flatnonzero(use) if loo and use.sum() >= 5 else []:
         others = use & (np.arange(k) != j)
         Rj, tj = kabsch(ref[others], pts[others])
         expected[j] = max(expected[j], np.linalg.norm(Rj @ ref[j] + tj - pts[j]))
+        np.testing.assert_allclose(Rall[j + 1], Rj, atol=1e-9)  # IRLS's candidate starts
+        np.testing.assert_allclose(tall[j + 1], tj, atol=1e-7)
     np.testing.assert_allclose(r[use], expected[use], atol=1e-8)
-    Rb, tb, rb = _fit_with_deleted(ref, np.stack([pts, pts + 1.0]), np.stack([use, use]))  # a take at once
+    Rb, tb, rb, _, _ = _fit_with_deleted(ref, np.stack([pts, pts + 1.0]), np.stack([use, use]))  # a take at once
     np.testing.assert_allclose(Rb, [R, R], atol=1e-10)
     np.testing.assert_allclose(tb, [t, t + 1.0], atol=1e-8)
     np.testing.assert_allclose(rb[:, use], [r[use], r[use]], atol=1e-8)

@@ -95,21 +95,28 @@ def _masked_median(r: np.ndarray, use: np.ndarray) -> np.ndarray:
     return np.where(cnt > 0, med, 0.0)
 
 
-def _initial(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _initial(ref: np.ndarray, pts: np.ndarray, use: np.ndarray,
+             fits: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares fit, or the leave-one-out fit with the smallest median residual.
 
     For small sets (stable markers) one gross outlier would bias the plain fit; leaving each marker
-    out in turn (k + 1 tiny SVDs per frame) finds a start that ignores it.
+    out in turn (k + 1 tiny fits per frame) finds a start that ignores it. ``fits``: those fits' R
+    (..., J, 3, 3) and t (..., J, 3), the plain one first, when ``_fit_with_deleted`` has made them.
     """
-    R, t = kabsch(ref, pts, use)
     k = use.shape[-1]
-    if k < 5 or k > LEAVE_ONE_OUT_MAX or not (use.sum(-1) >= 5).any():
-        return R, t
     drop = ~np.eye(k, dtype=bool)  # row j leaves marker j out
     cand = use[..., None, :] & drop  # (..., k, k)
-    Rc, tc = kabsch(ref[..., None, :, :], pts[..., None, :, :], cand)
-    Rall = np.concatenate([R[..., None, :, :], Rc], axis=-3)  # (..., k+1, 3, 3)
-    tall = np.concatenate([t[..., None, :], tc], axis=-2)
+    if fits is not None:
+        Rall, tall = fits
+        if Rall.shape[-3] == 1:
+            return Rall[..., 0, :, :], tall[..., 0, :]
+    else:
+        R, t = kabsch(ref, pts, use)
+        if k < 5 or k > LEAVE_ONE_OUT_MAX or not (use.sum(-1) >= 5).any():
+            return R, t
+        Rc, tc = kabsch(ref[..., None, :, :], pts[..., None, :, :], cand)
+        Rall = np.concatenate([R[..., None, :, :], Rc], axis=-3)  # (..., k+1, 3, 3)
+        tall = np.concatenate([t[..., None, :], tc], axis=-2)
     # leave one out only with 4 or more left: a 3-marker fit has no redundancy to judge by
     ok = np.concatenate([np.ones(use.shape[:-1] + (1,), bool), cand.sum(-1) >= 4], axis=-1)
     ok[..., 1:] &= use  # leaving out a marker that is missing changes nothing
@@ -122,7 +129,7 @@ def _initial(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndar
     return Rb, tb
 
 
-def _fit_with_deleted(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _fit_with_deleted(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, ...]:
     """Rigid fits and each marker's larger of its residual and deleted residual, batched over frames.
 
     A far (high-leverage) marker that jumps drags the plain fit towards itself and hides in its
@@ -130,7 +137,8 @@ def _fit_with_deleted(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tupl
     jump shows in full. Per frame the fit and the k leave-one-out fits share one set of centred
     products (each leave-one-out covariance is the full one less marker j's term and a centroid
     correction), and all rotations come from one call (Horn 1987, ``solvers.rigid.rotation_from_covariance``).
-    ``ref`` (k, 3), ``pts`` (..., k, 3), ``use`` (..., k); returns R (..., 3, 3), t (..., 3), r (..., k).
+    ``ref`` (k, 3), ``pts`` (..., k, 3), ``use`` (..., k); returns R (..., 3, 3), t (..., 3), r (..., k) and
+    every fit's R (..., J, 3, 3) and t (..., J, 3) (J = k + 1 with leave-one-out, else 1), IRLS's candidate starts.
     """
     k = len(ref)
     lead = pts.shape[:-2]
@@ -164,8 +172,10 @@ def _fit_with_deleted(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tupl
     if loo:
         own = (R[:, 1:] @ (a - cs[:, 1:])[..., None])[..., 0] + cd[:, 1:] - b
         r = np.where(U & (wsum[:, 1:] >= 4), np.maximum(r, np.sqrt((own * own).sum(-1))), r)
-    t = cb + cd[:, 0] - (R0 @ (ca + cs[:, 0])[..., None])[..., 0]
-    return R0.reshape(*lead, 3, 3), t.reshape(*lead, 3), r.reshape(*lead, k)
+    tall = cb[:, None, :] + cd - (R @ (ca[:, None, :] + cs)[..., None])[..., 0]
+    J = R.shape[1]
+    return (R0.reshape(*lead, 3, 3), tall[:, 0].reshape(*lead, 3), r.reshape(*lead, k), R.reshape(*lead, J, 3, 3),
+            tall.reshape(*lead, J, 3))
 
 
 def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: int = 3,
@@ -185,15 +195,16 @@ def robust_pose(ref: np.ndarray, pts: np.ndarray, use: np.ndarray, iterations: i
     if iterations <= 0:
         R, t = kabsch(ref, pts, use)
         return R, t, w
-    R, t, r = _fit_with_deleted(ref, pts, use)
+    R, t, r, Rall, tall = _fit_with_deleted(ref, pts, use)
     bad = (use & (r > CHECK_SCALES * floor_mm)).any(-1)
     if pts.ndim == 2:
-        return _irls(ref, pts, use, iterations, floor_mm) if bad else (R, t, w)
+        return _irls(ref, pts, use, iterations, floor_mm, (Rall, tall)) if bad else (R, t, w)
     if bad.any():
         f = np.flatnonzero(bad.reshape(-1))
         lead = pts.shape[:-2]
+        J = Rall.shape[-3]
         Rf, tf, wf = _irls(ref, pts.reshape(-1, *pts.shape[-2:])[f], use.reshape(-1, use.shape[-1])[f],
-                           iterations, floor_mm)
+                           iterations, floor_mm, (Rall.reshape(-1, J, 3, 3)[f], tall.reshape(-1, J, 3)[f]))
         R, t, w = R.reshape(-1, 3, 3), t.reshape(-1, 3), w.reshape(-1, w.shape[-1])
         R[f], t[f], w[f] = Rf, tf, wf
         R, t, w = R.reshape(*lead, 3, 3), t.reshape(*lead, 3), w.reshape(*lead, -1)
@@ -298,9 +309,9 @@ def _load_kernels():
     return rigid_kernels
 
 
-def _irls(ref, pts, use, iterations, floor_mm):
+def _irls(ref, pts, use, iterations, floor_mm, fits=None):
     """IRLS with Tukey's biweight from the leave-one-out start (Huber where Tukey keeps < 3)."""
-    R, t = _initial(ref, pts, use)
+    R, t = _initial(ref, pts, use, fits)
     w = use.astype(np.float64)
     for _ in range(iterations):
         r = _residuals(ref, pts, R, t)
