@@ -52,3 +52,26 @@ def test_bad_file_is_one_clear_line(tmp_path):
     r = livecap("info", str(tmp_path / "bad.c3d"))
     assert r.returncode == 1
     assert "bad.c3d" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_solve_with_a_profile_does_not_read_the_rig_meshes(short_demo, tmp_path):
+    """The profile holds the calibrated basis and the labels: with it, a CSV solve leaves the rig's meshes unread
+    (for a real rig, seconds of OBJ parsing), and gives the same weights as with the rig read."""
+    prof = tmp_path / "actor.npz"
+    r = livecap("calibrate", str(short_demo / "demo_take.c3d"), "--rig", str(short_demo / "demo_rig.npz"),
+                "--out", str(prof))
+    assert r.returncode == 0, r.stderr
+    take = str(short_demo / "demo_take.c3d")
+    r = livecap("solve", take, "--rig", str(short_demo / "demo_rig.npz"), "--profile", str(prof),
+                "--out", str(tmp_path / "a.csv"))
+    assert r.returncode == 0, r.stderr
+    broken = tmp_path / "broken_rig.npz"
+    broken.write_bytes(b"not a rig")
+    r = livecap("solve", take, "--rig", str(broken), "--profile", str(prof), "--out", str(tmp_path / "b.csv"))
+    assert r.returncode == 0, r.stderr
+    assert np.array_equal(read_weights_csv(tmp_path / "a.csv")[1], read_weights_csv(tmp_path / "b.csv")[1])
+    r = livecap("solve", take, "--rig", str(broken), "--profile", str(prof), "--out", str(tmp_path / "c.glb"))
+    assert r.returncode == 1 and "broken_rig.npz" in r.stderr and "Traceback" not in r.stderr  # a .glb needs meshes
+    r = livecap("solve", take, "--rig", str(tmp_path / "nowhere"), "--profile", str(prof),
+                "--out", str(tmp_path / "d.csv"))
+    assert r.returncode == 1 and "nowhere" in r.stderr and "Traceback" not in r.stderr

@@ -65,7 +65,7 @@ def register(sub) -> None:
 def run_calibrate(args: argparse.Namespace) -> int:
     rig, layout = load_rig(args)
     take = read_take(args.neutral)
-    check_labels(take, layout, args.neutral, args.rig)
+    check_labels(take, layout.labels, args.neutral, args.rig)
     sel = take.select(layout.labels)
     absent = [lab for lab, seen in zip(layout.labels, sel.valid.any(0), strict=True) if not seen]
     if absent:

@@ -26,11 +26,11 @@ def load_rig(args: argparse.Namespace) -> tuple[Rig, MarkerLayout]:
     return rig, MarkerLayout.load(mpath, rig)
 
 
-def check_labels(take: Take, layout: MarkerLayout, take_path, rig_path) -> None:
-    """A take that shares no marker label with the rig is a wrong pairing, not a take with gaps: say so."""
-    if not set(take.labels) & set(layout.labels):
-        raise ValueError(f"{take_path}: the take shares none of the {layout.n_markers} marker labels of rig {rig_path} "
-                         f"(take: {', '.join(take.labels[:4])}...; rig: {', '.join(layout.labels[:4])}...); give "
+def check_labels(take: Take, labels: list[str], take_path, rig_path) -> None:
+    """A take that shares no marker label with the rig's ``labels`` is a wrong pairing, not a take with gaps: say so."""
+    if not set(take.labels) & set(labels):
+        raise ValueError(f"{take_path}: the take shares none of the {len(labels)} marker labels of rig {rig_path} "
+                         f"(take: {', '.join(take.labels[:4])}...; rig: {', '.join(labels[:4])}...); give "
                          "a markers.json that binds the take's labels to the rig (--markers)")
 
 
@@ -61,7 +61,7 @@ def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
 def profile_for(args: argparse.Namespace, rig: Rig, layout: MarkerLayout, take: Take) -> Profile:
     """The given profile, or one calibrated on the take's first seconds with its regularisation
     selected from the take itself (livecap.modes.robust.tune_profile)."""
-    check_labels(take, layout, getattr(args, "take", "take"), args.rig)
+    check_labels(take, layout.labels, getattr(args, "take", "take"), args.rig)
     if getattr(args, "profile", None):
         return Profile.load(args.profile)
     sel = take.select(layout.labels)
@@ -69,6 +69,16 @@ def profile_for(args: argparse.Namespace, rig: Rig, layout: MarkerLayout, take: 
         neutral = estimate_neutral(sel, layout.stable, max(1, int(args.neutral_seconds * take.rate)))
         profile = calibrate(rig, layout, neutral)
         tune_on_take(profile, take)
+    return profile
+
+
+def saved_profile(args: argparse.Namespace, take: Take) -> Profile:
+    """``--profile`` when nothing else needs the rig: the profile holds the calibrated basis and the marker
+    labels, so the rig's meshes (seconds of OBJ parsing for a real rig) are not read; its path must exist."""
+    if not Path(args.rig).exists():
+        raise ValueError(f"{args.rig}: no such rig (an OBJ folder or .npz)")
+    profile = Profile.load(args.profile)
+    check_labels(take, profile.labels, getattr(args, "take", "take"), args.rig)
     return profile
 
 

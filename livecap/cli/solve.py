@@ -12,6 +12,7 @@ from livecap.cli.common import (
     load_rig,
     profile_for,
     progress_bar,
+    saved_profile,
     solver_options,
 )
 from livecap.cli.movement_args import add_movement_arguments, movement_options
@@ -50,19 +51,25 @@ def solve_options(args: argparse.Namespace) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     check_keys(args.mode, {"keys": args.keys, "basis": args.basis})
-    rig, layout = load_rig(args)
-    take = read_take(args.take)
-    if args.unlabelled:
-        from livecap.cli.label import labelled_take
+    glb = Path(args.out).suffix.lower() == ".glb"
+    if args.profile and not (glb or args.unlabelled):
+        rig = None
+        take = read_take(args.take)
+        profile = saved_profile(args, take)
+    else:
+        rig, layout = load_rig(args)
+        take = read_take(args.take)
+        if args.unlabelled:
+            from livecap.cli.label import labelled_take
 
-        take = labelled_take(args, take)
-    profile = profile_for(args, rig, layout, take)
+            take = labelled_take(args, take)
+        profile = profile_for(args, rig, layout, take)
     options = solve_options(args)
     mode = resolve_mode(args.mode, profile, options)
     solver = build_solver(mode, profile, options)
     with progress_bar(f"solving ({mode})", take.n_frames) as update:
         solved = solve_take(take, profile, solver, progress=update)
-    if Path(args.out).suffix.lower() == ".glb":
+    if glb:
         write_solved_glb(args.out, rig, solved, max(1, int(args.neutral_seconds * solved.rate)))
     else:
         write_weights_csv(args.out, solved.names, solved.weights, solved.rate, solved.first_frame)
