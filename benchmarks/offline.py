@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -132,6 +133,34 @@ def solve_end_to_end(mode: str, take_path: Path, profile_path: Path, out: Path, 
             "weights": solved.weights}
 
 
+FLOOR = ("import numpy, scipy.sparse, scipy.spatial, ezc3d; from solvers.take_filters import causal_poly_take; "
+         "causal_poly_take(numpy.zeros((8, 1)), None, 5)")
+
+
+def _wall(cmd: list[str], runs: int) -> float:
+    """Median wall seconds of ``runs`` fresh processes of ``cmd`` (run from the project root)."""
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+        times.append(time.perf_counter() - t0)
+        if done.returncode:
+            raise RuntimeError(f"{' '.join(cmd)}: {done.stderr.strip().splitlines()[-1:]}")
+    return float(np.median(times))
+
+
+def solve_process(take_path: Path, rig_path: Path, profile_path: Path, out: Path, seconds_of_take: float,
+                  runs: int = 3) -> dict:
+    """``livecap solve --profile`` as a user runs it, a fresh process each time (interpreter, imports, numba's
+    cache loads, the solve, the CSV), beside the floor any process of this stack pays: the same interpreter
+    importing numpy, scipy, ezc3d and making one call of a cached numba kernel. Median wall seconds."""
+    cli = _wall([sys.executable, "-m", "livecap", "solve", str(take_path), "--rig", str(rig_path),
+                 "--profile", str(profile_path), "--out", str(out)], runs)
+    floor = _wall([sys.executable, "-c", FLOOR], runs)
+    return {"process_s": cli, "x_real_time_process": seconds_of_take / cli, "floor_s": floor,
+            "x_real_time_floor": seconds_of_take / floor}
+
+
 def gap_fill_baseline(take_path: Path, profile_path: Path) -> dict:
     """The banded fill and the per-gap spline it replaced on the same stabilised take."""
     from livecap.calibration.gaps import fill_gaps
@@ -153,7 +182,8 @@ def gap_fill_baseline(take_path: Path, profile_path: Path) -> dict:
             "max_difference_mm": float(np.abs(a - b).max())}
 
 
-def run(quick: bool = False, modes: tuple[str, ...] = ()) -> dict:
+def run(quick: bool = False, modes: tuple[str, ...] = (), process: bool = True) -> dict:
+    """``process``: also time ``livecap solve --profile`` (the default mode) in fresh processes, three per take."""
     from livecap.modes.registry import DEFAULT_MODE, MODES
 
     seconds = 5.0 if quick else 30.0
@@ -178,6 +208,14 @@ def run(quick: bool = False, modes: tuple[str, ...] = ()) -> dict:
                 weights: dict = {}
                 if occ > 0:
                     entry["gap_fill"] = gap_fill_baseline(take_path, profile_path)
+                if process:
+                    rig_path = ICT if rig_name == "ict" else folder / "demo_rig.npz"
+                    if rig_name != "ict" and not rig_path.exists():
+                        rig.save(rig_path)
+                    entry["process"] = p = solve_process(take_path, rig_path, profile_path, folder / "p.csv", seconds)
+                    print(f"{key}: `livecap solve --profile` process {p['process_s']:.2f} s "
+                          f"({p['x_real_time_process']:.1f}x real time); the stack's floor {p['floor_s']:.2f} s "
+                          f"({p['x_real_time_floor']:.1f}x)", flush=True)
                 for mode in modes:
                     limit = int(min(seconds, 5.0) * 120) if mode in SLOW_MODES else None
                     r = solve_end_to_end(mode, take_path, profile_path, folder / "w.csv", truth, limit)

@@ -48,7 +48,8 @@ def test_concurrency_helpers():
 
 
 def test_offline_suite_runs_a_whole_take_file_end_to_end(tmp_path, demo):
-    from benchmarks.offline import _profile, _take, gap_fill_baseline, solve_end_to_end
+    from benchmarks.offline import _profile, _take, gap_fill_baseline, solve_end_to_end, solve_process
+    from transport.weights_csv import read_weights_csv
 
     rig, layout = demo
     take_path, truth = _take(rig, layout, 1.5, 0.05, tmp_path)
@@ -61,6 +62,10 @@ def test_offline_suite_runs_a_whole_take_file_end_to_end(tmp_path, demo):
     assert np.abs(whole["weights"] - stepped["weights"]).max() <= 1e-8 and whole["weight_rmse"] < 1
     g = gap_fill_baseline(take_path, profile_path)
     assert g["max_difference_mm"] < 50 and g["per_gap_spline_s"] > 0
+    rig.save(tmp_path / "rig.npz")
+    p = solve_process(take_path, tmp_path / "rig.npz", profile_path, tmp_path / "p.csv", 1.5, runs=1)
+    assert p["process_s"] > p["floor_s"] > 0
+    assert np.abs(read_weights_csv(tmp_path / "p.csv")[1] - whole["weights"]).max() <= 1e-6  # the default: robust
 
 
 def test_head_fit_ab_makes_its_hostile_frames_and_compares_two_trees():
