@@ -145,7 +145,7 @@ class MarkerKalmanSolver:
         self.chosen["prior_weight"] = float(STRENGTHS[sel.best])
         fit = self._fit(sel.best)
         fit.reset()
-        return np.array([fit.step(smoothed[t], ok[t]) for t in range(len(targets))])
+        return fit.step_take(smoothed, ok)
 
 def kalman_prior(profile: Profile, options: Mapping | None = None) -> AnimationPrior | None:
     """The animation prior ``kalman`` fits under: option ``prior`` -- an AnimationPrior or its .npz
