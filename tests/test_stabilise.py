@@ -470,3 +470,34 @@ def test_compiled_unrotate_equals_numpy(seed, n, seen):
     want = (pos - t) @ R
     want[~valid] = 0.0
     np.testing.assert_allclose(unrotate(pos, valid, R, t), want, rtol=0, atol=1e-10)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 14), st.integers(8, 40), st.floats(0.0, 40.0))
+def test_the_compiled_take_check_equals_the_numpy_batch(seed, k, T, jump):
+    """A take's fits, leave-one-out fits and residuals (solvers.rigid_take_kernels) equal the numpy batch's, frames with
+    jumps, missing markers, too few markers and degenerate (collinear, coincident) sets included."""
+    from livecap.calibration.stabilise import COMPILED_MIN_FRAMES, _fit_with_deleted, _fit_with_deleted_batch
+
+    rng = np.random.default_rng(seed)
+    ref = rng.normal(0, 50, (k, 3))
+    R = Rotation.random(T, random_state=seed).as_matrix()
+    pts = np.einsum("tij,kj->tki", R, ref) + rng.normal(0, 800, (T, 1, 3)) + rng.normal(0, 0.5, (T, k, 3))
+    pts[np.arange(T), rng.integers(k, size=T)] += jump
+    use = rng.random((T, k)) > 0.2
+    use[:, :3] = True  # three or more in use, as the stabiliser asks of a fit
+    use[0, 2:] = False  # but for one frame: too few markers
+    line = ref[0] + np.outer(np.arange(k), [1.0, 2.0, 3.0])  # collinear markers
+    pts[1] = line + rng.normal(0, 1e-9, (k, 3))
+    pts[2] = pts[2, 0]  # every marker at one point
+    assert T >= COMPILED_MIN_FRAMES
+    compiled, batch = _fit_with_deleted(ref, pts, use), _fit_with_deleted_batch(ref, pts, use)
+    rows = np.arange(3, T)  # the degenerate frames above take either path's rounding of an ill-posed rotation
+    for a, b, tol in zip(compiled[:3], batch[:3], (1e-9, 1e-6, 1e-6), strict=True):
+        assert a.shape == b.shape and np.isfinite(a).all()
+        np.testing.assert_allclose(a[rows], b[rows], atol=tol)
+    n = use.sum(1)[:, None] - np.concatenate([np.zeros((T, 1), int), use], axis=1)[:, :len(compiled[3][0])]
+    posed = n[rows] >= 3  # a leave-one-out fit of fewer than 3 markers has no rotation to agree on (nor is it used)
+    for a, b, tol in zip(compiled[3:], batch[3:], (1e-9, 1e-6), strict=True):
+        assert a.shape == b.shape and np.isfinite(a).all()
+        np.testing.assert_allclose(a[rows][posed], b[rows][posed], atol=tol)

@@ -129,7 +129,31 @@ def _initial(ref: np.ndarray, pts: np.ndarray, use: np.ndarray,
     return Rb, tb
 
 
+COMPILED_MIN_FRAMES = 8  # from this many frames the check runs compiled (solvers.rigid_take_kernels)
+
+
 def _fit_with_deleted(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``_fit_with_deleted_batch``'s results; a take (``COMPILED_MIN_FRAMES`` frames or more) in one compiled pass,
+    its frames with a fit whose top eigenvalue is not simple redone by the numpy form."""
+    k = len(ref)
+    lead = pts.shape[:-2]
+    P = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, k, 3)
+    if len(P) < COMPILED_MIN_FRAMES:
+        return _fit_with_deleted_batch(ref, pts, use)
+    from solvers.rigid_take_kernels import fit_with_deleted_take
+
+    U = np.ascontiguousarray(use, dtype=bool).reshape(-1, k)
+    J = k + 1 if 5 <= k <= LEAVE_ONE_OUT_MAX else 1
+    R, t, r = np.empty((len(P), J, 3, 3)), np.empty((len(P), J, 3)), np.empty((len(P), k))
+    redo = fit_with_deleted_take(np.ascontiguousarray(ref, dtype=np.float64), P, U, J > 1, DEGENERATE, R, t, r)
+    if redo.any():
+        f = np.flatnonzero(redo)
+        _, _, r[f], R[f], t[f] = _fit_with_deleted_batch(ref, P[f], U[f])
+    return (R[:, 0].reshape(*lead, 3, 3), t[:, 0].reshape(*lead, 3), r.reshape(*lead, k), R.reshape(*lead, J, 3, 3),
+            t.reshape(*lead, J, 3))
+
+
+def _fit_with_deleted_batch(ref: np.ndarray, pts: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, ...]:
     """Rigid fits and each marker's larger of its residual and deleted residual, batched over frames.
 
     A far (high-leverage) marker that jumps drags the plain fit towards itself and hides in its
