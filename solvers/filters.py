@@ -253,21 +253,11 @@ class CausalPolyFilter:
         self._ring[p] = self._ring[p + W] = flat
         self._ring_ok[p] = self._ring_ok[p + W] = okf
         self._pos = (p + 1) % W
-        buf, okw = self._ring[p + 1:p + 1 + W], self._ring_ok[p + 1:p + 1 + W]  # oldest .. newest
-        full = okw.all(axis=0)
-        out = np.where(okf, flat, self._last)
-        if full.all():
-            out = self._h @ buf
-        else:
-            out[full] = self._h @ buf[:, full]
-            part = ~full & (okw.sum(axis=0) > self.order)
-            if part.any():
-                w = okw[:, part].astype(np.float64)
-                G = np.einsum("wc,wi,wj->cij", w, self._V, self._V)
-                r = np.einsum("wc,wi,wc->ci", w, self._V, buf[:, part])
-                coef = np.linalg.solve(G, r[..., None])[..., 0]
-                out[part] = coef @ self._V[-1]
-        self._last = np.where(okf, out, self._last)
+        from solvers.take_filter_kernels import causal_poly_frame  # numba only once a window is partly missing
+
+        out = np.empty_like(flat)
+        causal_poly_frame(self._ring, self._ring_ok, p + 1, self._h, self._V, flat, np.ascontiguousarray(okf),
+                          self._last, out)
         return out.reshape(x.shape)
 
     def filter(self, X: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:

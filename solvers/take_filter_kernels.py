@@ -87,3 +87,35 @@ def causal_poly_channels(x, ok, h, V, out):
             oc[t] = y
             if okc[t]:
                 last = y
+
+
+@numba.njit(cache=True, nogil=True)
+def causal_poly_frame(ring, ring_ok, start, h, V, flat, okf, last, out):
+    """One streamed frame of the same filter (``solvers.filters.CausalPolyFilter.step``): channel ``c``'s window
+    is ``ring[start:start + W, c]`` (oldest .. newest, the newest being ``flat``), seen where ``ring_ok``; the
+    same cases as ``causal_poly_channels``, then ``last`` (the output at each channel's last seen frame) is
+    updated in place. Compiled because at real occlusion most frames have a partly missing window, whose
+    numpy batch (two einsums and a batched solve) cost more than the robust mode's QP (docs/performance.md)."""
+    W = len(h)
+    p = V.shape[1]
+    G = np.empty((p, p))
+    r = np.empty(p)
+    t = start + W - 1
+    for c in range(flat.size):
+        count = 0
+        for k in range(W):
+            if ring_ok[start + k, c]:
+                count += 1
+        if count == W:
+            y = 0.0
+            for k in range(W):
+                y += h[k] * ring[start + k, c]
+        elif count >= p:
+            y = _fit_newest(ring[:, c], ring_ok[:, c], t, W, V, G, r)
+        elif okf[c]:
+            y = flat[c]
+        else:
+            y = last[c]
+        out[c] = y
+        if okf[c]:
+            last[c] = y

@@ -162,3 +162,30 @@ def test_causal_poly_filter_noise_gain_and_missing_samples():
     np.testing.assert_allclose(y[ok][50:], x[ok][50:], atol=0.02)
     g = CausalPolyFilter(12)
     np.testing.assert_array_equal(np.stack([g.step(x[t], ok[t]) for t in range(400)]), y)  # filter == steps
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(4, 12), st.integers(1, 3), st.integers(0, 2**32 - 1))
+def test_causal_poly_filter_partial_windows_are_the_weighted_fit(window, order, seed):
+    """The streamed filter where a window is partly seen against a literal least-squares fit of the seen samples."""
+    if window < order + 2:
+        window = order + 2
+    rng = np.random.default_rng(seed)
+    T, C = 40, 5
+    x = np.cumsum(rng.normal(size=(T, C)), axis=0)
+    ok = rng.random((T, C)) > 0.35
+    f = CausalPolyFilter(window, order)
+    last = np.zeros(C)
+    for t in range(T):
+        y = f.step(np.where(ok[t], x[t], 1e6), ok[t])  # a missing sample's garbage must not leak
+        for c in range(C):
+            rows = [s for s in range(max(0, t - window + 1), t + 1) if ok[s, c]]
+            if len(rows) == window:
+                want = endpoint_weights(window, order) @ x[t - window + 1:t + 1, c]
+            elif len(rows) > order:
+                V = np.vander(np.array(rows, float) - t, order + 1, increasing=True)
+                want = np.linalg.lstsq(V, x[rows, c], rcond=None)[0][0]
+            else:
+                want = x[t, c] if ok[t, c] else last[c]
+            assert abs(y[c] - want) <= 1e-7 * max(1.0, abs(want)), (t, c, len(rows))
+        last = np.where(ok[t], y, last)
