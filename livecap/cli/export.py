@@ -6,7 +6,6 @@ import argparse
 from pathlib import Path
 
 from livecap.core.rig import Rig
-from transport.gltf import write_glb
 from transport.weights_csv import read_weights_csv
 
 
@@ -24,6 +23,8 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     if Path(args.out).suffix.lower() != ".glb":
         raise ValueError(f"--out {args.out}: export writes .glb")
+    from transport.gltf import write_glb  # pygltflib: not for every livecap command
+
     rig = Rig.load(args.rig)
     names, weights, times = read_weights_csv(args.weights)
     write_glb(args.out, rig, names, times, weights)

@@ -12,13 +12,16 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from livecap.cli.common import add_rig_arguments, load_rig
-from livecap.review.session import Pin, manipulator
 from solvers.manipulation import ManipulationSettings
 from transport.weights_csv import read_weights_csv
+
+if TYPE_CHECKING:
+    from livecap.review.session import Pin
 
 
 def register(sub) -> None:
@@ -35,6 +38,8 @@ def register(sub) -> None:
 
 
 def parse_pin(text: str) -> Pin:
+    from livecap.review.session import Pin
+
     who, sep, xyz = text.partition("=")
     try:
         goal = np.array([float(v) for v in xyz.split(",")])
@@ -51,6 +56,8 @@ def parse_pin(text: str) -> Pin:
 
 
 def run(args: argparse.Namespace) -> int:
+    from livecap.review.session import manipulator
+
     rig, layout = load_rig(args)
     pins = [parse_pin(p) for p in args.pin]
     current = np.zeros(rig.n_shapes)

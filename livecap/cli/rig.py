@@ -16,9 +16,6 @@ from livecap.core.markers import MarkerLayout
 from livecap.core.objfile import read_obj
 from livecap.core.rig import Rig
 from livecap.core.units import MM_PER_UNIT, to_mm
-from livecap.transfer import TransferOptions, transfer, transfer_steps
-from livecap.transfer.labels import landmark_distances
-from livecap.transfer.landmarks import eye_width
 
 
 def register(sub) -> None:
@@ -63,6 +60,8 @@ def _radii(text: str) -> float | tuple[float, ...]:
 
 def _warp(text: str | None) -> tuple[float, ...]:
     if text is None:
+        from livecap.transfer import TransferOptions
+
         return TransferOptions().warp
     if text.strip().lower() == "none":
         return ()
@@ -93,6 +92,11 @@ def _write_sheet(rig: Rig, path) -> None:
 
 
 def run_transfer(args: argparse.Namespace) -> int:
+    # the transfer's modules (scipy.sparse.linalg, csgraph) load only for this command, not for every livecap one
+    from livecap.transfer import TransferOptions, transfer, transfer_steps
+    from livecap.transfer.labels import landmark_distances
+    from livecap.transfer.landmarks import eye_width
+
     generic = Rig.load(args.generic)
     mpath = Path(args.generic_markers) if args.generic_markers else markers_path(args.generic)
     if not mpath.exists():

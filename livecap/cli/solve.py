@@ -21,7 +21,6 @@ from livecap.core.rig import Rig
 from livecap.modes.per_frame import QPSettings, check_keys
 from livecap.modes.registry import build_solver, resolve_mode
 from livecap.offline.solve import SolvedTake, solve_take
-from transport.gltf import write_glb
 from transport.takefile import read_take
 from transport.weights_csv import write_weights_csv
 
@@ -80,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
 
 def write_solved_glb(path: str, rig: Rig, solved: SolvedTake, neutral_frames: int) -> None:
     """The .glb of a solve; the head pose relative to its mean over the neutral window (first frames)."""
+    from transport.gltf import write_glb  # pygltflib: imported by the solves that write a .glb
     neutral = NeutralPose.mean_of(solved.head_rotation[:neutral_frames], solved.head_translation[:neutral_frames])
     rotation, shift = neutral.relative(solved.head_rotation, solved.head_translation)
     times = np.arange(len(solved.weights)) / solved.rate
