@@ -12,16 +12,14 @@ driven by it (``livecap.demo.curves_take``, 5 % of marker-frames occluded in bur
 plain profile ``livecap realeval`` uses, then every solver streamed frame by frame. Weight RMSE and vertex p95 are
 ratios to the true-basis, true-pose oracle (as in ``livecap realeval``); jitter is x the ground truth's; time is
 the wall p50 / p99 of ``step``. ``makehuman`` is the CC0 MakeHuman head with the markers ``livecap rig transfer``
-places from the ICT rig (made in a temporary folder, ~9 s) and ``examples/makehuman_arkit.json``.
+places from the ICT rig (``livecap.transfer.transfer``, ~9 s, as ``livecap rig transfer --target-units cm``) and
+``examples/makehuman_arkit.json``.
 """
 
 from __future__ import annotations
 
 import os
-import subprocess
 import sys
-import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -30,23 +28,25 @@ from benchmarks.timing import suite_main, table
 
 ROOT = Path(__file__).resolve().parents[1]
 MEANS = ("rmse", "rmse_x", "p95_x", "jitter_x", "blink")  # averaged over files in the summary
+WARMUP = 10  # steps of each take left out of the timing
 
 
-def _rig(name: str, tmp: Path):
+def _rig(name: str):
     """(rig, layout, ARKit name mapping or None) of ``ict``, ``demo`` or ``makehuman``."""
     from livecap.cli.realeval import _realdata, _rig
-    from transport.arkit import load_mapping
 
     if name != "makehuman":
         return (*_rig(name), None)
+    from livecap.core.objfile import read_obj
+    from livecap.core.rig import Rig
+    from livecap.core.units import to_mm
+    from livecap.transfer import transfer
+    from transport.arkit import load_mapping
+
     head = _realdata() / "makehuman-head"
-    out = tmp / "makehuman-markers"
-    cmd = [sys.executable, "-m", "livecap", "rig", "transfer", "--generic", str(_realdata() / "ict-face"),
-           "--target", str(head / "neutral.obj"), "--target-units", "cm", "--out", str(out)]
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
-    if done.returncode:
-        raise RuntimeError(f"rig transfer onto the MakeHuman head failed: {done.stderr.strip()[-300:]}")
-    return (*_rig(str(head), str(out / "markers.json")), load_mapping(ROOT / "examples" / "makehuman_arkit.json"))
+    verts, tris = read_obj(head / "neutral.obj")
+    layout = transfer(*_rig("ict"), to_mm(verts, "cm"), tris).layout  # bound to the head's own mesh
+    return Rig.load(head), layout, load_mapping(ROOT / "examples" / "makehuman_arkit.json")
 
 
 def _mean(values: list[float]) -> float:
@@ -55,25 +55,12 @@ def _mean(values: list[float]) -> float:
     return float(np.mean(finite)) if finite else float("nan")
 
 
-def _streamed(solver, targets: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weights of every frame (aligned by the solver's latency) and the wall microseconds of each step."""
-    clock = time.perf_counter_ns
-    W, us = [], np.empty(len(targets))
-    for i in range(len(targets)):
-        t0 = clock()
-        W.append(solver.step(targets[i], valid[i]))
-        us[i] = (clock() - t0) / 1e3
-    W = np.stack(W)
-    lag = int(getattr(solver, "latency_frames", 0))
-    return (np.concatenate([W[lag:], np.repeat(W[-1:], lag, 0)]) if lag else W), us
-
-
 def run(quick: bool = False, rigs=("ict", "demo", "makehuman"), ridges=("0", "1", "3", "10", "30"),
         noise=("0.5",)) -> dict:
     from livecap.cli.realeval import _realdata
     from livecap.demo.curves_take import CurveTakeSettings, curves_take
     from livecap.modes.registry import build_solver
-    from livecap.offline.real_eval import oracle_weights, plain_profile, score
+    from livecap.offline.real_eval import oracle_weights, plain_profile, score, streamed
     from livecap.offline.solve import prepare_targets
     from transport.llf_csv import read_llf_csv
 
@@ -84,26 +71,26 @@ def run(quick: bool = False, rigs=("ict", "demo", "makehuman"), ridges=("0", "1"
     seconds = 3.0 if quick else 10.0
     solvers = [("robust", {})] + [("qp", {"ridge": float(r)}) for r in ridges if r]
     rows, load = [], os.getloadavg()[0]
-    with tempfile.TemporaryDirectory() as tmp:
-        for rig_name in (r for r in rigs if r):
-            rig, layout, mapping = _rig(rig_name, Path(tmp))
-            for sigma in (float(s) for s in noise if s):
-                for f in files:
-                    length = read_llf_csv(f).times[-1]
-                    s = CurveTakeSettings(start=max(0.0, min(10.0, length - seconds)), seconds=seconds,
-                                          noise_mm=sigma, occlusion=0.05)
-                    ct = curves_take(rig, layout, f, s, mapping)
-                    oracle = score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), 0.0)
-                    profile = plain_profile(rig, layout, ct)
-                    take, targets, _, _ = prepare_targets(ct.take, profile)
-                    for mode, options in solvers:
-                        build_solver(mode, profile, options).step(targets[0], take.valid[0])  # compile kernels
-                        W, us = _streamed(build_solver(mode, profile, options), targets, take.valid)
-                        r = score(mode, rig, ct, W, 0.0)
-                        rows.append({"rig": rig_name, "noise_mm": sigma, "file": f.name, "mode": mode,
-                                     "ridge": options.get("ridge"), "rmse": r.rmse, "rmse_x": r.rmse / oracle.rmse,
-                                     "p95_x": r.p95_mm / oracle.p95_mm, "jitter_x": r.jitter_x, "blink": r.blink,
-                                     "p50_us": float(np.median(us[10:])), "p99_us": float(np.percentile(us[10:], 99))})
+    for rig_name in (r for r in rigs if r):
+        rig, layout, mapping = _rig(rig_name)
+        for sigma in (float(s) for s in noise if s):
+            for f in files:
+                length = read_llf_csv(f).times[-1]
+                s = CurveTakeSettings(start=max(0.0, min(10.0, length - seconds)), seconds=seconds,
+                                      noise_mm=sigma, occlusion=0.05)
+                ct = curves_take(rig, layout, f, s, mapping)
+                oracle = score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), 0.0)
+                profile = plain_profile(rig, layout, ct)
+                take, targets, _, _ = prepare_targets(ct.take, profile)
+                us = np.empty(take.n_frames)
+                for mode, options in solvers:
+                    W = streamed(build_solver(mode, profile, options), targets, take.valid, us)
+                    r = score(mode, rig, ct, W, 0.0)
+                    timed = us[WARMUP:]  # the first steps compile kernels (once per process) and fill filter windows
+                    rows.append({"rig": rig_name, "noise_mm": sigma, "file": f.name, "mode": mode,
+                                 "ridge": options.get("ridge"), "rmse": r.rmse, "rmse_x": r.rmse / oracle.rmse,
+                                 "p95_x": r.p95_mm / oracle.p95_mm, "jitter_x": r.jitter_x, "blink": r.blink,
+                                 "p50_us": float(np.median(timed)), "p99_us": float(np.percentile(timed, 99))})
     summary = []
     for key in dict.fromkeys((r["rig"], r["noise_mm"], r["mode"], r["ridge"]) for r in rows):
         sel = [r for r in rows if (r["rig"], r["noise_mm"], r["mode"], r["ridge"]) == key]

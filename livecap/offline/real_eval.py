@@ -84,6 +84,22 @@ def score(label: str, rig: Rig, ct: CurveTake, W: np.ndarray, seconds: float) ->
                seconds * 1e3 / max(len(W), 1))
 
 
+def streamed(solver, targets: np.ndarray, valid: np.ndarray, step_us: np.ndarray | None = None) -> np.ndarray:
+    """``solver.step`` over every frame, aligned by the mode's latency (its first outputs belong to no frame; the last
+    frames repeat the last output). ``step_us``: filled with each step's wall microseconds when given."""
+    if step_us is None:
+        W = np.stack([solver.step(targets[i], valid[i]) for i in range(len(targets))])
+    else:
+        clock, out = time.perf_counter_ns, []
+        for i in range(len(targets)):
+            t0 = clock()
+            out.append(solver.step(targets[i], valid[i]))
+            step_us[i] = (clock() - t0) / 1e3
+        W = np.stack(out)
+    lag = int(getattr(solver, "latency_frames", 0))
+    return np.concatenate([W[lag:], np.repeat(W[-1:], lag, 0)]) if lag else W
+
+
 def evaluate_curve_take(rig: Rig, layout: MarkerLayout, ct: CurveTake, modes: list[str],
                         options: dict[str, dict] | None = None, prior: AnimationPrior | None = None) -> list[Row]:
     """The oracle and every mode in ``modes`` (plain profile from the neutral take, carrying ``prior`` as
@@ -100,9 +116,7 @@ def evaluate_curve_take(rig: Rig, layout: MarkerLayout, ct: CurveTake, modes: li
         solver = build_solver(resolved, profile, (options or {}).get(resolved, {}))
         if hasattr(solver, "step"):  # streamed frame by frame; output aligned by the mode's latency
             t0 = time.perf_counter()
-            W = np.stack([solver.step(targets[i], take.valid[i]) for i in range(take.n_frames)])
-            lag = int(getattr(solver, "latency_frames", 0))
-            W = np.concatenate([W[lag:], np.repeat(W[-1:], lag, 0)]) if lag else W
+            W = streamed(solver, targets, take.valid)
             label = f"{mode} stream" if hasattr(solver, "solve") else mode
             rows.append(score(label, rig, ct, W, time.perf_counter() - t0))
         if hasattr(solver, "solve"):
