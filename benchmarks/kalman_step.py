@@ -1,10 +1,11 @@
-"""Streamed cost of the ``kalman`` mode's ``step``, whole and per part, on synthetic and real-performance takes.
+"""Streamed cost of the ``kalman`` mode's ``step`` (or another mode's: ``--mode``), whole and per part, on synthetic
+and real-performance takes.
 
 Cases: synthetic 72x150 and 72x1000 (benchmarks/synthetic.py, every marker seen) and the ICT rig driven by
 the real performances S07-001 and apfel (``livecap.demo.curves_take``: the whole file, 60 Hz, 0.5 mm noise,
 5 % occlusion; plain calibration on the neutral take; the animation prior built from the other files, as
 ``livecap realeval`` does). Every frame is stepped from a fresh solver; thread CPU (time.thread_time_ns)
-and wall per call, p50 / p99 after the first ``WARMUP`` frames. ``--parts`` times the parts of a step
+and wall per call, p50 / p99 after the first ``WARMUP`` frames. ``--parts`` times the parts of a kalman step
 (marker filter, held-out strength trial, fit, IMM) by wrapping them, in a second pass.
 
 A/B: ``--ab TREE`` runs this file alternately under ``PYTHONPATH=TREE`` (e.g. an export of the old commit)
@@ -55,15 +56,15 @@ def real_case(name: str, seconds: float = 0.0):
     return profile, targets, take.valid, {"rate": ct.take.rate}
 
 
-def _build(profile, options):
+def _build(profile, options, mode: str = "kalman"):
     from livecap.modes.registry import build_solver
 
-    return build_solver("kalman", profile, options)
+    return build_solver(mode, profile, options)
 
 
-def stream(profile, targets, valid, options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weights of every frame from a fresh solver, and each call's thread CPU and wall (µs)."""
-    solver = _build(profile, options)
+def stream(profile, targets, valid, options, mode: str = "kalman") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weights of every frame from a fresh solver of ``mode``, and each call's thread CPU and wall (µs)."""
+    solver = _build(profile, options, mode)
     T = len(targets)
     W = np.empty((T, len(profile.names)))
     cpu, wall = np.empty(T), np.empty(T)
@@ -124,13 +125,13 @@ def cases(quick: bool) -> dict:
     return out
 
 
-def measure(which: list[str], quick: bool, with_parts: bool, weights: str | None) -> dict:
+def measure(which: list[str], quick: bool, with_parts: bool, weights: str | None, mode: str = "kalman") -> dict:
     res, saved = {}, {}
     for label, make in cases(quick).items():
         if which and not any(w in label for w in which):
             continue
         profile, targets, valid, options = make()
-        W, cpu, wall = stream(profile, targets, valid, options)
+        W, cpu, wall = stream(profile, targets, valid, options, mode)
         saved[label] = W
         res[label] = {"frames": len(targets), "cpu": _stats(cpu[WARMUP:]), "wall": _stats(wall[WARMUP:])}
         if with_parts:
@@ -171,19 +172,22 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--cases", nargs="*", default=[], help="substrings of the case labels (default: all)")
     p.add_argument("--quick", action="store_true", help="20 s of each real take, fewer synthetic frames")
-    p.add_argument("--parts", action="store_true", help="also time each part of a step")
+    p.add_argument("--mode", default="kalman", help="the mode whose step is timed (default kalman)")
+    p.add_argument("--parts", action="store_true", help="also time each part of a step (kalman only)")
     p.add_argument("--ab", help="another tree (its code is 'old'): alternate fresh processes, compare")
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--weights", help="save each case's weights (.npz)")
     p.add_argument("--json", help="write the result as JSON")
     a = p.parse_args()
+    if a.parts and a.mode != "kalman":
+        p.error("--parts times the parts of a kalman step: not with --mode " + a.mode)
     start = {"utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()), "load": os.getloadavg()}
     if a.ab:
         argv = [*(["--cases", *a.cases] if a.cases else []), *(["--quick"] if a.quick else []),
-                *(["--parts"] if a.parts else [])]
+                *(["--parts"] if a.parts else []), "--mode", a.mode]
         result = ab(a.ab, a.rounds, argv)
     else:
-        result = measure(a.cases, a.quick, a.parts, a.weights)
+        result = measure(a.cases, a.quick, a.parts, a.weights, a.mode)
         print(json.dumps(result, indent=1))
     out = {"start": start, "end": {"utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()), "load": os.getloadavg()},
            "result": result}
