@@ -6,6 +6,12 @@ wall-clock run of ``live_latency`` on a shared machine, and the mode's step is s
 the driver adds around it (issue 18 item 4):
 
     python -m benchmarks.live_driver [--quick] [--modes robust,qp] [--waits sleep,spin1ms,spin,none]
+                                     [--takes demo,S07-001]
+
+``--takes``: ``demo`` is a generated 10 s demo take (60 markers, 43 shapes, 2 % missing); any other name is the
+real performance ``realdata/performance/<name>.csv`` driving the ICT rig (``livecap.demo.curves_take``: 60 markers,
+53 shapes, its first 20 s, 0.5 mm noise, 5 % occluded in bursts, a stable marker lost for 1 s) with the plain
+profile ``livecap realeval`` uses. Each take is looped to the number of frames.
 
 ``--waits``: how the loop waits for the next 120 Hz deadline between frames (what the driver does while
 no packet is due): ``sleep`` in the kernel until it (the driver's own blocking poll behaves so),
@@ -46,20 +52,25 @@ def _wait(how: str, deadline: float, rx) -> None:
             rx.recv()
 
 
-def measure(mode: str, frames: int, pace: float = 1 / 120, waits: tuple[str, ...] = ("sleep",)) -> dict:
-    """Per wait, per-part thread-CPU p50 / p99 (µs) of ``frames`` demo frames through the driver's own path."""
-    import zmq
+def _take_and_profile(name: str):
+    """The take to stream and the actor's profile: the generated demo, or a real performance on the ICT rig."""
+    if name != "demo":
+        from livecap.cli.realeval import _realdata, _rig
+        from livecap.demo.curves_take import CurveTakeSettings, curves_take
+        from livecap.offline.real_eval import plain_profile
 
+        rig, layout = _rig("ict")
+        path = _realdata() / "performance" / f"{name}.csv"
+        if not path.exists():
+            raise SystemExit(f"--takes {name}: no {path}")
+        ct = curves_take(rig, layout, path, CurveTakeSettings(seconds=20.0))
+        return ct.take, plain_profile(rig, layout, ct)
     from livecap.calibration.profile import calibrate, estimate_neutral
     from livecap.core.markers import MarkerLayout
     from livecap.core.rig import Rig
     from livecap.demo import DEMO_TAKE, generate
     from livecap.demo.performance import PerformanceSettings
-    from livecap.live.pipeline import Pipeline
     from transport.takefile import read_take
-    from transport.wire import encode_markers, layout_id, topic
-    from transport.zmq_sink import ZmqSink
-    from transport.zmq_source import ZmqSource
 
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
@@ -67,7 +78,21 @@ def measure(mode: str, frames: int, pace: float = 1 / 120, waits: tuple[str, ...
         rig = Rig.load(work / "demo_rig.npz")
         layout = MarkerLayout.load(work / "demo_rig.markers.json", rig)
         take = read_take(work / DEMO_TAKE)
-        profile = calibrate(rig, layout, estimate_neutral(take.select(layout.labels), layout.stable, 120))
+        return take, calibrate(rig, layout, estimate_neutral(take.select(layout.labels), layout.stable, 120))
+
+
+def measure(mode: str, frames: int, pace: float = 1 / 120, waits: tuple[str, ...] = ("sleep",),
+            take_name: str = "demo") -> dict:
+    """Per wait, per-part thread-CPU p50 / p99 (µs) of ``frames`` frames of a take (``_take_and_profile``) through
+    the driver's own path."""
+    import zmq
+
+    from livecap.live.pipeline import Pipeline
+    from transport.wire import encode_markers, layout_id, topic
+    from transport.zmq_sink import ZmqSink
+    from transport.zmq_source import ZmqSource
+
+    take, profile = _take_and_profile(take_name)
     lid = layout_id(take.labels)
     loop = list(take.frames())
     total = frames * len(waits)  # numbered on across the take's loops: one stream, no restarts
@@ -119,21 +144,25 @@ def measure(mode: str, frames: int, pace: float = 1 / 120, waits: tuple[str, ...
             for w, r in rows.items()}
 
 
-def run(quick: bool = False, modes=("robust", "qp"), waits=("sleep",)) -> dict:
+def run(quick: bool = False, modes=("robust", "qp"), waits=("sleep",), takes=("demo",)) -> dict:
+    """``out["modes"][mode]`` for the demo take, ``out["modes"]["<mode> <take>"]`` for a real performance."""
     frames = 1200 if quick else 7200
     waits = tuple(w for w in waits if w)
     if unknown := set(waits) - set(WAITS):
         raise SystemExit(f"unknown waits {sorted(unknown)} (choose from {', '.join(WAITS)})")
     load = os.getloadavg()
     out = {"frames": frames, "rate_hz": 120.0, "load_start": load, "clock": "thread CPU (time.thread_time)",
-           "data": "livecap generate seed 0 (60 markers, 43 shapes), 10 s take looped", "waits": waits,
-           "modes": {}}
-    for m in (m for m in modes if m):
-        by_wait = measure(m, frames, waits=waits)
-        out["modes"][m] = by_wait if len(waits) > 1 else by_wait[waits[0]]
-        for w, r in by_wait.items():
-            print(f"{m:10s} {w:8s} " + "  ".join(f"{p} {r[p]['p50_us']:.0f}/{r[p]['p99_us']:.0f}" for p in PARTS)
-                  + "  (thread CPU µs p50/p99)", flush=True)
+           "data": "demo: livecap generate seed 0 (60 markers, 43 shapes), 10 s take looped; other takes: a real "
+                   "performance driving the ICT rig (60 markers, 53 shapes), its first 20 s looped",
+           "waits": waits, "takes": [t for t in takes if t], "modes": {}}
+    for t in (t for t in takes if t):
+        for m in (m for m in modes if m):
+            by_wait = measure(m, frames, waits=waits, take_name=t)
+            key = m if t == "demo" else f"{m} {t}"
+            out["modes"][key] = by_wait if len(waits) > 1 else by_wait[waits[0]]
+            for w, r in by_wait.items():
+                print(f"{key:18s} {w:8s} " + "  ".join(f"{p} {r[p]['p50_us']:.0f}/{r[p]['p99_us']:.0f}"
+                                                       for p in PARTS) + "  (thread CPU µs p50/p99)", flush=True)
     out["load_end"] = os.getloadavg()
     print(f"load average {load[0]:.2f} -> {out['load_end'][0]:.2f}; frame = decode + stabilise + step + the rest "
           "of solve_frame + publish; around_step = frame less the mode's step")
@@ -141,4 +170,4 @@ def run(quick: bool = False, modes=("robust", "qp"), waits=("sleep",)) -> dict:
 
 
 if __name__ == "__main__":
-    sys.exit(suite_main(run, __doc__, modes="robust,qp", waits="sleep"))
+    sys.exit(suite_main(run, __doc__, modes="robust,qp", waits="sleep", takes="demo"))

@@ -7,7 +7,12 @@ for every weights message. In the same run, the same marker payloads take the sa
 through a bare relay (SUB -> PUB, no decoding, no solve): the floor ZeroMQ itself sets. The
 driver's CPU use comes from the kernel's rusage of its process (user + system time / wall).
 
-    python -m benchmarks.live_latency [--quick] [--modes qp,movement-stream,...] [--runs N]
+    python -m benchmarks.live_latency [--quick] [--modes qp,movement-stream,...] [--runs N] [--takes demo,S07-001]
+
+``--takes``: ``demo`` is a generated 10 s demo take (60 markers, 43 shapes); any other name is the real performance
+``realdata/performance/<name>.csv`` driving the ICT rig (``livecap.demo.curves_take``: 60 markers, 53 shapes, its
+first 20 s at 60 Hz sent at twice its speed, so 120 packets a second; 0.5 mm noise, 5 % occluded) with the plain
+profile ``livecap realeval`` uses. Every take gets its own bare relay in each run.
 
 The driver runs with the defaults of a live source, so ``--skip-stale`` is on: a mode slower
 than 120 Hz (lsq) skips frames (the ``stale`` column) rather than falling behind without bound.
@@ -91,19 +96,19 @@ def _stats(lat: list[float], sent: int) -> dict:
             "max_ms": float(a.max())}
 
 
-def _send(take: Path, port: int, frames: int) -> subprocess.Popen:
+def _send(take: Path, port: int, frames: int, speed: float = 1.0) -> subprocess.Popen:
     return spawn(["-m", "livecap", "send", take, "--zmq", f"tcp://127.0.0.1:{port}", "--loop", "--clock",
-                   "monotonic", "--frames", frames, "--labels-every", 0])
+                   "monotonic", "--frames", frames, "--labels-every", 0, "--speed", speed])
 
 
-def bare(take: Path, frames: int, work: Path) -> dict:
+def bare(take: Path, frames: int, work: Path, speed: float = 1.0) -> dict:
     """Sender -> bare relay -> receiver: the same payloads and hops without livecap in between."""
     port = free_port()
     relay = spawn(["-c", textwrap.dedent(RELAY), f"tcp://127.0.0.1:{port}"])
     relay_out = first_line(relay)
     rx = spawn(["-c", textwrap.dedent(RECEIVER), relay_out, work / "bare.json", 2.0])
     first_line(rx)
-    sender = _send(take, port, frames)
+    sender = _send(take, port, frames, speed)
     sender.communicate(timeout=frames / RATE + 120)
     rx.communicate(timeout=60)
     relay.kill()
@@ -111,7 +116,8 @@ def bare(take: Path, frames: int, work: Path) -> dict:
     return _stats(json.loads((work / "bare.json").read_text()), frames)
 
 
-def driver(take: Path, profile: Path, mode: str, frames: int, work: Path, extra: tuple = ()) -> dict:
+def driver(take: Path, profile: Path, mode: str, frames: int, work: Path, extra: tuple = (),
+           speed: float = 1.0) -> dict:
     """``livecap run`` with its defaults for a live ZeroMQ source (``--skip-stale`` on: a solver
     slower than the stream skips frames, counted as stale, instead of falling ever further behind)."""
     port = free_port()
@@ -122,7 +128,7 @@ def driver(take: Path, profile: Path, mode: str, frames: int, work: Path, extra:
     rx = spawn(["-c", textwrap.dedent(RECEIVER), out_addr, work / f"{mode}.json", 3.0])
     first_line(rx)
     t0 = time.monotonic()
-    sender = _send(take, port, frames)
+    sender = _send(take, port, frames, speed)
     sender.communicate(timeout=frames / RATE + 600)
     _, status, usage = os.wait4(run.pid, 0)
     wall = time.monotonic() - t0
@@ -157,9 +163,27 @@ def _median_of_runs(runs: list[dict]) -> dict:
     return out
 
 
-def run(quick: bool = False, modes=MODES, runs=("",)) -> dict:
+def _real_take(name: str, work: Path) -> tuple[Path, Path, float]:
+    """A real performance driving the ICT rig: take file, profile file and the send speed for RATE packets a second."""
+    from livecap.cli.realeval import _realdata, _rig
+    from livecap.demo.curves_take import CurveTakeSettings, curves_take
+    from livecap.offline.real_eval import plain_profile
+    from transport.takefile import write_take
+
+    rig, layout = _rig("ict")
+    path = _realdata() / "performance" / f"{name}.csv"
+    if not path.exists():
+        raise SystemExit(f"--takes {name}: no {path}")
+    ct = curves_take(rig, layout, path, CurveTakeSettings(seconds=20.0))
+    write_take(ct.take, work / f"{name}.c3d")
+    plain_profile(rig, layout, ct).save(work / f"{name}.profile.npz")
+    return work / f"{name}.c3d", work / f"{name}.profile.npz", RATE / ct.take.rate
+
+
+def run(quick: bool = False, modes=MODES, runs=("",), takes=("demo",)) -> dict:
     """Measure; ``quick`` streams 10 s instead of 60 s; ``runs`` repeats bare + every mode (default
-    3, 1 when quick)."""
+    3, 1 when quick). The demo take's figures are ``bare_zmq`` and ``modes``; another take's are under
+    ``takes[name]``."""
     from livecap.calibration.profile import calibrate, estimate_neutral
     from livecap.core.markers import MarkerLayout
     from livecap.core.rig import Rig
@@ -172,46 +196,62 @@ def run(quick: bool = False, modes=MODES, runs=("",)) -> dict:
     given = runs[0] if isinstance(runs, (tuple, list)) else runs
     n_runs = max(1, int(given)) if str(given).strip() else (1 if quick else 3)
     modes = tuple(m for m in modes if m)
+    takes = tuple(t for t in takes if t) or ("demo",)
     load = os.getloadavg()[0]
     frames = int(seconds * RATE)
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        generate(work, 0, PerformanceSettings(seconds=10, rate=RATE, seed=1))
-        rig = Rig.load(work / "demo_rig.npz")
-        layout = MarkerLayout.load(work / "demo_rig.markers.json", rig)
-        take = read_take(work / DEMO_TAKE).select(layout.labels)
-        calibrate(rig, layout, estimate_neutral(take, layout.stable, 120)).save(work / "profile.npz")
-        extra = {}
-        if "rbf" in modes:  # key pairs from the demo range-of-motion take (livecap rom)
-            keys = next(p for p in generate_rom(work / "rom", rig, layout, PerformanceSettings(rate=RATE, seed=50))
-                        if p.name.endswith(".keys.json"))
-            extra["rbf"] = ("--option", f"keys={keys}")
-        per_run = []
+        sources, extra = {}, {}
+        if "demo" in takes:
+            generate(work, 0, PerformanceSettings(seconds=10, rate=RATE, seed=1))
+            rig = Rig.load(work / "demo_rig.npz")
+            layout = MarkerLayout.load(work / "demo_rig.markers.json", rig)
+            take = read_take(work / DEMO_TAKE).select(layout.labels)
+            calibrate(rig, layout, estimate_neutral(take, layout.stable, 120)).save(work / "profile.npz")
+            sources["demo"] = (work / DEMO_TAKE, work / "profile.npz", 1.0)
+            if "rbf" in modes:  # key pairs from the demo range-of-motion take (livecap rom)
+                keys = next(p for p in generate_rom(work / "rom", rig, layout, PerformanceSettings(rate=RATE, seed=50))
+                            if p.name.endswith(".keys.json"))
+                extra["rbf"] = ("--option", f"keys={keys}")
+        for t in takes:
+            if t != "demo":
+                sources[t] = _real_take(t, work)
+        per_run = {t: [] for t in takes}
         for i in range(n_runs):
-            floor = bare(work / DEMO_TAKE, frames, work)
-            res = {m: driver(work / DEMO_TAKE, work / "profile.npz", m, frames, work, extra.get(m, ())) for m in modes}
-            for r in res.values():
-                r["p99_over_bare"] = r.get("p99_ms", float("nan")) / floor.get("p99_ms", float("nan"))
-            per_run.append({"bare_zmq": floor, "modes": res, "load": os.getloadavg()[0]})
-            print(f"run {i + 1}/{n_runs}: bare p99 {floor.get('p99_ms', float('nan')):.3f} ms; " + ", ".join(
-                f"{m} p99 {r.get('p99_ms', float('nan')):.3f} ms ({r['p99_over_bare']:.2f}x), driver frame p99 "
-                f"{r['frame_p99_ms']:.3f} ms, around step {r['around_step_p99_ms']:.3f} ms" for m, r in res.items()),
-                flush=True)
+            for t in takes:
+                take_path, profile_path, speed = sources[t]
+                floor = bare(take_path, frames, work, speed)
+                res = {m: driver(take_path, profile_path, m, frames, work, extra.get(m, ()) if t == "demo" else (),
+                                 speed) for m in modes}
+                for r in res.values():
+                    r["p99_over_bare"] = r.get("p99_ms", float("nan")) / floor.get("p99_ms", float("nan"))
+                per_run[t].append({"bare_zmq": floor, "modes": res, "load": os.getloadavg()[0]})
+                print(f"run {i + 1}/{n_runs}, {t}: bare p99 {floor.get('p99_ms', float('nan')):.3f} ms; " + ", ".join(
+                    f"{m} p99 {r.get('p99_ms', float('nan')):.3f} ms ({r['p99_over_bare']:.2f}x), driver frame p99 "
+                    f"{r['frame_p99_ms']:.3f} ms, around step {r['around_step_p99_ms']:.3f} ms"
+                    for m, r in res.items()), flush=True)
+
+    def medians(t: str) -> dict:
+        return {"bare_zmq": _median_of_runs([r["bare_zmq"] for r in per_run[t]]),
+                "modes": {m: _median_of_runs([r["modes"][m] for r in per_run[t]]) for m in modes},
+                "per_run": per_run[t]}
+
     out = {"rate_hz": RATE, "seconds": seconds, "runs": n_runs,
-           "bare_zmq": _median_of_runs([r["bare_zmq"] for r in per_run]),
-           "modes": {m: _median_of_runs([r["modes"][m] for r in per_run]) for m in modes},
-           "per_run": per_run,
+           **(medians("demo") if "demo" in takes else {}),
+           "takes": {t: medians(t) for t in takes if t != "demo"},
            "machine": f"{os.cpu_count()} CPUs, load average {load:.2f} at start, {os.getloadavg()[0]:.2f} at the end",
            "load_start": load, "load_end": os.getloadavg()[0],
-           "data": "livecap generate seed 0: 60 markers, 43 shapes, 10 s take looped; rbf keys from livecap rom"}
-    _print(out)
+           "data": "demo: livecap generate seed 0: 60 markers, 43 shapes, 10 s take looped; rbf keys from livecap "
+                   "rom; other takes: a real performance driving the ICT rig (60 markers, 53 shapes), 20 s looped"}
+    for t in takes:
+        _print({**out, **(medians(t) if t != "demo" else {})}, t)
     return out
 
 
-def _print(out: dict) -> None:
+def _print(out: dict, take: str = "demo") -> None:
     b = out["bare_zmq"]
-    print(f"live latency, marker packet sent -> weights received, {out['rate_hz']:g} Hz for {out['seconds']} s, "
-          f"medians over {out.get('runs', 1)} run(s) ({out['machine']})")
+    print(f"live latency, {take} take, marker packet sent -> weights received, {out['rate_hz']:g} Hz for "
+          f"{out['seconds']} s, medians over {out.get('runs', 1)} run(s) ({out['machine']})")
     print(f"{'path':16s} {'recv/sent':>11s} {'stale':>6s} {'p50 ms':>8s} {'p99 ms':>8s} {'p99/bare':>9s} "
           f"{'frame p99':>10s} {'w/o step':>9s} {'step p99':>9s} {'driver CPU':>10s}")
     print(f"{'bare zmq':16s} {b['received']:>5.0f}/{b['sent']:<5.0f} {'':>6s} {b.get('p50_ms', float('nan')):8.3f} "
@@ -229,4 +269,4 @@ def _print(out: dict) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(suite_main(run, __doc__, modes=",".join(MODES), runs=""))
+    sys.exit(suite_main(run, __doc__, modes=",".join(MODES), runs="", takes="demo"))

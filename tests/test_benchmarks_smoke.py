@@ -98,3 +98,17 @@ def test_qp_ridge_suite_scores_each_solver_on_real_performances():
     assert set(rows) == {"robust", "qp ridge=0", "qp ridge=3"} and all(r["files"] == 2 for r in rows.values())
     assert all(np.isfinite(r["rmse_x"]) and r["p99_us"] > 0 for r in rows.values())
     assert rows["qp ridge=3"]["rmse_x"] < 0.7 * rows["qp ridge=0"]["rmse_x"]
+
+
+def test_live_driver_streams_a_real_performance_on_the_ict_rig():
+    """benchmarks.live_driver --takes NAME: a real performance drives the ICT rig through the driver's path."""
+    from tests.conftest import ICT, SHARED
+
+    perf = SHARED / "realdata" / "performance" / "S07-001.csv"
+    if not perf.exists() or not (ICT / "neutral.obj").exists():
+        pytest.skip(f"S07-001 or the ICT rig not found under {SHARED} (../shared/realdata is not beside this checkout)")
+    from benchmarks.live_driver import PARTS, measure
+
+    res = measure("robust", 240, waits=("none",), take_name="S07-001")
+    assert set(res) == {"none"} and set(res["none"]) == set(PARTS)
+    assert all(res["none"][p]["p99_us"] > 0 for p in ("decode", "step", "frame"))
