@@ -182,12 +182,38 @@ def gap_fill_baseline(take_path: Path, profile_path: Path) -> dict:
             "max_difference_mm": float(np.abs(a - b).max())}
 
 
-def run(quick: bool = False, modes: tuple[str, ...] = (), process: bool = True) -> dict:
-    """``process``: also time ``livecap solve --profile`` (the default mode) in fresh processes, three per take."""
+def _real_take(rig, layout, name: str, seconds: float, occlusion: float, folder: Path):
+    """A take of the ICT rig driven by the real performance ``name`` (livecap.demo.curves_take: 60 Hz, 0.5 mm noise,
+    ``seconds`` from 10 s in, clamped), written to C3D; its ground-truth weights; and the plain profile from its
+    separate neutral take (as ``livecap realeval``) with the seconds that calibration took."""
+    from livecap.demo.curves_take import CurveTakeSettings, curves_take
+    from livecap.offline.real_eval import plain_profile
+    from transport.llf_csv import read_llf_csv
+    from transport.takefile import write_take
+
+    csv = SHARED / "realdata" / "performance" / f"{name}.csv"
+    if not csv.exists():
+        raise SystemExit(f"--performances {name}: no {csv}")
+    start = max(0.0, min(10.0, read_llf_csv(csv).times[-1] - seconds))
+    ct = curves_take(rig, layout, csv, CurveTakeSettings(start=start, seconds=seconds, occlusion=occlusion))
+    path = folder / f"{name}_{occlusion:g}.c3d"
+    write_take(ct.take, path)
+    t0 = time.perf_counter()
+    profile = plain_profile(rig, layout, ct)
+    calib_s = time.perf_counter() - t0
+    profile.save(folder / "actor.npz")
+    return path, ct.weights, folder / "actor.npz", calib_s, ct.take.n_frames / ct.take.rate
+
+
+def run(quick: bool = False, modes: tuple[str, ...] = (), process: bool = True,
+        performances: tuple[str, ...] = ()) -> dict:
+    """``process``: also time ``livecap solve --profile`` (the default mode) in fresh processes, three per take.
+    ``performances``: also takes of the ICT rig driven by these real performances (``realdata/performance``)."""
     from livecap.modes.registry import DEFAULT_MODE, MODES
 
     seconds = 5.0 if quick else 30.0
     modes = tuple(m for m in modes if m) or (*MODES, STREAMED)
+    performances = tuple(p for p in performances if p)
     res: dict = {"take_seconds": seconds,
                  "default_mode": f"{DEFAULT_MODE} (robust: these profiles carry no animation prior)",
                  "load_average": os.getloadavg(),
@@ -196,48 +222,64 @@ def run(quick: bool = False, modes: tuple[str, ...] = (), process: bool = True) 
     if "ict" not in rigs:
         res["skipped"]["ict"] = f"ICT-FaceKit rig not found at {ICT} (../shared/realdata absent)"
         print(f"ict: skipped, {res['skipped']['ict']}")
+        if performances:
+            raise SystemExit(f"--performances needs the ICT rig: {res['skipped']['ict']}")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        for rig_name, (rig, layout) in rigs.items():
-            for occ in OCCLUSIONS:
-                take_path, truth = _take(rig, layout, seconds, occ, folder)
-                profile_path, calib_s = _profile(rig, layout, take_path, folder)
-                key = f"{rig_name} {rig.n_shapes} shapes, {occ:.0%} occluded"
-                entry: dict = {"calibrate_and_tune_s": calib_s, "modes": {}}
-                weights: dict = {}
-                if occ > 0:
-                    entry["gap_fill"] = gap_fill_baseline(take_path, profile_path)
-                if process:
-                    rig_path = ICT if rig_name == "ict" else folder / "demo_rig.npz"
-                    if rig_name != "ict" and not rig_path.exists():
-                        rig.save(rig_path)
-                    entry["process"] = p = solve_process(take_path, rig_path, profile_path, folder / "p.csv", seconds)
-                    print(f"{key}: `livecap solve --profile` process {p['process_s']:.2f} s "
-                          f"({p['x_real_time_process']:.1f}x real time); the stack's floor {p['floor_s']:.2f} s "
-                          f"({p['x_real_time_floor']:.1f}x)", flush=True)
-                for mode in modes:
-                    limit = int(min(seconds, 5.0) * 120) if mode in SLOW_MODES else None
-                    r = solve_end_to_end(mode, take_path, profile_path, folder / "w.csv", truth, limit)
-                    weights[mode] = r.pop("weights")
-                    entry["modes"][mode] = r
-                    rows.append({"take": key, "mode": mode, "s of take": r["seconds_of_take"],
-                                 "x real time": r["x_real_time"], "total s": r["total_s"],
-                                 "x rt (CPU)": r["x_real_time_cpu"],
-                                 "read": r["read_s"], "profile": r["profile_s"], "build": r["build_s"],
-                                 "stabilise+fill": r["prepare_s"], "solve": r["solve_s"], "write": r["write_s"],
-                                 "RMSE": r["weight_rmse"]})
-                    print(f"{key:>32} {mode:>16} {r['x_real_time']:8.1f}x real time  RMSE {r['weight_rmse']:.4f}",
-                          flush=True)
-                res["rigs"][key] = entry
-                if "robust" in weights and STREAMED in weights:
-                    entry["robust_vs_streamed_max_abs"] = float(np.abs(weights["robust"] - weights[STREAMED]).max())
-                    print(f"{key}: robust whole take vs {STREAMED}: max |weight difference| "
-                          f"{entry['robust_vs_streamed_max_abs']:.2e}", flush=True)
-                gf = entry.get("gap_fill")
-                print(f"{key}: calibrate+tune on the take {calib_s:.2f} s"
-                      + (f"; gap fill {gf['banded_s']:.3f} s vs per-gap spline {gf['per_gap_spline_s']:.2f} s"
-                         if gf else ""), flush=True)
+
+        def takes():
+            """(key, rig name, rig, occlusion, take path, truth, profile path, how the profile was made and in how
+            many seconds, take seconds) of every take."""
+            for rig_name, (rig, layout) in rigs.items():
+                for occ in OCCLUSIONS:
+                    take_path, truth = _take(rig, layout, seconds, occ, folder)
+                    profile_path, calib_s = _profile(rig, layout, take_path, folder)
+                    yield f"{rig_name} {rig.n_shapes} shapes, {occ:.0%} occluded", rig_name, rig, occ, take_path, \
+                        truth, profile_path, ("calibrate+tune on the take", calib_s), seconds
+            for name in performances:
+                rig, layout = rigs["ict"]
+                for occ in OCCLUSIONS:
+                    take_path, truth, profile_path, calib_s, take_s = _real_take(rig, layout, name, seconds, occ,
+                                                                                 folder)
+                    yield f"ict {name} (real), {occ:.0%} occluded", "ict", rig, occ, take_path, truth, profile_path, \
+                        ("calibrate from its neutral take", calib_s), take_s
+
+        for key, rig_name, rig, occ, take_path, truth, profile_path, (how, calib_s), take_s in takes():
+            entry: dict = {"calibrate_and_tune_s": calib_s, "modes": {}}
+            weights: dict = {}
+            if occ > 0:
+                entry["gap_fill"] = gap_fill_baseline(take_path, profile_path)
+            if process:
+                rig_path = ICT if rig_name == "ict" else folder / "demo_rig.npz"
+                if rig_name != "ict" and not rig_path.exists():
+                    rig.save(rig_path)
+                entry["process"] = p = solve_process(take_path, rig_path, profile_path, folder / "p.csv", take_s)
+                print(f"{key}: `livecap solve --profile` process {p['process_s']:.2f} s "
+                      f"({p['x_real_time_process']:.1f}x real time); the stack's floor {p['floor_s']:.2f} s "
+                      f"({p['x_real_time_floor']:.1f}x)", flush=True)
+            for mode in modes:
+                limit = int(min(take_s, 5.0) * 120) if mode in SLOW_MODES else None
+                r = solve_end_to_end(mode, take_path, profile_path, folder / "w.csv", truth, limit)
+                weights[mode] = r.pop("weights")
+                entry["modes"][mode] = r
+                rows.append({"take": key, "mode": mode, "s of take": r["seconds_of_take"],
+                             "x real time": r["x_real_time"], "total s": r["total_s"],
+                             "x rt (CPU)": r["x_real_time_cpu"],
+                             "read": r["read_s"], "profile": r["profile_s"], "build": r["build_s"],
+                             "stabilise+fill": r["prepare_s"], "solve": r["solve_s"], "write": r["write_s"],
+                             "RMSE": r["weight_rmse"]})
+                print(f"{key:>32} {mode:>16} {r['x_real_time']:8.1f}x real time  RMSE {r['weight_rmse']:.4f}",
+                      flush=True)
+            res["rigs"][key] = entry
+            if "robust" in weights and STREAMED in weights:
+                entry["robust_vs_streamed_max_abs"] = float(np.abs(weights["robust"] - weights[STREAMED]).max())
+                print(f"{key}: robust whole take vs {STREAMED}: max |weight difference| "
+                      f"{entry['robust_vs_streamed_max_abs']:.2e}", flush=True)
+            gf = entry.get("gap_fill")
+            print(f"{key}: {how} {calib_s:.2f} s"
+                  + (f"; gap fill {gf['banded_s']:.3f} s vs per-gap spline {gf['per_gap_spline_s']:.2f} s"
+                     if gf else ""), flush=True)
     print(table(rows, ["take", "mode", "s of take", "x real time", "x rt (CPU)", "total s", "read", "profile", "build",
                        "stabilise+fill", "solve", "write", "RMSE"],
                 "whole take end to end (profile loaded; seconds per stage)"))
@@ -245,4 +287,4 @@ def run(quick: bool = False, modes: tuple[str, ...] = (), process: bool = True) 
 
 
 if __name__ == "__main__":
-    sys.exit(suite_main(run, __doc__, modes=""))
+    sys.exit(suite_main(run, __doc__, modes="", performances=""))
