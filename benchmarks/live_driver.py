@@ -55,16 +55,11 @@ def _wait(how: str, deadline: float, rx) -> None:
 def _take_and_profile(name: str):
     """The take to stream and the actor's profile: the generated demo, or a real performance on the ICT rig."""
     if name != "demo":
-        from livecap.cli.realeval import _realdata, _rig
-        from livecap.demo.curves_take import CurveTakeSettings, curves_take
-        from livecap.offline.real_eval import plain_profile
+        from benchmarks.realperf import ict_performance
+        from livecap.demo.curves_take import CurveTakeSettings
 
-        rig, layout = _rig("ict")
-        path = _realdata() / "performance" / f"{name}.csv"
-        if not path.exists():
-            raise SystemExit(f"--takes {name}: no {path}")
-        ct = curves_take(rig, layout, path, CurveTakeSettings(seconds=20.0))
-        return ct.take, plain_profile(rig, layout, ct)
+        _, _, ct, profile, _ = ict_performance(name, CurveTakeSettings(seconds=20.0))
+        return ct.take, profile
     from livecap.calibration.profile import calibrate, estimate_neutral
     from livecap.core.markers import MarkerLayout
     from livecap.core.rig import Rig

@@ -165,18 +165,13 @@ def _median_of_runs(runs: list[dict]) -> dict:
 
 def _real_take(name: str, work: Path) -> tuple[Path, Path, float]:
     """A real performance driving the ICT rig: take file, profile file and the send speed for RATE packets a second."""
-    from livecap.cli.realeval import _realdata, _rig
-    from livecap.demo.curves_take import CurveTakeSettings, curves_take
-    from livecap.offline.real_eval import plain_profile
+    from benchmarks.realperf import ict_performance
+    from livecap.demo.curves_take import CurveTakeSettings
     from transport.takefile import write_take
 
-    rig, layout = _rig("ict")
-    path = _realdata() / "performance" / f"{name}.csv"
-    if not path.exists():
-        raise SystemExit(f"--takes {name}: no {path}")
-    ct = curves_take(rig, layout, path, CurveTakeSettings(seconds=20.0))
+    _, _, ct, profile, _ = ict_performance(name, CurveTakeSettings(seconds=20.0))
     write_take(ct.take, work / f"{name}.c3d")
-    plain_profile(rig, layout, ct).save(work / f"{name}.profile.npz")
+    profile.save(work / f"{name}.profile.npz")
     return work / f"{name}.c3d", work / f"{name}.profile.npz", RATE / ct.take.rate
 
 

@@ -182,25 +182,21 @@ def gap_fill_baseline(take_path: Path, profile_path: Path) -> dict:
             "max_difference_mm": float(np.abs(a - b).max())}
 
 
-def _real_take(rig, layout, name: str, seconds: float, occlusion: float, folder: Path):
-    """A take of the ICT rig driven by the real performance ``name`` (livecap.demo.curves_take: 60 Hz, 0.5 mm noise,
+def _real_take(name: str, seconds: float, occlusion: float, folder: Path):
+    """A take of the ICT rig driven by the real performance ``name`` (benchmarks.realperf: 60 Hz, 0.5 mm noise,
     ``seconds`` from 10 s in, clamped), written to C3D; its ground-truth weights; and the plain profile from its
     separate neutral take (as ``livecap realeval``) with the seconds that calibration took."""
-    from livecap.demo.curves_take import CurveTakeSettings, curves_take
-    from livecap.offline.real_eval import plain_profile
+    from benchmarks.realperf import ict_performance
+    from livecap.demo.curves_take import CurveTakeSettings
     from transport.llf_csv import read_llf_csv
     from transport.takefile import write_take
 
     csv = SHARED / "realdata" / "performance" / f"{name}.csv"
-    if not csv.exists():
-        raise SystemExit(f"--performances {name}: no {csv}")
-    start = max(0.0, min(10.0, read_llf_csv(csv).times[-1] - seconds))
-    ct = curves_take(rig, layout, csv, CurveTakeSettings(start=start, seconds=seconds, occlusion=occlusion))
+    start = max(0.0, min(10.0, read_llf_csv(csv).times[-1] - seconds)) if csv.exists() else 0.0
+    _, _, ct, profile, calib_s = ict_performance(name, CurveTakeSettings(start=start, seconds=seconds,
+                                                                         occlusion=occlusion))
     path = folder / f"{name}_{occlusion:g}.c3d"
     write_take(ct.take, path)
-    t0 = time.perf_counter()
-    profile = plain_profile(rig, layout, ct)
-    calib_s = time.perf_counter() - t0
     profile.save(folder / "actor.npz")
     return path, ct.weights, folder / "actor.npz", calib_s, ct.take.n_frames / ct.take.rate
 
@@ -238,10 +234,9 @@ def run(quick: bool = False, modes: tuple[str, ...] = (), process: bool = True,
                     yield f"{rig_name} {rig.n_shapes} shapes, {occ:.0%} occluded", rig_name, rig, occ, take_path, \
                         truth, profile_path, ("calibrate+tune on the take", calib_s), seconds
             for name in performances:
-                rig, layout = rigs["ict"]
+                rig = rigs["ict"][0]
                 for occ in OCCLUSIONS:
-                    take_path, truth, profile_path, calib_s, take_s = _real_take(rig, layout, name, seconds, occ,
-                                                                                 folder)
+                    take_path, truth, profile_path, calib_s, take_s = _real_take(name, seconds, occ, folder)
                     yield f"ict {name} (real), {occ:.0%} occluded", "ict", rig, occ, take_path, truth, profile_path, \
                         ("calibrate from its neutral take", calib_s), take_s
 
