@@ -19,7 +19,9 @@ def markers_path(rig_path: str | Path) -> Path:
 
 
 def load_rig(args: argparse.Namespace) -> tuple[Rig, MarkerLayout]:
-    rig = Rig.load(args.rig)
+    from transport.rig_files import load_rig as load_rig_file  # glTF/VRM/USD readers load only for their files
+
+    rig = load_rig_file(args.rig)
     mpath = Path(args.markers) if getattr(args, "markers", None) else markers_path(args.rig)
     if not mpath.exists():
         raise ValueError(f"{mpath}: no markers.json for rig {args.rig} (give --markers)")
@@ -35,7 +37,8 @@ def check_labels(take: Take, labels: list[str], take_path, rig_path) -> None:
 
 
 def add_rig_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--rig", required=True, help="rig: OBJ folder (neutral.obj + one OBJ per shape) or .npz")
+    p.add_argument("--rig", required=True, help="rig: OBJ folder (neutral.obj + one OBJ per shape), .npz, "
+                   "glTF/GLB, VRM or USD (docs/rigs.md)")
     p.add_argument("--markers", help="markers.json (default: in the rig folder, or <rig>.markers.json)")
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from livecap.core.rig import Rig
+from transport.rig_files import load_rig
 from transport.weights_csv import read_weights_csv
 
 
@@ -25,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {args.out}: export writes .glb")
     from transport.gltf import write_glb  # pygltflib: not for every livecap command
 
-    rig = Rig.load(args.rig)
+    rig = load_rig(args.rig)
     names, weights, times = read_weights_csv(args.weights)
     write_glb(args.out, rig, names, times, weights)
     print(f"{args.out}: {len(times)} frames x {len(names)} shapes, {rig.n_vertices} vertices")

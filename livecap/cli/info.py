@@ -10,6 +10,7 @@ import numpy as np
 from livecap.cli.common import markers_path
 from livecap.core.markers import MarkerLayout
 from livecap.core.rig import Rig
+from transport.rig_files import load_rig
 from transport.takefile import READERS, read_take
 
 
@@ -59,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         hi = take.positions[take.valid].max(0)
         print(f"  extent (mm): {np.round(lo, 1).tolist()} .. {np.round(hi, 1).tolist()}")
         return 0
-    rig = Rig.load(path)
+    rig = load_rig(path)
     ext = np.ptp(rig.neutral, axis=0)
     print(f"rig {path}: {rig.n_vertices} vertices, {len(rig.triangles)} triangles, {rig.n_shapes} shapes, "
           f"{len(rig.inbetweens)} in-betweens, {len(rig.correctives)} correctives")

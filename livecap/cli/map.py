@@ -41,9 +41,9 @@ def run(args: argparse.Namespace) -> int:
               f"fit residual RMS {np.sqrt(np.mean((Ws @ E.T - Vt) ** 2)):.4g}")
     else:
         if args.target_rig:
-            from livecap.core.rig import Rig
+            from transport.rig_files import load_rig
 
-            out_names = list(Rig.load(args.target_rig).names)
+            out_names = list(load_rig(args.target_rig).names)
         else:
             out_names = list(names)
         cmap = by_name(names, out_names, load_config(args.config) if args.config else None)

@@ -21,10 +21,10 @@ def register(sub) -> None:
 
 def run_build(args: argparse.Namespace) -> int:
     from livecap.calibration.animation_prior import build_prior
-    from livecap.core.rig import Rig
     from transport.arkit import load_mapping
+    from transport.rig_files import load_rig
 
-    rig = Rig.load(args.rig)
+    rig = load_rig(args.rig)
     mapping = load_mapping(args.mapping) if args.mapping else None
     prior = build_prior(args.curves, rig.names, rig.lower, rig.upper, mapping)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,5 @@
-"""``livecap rig``: rig tools. ``livecap rig transfer`` builds a rig for a new face from its neutral mesh.
+"""``livecap rig``: rig tools. ``livecap rig import`` reads a glTF / GLB / VRM / USD rig (docs/rigs.md);
+``livecap rig transfer`` builds a rig for a new face from its neutral mesh.
 
 Xiang et al. 2008 (landmarks, deformable model, deformation transfer); see docs/transfer.md.
 No PNG contact sheet is written: livecap has no offscreen rig renderer to call yet.
@@ -7,6 +8,7 @@ No PNG contact sheet is written: livecap has no offscreen rig renderer to call y
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
@@ -16,17 +18,41 @@ from livecap.core.markers import MarkerLayout
 from livecap.core.objfile import read_obj
 from livecap.core.rig import Rig
 from livecap.core.units import MM_PER_UNIT, to_mm
+from transport.rig_files import RIG_FILES_HELP
+from transport.rig_files import load_rig as load_rig_file
 
 
 def register(sub) -> None:
-    p = sub.add_parser("rig", help="rig tools (transfer a rig to a new face)")
+    p = sub.add_parser("rig", help="rig tools (import a glTF/VRM/USD rig, transfer a rig to a new face)")
     rsub = p.add_subparsers(dest="rig_command", metavar="RIG_COMMAND")
+    i = rsub.add_parser(
+        "import", help="read a glTF/GLB, VRM 0.x/1.0 or USD rig (blend shapes) as a livecap rig",
+        description="Read the face mesh and its morph targets (glTF, VRM) or UsdSkel blend shapes (USD) of a "
+                    "file into livecap's rig (.npz, or an OBJ folder when --out has no .npz suffix), in "
+                    "millimetres with the file's units and node transforms applied (docs/rigs.md).")
+    i.add_argument("file", help="rig file: .glb, .gltf, .vrm, .usd, .usda, .usdc or .usdz")
+    i.add_argument("--out", required=True, help="livecap rig: .npz, or a folder for OBJ files")
+    i.add_argument("--mesh", help="the mesh (glTF mesh or node name, USD prim name or path) when the file "
+                   "holds several with blend shapes (default: the VRM's expression mesh, else one named face/head)")
+    i.add_argument("--markers", help="markers.json binding marker labels to this mesh's vertices: checked "
+                   "against the rig and written beside it (<out>.markers.json, or OUT/markers.json)")
+    i.set_defaults(func=run_import)
+    a = rsub.add_parser(
+        "animate", help="write solved weights back into the user's glTF/GLB/VRM file as an animation",
+        description="Copy a glTF/GLB/VRM file (meshes, materials, skins, VRM extension) and add one animation "
+                    "of its face mesh's morph-target weights from a weights CSV solved on that same file's rig "
+                    "(livecap solve --rig FILE). The output is a GLB container (.glb or .vrm).")
+    a.add_argument("file", help="the rig file the weights were solved for: .glb, .gltf or .vrm")
+    a.add_argument("--weights", required=True, help="weights CSV (frame,time,<shape>...) from livecap solve")
+    a.add_argument("--out", required=True, help="output .glb or .vrm")
+    a.add_argument("--mesh", help="the mesh, as given to livecap rig import / chosen by default")
+    a.set_defaults(func=run_animate)
     t = rsub.add_parser(
         "transfer", help="build a full rig + markers for a new face from its neutral OBJ",
         description="Transfer every shape (in-betweens and correctives too) and the marker sites of a generic "
                     "rig onto a new face's neutral mesh (Xiang et al. 2008; Sumner & Popovic 2004). The output "
                     "keeps the new face's topology and frame.")
-    t.add_argument("--generic", required=True, help="generic rig: OBJ folder or .npz")
+    t.add_argument("--generic", required=True, help=f"generic rig: {RIG_FILES_HELP}")
     t.add_argument("--generic-markers", help="its markers.json (default: in the folder / <rig>.markers.json)")
     t.add_argument("--target", required=True, help="the new face's neutral mesh (.obj)")
     t.add_argument("--target-units", default="mm", choices=sorted(MM_PER_UNIT), help="units of the OBJ (default mm)")
@@ -46,6 +72,46 @@ def register(sub) -> None:
                    help="markers.json of the new face (its vertex indices): print per-landmark distances to it")
     t.set_defaults(func=run_transfer)
     p.set_defaults(func=lambda args: p.print_help() or 2)
+
+
+def run_import(args: argparse.Namespace) -> int:
+    from transport.rig_files import describe, import_rig
+
+    imported = import_rig(args.file, args.mesh)
+    out = Path(args.out)
+    if out.suffix.lower() == ".npz":
+        imported.rig.save(out)
+    else:
+        imported.rig.save_obj_folder(out)
+    print(f"{out}: {describe(imported)}")
+    if imported.expressions:
+        npz = out.suffix.lower() == ".npz"
+        epath = out.with_name(out.stem + ".expressions.json") if npz else out / "expressions.json"
+        epath.write_text(json.dumps({"format": imported.format, "mesh": imported.mesh,
+                                     "expressions": imported.expressions}, indent=1))
+        print(f"  expression table (expression -> {{shape: weight}}) {epath}")
+    if args.markers:
+        layout = MarkerLayout.load(args.markers, imported.rig)
+        layout.save(markers_path(out))
+        print(f"  {layout.n_markers} markers {markers_path(out)}")
+    return 0
+
+
+def run_animate(args: argparse.Namespace) -> int:
+    from transport.rig_files import GLTF_SUFFIXES, import_rig
+    from transport.rig_gltf_anim import animate_gltf
+    from transport.weights_csv import read_weights_csv
+
+    if Path(args.file).suffix.lower() not in GLTF_SUFFIXES:
+        raise ValueError(f"{args.file}: animations are written back into glTF, GLB and VRM files only")
+    if Path(args.out).suffix.lower() not in (".glb", ".vrm"):
+        raise ValueError(f"--out {args.out}: the output is a GLB container (.glb or .vrm)")
+    imported = import_rig(args.file, args.mesh)
+    names, weights, times = read_weights_csv(args.weights)
+    n = animate_gltf(args.file, args.out, imported, names, times, weights, Path(args.out).stem)
+    print(f"{args.out}: {args.file} with an animation of mesh {imported.mesh!r} ({len(times)} frames, "
+          f"{len(names)} of its {n} morph targets)")
+    return 0
 
 
 def _radii(text: str) -> float | tuple[float, ...]:
@@ -97,7 +163,7 @@ def run_transfer(args: argparse.Namespace) -> int:
     from livecap.transfer.labels import landmark_distances
     from livecap.transfer.landmarks import eye_width
 
-    generic = Rig.load(args.generic)
+    generic = load_rig_file(args.generic)
     mpath = Path(args.generic_markers) if args.generic_markers else markers_path(args.generic)
     if not mpath.exists():
         raise ValueError(f"{mpath}: no markers.json for generic rig {args.generic} (give --generic-markers)")
