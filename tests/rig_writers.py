@@ -84,7 +84,7 @@ class _Blob:
         moved = np.flatnonzero(np.any(delta != 0, axis=1)).astype(np.uint32)
         vals = delta[moved].astype(np.float32)
         full = delta.astype(np.float32)
-        acc = g.Accessor(componentType=g.FLOAT, count=len(delta), type=g.VEC3,
+        acc = g.Accessor(componentType=g.FLOAT, count=len(delta), type=g.VEC3, byteOffset=None,
                          min=full.min(0).tolist(), max=full.max(0).tolist(),
                          sparse=g.Sparse(count=len(moved),
                                          indices=g.AccessorSparseIndices(bufferView=self.view(moved),

@@ -57,6 +57,9 @@ def animate_gltf(source: str | Path, out: str | Path, imported: ImportedRig, nam
     for col, name in enumerate(names):
         keys[:, imported.targets[shape[name]]] = np.nan_to_num(weights[:, col])
 
+    for acc in doc.accessors or []:
+        if acc.bufferView is None:  # pygltflib reads an absent byteOffset as 0, which needs a bufferView
+            acc.byteOffset = None
     blob = _pack(doc, buffers)
 
     def accessor(array: np.ndarray, kind: str, bounds: bool) -> int:

@@ -1,0 +1,108 @@
+"""The user's avatar end to end (issue 37): a VRM 0.x of the whole ICT rig (pygltflib, tests/rig_writers.py)
+is the rig of ``livecap solve`` and of a live session sending VMC (decoded by python-osc); the solve goes
+back into the same .vrm as an animation that the Khronos validator accepts and three.js plays."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import ICT
+from tests.gltf_validator import TOOL, validate
+from tests.rig_writers import perfect_sync_names, read_obj_rig, write_gltf
+from tests.test_receivers import OscReceiver, check_vmc_spec
+from transport.rig_files import import_rig
+from transport.weights_csv import read_weights_csv
+
+
+def livecap(*args, timeout: float = 180) -> subprocess.CompletedProcess:
+    done = subprocess.run([sys.executable, "-m", "livecap", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout)
+    assert done.returncode == 0, done.stderr
+    return done
+
+
+@pytest.fixture(scope="module")
+def avatar(ict, tmp_path_factory):
+    """avatar.vrm (VRM 0.x, all 53 ICT shapes, Perfect Sync clips) with avatar.markers.json beside it, and a
+    2.5 s take (livecap.demo.performance) of an actor at rest for 1 s, then opening the jaw to 0.8 while
+    smiling and blinking, as C3D."""
+    from livecap.demo.performance import PerformanceSettings, perform
+    from transport.c3d import write_c3d
+
+    rig, layout = ict
+    d = tmp_path_factory.mktemp("avatar")
+    vrm = write_gltf(d / "avatar.vrm", read_obj_rig(ICT, None, 0.01), vrm=0, sparse=True)
+    shutil.copy(ICT / "markers.json", d / "avatar.markers.json")
+    t = np.arange(300) / 120.0
+    act = np.clip(np.sin(np.pi * (t - 1.0) / 1.5), 0, None) * (t > 1.0)
+    weights = np.zeros((len(t), rig.n_shapes))
+    weights[:, rig.index("jawOpen")] = 0.8 * act
+    weights[:, rig.index("mouthSmile_L")] = 0.6 * act
+    weights[:, rig.index("eyeBlink_R")] = act ** 4
+    perf = perform(rig, layout, PerformanceSettings(seed=3, occlusion=0.0, stable_dropout=0.0), weights)
+    write_c3d(perf.take, d / "take.c3d")
+    return vrm, d / "take.c3d", perf
+
+
+def test_solve_on_the_vrm_and_write_it_back_as_an_animation(avatar, tmp_path):
+    vrm, take, perf = avatar
+    livecap("solve", take, "--rig", vrm, "--out", tmp_path / "w.csv")
+    names, weights, times = read_weights_csv(tmp_path / "w.csv")
+    assert names == perf.names
+    livecap("solve", take, "--rig", ICT, "--out", tmp_path / "obj.csv")
+    _, from_obj, _ = read_weights_csv(tmp_path / "obj.csv")
+    assert np.abs(weights - from_obj).max() < 1e-3  # the VRM is the OBJ folder's rig
+    jaw = names.index("jawOpen")
+    assert np.sqrt(np.mean((weights[:, jaw] - perf.weights[:, jaw]) ** 2)) < 0.05
+
+    out = tmp_path / "avatar_take.vrm"
+    livecap("rig", "animate", vrm, "--weights", tmp_path / "w.csv", "--out", out)
+    report = validate(out)
+    assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:5]
+    assert [m for m in report["issues"]["messages"] if m["severity"] == 1 and "ANIMATION" in m["code"]] == []
+    again = import_rig(out)  # the user's file is intact: same rig, same VRM expression table
+    assert again.rig.names == names and again.expressions == import_rig(vrm).expressions
+    assert json.loads(_gltf_json(out))["extensions"]["VRM"]["blendShapeMaster"]
+
+    node = shutil.which("node")
+    if node is None or not (TOOL / "node_modules" / "three").is_dir():
+        pytest.skip(f"three.js not installed (run ./dev: needs node and npm install in {TOOL})")
+    at = [float(times[40]), float((times[100] + times[101]) / 2)]
+    played = json.loads(subprocess.run([node, str(TOOL / "three_play.mjs"), str(out), *map(str, at)],
+                                       capture_output=True, text=True, timeout=120, check=True).stdout)
+    assert played["tracks"] == ["FaceNode.morphTargetInfluences"]
+    assert played["meshes"]["FaceNode"]["targets"] == names
+    assert played["frames"][0]["FaceNode"] == pytest.approx(weights[40], abs=1e-6)
+    assert played["frames"][1]["FaceNode"] == pytest.approx((weights[100] + weights[101]) / 2, abs=1e-6)
+    assert played["frames"][0]["TeethNode"] == [0.0]
+
+
+def _gltf_json(path: Path) -> str:
+    data = path.read_bytes()
+    length = int.from_bytes(data[12:16], "little")
+    return data[20:20 + length].decode()
+
+
+def test_a_live_session_on_the_vrm_sends_its_perfect_sync_clips_over_vmc(avatar):
+    """``livecap run --rig avatar.vrm --vmc``: every Perfect Sync clip the avatar has gets a value each
+    frame (python-osc decodes the bundles), and the jaw moves as the take's does."""
+    vrm, take, perf = avatar
+    clips = set(perfect_sync_names(perf.names))
+    rx = OscReceiver()
+    try:
+        livecap("run", "--replay", take, "--rig", vrm, "--vmc", f"127.0.0.1:{rx.port}", "--vmc-perfect-sync",
+                "--speed", 2)
+    finally:
+        rx.close()
+    check_vmc_spec(rx.messages)
+    values = [args for addr, args in rx.messages if addr == "/VMC/Ext/Blend/Val"]
+    assert clips <= {name for name, _ in values}
+    jaw = np.array([v for name, v in values if name == "JawOpen"])
+    assert len(jaw) == len(perf.weights) and jaw.max() > 0.6 and jaw[:100].max() < 0.1
