@@ -6,8 +6,9 @@ sparse accessors §3.6.2.3, possibly normalized integers under KHR_mesh_quantiza
 (§3.4), so they are scaled to livecap's millimetres; the node's world transform is applied (positions by
 the whole matrix, deltas by its linear part) unless the mesh is skinned, where §3.7.3 says the node's
 transform is ignored and the bind pose is the stored positions. Every primitive of the mesh is merged into
-one vertex array in file order (primitives that share a POSITION accessor share their vertices), so marker
-bindings by vertex index refer to the file's own order.
+one vertex array in file order (primitives that share a POSITION accessor share their vertices), and the
+copies writers split vertices into at seams (equal in the neutral and every target) are welded back into
+the first, so marker bindings by vertex index refer to the file's order of distinct vertices.
 
 VRM: 0.x (``extensions.VRM.blendShapeMaster.blendShapeGroups``, binds of mesh + morph index, weight
 0-100; the model faces -Z, so it is turned 180 degrees about +Y to livecap's +Z out of the face) and 1.0
@@ -186,7 +187,7 @@ def read_gltf_rig(path: str | Path, mesh: str | None = None) -> ImportedRig:
     preferred = names[with_targets.index(max(set(bound), key=bound.count))] if bound else None
     k = choose_mesh(path, names, mesh, preferred)
     mesh_index = with_targets[k]
-    neutral, triangles, deltas = _mesh_geometry(reader, meshes[mesh_index], path)
+    neutral, triangles, deltas = _weld(*_mesh_geometry(reader, meshes[mesh_index], path))
 
     world = _world_matrices(doc)
     users = [i for i in sorted(world) if nodes[i].mesh == mesh_index]
@@ -206,6 +207,22 @@ def read_gltf_rig(path: str | Path, mesh: str | None = None) -> ImportedRig:
                    for e, binds in table.items()}
     return ImportedRig(rig, fmt, names[k], tuple(names), tuple(range(len(target_names))),
                        {e: b for e, b in expressions.items() if b}, node)
+
+
+def _weld(neutral: np.ndarray, triangles: np.ndarray, deltas: np.ndarray):
+    """One vertex for the copies glTF writers split a vertex into (UV seams, flat shading, Blender's
+    exporter): equal in the neutral and in every target. The others keep the file's order (first copy)."""
+    key = np.concatenate([neutral, deltas.transpose(1, 0, 2).reshape(len(neutral), -1)], axis=1)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    if len(first) == len(neutral):
+        return neutral, triangles, deltas
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    tris = rank[inverse.reshape(-1)][triangles]
+    tris = tris[(tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])]
+    keep = first[order]
+    return neutral[keep], tris, deltas[:, keep]
 
 
 def _node_name(nodes, mesh_index: int) -> str | None:
