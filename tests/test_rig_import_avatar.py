@@ -106,3 +106,17 @@ def test_a_live_session_on_the_vrm_sends_its_perfect_sync_clips_over_vmc(avatar)
     assert clips <= {name for name, _ in values}
     jaw = np.array([v for name, v in values if name == "JawOpen"])
     assert len(jaw) == len(perf.weights) and jaw.max() > 0.6 and jaw[:100].max() < 0.1
+
+
+def test_markers_for_an_avatar_without_any_come_from_rig_transfer(tmp_path):
+    """``livecap rig transfer --target avatar.vrm``: the generic's marker sites bound to the VRM's own vertices
+    (the MakeHuman head, which has no markers.json), read by ``livecap info`` beside the .vrm."""
+    from tests.test_rig_import import MAKEHUMAN, _folder
+
+    vrm = write_gltf(tmp_path / "head.vrm", read_obj_rig(_folder(MAKEHUMAN), None, 0.01), vrm=1)
+    demo = Path(__file__).resolve().parents[1] / "recordings" / "demo_rig.npz"
+    livecap("rig", "transfer", "--generic", demo, "--target", vrm, "--out", tmp_path / "t", "--sheet", "none",
+            "--warp", "none")
+    shutil.copy(tmp_path / "t" / "markers.json", tmp_path / "head.markers.json")
+    info = livecap("info", vrm).stdout
+    assert "4260 vertices" in info and "markers: 60 (6 stable" in info

@@ -18,7 +18,7 @@ from livecap.core.markers import MarkerLayout
 from livecap.core.objfile import read_obj
 from livecap.core.rig import Rig
 from livecap.core.units import MM_PER_UNIT, to_mm
-from transport.rig_files import RIG_FILES_HELP
+from transport.rig_files import RIG_FILES_HELP, is_imported
 from transport.rig_files import load_rig as load_rig_file
 
 
@@ -54,7 +54,8 @@ def register(sub) -> None:
                     "keeps the new face's topology and frame.")
     t.add_argument("--generic", required=True, help=f"generic rig: {RIG_FILES_HELP}")
     t.add_argument("--generic-markers", help="its markers.json (default: in the folder / <rig>.markers.json)")
-    t.add_argument("--target", required=True, help="the new face's neutral mesh (.obj)")
+    t.add_argument("--target", required=True, help="the new face's neutral mesh (.obj), or a glTF/VRM/USD rig "
+                   "file whose face mesh's neutral it is (then OUT/markers.json binds that file's vertices)")
     t.add_argument("--target-units", default="mm", choices=sorted(MM_PER_UNIT), help="units of the OBJ (default mm)")
     t.add_argument("--out", required=True, help="output rig folder (neutral.obj, one OBJ per shape, markers.json)")
     t.add_argument("--radius-fraction", default="0.06",
@@ -169,10 +170,12 @@ def run_transfer(args: argparse.Namespace) -> int:
         raise ValueError(f"{mpath}: no markers.json for generic rig {args.generic} (give --generic-markers)")
     layout = MarkerLayout.load(mpath, generic)
     target = Path(args.target)
-    if target.is_dir():
-        target = target / "neutral.obj"
-    verts, tris = read_obj(target)
-    verts = to_mm(verts, args.target_units)
+    if is_imported(target):  # a glTF / VRM / USD file: its face mesh's neutral, already in mm
+        neutral = load_rig_file(target)
+        verts, tris = neutral.neutral, neutral.triangles
+    else:
+        verts, tris = read_obj(target / "neutral.obj" if target.is_dir() else target)
+        verts = to_mm(verts, args.target_units)
     options = TransferOptions(prealign=args.prealign, radius_fraction=_radii(args.radius_fraction),
                               refine_landmarks=args.refine, warp=_warp(args.warp))
     with progress_bar("transferring rig", transfer_steps(generic, layout, options)) as update:
