@@ -72,6 +72,21 @@ def test_vrm_presets_and_perfect_sync_clips_map_to_the_face_targets(tmp_path, ic
     assert expr["JawOpen"] == {"jawOpen": 1.0}
 
 
+def test_vrm_shapes_named_by_the_expressions_that_drive_them_alone(tmp_path, ict_obj):
+    """``rig import --names expressions``: Perfect Sync ``JawOpen`` (named like the target) wins over the preset
+    ``A`` that also drives jawOpen alone; ``Blink`` drives two targets and renames none."""
+    _, src = ict_obj
+    vrm = write_gltf(tmp_path / "avatar.vrm", src, vrm=0)
+    done = livecap("rig", "import", vrm, "--names", "expressions", "--out", tmp_path / "a.npz")
+    assert done.returncode == 0, done.stderr
+    assert Rig.load(tmp_path / "a.npz").names == ["EyeBlinkLeft", "EyeBlinkRight", "JawOpen", "MouthSmileLeft",
+                                                  "BrowInnerUp"]
+    table = json.loads((tmp_path / "a.expressions.json").read_text())["expressions"]
+    assert table["Blink"] == {"EyeBlinkLeft": 1.0, "EyeBlinkRight": 1.0} and table["A"] == {"JawOpen": 1.0}
+    done = livecap("rig", "import", write_gltf(tmp_path / "a.glb", src), "--names", "expressions", "--out", "x.npz")
+    assert done.returncode == 1 and "no VRM expressions" in done.stderr
+
+
 @pytest.mark.parametrize("meters_per_unit, up", [(0.01, "Z"), (1.0, "Y")])
 def test_usd_blend_shapes_give_the_obj_folders_rig(tmp_path, ict_obj, meters_per_unit, up):
     """metersPerUnit, a Z-up stage, the Xform above the mesh, dense and sparse (pointIndices) offsets."""

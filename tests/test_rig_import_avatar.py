@@ -120,3 +120,37 @@ def test_markers_for_an_avatar_without_any_come_from_rig_transfer(tmp_path):
     shutil.copy(tmp_path / "t" / "markers.json", tmp_path / "head.markers.json")
     info = livecap("info", vrm).stdout
     assert "4260 vertices" in info and "markers: 60 (6 stable" in info
+
+
+def test_a_rig_named_by_the_vrms_expressions_sends_its_clips_over_vmc_and_animates_it(avatar, tmp_path):
+    """``rig import --names expressions`` then plain ``--vmc``: the names sent are the avatar's clips (where one
+    clip drives a shape alone) and the solve's CSV, named so, animates the .vrm's targets."""
+    vrm, take, perf = avatar
+    rig = tmp_path / "avatar.npz"
+    livecap("rig", "import", vrm, "--names", "expressions", "--out", rig, "--markers", ICT / "markers.json")
+    rx = OscReceiver()
+    try:
+        livecap("run", "--replay", take, "--rig", rig, "--vmc", f"127.0.0.1:{rx.port}", "--speed", 2)
+    finally:
+        rx.close()
+    check_vmc_spec(rx.messages)
+    groups = json.loads(_gltf_json(vrm))["extensions"]["VRM"]["blendShapeMaster"]["blendShapeGroups"]
+    clips = {g["name"] for g in groups}
+    sent = {args[0] for addr, args in rx.messages if addr == "/VMC/Ext/Blend/Val"}
+    assert sent & clips == set(perfect_sync_names(perf.names))
+    assert sent - clips <= set(perf.names)  # shapes no clip drives alone keep their target names
+    jaw = np.array([args[1] for addr, args in rx.messages if addr == "/VMC/Ext/Blend/Val" and args[0] == "JawOpen"])
+    assert jaw.max() > 0.6
+
+    livecap("solve", take, "--rig", rig, "--out", tmp_path / "w.csv")
+    livecap("rig", "animate", vrm, "--weights", tmp_path / "w.csv", "--out", tmp_path / "out.vrm")
+    names, weights, _ = read_weights_csv(tmp_path / "w.csv")
+    assert validate(tmp_path / "out.vrm")["issues"]["numErrors"] == 0
+    import pygltflib as g
+
+    doc = g.GLTF2.load_from_bytes((tmp_path / "out.vrm").read_bytes())
+    acc = doc.accessors[doc.animations[0].samplers[0].output]
+    view = doc.bufferViews[acc.bufferView]
+    keys = np.frombuffer(doc.binary_blob(), np.float32, acc.count, view.byteOffset).reshape(len(weights), -1)
+    assert keys.shape[1] == len(perf.names)  # every target of the face mesh, in its order
+    np.testing.assert_allclose(keys[:, perf.names.index("jawOpen")], weights[:, names.index("JawOpen")], atol=1e-6)

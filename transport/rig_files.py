@@ -7,7 +7,7 @@ readers load their libraries (pygltflib, pxr) only when a file of theirs is open
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from livecap.core.rig import Rig, RigError
@@ -90,6 +90,31 @@ def choose_mesh(path: Path, candidates: list[str], mesh: str | None, preferred: 
             return named[0]
     raise RigError(f"{path}: {len(candidates)} meshes with blend shapes and none named face or head "
                    f"({', '.join(candidates)}): choose one with --mesh")
+
+
+def named_by_expressions(imported: ImportedRig) -> ImportedRig:
+    """The rig with each shape that one expression drives alone (at full weight) renamed to that expression:
+    VRM receivers (VSeeFace, VMC4U) apply clips by their names, so a solve on these names drives them as sent
+    (``livecap run --vmc``). Among several such expressions, the one that names the shape (Perfect Sync
+    ``JawOpen`` for ``jawOpen``) wins over a preset (``A``); other shapes keep their target names."""
+    from livecap.core.names import name_key
+
+    alone: dict[str, list[str]] = {}
+    for expr, binds in imported.expressions.items():
+        if len(binds) == 1 and abs(next(iter(binds.values())) - 1.0) < 1e-6:
+            alone.setdefault(next(iter(binds)), []).append(expr)
+    rig = imported.rig
+    taken = set(rig.names)
+    rename: dict[str, str] = {}
+    for shape, exprs in alone.items():
+        best = next((e for e in exprs if name_key(e) == name_key(shape)), exprs[0])
+        if best not in taken:
+            rename[shape] = best
+            taken.add(best)
+    names = [rename.get(n, n) for n in rig.names]
+    new = Rig(rig.neutral, rig.triangles, names, rig.deltas, rig.lower, rig.upper, rig.inbetweens, rig.correctives)
+    table = {e: {rename.get(s, s): w for s, w in b.items()} for e, b in imported.expressions.items()}
+    return replace(imported, rig=new, expressions=table)
 
 
 def describe(imported: ImportedRig) -> str:

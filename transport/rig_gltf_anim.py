@@ -32,8 +32,8 @@ def _pack(doc, buffers: list[bytes]) -> bytearray:
 
 def animate_gltf(source: str | Path, out: str | Path, imported: ImportedRig, names: list[str], times: np.ndarray,
                  weights: np.ndarray, animation: str = "livecap") -> int:
-    """Write ``source`` with an animation of ``weights`` (T x len(names), columns named by the rig's shapes)
-    to ``out``; returns the number of morph targets animated."""
+    """Write ``source`` with an animation of ``weights`` (T x len(names), columns named by the rig's shapes or
+    by the VRM expressions that drive one shape alone) to ``out``; returns the number of morph targets."""
     import pygltflib as g
 
     source, out = Path(source), Path(out)
@@ -46,6 +46,9 @@ def animate_gltf(source: str | Path, out: str | Path, imported: ImportedRig, nam
     if not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0) or times[0] < 0:
         raise ValueError("times must be finite, >= 0 and strictly increasing")
     shape = {n: k for k, n in enumerate(imported.rig.names)}
+    for expr, binds in imported.expressions.items():  # columns of a rig imported with --names expressions
+        if len(binds) == 1 and abs(next(iter(binds.values())) - 1.0) < 1e-6 and expr not in shape:
+            shape[expr] = shape[next(iter(binds))]
     unknown = [n for n in names if n not in shape]
     if unknown:
         raise ValueError(f"{source}: mesh {imported.mesh!r} has no shape named {unknown[0]!r} "

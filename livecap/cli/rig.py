@@ -34,6 +34,9 @@ def register(sub) -> None:
     i.add_argument("--out", required=True, help="livecap rig: .npz, or a folder for OBJ files")
     i.add_argument("--mesh", help="the mesh (glTF mesh or node name, USD prim name or path) when the file "
                    "holds several with blend shapes (default: the VRM's expression mesh, else one named face/head)")
+    i.add_argument("--names", choices=["targets", "expressions"], default="targets",
+                   help="shape names: the file's morph-target names (default), or for a VRM the expression "
+                   "(preset / Perfect Sync clip) that drives each target alone, the names VMC receivers apply")
     i.add_argument("--markers", help="markers.json binding marker labels to this mesh's vertices: checked "
                    "against the rig and written beside it (<out>.markers.json, or OUT/markers.json)")
     i.set_defaults(func=run_import)
@@ -76,9 +79,14 @@ def register(sub) -> None:
 
 
 def run_import(args: argparse.Namespace) -> int:
-    from transport.rig_files import describe, import_rig
+    from transport.rig_files import describe, import_rig, named_by_expressions
 
     imported = import_rig(args.file, args.mesh)
+    if args.names == "expressions":
+        if not imported.expressions:
+            raise ValueError(f"{args.file}: --names expressions: the file has no VRM expressions for mesh "
+                             f"{imported.mesh!r}")
+        imported = named_by_expressions(imported)
     out = Path(args.out)
     if out.suffix.lower() == ".npz":
         imported.rig.save(out)
