@@ -37,6 +37,8 @@ RUNS = {
     "info": ["info", "rec/demo_rig.npz"],
     "solve": ["solve", "rec/demo_take.c3d", "--rig", "rec/demo_rig.npz", "--mode", "qp", "--out", "w.csv"],
     "export": ["export", "w.csv", "--rig", "rec/demo_rig.npz", "--out", "take.glb"],
+    "rig import": ["rig", "import", "take.glb", "--out", "imported.npz"],
+    "rig animate": ["rig", "animate", "take.glb", "--weights", "w.csv", "--out", "animated.glb"],
     "calibrate": ["calibrate", "rec/demo_neutral.c3d", "--rig", "rec/demo_rig.npz", "--out", "actor.npz"],
     "calibration-report": ["calibration-report", "rec/demo_take.c3d", "--rig", "rec/demo_rig.npz", "--mode", "qp",
                            "--stride", "8"],

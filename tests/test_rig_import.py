@@ -15,6 +15,7 @@ import pytest
 
 from livecap.core.rig import Rig, RigError
 from tests.conftest import ICT, SHARED
+from tests.gltf_validator import validate
 from tests.rig_writers import ObjRig, read_obj_rig, write_gltf, write_usd
 from transport.rig_files import import_rig, load_rig
 
@@ -199,3 +200,25 @@ def test_the_mesh_is_chosen_by_flag_or_name_and_ambiguity_is_an_error(tmp_path, 
         import_rig(tmp_path / "b.glb")
     with pytest.raises(RigError, match="only applies to glTF"):
         load_rig(ICT, mesh="Face")
+
+
+@pytest.mark.parametrize("form", ["bin file", "data uri"])
+def test_json_gltf_with_external_or_embedded_buffers(tmp_path, ict_obj, form):
+    """A .gltf (JSON) whose buffer is a .bin beside it or a base64 data URI (pygltflib converts the GLB);
+    ``rig animate`` packs it into a GLB container."""
+    import pygltflib as g
+
+    ref, src = ict_obj
+    doc = g.GLTF2.load_from_bytes(write_gltf(tmp_path / "a.glb", src, sparse=True).read_bytes())
+    doc._path = tmp_path
+    doc.convert_buffers(g.BufferFormat.BINFILE if form == "bin file" else g.BufferFormat.DATAURI)
+    doc.save_json(str(tmp_path / "face.gltf"))
+    imported = import_rig(tmp_path / "face.gltf")
+    assert_same_rig(imported.rig, ref, SUBSET)
+    (tmp_path / "w.csv").write_text("frame,time,jawOpen\n0,0,0\n1,0.5,0.7\n")
+    done = livecap("rig", "animate", tmp_path / "face.gltf", "--weights", tmp_path / "w.csv", "--out",
+                   tmp_path / "out.glb")
+    assert done.returncode == 0, done.stderr
+    assert_same_rig(import_rig(tmp_path / "out.glb").rig, ref, SUBSET)
+    assert validate(tmp_path / "out.glb")["issues"]["numErrors"] == 0
+    assert form != "bin file" or (tmp_path / "0.bin").exists()
