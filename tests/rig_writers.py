@@ -94,21 +94,24 @@ class _Blob:
         return len(self.doc.accessors) - 1
 
 
-def write_gltf(path: Path, rig: ObjRig, vrm: int | None = None, sparse: bool = False) -> Path:
-    """A GLB (or .vrm when ``vrm`` is 0 or 1): scene root -> "Head" (translated, rotated, scaled) -> "Face"
-    (the rig), a "Body" mesh without targets and a "Teeth" mesh with one target beside it."""
+def write_gltf(path: Path, rig: ObjRig, vrm: int | None = None, sparse: bool = False,
+               parent: tuple = (PARENT_T, PARENT_Q, PARENT_S), as_matrix: bool = False) -> Path:
+    """A GLB (or .vrm when ``vrm`` is 0 or 1): scene root -> "Head" (``parent``: translation, rotation
+    quaternion x y z w, uniform scale; as TRS or, ``as_matrix``, one column-major matrix) -> "Face" (the rig),
+    a "Body" mesh without targets and a "Teeth" mesh with one target beside it."""
     import pygltflib as g
 
     doc = g.GLTF2(asset=g.Asset(version="2.0", generator="livecap tests (pygltflib)"), scene=0,
                   buffers=[], bufferViews=[], accessors=[], meshes=[], nodes=[])
     blob = _Blob(doc)
-    lin = _quat_matrix(PARENT_Q) * PARENT_S
+    parent_t, parent_q, parent_s = (np.asarray(parent[0], float), np.asarray(parent[1], float), float(parent[2]))
+    lin = _quat_matrix(parent_q) * parent_s
     world = rig.neutral.copy()
     deltas = rig.deltas
     if vrm == 0:  # VRM 0.x models face -Z
         world, deltas = world * [-1, 1, -1], deltas * [-1, 1, -1]
     inv = np.linalg.inv(lin)
-    local = (world - PARENT_T) @ inv.T
+    local = (world - parent_t) @ inv.T
     local_d = deltas @ inv.T
     targets = [{"POSITION": blob.sparse_accessor(d) if sparse else blob.accessor(d, g.VEC3, bounds=True)}
                for d in local_d]
@@ -124,8 +127,7 @@ def write_gltf(path: Path, rig: ObjRig, vrm: int | None = None, sparse: bool = F
         targets=[{"POSITION": blob.accessor(box * 0.01, g.VEC3, True)}])])
     doc.meshes = [body, teeth, face]
     doc.nodes = [g.Node(name="Root", children=[1, 2]), g.Node(name="Body", mesh=0),
-                 g.Node(name="Head", translation=PARENT_T.tolist(), rotation=PARENT_Q.tolist(),
-                        scale=[PARENT_S] * 3, children=[3, 4]),
+                 g.Node(name="Head", children=[3, 4], **_transform(parent_t, parent_q, parent_s, as_matrix)),
                  g.Node(name="FaceNode", mesh=2), g.Node(name="TeethNode", mesh=1)]
     doc.scenes = [g.Scene(nodes=[0])]
     if vrm is not None:
@@ -134,6 +136,15 @@ def write_gltf(path: Path, rig: ObjRig, vrm: int | None = None, sparse: bool = F
     doc.set_binary_blob(bytes(blob.data))
     path.write_bytes(b"".join(doc.save_to_bytes()))
     return path
+
+
+def _transform(t: np.ndarray, q: np.ndarray, scale: float, as_matrix: bool) -> dict:
+    if not as_matrix:
+        return {"translation": t.tolist(), "rotation": q.tolist(), "scale": [scale] * 3}
+    m = np.eye(4)
+    m[:3, :3] = _quat_matrix(q) * scale
+    m[:3, 3] = t
+    return {"matrix": m.T.ravel().tolist()}  # glTF matrices are column-major
 
 
 def _vrm_extension(doc, names: list[str], version: int) -> None:

@@ -12,6 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 from livecap.core.rig import Rig, RigError
 from tests.conftest import ICT, SHARED
@@ -222,3 +225,21 @@ def test_json_gltf_with_external_or_embedded_buffers(tmp_path, ict_obj, form):
     assert_same_rig(import_rig(tmp_path / "out.glb").rig, ref, SUBSET)
     assert validate(tmp_path / "out.glb")["issues"]["numErrors"] == 0
     assert form != "bin file" or (tmp_path / "0.bin").exists()
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(t=arrays(np.float64, 3, elements=st.floats(-2, 2)), q=arrays(np.float64, 4, elements=st.floats(-1, 1)),
+       scale=st.floats(0.01, 100), as_matrix=st.booleans())
+def test_any_parent_transform_is_undone(tmp_path, t, q, scale, as_matrix):
+    """Whatever rigid + uniform-scale transform the face's parent node has (as TRS or as one column-major
+    matrix), the imported rig is the source: positions through the whole world matrix, deltas through its
+    linear part."""
+    assume(np.linalg.norm(q) > 0.1)
+    q = q / np.linalg.norm(q)
+    rng = np.random.default_rng(0)
+    src = ObjRig(rng.uniform(-0.1, 0.1, (30, 3)), np.array([[0, 1, 2], [2, 3, 4]]), ["a", "b"],
+                 rng.normal(0, 0.005, (2, 30, 3)))
+    got = import_rig(write_gltf(tmp_path / "t.glb", src, parent=(t, q, scale), as_matrix=as_matrix)).rig
+    tol = 1e-3 * (0.2 + np.abs(t).max())  # mm: ~4 float32 steps of the stored local coordinates, scaled back
+    np.testing.assert_allclose(got.neutral, src.neutral * 1000, atol=tol)
+    np.testing.assert_allclose(got.deltas, src.deltas * 1000, atol=tol)
