@@ -95,10 +95,15 @@ class _Blob:
 
 
 def write_gltf(path: Path, rig: ObjRig, vrm: int | None = None, sparse: bool = False,
-               parent: tuple = (PARENT_T, PARENT_Q, PARENT_S), as_matrix: bool = False) -> Path:
+               parent: tuple = (PARENT_T, PARENT_Q, PARENT_S), as_matrix: bool = False, skinned: bool = False) -> Path:
     """A GLB (or .vrm when ``vrm`` is 0 or 1): scene root -> "Head" (``parent``: translation, rotation
     quaternion x y z w, uniform scale; as TRS or, ``as_matrix``, one column-major matrix) -> "Face" (the rig),
-    a "Body" mesh without targets and a "Teeth" mesh with one target beside it."""
+    a "Body" mesh without targets and a "Teeth" mesh with one target beside it.
+
+    ``skinned``: the face is skinned instead, as exporters of characters write it: an "Armature" (turned,
+    scale 0.01, so the mesh is stored in centimetres) with a head bone (bind matrix identity) and a jaw bone
+    (an inverse bind matrix that puts it at the head's), each vertex 30 % head and 70 % jaw; the face's own
+    node is moved, which glTF readers must ignore for a skinned mesh."""
     import pygltflib as g
 
     doc = g.GLTF2(asset=g.Asset(version="2.0", generator="livecap tests (pygltflib)"), scene=0,
@@ -110,13 +115,21 @@ def write_gltf(path: Path, rig: ObjRig, vrm: int | None = None, sparse: bool = F
     deltas = rig.deltas
     if vrm == 0:  # VRM 0.x models face -Z
         world, deltas = world * [-1, 1, -1], deltas * [-1, 1, -1]
+    if skinned:
+        bones = _bones()
+        lin, parent_t = bones["head"][:3, :3], bones["head"][:3, 3]
     inv = np.linalg.inv(lin)
     local = (world - parent_t) @ inv.T
     local_d = deltas @ inv.T
     targets = [{"POSITION": blob.sparse_accessor(d) if sparse else blob.accessor(d, g.VEC3, bounds=True)}
                for d in local_d]
+    attributes = g.Attributes(POSITION=blob.accessor(local, g.VEC3, True))
+    if skinned:
+        n = len(local)
+        attributes.JOINTS_0 = _joints(blob, np.tile(np.array([0, 1, 0, 0], np.uint8), (n, 1)))
+        attributes.WEIGHTS_0 = blob.accessor(np.tile([0.3, 0.7, 0.0, 0.0], (n, 1)), g.VEC4)
     face = g.Mesh(name="Face", weights=[0.0] * len(rig.names), extras={"targetNames": list(rig.names)},
-                  primitives=[g.Primitive(attributes=g.Attributes(POSITION=blob.accessor(local, g.VEC3, True)),
+                  primitives=[g.Primitive(attributes=attributes,
                                           indices=blob.accessor(rig.triangles.reshape(-1), g.SCALAR),
                                           targets=targets)])
     box = np.array([[-0.2, 0, -0.1], [0.2, 0, -0.1], [0, 1.2, 0.1]])
@@ -130,12 +143,46 @@ def write_gltf(path: Path, rig: ObjRig, vrm: int | None = None, sparse: bool = F
                  g.Node(name="Head", children=[3, 4], **_transform(parent_t, parent_q, parent_s, as_matrix)),
                  g.Node(name="FaceNode", mesh=2), g.Node(name="TeethNode", mesh=1)]
     doc.scenes = [g.Scene(nodes=[0])]
+    if skinned:
+        arm, head, jaw = _bones()["armature_trs"], _bones()["head_trs"], _bones()["jaw_trs"]
+        doc.nodes += [g.Node(name="Armature", children=[6, 7], **arm), g.Node(name="HeadBone", **head),
+                      g.Node(name="JawBone", **jaw)]
+        doc.nodes[0].children.append(5)
+        b = _bones()
+        ibm = np.stack([np.eye(4), np.linalg.inv(b["jaw"]) @ b["head"]])
+        doc.skins = [g.Skin(joints=[6, 7], inverseBindMatrices=blob.accessor(
+            ibm.transpose(0, 2, 1).reshape(2, 16), g.MAT4))]
+        doc.nodes[3].skin = 0
+        doc.nodes[3].translation = [5.0, 5.0, 5.0]
     if vrm is not None:
         _vrm_extension(doc, rig.names, vrm)
     doc.buffers = [g.Buffer(byteLength=len(blob.data))]
     doc.set_binary_blob(bytes(blob.data))
     path.write_bytes(b"".join(doc.save_to_bytes()))
     return path
+
+
+def _bones() -> dict:
+    """The skinned face's armature (turned 90 degrees about +X, scale 0.01) and its head and jaw bones."""
+    def trs(t, q, s):
+        m = np.eye(4)
+        m[:3, :3] = _quat_matrix(np.asarray(q, float)) * s
+        m[:3, 3] = t
+        return m, {"translation": list(t), "rotation": list(q), "scale": [s] * 3}
+
+    r = np.sqrt(0.5)
+    arm, arm_trs = trs([0.0, 0.0, 0.0], [r, 0.0, 0.0, r], 0.01)
+    head, head_trs = trs([0.0, 1.0, 2.0], [0.0, 0.0, 0.0, 1.0], 1.0)
+    jaw, jaw_trs = trs([0.0, -3.0, 4.0], [0.0, 0.0, np.sin(0.2), np.cos(0.2)], 1.0)
+    return {"head": arm @ head, "jaw": arm @ jaw, "armature_trs": arm_trs, "head_trs": head_trs, "jaw_trs": jaw_trs}
+
+
+def _joints(blob: _Blob, joints: np.ndarray) -> int:
+    import pygltflib as g
+
+    blob.doc.accessors.append(g.Accessor(bufferView=blob.view(joints), componentType=g.UNSIGNED_BYTE,
+                                         count=len(joints), type=g.VEC4))
+    return len(blob.doc.accessors) - 1
 
 
 def _transform(t: np.ndarray, q: np.ndarray, scale: float, as_matrix: bool) -> dict:

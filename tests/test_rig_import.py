@@ -66,6 +66,16 @@ def test_gltf_and_vrm_files_give_the_obj_folders_rig(tmp_path, ict_obj, vrm, spa
     assert_same_rig(imported.rig, ref, SUBSET)
 
 
+def test_a_skinned_face_is_read_at_its_rest_pose(tmp_path, ict_obj):
+    """Skinned (Armature at scale 0.01, two joints blended 30/70, the mesh node's own transform ignored as
+    glTF §3.7.3 says): joints' world matrices times inverse bind matrices give the OBJ folder's rig."""
+    ref, src = ict_obj
+    imported = import_rig(write_gltf(tmp_path / "skinned.vrm", src, vrm=1, skinned=True, sparse=True))
+    assert_same_rig(imported.rig, ref, SUBSET)
+    report = validate(tmp_path / "skinned.vrm")
+    assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:3]
+
+
 @pytest.mark.parametrize("version, preset", [(0, ("A", "Blink")), (1, ("aa", "blink"))])
 def test_vrm_presets_and_perfect_sync_clips_map_to_the_face_targets(tmp_path, ict_obj, version, preset):
     _, src = ict_obj

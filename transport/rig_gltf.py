@@ -4,8 +4,9 @@ glTF 2.0 (Khronos spec §3.7.2.2): a mesh's primitives each carry POSITION morph
 sparse accessors §3.6.2.3, possibly normalized integers under KHR_mesh_quantization); the names are in
 ``mesh.extras.targetNames`` (the convention three.js, Blender and UniVRM write). Positions are metres
 (§3.4), so they are scaled to livecap's millimetres; the node's world transform is applied (positions by
-the whole matrix, deltas by its linear part) unless the mesh is skinned, where §3.7.3 says the node's
-transform is ignored and the bind pose is the stored positions. Every primitive of the mesh is merged into
+the whole matrix, deltas by its linear part), or for a skinned mesh (whose node's transform §3.7.3 says to
+ignore) the rest pose's linear blend skinning: each vertex by the weighted sum of its joints' world matrices
+times their inverse bind matrices (deltas by its linear part). Every primitive of the mesh is merged into
 one vertex array in file order (primitives that share a POSITION accessor share their vertices), and the
 copies writers split vertices into at seams (equal in the neutral and every target) are welded back into
 the first, so marker bindings by vertex index refer to the file's order of distinct vertices.
@@ -187,12 +188,12 @@ def read_gltf_rig(path: str | Path, mesh: str | None = None) -> ImportedRig:
     preferred = names[with_targets.index(max(set(bound), key=bound.count))] if bound else None
     k = choose_mesh(path, names, mesh, preferred)
     mesh_index = with_targets[k]
-    neutral, triangles, deltas = _weld(*_mesh_geometry(reader, meshes[mesh_index], path))
-
     world = _world_matrices(doc)
     users = [i for i in sorted(world) if nodes[i].mesh == mesh_index]
     node = users[0] if users else None
-    m = np.eye(4) if node is None or nodes[node].skin is not None else world[node]
+    skin = None if node is None or nodes[node].skin is None else _skin_matrices(reader, doc, world, nodes[node].skin)
+    neutral, triangles, deltas = _weld(*_mesh_geometry(reader, meshes[mesh_index], path, skin))
+    m = np.eye(4) if node is None or skin is not None else world[node]
     if fmt == "VRM 0.x":
         m = np.diag([-1.0, 1.0, -1.0, 1.0]) @ m
     neutral = (neutral @ m[:3, :3].T + m[:3, 3]) * 1000.0
@@ -237,8 +238,39 @@ def _target_names(mesh, count: int) -> list[str]:
     return [f"target{i}" for i in range(count)]
 
 
-def _mesh_geometry(reader: _Reader, mesh, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Merged neutral (V x 3), triangles and deltas (m x V x 3) of a mesh's primitives, in file units."""
+def _skin_matrices(reader: _Reader, doc, world: dict[int, np.ndarray], index: int) -> np.ndarray:
+    """Each joint's world matrix times its inverse bind matrix (glTF §3.7.3.3): the rest pose's skinning."""
+    skin = doc.skins[index]
+    joints = skin.joints or []
+    if skin.inverseBindMatrices is None:
+        ibm = np.tile(np.eye(4), (len(joints), 1, 1))
+    else:
+        ibm = reader.read(skin.inverseBindMatrices).reshape(-1, 4, 4).transpose(0, 2, 1)  # column-major
+    if len(ibm) < len(joints):
+        raise RigError(f"{reader.path}: skin {index} has fewer inverse bind matrices than joints")
+    return np.stack([world.get(j, np.eye(4)) @ ibm[i] for i, j in enumerate(joints)]).reshape(-1, 4, 4)
+
+
+def _skinned(reader: _Reader, prim, skin: np.ndarray, pos: np.ndarray, deltas: np.ndarray):
+    """Positions and deltas of a skinned primitive at the rest pose: linear blend of its joints' matrices."""
+    attrs = prim.attributes
+    if attrs.JOINTS_0 is None or attrs.WEIGHTS_0 is None:
+        return pos, deltas
+    joints = reader.read(attrs.JOINTS_0).astype(np.int64)
+    weights = reader.read(attrs.WEIGHTS_0)
+    if joints.size and joints.max() >= len(skin):
+        raise RigError(f"{reader.path}: a vertex names joint {joints.max()} of a skin with {len(skin)}")
+    total = weights.sum(axis=1, keepdims=True)
+    weights = np.divide(weights, total, out=np.full_like(weights, 0.25), where=total > 0)
+    per_vertex = np.einsum("vk,vkij->vij", weights, skin[joints])
+    moved = np.einsum("vij,vj->vi", per_vertex[:, :3, :3], pos) + per_vertex[:, :3, 3]
+    return moved, np.einsum("vij,mvj->mvi", per_vertex[:, :3, :3], deltas)
+
+
+def _mesh_geometry(reader: _Reader, mesh, path: Path,
+                   skin: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merged neutral (V x 3), triangles and deltas (m x V x 3) of a mesh's primitives: in file units, or
+    skinned at the rest pose by ``skin`` (joint matrices) for primitives with JOINTS_0 / WEIGHTS_0."""
     prims = mesh.primitives or []
     n_targets = max(len(p.targets or []) for p in prims)
     offsets: dict[int, int] = {}
@@ -251,12 +283,14 @@ def _mesh_geometry(reader: _Reader, mesh, path: Path) -> tuple[np.ndarray, np.nd
         if pos_acc not in offsets:
             offsets[pos_acc] = count
             pos = reader.read(pos_acc)
-            positions.append(pos)
             d = np.zeros((n_targets, len(pos), 3))
             for t, target in enumerate(p.targets or []):
                 acc = target.get("POSITION") if isinstance(target, dict) else getattr(target, "POSITION", None)
                 if acc is not None:
                     d[t] = reader.read(acc)
+            if skin is not None:
+                pos, d = _skinned(reader, p, skin, pos, d)
+            positions.append(pos)
             deltas.append(d)
             count += len(pos)
         n = len(positions[list(offsets).index(pos_acc)])
