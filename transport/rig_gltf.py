@@ -40,13 +40,16 @@ def parse_gltf(path: Path):
     import pygltflib as g
 
     data = path.read_bytes()
+    if data[:4] == b"glTF" and (len(data) < 12 or struct.unpack_from("<I", data, 8)[0] != len(data)):
+        declared = struct.unpack_from("<I", data, 8)[0] if len(data) >= 12 else "?"
+        raise RigError(f"{path}: truncated GLB (its header says {declared} bytes, the file has {len(data)})")
     try:
         if data[:4] == b"glTF":
             doc = g.GLTF2.load_from_bytes(data)
         else:
             doc = g.GLTF2.from_json(data.decode("utf-8"))
-    except (ValueError, KeyError, TypeError, UnicodeDecodeError, struct.error) as exc:
-        raise RigError(f"{path}: not a glTF 2.0 file ({exc})") from None
+    except (ValueError, KeyError, TypeError, IndexError, AttributeError, UnicodeDecodeError, struct.error) as exc:
+        raise RigError(f"{path}: not a glTF 2.0 file ({type(exc).__name__}: {exc})") from None
     for ext in doc.extensionsRequired or []:
         if ext in _UNSUPPORTED:
             raise RigError(f"{path}: {_UNSUPPORTED[ext]} meshes ({ext}) are not read; decompress first "
@@ -174,8 +177,18 @@ def _vrm_expressions(doc, node_mesh: dict[int, int]) -> tuple[str, dict[str, lis
 
 
 def read_gltf_rig(path: str | Path, mesh: str | None = None) -> ImportedRig:
-    """The rig of a glTF / GLB / VRM file (see the module doc); ``mesh`` chooses among several meshes."""
+    """The rig of a glTF / GLB / VRM file (see the module doc); ``mesh`` chooses among several meshes.
+    A malformed file (indices past its arrays, wrong types, truncated data) is one RigError naming it."""
     path = Path(path)
+    try:
+        return _read(path, mesh)
+    except RigError:
+        raise
+    except (IndexError, KeyError, TypeError, AttributeError, ValueError, struct.error) as exc:
+        raise RigError(f"{path}: malformed glTF ({type(exc).__name__}: {exc})") from None
+
+
+def _read(path: Path, mesh: str | None) -> ImportedRig:
     doc, buffers = parse_gltf(path)
     reader = _Reader(doc, buffers, path)
     meshes = doc.meshes or []
@@ -287,7 +300,11 @@ def _mesh_geometry(reader: _Reader, mesh, path: Path,
             for t, target in enumerate(p.targets or []):
                 acc = target.get("POSITION") if isinstance(target, dict) else getattr(target, "POSITION", None)
                 if acc is not None:
-                    d[t] = reader.read(acc)
+                    delta = reader.read(acc)
+                    if delta.shape != pos.shape:
+                        raise RigError(f"{path}: mesh {mesh.name!r}: morph target {t} has {len(delta)} vertices, "
+                                       f"its primitive {len(pos)}")
+                    d[t] = delta
             if skin is not None:
                 pos, d = _skinned(reader, p, skin, pos, d)
             positions.append(pos)

@@ -46,10 +46,22 @@ def _triangles(counts: np.ndarray, indices: np.ndarray, left_handed: bool) -> np
 
 
 def read_usd_rig(path: str | Path, mesh: str | None = None) -> ImportedRig:
-    """The rig of a USD stage's face mesh (see the module doc); ``mesh`` chooses by prim name or path."""
-    from pxr import Usd, UsdGeom, UsdSkel
+    """The rig of a USD stage's face mesh (see the module doc); ``mesh`` chooses by prim name or path.
+    A malformed stage is one RigError naming the file."""
+    from pxr import Tf
 
     path = Path(path)
+    try:
+        return _read(path, mesh)
+    except RigError:
+        raise
+    except (Tf.ErrorException, IndexError, TypeError, ValueError) as exc:
+        raise RigError(f"{path}: malformed USD rig ({type(exc).__name__}: {str(exc).strip()[:200]})") from None
+
+
+def _read(path: Path, mesh: str | None) -> ImportedRig:
+    from pxr import Usd, UsdGeom, UsdSkel
+
     stage = _open(path)
     prims = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh) and p.HasAPI(UsdSkel.BindingAPI)
              and UsdSkel.BindingAPI(p).GetBlendShapesAttr().Get()]
