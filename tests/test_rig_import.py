@@ -253,3 +253,39 @@ def test_any_parent_transform_is_undone(tmp_path, t, q, scale, as_matrix):
     tol = 1e-3 * (0.2 + np.abs(t).max())  # mm: ~4 float32 steps of the stored local coordinates, scaled back
     np.testing.assert_allclose(got.neutral, src.neutral * 1000, atol=tol)
     np.testing.assert_allclose(got.deltas, src.deltas * 1000, atol=tol)
+
+
+def test_quantized_positions_and_targets(tmp_path):
+    """KHR_mesh_quantization (what gltfpack writes): normalized int16 positions and int8 targets (strided to 8
+    and 4 bytes), dequantized by the node's scale; read back to within half a quantization step."""
+    import pygltflib as g
+
+    rng = np.random.default_rng(2)
+    neutral = rng.uniform(-0.1, 0.1, (40, 3))
+    delta = rng.uniform(-0.01, 0.01, (40, 3))
+    q_pos = np.zeros((40, 4), np.int16)
+    q_pos[:, :3] = np.round(neutral / 0.1 * 32767)
+    q_delta = np.zeros((40, 4), np.int8)
+    q_delta[:, :3] = np.round(delta / 0.1 * 127)
+    blob = q_pos.tobytes() + q_delta.tobytes()
+    blob += b"\0" * (-len(blob) % 4)
+    doc = g.GLTF2(asset=g.Asset(version="2.0"), scene=0, scenes=[g.Scene(nodes=[0])],
+                  extensionsUsed=["KHR_mesh_quantization"], extensionsRequired=["KHR_mesh_quantization"],
+                  buffers=[g.Buffer(byteLength=len(blob))],
+                  bufferViews=[g.BufferView(buffer=0, byteOffset=0, byteLength=q_pos.nbytes, byteStride=8),
+                               g.BufferView(buffer=0, byteOffset=q_pos.nbytes, byteLength=q_delta.nbytes,
+                                            byteStride=4)],
+                  accessors=[g.Accessor(bufferView=0, componentType=g.SHORT, normalized=True, count=40, type=g.VEC3,
+                                        min=q_pos[:, :3].min(0).tolist(), max=q_pos[:, :3].max(0).tolist()),
+                             g.Accessor(bufferView=1, componentType=g.BYTE, normalized=True, count=40, type=g.VEC3,
+                                        min=q_delta[:, :3].min(0).tolist(), max=q_delta[:, :3].max(0).tolist())],
+                  meshes=[g.Mesh(name="face", extras={"targetNames": ["open"]}, primitives=[g.Primitive(
+                      attributes=g.Attributes(POSITION=0), targets=[{"POSITION": 1}], mode=g.POINTS)])],
+                  nodes=[g.Node(mesh=0, scale=[0.1] * 3)])
+    doc.set_binary_blob(blob)
+    doc.save_binary(str(tmp_path / "q.glb"))
+    report = validate(tmp_path / "q.glb")
+    assert report["issues"]["numErrors"] == 0, [m for m in report["issues"]["messages"] if m["severity"] == 0]
+    rig = import_rig(tmp_path / "q.glb").rig
+    np.testing.assert_allclose(rig.neutral, neutral * 1000, atol=0.1 / 32767 * 1000 * 0.51)
+    np.testing.assert_allclose(rig.deltas[0], delta * 1000, atol=0.1 / 127 * 1000 * 0.51)
