@@ -41,11 +41,11 @@ def _read(paths: list[str], base: np.ndarray, tris: np.ndarray) -> dict[str, np.
 
 def run(args: argparse.Namespace) -> int:
     if args.demo:
-        from livecap.core.rig import Rig
         from livecap.demo import DEMO_RIG
         from livecap.demo.keymodels import key_models
+        from transport.rig_files import load_rig
 
-        rig = Rig.load(args.rig or Path(__file__).resolve().parents[2] / "recordings" / DEMO_RIG)
+        rig = load_rig(args.rig or Path(__file__).resolve().parents[2] / "recordings" / DEMO_RIG)
         base, tris = rig.neutral, rig.triangles
         emotional, verbal = key_models(rig)
     else:

@@ -55,6 +55,7 @@ def _rig(name: str, markers: str | None = None):
     from livecap.core.markers import MarkerLayout
     from livecap.core.rig import Rig
     from livecap.demo import DEMO_MARKERS, DEMO_RIG
+    from transport.rig_files import load_rig
 
     if name == "demo":
         rec = Path(__file__).resolve().parents[2] / "recordings"
@@ -63,7 +64,7 @@ def _rig(name: str, markers: str | None = None):
     path = _realdata() / "ict-face" if name == "ict" else Path(name)
     if not path.exists():
         raise ValueError(f"{path}: rig not found")
-    rig = Rig.load(path)
+    rig = load_rig(path)
     mpath = path / "markers.json" if path.is_dir() else path.with_name(path.stem + ".markers.json")
     mpath = Path(markers) if markers and not mpath.exists() else mpath
     if not mpath.exists():
