@@ -15,7 +15,7 @@ def register(sub) -> None:
                                    "shape and an animation of the weight curves (head pose: use 'livecap solve "
                                    "--out take.glb').")
     p.add_argument("weights", help="weights CSV from 'livecap solve' (frame,time,<shape>...)")
-    p.add_argument("--rig", required=True, help="rig: OBJ folder or .npz")
+    p.add_argument("--rig", required=True, help="rig: OBJ folder, .npz, glTF/GLB, VRM or USD (docs/rigs.md)")
     p.add_argument("--out", required=True, help="output .glb")
     p.set_defaults(func=run)
 

@@ -16,7 +16,8 @@ def register(sub) -> None:
                        "linear cloning matrix fitted to pose pairs")
     p.add_argument("weights", help="source weights CSV (frame,time,<shape>...)")
     p.add_argument("--out", required=True, help="target weights CSV")
-    p.add_argument("--target-rig", help="target rig (OBJ folder or .npz): its shape names are the output channels")
+    p.add_argument("--target-rig", help="target rig (OBJ folder, .npz, glTF/VRM/USD file): its shape names are "
+                   "the output channels")
     p.add_argument("--config", help="mapping config (.toml or .json): per-channel source, gain, offset, clamp")
     p.add_argument("--pairs", nargs=2, metavar=("SOURCE_POSES", "TARGET_POSES"),
                    help="two weights CSVs whose rows are corresponding poses: fit E (v = E w) and apply it")

@@ -13,7 +13,7 @@ def register(sub) -> None:
                         description="Lewis et al. 2014 §7.8-7.9; used by --mode kalman through --prior, its "
                                     "strength chosen on each take by held-out markers.")
     b.add_argument("curves", nargs="+", help="Live Link Face CSVs")
-    b.add_argument("--rig", required=True, help="rig (folder or .npz) whose shapes the prior is over")
+    b.add_argument("--rig", required=True, help="rig (folder, .npz, glTF/VRM/USD file) whose shapes the prior is over")
     b.add_argument("--mapping", help="ARKit name mapping JSON for rigs whose names are not ARKit's")
     b.add_argument("--out", required=True, help="prior .npz to write")
     b.set_defaults(func=run_build)
