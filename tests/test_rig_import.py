@@ -166,7 +166,7 @@ def test_whole_ict_rig_as_vrm_through_the_cli(tmp_path, ict_obj):
     assert f"{ref.n_vertices} vertices" in info.stdout and "53 shapes" in info.stdout
 
 
-def test_whole_makehuman_rig_as_usd_through_the_cli(tmp_path):
+def test_whole_makehuman_rig_as_usd_glb_and_vrm(tmp_path):
     pytest.importorskip("pxr", reason="usd-core not installed (pip install -e .[dev])")
     folder = _folder(MAKEHUMAN)
     ref = Rig.load(folder)
@@ -174,8 +174,9 @@ def test_whole_makehuman_rig_as_usd_through_the_cli(tmp_path):
     done = livecap("rig", "import", usd, "--out", tmp_path / "head")
     assert done.returncode == 0, done.stderr
     assert_same_rig(Rig.load(tmp_path / "head"), ref)
-    glb = write_gltf(tmp_path / "head.glb", read_obj_rig(folder, None, 0.01))
-    assert_same_rig(load_rig(glb), ref)
+    src = read_obj_rig(folder, None, 0.01)
+    for vrm, name in ((None, "head.glb"), (0, "head0.vrm"), (1, "head1.vrm")):
+        assert_same_rig(load_rig(write_gltf(tmp_path / name, src, vrm=vrm, sparse=vrm == 1)), ref)
 
 
 def test_a_file_without_morph_targets_is_one_clear_line(tmp_path, ict_obj):
