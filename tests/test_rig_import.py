@@ -101,6 +101,14 @@ def test_vrm_shapes_named_by_the_expressions_that_drive_them_alone(tmp_path, ict
     assert done.returncode == 1 and "no VRM expressions" in done.stderr
 
 
+def test_markers_that_do_not_fit_the_mesh_stop_the_import_before_it_writes(tmp_path):
+    folder = _folder(MAKEHUMAN)
+    glb = write_gltf(tmp_path / "head.glb", read_obj_rig(folder, ["mouth-open"], 0.01))
+    done = livecap("rig", "import", glb, "--out", tmp_path / "head.npz", "--markers", ICT / "markers.json")
+    assert done.returncode == 1 and "outside the rig's 0..4259" in done.stderr
+    assert not (tmp_path / "head.npz").exists()
+
+
 @pytest.mark.parametrize("meters_per_unit, up", [(0.01, "Z"), (1.0, "Y")])
 def test_usd_blend_shapes_give_the_obj_folders_rig(tmp_path, ict_obj, meters_per_unit, up):
     """metersPerUnit, a Z-up stage, the Xform above the mesh, dense and sparse (pointIndices) offsets."""

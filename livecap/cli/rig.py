@@ -87,6 +87,7 @@ def run_import(args: argparse.Namespace) -> int:
             raise ValueError(f"{args.file}: --names expressions: the file has no VRM expressions for mesh "
                              f"{imported.mesh!r}")
         imported = named_by_expressions(imported)
+    layout = MarkerLayout.load(args.markers, imported.rig) if args.markers else None  # before writing anything
     out = Path(args.out)
     if out.suffix.lower() == ".npz":
         imported.rig.save(out)
@@ -99,8 +100,7 @@ def run_import(args: argparse.Namespace) -> int:
         epath.write_text(json.dumps({"format": imported.format, "mesh": imported.mesh,
                                      "expressions": imported.expressions}, indent=1))
         print(f"  expression table (expression -> {{shape: weight}}) {epath}")
-    if args.markers:
-        layout = MarkerLayout.load(args.markers, imported.rig)
+    if layout is not None:
         layout.save(markers_path(out))
         print(f"  {layout.n_markers} markers {markers_path(out)}")
     return 0
