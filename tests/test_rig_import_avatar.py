@@ -154,3 +154,33 @@ def test_a_rig_named_by_the_vrms_expressions_sends_its_clips_over_vmc_and_animat
     keys = np.frombuffer(doc.binary_blob(), np.float32, acc.count, view.byteOffset).reshape(len(weights), -1)
     assert keys.shape[1] == len(perf.names)  # every target of the face mesh, in its order
     np.testing.assert_allclose(keys[:, perf.names.index("jawOpen")], weights[:, names.index("JawOpen")], atol=1e-6)
+
+
+def test_the_solves_head_rotation_turns_the_vrms_head_bone(avatar, tmp_path):
+    """``solve --out take.glb`` then ``rig animate avatar.vrm --weights take.glb``: three.js plays the VRM 0's
+    head bone turned as the actor's head turned (truth, relative to the neutral second) within 2 degrees, the
+    VRM's -Z facing and the bone's rest rotation undone."""
+    from scipy.spatial.transform import Rotation
+
+    from tests.rig_writers import PARENT_Q
+
+    vrm, take, perf = avatar
+    livecap("solve", take, "--rig", vrm, "--out", tmp_path / "take.glb")
+    done = livecap("rig", "animate", vrm, "--weights", tmp_path / "take.glb", "--out", tmp_path / "out.vrm")
+    assert "and the head bone" in done.stdout
+    assert validate(tmp_path / "out.vrm")["issues"]["numErrors"] == 0
+    node = shutil.which("node")
+    if node is None or not (TOOL / "node_modules" / "three").is_dir():
+        pytest.skip(f"three.js not installed (run ./dev: needs node and npm install in {TOOL})")
+    truth = Rotation.from_quat(perf.head_rotation)
+    rel = truth * Rotation.from_quat(perf.head_rotation[:120]).mean().inv()  # world turn from the neutral second
+    frames = [int(np.argmax(rel.magnitude())), 200]
+    played = json.loads(subprocess.run([node, str(TOOL / "three_play.mjs"), str(tmp_path / "out.vrm"),
+                                        *(str(f / 120.0) for f in frames)],
+                                       capture_output=True, text=True, timeout=120, check=True).stdout)
+    flip = Rotation.from_euler("y", 180, degrees=True)  # the rig's axes are VRM 0's turned about +Y
+    for f, got in zip(frames, played["frames"], strict=True):
+        turn = Rotation.from_quat(got["rotations"]["Head"]) * Rotation.from_quat(PARENT_Q).inv()
+        err = (flip * turn * flip.inv() * rel[f].inv()).magnitude()
+        assert np.degrees(err) < 2.0, (f, np.degrees(rel[f].magnitude()), np.degrees(err))
+    assert np.degrees(rel[frames[0]].magnitude()) > 10

@@ -72,7 +72,7 @@ def parse_gltf(path: Path):
     return doc, buffers
 
 
-class _Reader:
+class Reader:
     """Accessors as float64 arrays (normalized and sparse ones too)."""
 
     def __init__(self, doc, buffers: list[bytes], path: Path) -> None:
@@ -121,7 +121,7 @@ def _node_matrix(node) -> np.ndarray:
     return m
 
 
-def _world_matrices(doc) -> dict[int, np.ndarray]:
+def world_matrices(doc) -> dict[int, np.ndarray]:
     """World matrix of every node reachable from the scene (or from every root when there is none)."""
     nodes = doc.nodes or []
     if doc.scenes:
@@ -190,7 +190,7 @@ def read_gltf_rig(path: str | Path, mesh: str | None = None) -> ImportedRig:
 
 def _read(path: Path, mesh: str | None) -> ImportedRig:
     doc, buffers = parse_gltf(path)
-    reader = _Reader(doc, buffers, path)
+    reader = Reader(doc, buffers, path)
     meshes = doc.meshes or []
     with_targets = [i for i, m in enumerate(meshes) if any(p.targets for p in m.primitives or [])]
     nodes = doc.nodes or []
@@ -201,7 +201,7 @@ def _read(path: Path, mesh: str | None) -> ImportedRig:
     preferred = names[with_targets.index(max(set(bound), key=bound.count))] if bound else None
     k = choose_mesh(path, names, mesh, preferred)
     mesh_index = with_targets[k]
-    world = _world_matrices(doc)
+    world = world_matrices(doc)
     users = [i for i in sorted(world) if nodes[i].mesh == mesh_index]
     node = users[0] if users else None
     skin = None if node is None or nodes[node].skin is None else _skin_matrices(reader, doc, world, nodes[node].skin)
@@ -212,14 +212,14 @@ def _read(path: Path, mesh: str | None) -> ImportedRig:
     neutral = (neutral @ m[:3, :3].T + m[:3, 3]) * 1000.0
     deltas = deltas @ m[:3, :3].T * 1000.0
 
-    target_names = _target_names(meshes[mesh_index], len(deltas))
+    shape_names = target_names(meshes[mesh_index], len(deltas))
     try:
-        rig = Rig(neutral, triangles, target_names, deltas)
+        rig = Rig(neutral, triangles, shape_names, deltas)
     except RigError as exc:
         raise RigError(f"{path}: mesh {names[k]!r}: {exc}") from None
-    expressions = {e: {target_names[t]: w for mi, t, w in binds if mi == mesh_index and 0 <= t < len(target_names)}
+    expressions = {e: {shape_names[t]: w for mi, t, w in binds if mi == mesh_index and 0 <= t < len(shape_names)}
                    for e, binds in table.items()}
-    return ImportedRig(rig, fmt, names[k], tuple(names), tuple(range(len(target_names))),
+    return ImportedRig(rig, fmt, names[k], tuple(names), tuple(range(len(shape_names))),
                        {e: b for e, b in expressions.items() if b}, node)
 
 
@@ -243,7 +243,7 @@ def _node_name(nodes, mesh_index: int) -> str | None:
     return next((n.name for n in nodes if n.mesh == mesh_index and n.name), None)
 
 
-def _target_names(mesh, count: int) -> list[str]:
+def target_names(mesh, count: int) -> list[str]:
     for extras in [mesh.extras] + [p.extras for p in mesh.primitives or []]:
         names = (extras or {}).get("targetNames") if isinstance(extras, dict) else None
         if isinstance(names, list) and len(names) == count:
@@ -251,7 +251,7 @@ def _target_names(mesh, count: int) -> list[str]:
     return [f"target{i}" for i in range(count)]
 
 
-def _skin_matrices(reader: _Reader, doc, world: dict[int, np.ndarray], index: int) -> np.ndarray:
+def _skin_matrices(reader: Reader, doc, world: dict[int, np.ndarray], index: int) -> np.ndarray:
     """Each joint's world matrix times its inverse bind matrix (glTF §3.7.3.3): the rest pose's skinning."""
     skin = doc.skins[index]
     joints = skin.joints or []
@@ -264,7 +264,7 @@ def _skin_matrices(reader: _Reader, doc, world: dict[int, np.ndarray], index: in
     return np.stack([world.get(j, np.eye(4)) @ ibm[i] for i, j in enumerate(joints)]).reshape(-1, 4, 4)
 
 
-def _skinned(reader: _Reader, prim, skin: np.ndarray, pos: np.ndarray, deltas: np.ndarray):
+def _skinned(reader: Reader, prim, skin: np.ndarray, pos: np.ndarray, deltas: np.ndarray):
     """Positions and deltas of a skinned primitive at the rest pose: linear blend of its joints' matrices."""
     attrs = prim.attributes
     if attrs.JOINTS_0 is None or attrs.WEIGHTS_0 is None:
@@ -280,7 +280,7 @@ def _skinned(reader: _Reader, prim, skin: np.ndarray, pos: np.ndarray, deltas: n
     return moved, np.einsum("vij,mvj->mvi", per_vertex[:, :3, :3], deltas)
 
 
-def _mesh_geometry(reader: _Reader, mesh, path: Path,
+def _mesh_geometry(reader: Reader, mesh, path: Path,
                    skin: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Merged neutral (V x 3), triangles and deltas (m x V x 3) of a mesh's primitives: in file units, or
     skinned at the rest pose by ``skin`` (joint matrices) for primitives with JOINTS_0 / WEIGHTS_0."""

@@ -46,7 +46,8 @@ def register(sub) -> None:
                     "of its face mesh's morph-target weights from a weights CSV solved on that same file's rig "
                     "(livecap solve --rig FILE). The output is a GLB container (.glb or .vrm).")
     a.add_argument("file", help="the rig file the weights were solved for: .glb, .gltf or .vrm")
-    a.add_argument("--weights", required=True, help="weights CSV (frame,time,<shape>...) from livecap solve")
+    a.add_argument("--weights", required=True, help="weights CSV (frame,time,<shape>...) from livecap solve, or "
+                   "the .glb of livecap solve --out take.glb, whose head rotation then turns a VRM's head bone")
     a.add_argument("--out", required=True, help="output .glb or .vrm")
     a.add_argument("--mesh", help="the mesh, as given to livecap rig import / chosen by default")
     a.set_defaults(func=run_animate)
@@ -108,7 +109,7 @@ def run_import(args: argparse.Namespace) -> int:
 
 def run_animate(args: argparse.Namespace) -> int:
     from transport.rig_files import GLTF_SUFFIXES, import_rig
-    from transport.rig_gltf_anim import animate_gltf
+    from transport.rig_gltf_anim import animate_gltf, read_solved_glb
     from transport.weights_csv import read_weights_csv
 
     if Path(args.file).suffix.lower() not in GLTF_SUFFIXES:
@@ -116,10 +117,15 @@ def run_animate(args: argparse.Namespace) -> int:
     if Path(args.out).suffix.lower() not in (".glb", ".vrm"):
         raise ValueError(f"--out {args.out}: the output is a GLB container (.glb or .vrm)")
     imported = import_rig(args.file, args.mesh)
-    names, weights, times = read_weights_csv(args.weights)
-    n = animate_gltf(args.file, args.out, imported, names, times, weights, Path(args.out).stem)
+    rotation = None
+    if Path(args.weights).suffix.lower() == ".glb":
+        names, times, weights, rotation = read_solved_glb(args.weights)
+        rotation = rotation if imported.format.startswith("VRM") else None
+    else:
+        names, weights, times = read_weights_csv(args.weights)
+    n = animate_gltf(args.file, args.out, imported, names, times, weights, Path(args.out).stem, rotation)
     print(f"{args.out}: {args.file} with an animation of mesh {imported.mesh!r} ({len(times)} frames, "
-          f"{len(names)} of its {n} morph targets)")
+          f"{len(names)} of its {n} morph targets{', and the head bone' if rotation is not None else ''})")
     return 0
 
 

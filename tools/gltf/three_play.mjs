@@ -1,5 +1,6 @@
 // Load a .glb/.vrm with three.js's GLTFLoader, play its first animation with an AnimationMixer at the given
-// times (seconds) and print every morphed mesh's target names and influences there (JSON on stdout).
+// times (seconds) and print every morphed mesh's target names and influences there, and the local quaternion
+// (x, y, z, w) of every node a rotation track turns (JSON on stdout).
 import fs from "node:fs";
 import * as THREE from "three";
 import { GLTFLoader } from "three/examples/jsm/loaders/GLTFLoader.js";
@@ -13,9 +14,13 @@ new GLTFLoader().parse(buffer, "", (gltf) => {
   const clip = gltf.animations[0];
   const mixer = new THREE.AnimationMixer(gltf.scene);
   mixer.clipAction(clip).play();
+  const turned = clip.tracks.filter((t) => t.name.endsWith(".quaternion")).map((t) => t.name.split(".")[0]);
   const frames = times.map(Number).map((t) => {
     mixer.setTime(t);
-    return Object.fromEntries(meshes.map((m) => [m.name, Array.from(m.morphTargetInfluences)]));
+    return {
+      ...Object.fromEntries(meshes.map((m) => [m.name, Array.from(m.morphTargetInfluences)])),
+      rotations: Object.fromEntries(turned.map((n) => [n, gltf.scene.getObjectByName(n).quaternion.toArray()])),
+    };
   });
   console.log(JSON.stringify({
     clip: clip.name, duration: clip.duration, tracks: clip.tracks.map((t) => t.name),
