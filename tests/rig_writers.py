@@ -194,9 +194,21 @@ def _transform(t: np.ndarray, q: np.ndarray, scale: float, as_matrix: bool) -> d
     return {"matrix": m.T.ravel().tolist()}  # glTF matrices are column-major
 
 
+BODY_BONES = ["hips", "spine", "leftUpperArm", "leftLowerArm", "leftHand", "rightUpperArm", "rightLowerArm",
+              "rightHand", "leftUpperLeg", "leftLowerLeg", "leftFoot", "rightUpperLeg", "rightLowerLeg", "rightFoot"]
+
+
 def _vrm_extension(doc, names: list[str], version: int) -> None:
-    """Presets (A / aa = jawOpen; Blink / blink = both eye blinks) and one Perfect Sync clip per ARKit shape."""
+    """Presets (A / aa = jawOpen; Blink / blink = both eye blinks) and one Perfect Sync clip per ARKit shape;
+    the humanoid bones a VRM runtime requires (empty nodes under "Hips", the head bone "Head")."""
+    import pygltflib as g
+
     index = {n: i for i, n in enumerate(names)}
+    first = len(doc.nodes)
+    doc.nodes += [g.Node(name=b, translation=[0.0, 0.05 * k, 0.0]) for k, b in enumerate(BODY_BONES)]
+    doc.nodes[first].children = list(range(first + 1, len(doc.nodes)))
+    doc.nodes[0].children.append(first)
+    bones = {**{b: first + k for k, b in enumerate(BODY_BONES)}, "head": 2}
     presets = {"aa": ["jawOpen"], "blink": ["eyeBlink_L", "eyeBlink_R"]}
     clips = {k: [v] for k, v in perfect_sync_names(names).items()}
     if version == 0:
@@ -209,7 +221,7 @@ def _vrm_extension(doc, names: list[str], version: int) -> None:
         doc.extensionsUsed = ["VRM"]
         doc.extensions = {"VRM": {"exporterVersion": "livecap tests", "specVersion": "0.0",
                                   "meta": {"title": "test", "version": "1"},
-                                  "humanoid": {"humanBones": [{"bone": "head", "node": 2}]},
+                                  "humanoid": {"humanBones": [{"bone": b, "node": n} for b, n in bones.items()]},
                                   "blendShapeMaster": {"blendShapeGroups": groups}}}
         return
 
@@ -217,8 +229,9 @@ def _vrm_extension(doc, names: list[str], version: int) -> None:
         return {"morphTargetBinds": [{"node": 3, "index": index[n], "weight": 1.0} for n in shapes if n in index]}
 
     doc.extensionsUsed = ["VRMC_vrm"]
-    doc.extensions = {"VRMC_vrm": {"specVersion": "1.0", "meta": {"name": "test", "licenseUrl": "https://vrm.dev"},
-                                   "humanoid": {"humanBones": {"head": {"node": 2}}},
+    meta = {"name": "test", "authors": ["livecap tests"], "licenseUrl": "https://vrm.dev/licenses/1.0/"}
+    doc.extensions = {"VRMC_vrm": {"specVersion": "1.0", "meta": meta,
+                                   "humanoid": {"humanBones": {b: {"node": n} for b, n in bones.items()}},
                                    "expressions": {"preset": {p: expr(s) for p, s in presets.items()},
                                                    "custom": {c: expr(s) for c, s in clips.items()}}}}
 

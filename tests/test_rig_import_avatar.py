@@ -184,3 +184,54 @@ def test_the_solves_head_rotation_turns_the_vrms_head_bone(avatar, tmp_path):
         err = (flip * turn * flip.inv() * rel[f].inv()).magnitude()
         assert np.degrees(err) < 2.0, (f, np.degrees(rel[f].magnitude()), np.degrees(err))
     assert np.degrees(rel[frames[0]].magnitude()) > 10
+
+
+def _vrm_tools() -> str:
+    node = shutil.which("node")
+    if node is None or not (TOOL / "node_modules" / "@pixiv" / "three-vrm-animation").is_dir():
+        pytest.skip(f"three-vrm not installed (run ./dev: needs node and npm install in {TOOL})")
+    return node
+
+
+def test_a_vrm_runtime_resets_a_weights_animation_but_plays_the_vrma(avatar, tmp_path):
+    """three-vrm (@pixiv/three-vrm, the VRM runtime of three.js apps) reads the avatar's expressions as the
+    importer does; it resets the morph targets they bind on every update, so the weights animation in the
+    .vrm is lost there, while the .vrma (``rig animate --out take.vrma``) drives those expressions: the face's
+    targets follow the solve to 1e-6 and the head bone turns as the actor's head within 2 degrees."""
+    from scipy.spatial.transform import Rotation
+
+    node = _vrm_tools()
+    vrm, take, perf = avatar
+    livecap("solve", take, "--rig", vrm, "--out", tmp_path / "take.glb")
+    livecap("rig", "animate", vrm, "--weights", tmp_path / "take.glb", "--out", tmp_path / "out.vrm")
+    livecap("rig", "animate", vrm, "--weights", tmp_path / "take.glb", "--out", tmp_path / "take.vrma")
+    assert validate(tmp_path / "take.vrma")["issues"]["numErrors"] == 0
+
+    def run(*args) -> dict:
+        return json.loads(subprocess.run([node, *map(str, args)], capture_output=True, text=True, timeout=120,
+                                         check=True).stdout)
+
+    seen = run(TOOL / "vrm_expressions.mjs", vrm)["expressions"]
+    table = import_rig(vrm).expressions
+    vrm1 = {"A": "aa", "Blink": "blink"}  # three-vrm names VRM 0.x presets as VRM 1.0 does
+    assert {vrm1.get(e, e): b for e, b in table.items()} == {e: m["FaceNode"] for e, m in seen.items()}
+
+    t = 2.0
+    wiped = run(TOOL / "vrm_expressions.mjs", tmp_path / "out.vrm", t)["played"]
+    jaw = perf.names.index("jawOpen")
+    assert wiped["before"]["FaceNode"][jaw] > 0.3 and wiped["after"]["FaceNode"][jaw] == 0.0
+
+    from transport.rig_gltf_anim import read_solved_glb
+
+    names, times, weights, rotation = read_solved_glb(tmp_path / "take.glb")
+    frames = [int(np.argmax(Rotation.from_quat(rotation).magnitude())), int(t * 120)]
+    played = run(TOOL / "vrma_play.mjs", vrm, tmp_path / "take.vrma", *(times[f] for f in frames))
+    keyed = [names.index(s) for s in ("jawOpen", "eyeBlink_L", "mouthSmile_L")]
+    flip = Rotation.from_euler("y", 180, degrees=True)  # the rig's axes are VRM 0's turned about +Y
+    truth = Rotation.from_quat(perf.head_rotation)
+    rel = truth * Rotation.from_quat(perf.head_rotation[:120]).mean().inv()
+    for f, got in zip(frames, played["frames"], strict=True):
+        np.testing.assert_allclose(np.array(got["FaceNode"])[keyed], weights[f, keyed], atol=1e-6)
+        err = (flip.inv() * Rotation.from_quat(got["head"]) * flip * rel[f].inv()).magnitude()
+        assert np.degrees(err) < 2.0, (f, np.degrees(rel[f].magnitude()), np.degrees(err))
+    assert weights[frames[1], keyed[0]] > 0.3

@@ -48,7 +48,8 @@ def register(sub) -> None:
     a.add_argument("file", help="the rig file the weights were solved for: .glb, .gltf or .vrm")
     a.add_argument("--weights", required=True, help="weights CSV (frame,time,<shape>...) from livecap solve, or "
                    "the .glb of livecap solve --out take.glb, whose head rotation then turns a VRM's head bone")
-    a.add_argument("--out", required=True, help="output .glb or .vrm")
+    a.add_argument("--out", required=True, help="output .glb or .vrm (the file with the animation), or .vrma (a VRM "
+                   "animation of its expressions alone, what VRM runtimes play)")
     a.add_argument("--mesh", help="the mesh, as given to livecap rig import / chosen by default")
     a.set_defaults(func=run_animate)
     t = rsub.add_parser(
@@ -114,8 +115,9 @@ def run_animate(args: argparse.Namespace) -> int:
 
     if Path(args.file).suffix.lower() not in GLTF_SUFFIXES:
         raise ValueError(f"{args.file}: animations are written back into glTF, GLB and VRM files only")
-    if Path(args.out).suffix.lower() not in (".glb", ".vrm"):
-        raise ValueError(f"--out {args.out}: the output is a GLB container (.glb or .vrm)")
+    suffix = Path(args.out).suffix.lower()
+    if suffix not in (".glb", ".vrm", ".vrma"):
+        raise ValueError(f"--out {args.out}: the output is a GLB container (.glb or .vrm) or a VRM animation (.vrma)")
     imported = import_rig(args.file, args.mesh)
     rotation = None
     if Path(args.weights).suffix.lower() == ".glb":
@@ -123,6 +125,15 @@ def run_animate(args: argparse.Namespace) -> int:
         rotation = rotation if imported.format.startswith("VRM") else None
     else:
         names, weights, times = read_weights_csv(args.weights)
+    if suffix == ".vrma":
+        from transport.vrma import write_vrma
+
+        if not imported.format.startswith("VRM"):
+            raise ValueError(f"{args.file}: a VRM animation (.vrma) is made for a VRM file's expressions")
+        n = write_vrma(args.out, args.file, imported, names, times, weights, rotation)
+        print(f"{args.out}: VRM animation of {n} expressions of {args.file} ({len(times)} frames"
+              f"{', and the head bone' if rotation is not None else ''})")
+        return 0
     n = animate_gltf(args.file, args.out, imported, names, times, weights, Path(args.out).stem, rotation)
     print(f"{args.out}: {args.file} with an animation of mesh {imported.mesh!r} ({len(times)} frames, "
           f"{len(names)} of its {n} morph targets{', and the head bone' if rotation is not None else ''})")
