@@ -4,11 +4,9 @@ which are compared with the offscreen renderer's frame of the same weights (face
 
 from __future__ import annotations
 
-import json
 import shutil
 import tempfile
 import time
-import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -59,8 +57,9 @@ def wait(driver, script, timeout=30.0, what="the page"):
 
 
 def api(server, path):
-    with urllib.request.urlopen(server.url.rstrip("/") + path, timeout=30) as r:
-        return json.loads(r.read())
+    status, body = server.request(path)
+    assert status == 200, body
+    return body
 
 
 def face_mask(png: bytes) -> np.ndarray:
@@ -100,7 +99,7 @@ def test_scrub_edit_drag(page):
     driver, server = page
     meta = api(server, "/api/meta")
     names = meta["names"]
-    undo0 = api(server, "/api/curves")["undo"]  # the server is shared with the API tests
+    version0 = api(server, "/api/curves")["version"]  # the server is shared with the API tests
     for box in ("show-pose", "show-markers"):  # compare the bare face with the offscreen renderer's
         driver.find_element("id", box).click()
 
@@ -133,7 +132,7 @@ def test_scrub_edit_drag(page):
     curves = api(server, "/api/curves")
     j = names.index("jawOpen")
     assert curves["weights"][j][frame] == pytest.approx(0.95, abs=1e-4)
-    assert curves["undo"] == undo0 + 1
+    assert curves["version"] == version0 + 1
     edited = api(server, f"/api/frame/{frame}")["weights"]
     after_edit = face_mask(canvas.screenshot_as_png)
     assert iou(after_edit, offscreen_mask(dict(zip(names, edited, strict=True)))) > 0.9
@@ -162,7 +161,7 @@ def test_scrub_edit_drag(page):
     dragged = api(server, f"/api/frame/{frame}")["weights"]
     np.testing.assert_allclose(dragged, commit["weights"], atol=1e-9)
     assert dragged[j] < edited[j] - 0.05  # dragging the chin up closes the jaw
-    assert api(server, "/api/curves")["undo"] == undo0 + 2
+    assert api(server, "/api/curves")["version"] == version0 + 2
     wait(driver, f"return window.review.current && window.review.current.weights[{j}] === {dragged[j]!r}",
          what="the page to show the committed drag")
     assert iou(face_mask(canvas.screenshot_as_png), offscreen_mask(dict(zip(names, dragged, strict=True)))) > 0.9
