@@ -35,6 +35,7 @@ def page(review_server):
               "--enable-unsafe-swiftshader", "--use-angle=swiftshader", f"--user-data-dir={profile}",
               "--window-size=1400,1000", "--force-device-scale-factor=1"):
         opts.add_argument(a)
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
     driver = webdriver.Chrome(options=opts, service=Service(str(DRIVER)))
     try:
         driver.get(server.url)
@@ -165,3 +166,49 @@ def test_scrub_edit_drag(page):
     wait(driver, f"return window.review.current && window.review.current.weights[{j}] === {dragged[j]!r}",
          what="the page to show the committed drag")
     assert iou(face_mask(canvas.screenshot_as_png), offscreen_mask(dict(zip(names, dragged, strict=True)))) > 0.9
+
+
+def test_page_polish(page, tmp_path):
+    """Issue 37 item 8: a time axis, labelled faces, the edit box inside its column, no console 404."""
+    driver, server = page
+    meta = api(server, "/api/meta")
+    # the time axis: round steps in seconds under the curves, drawn (not background) in its band
+    axis = driver.execute_script("return window.review.axis")
+    duration = (meta["n_frames"] - 1) / meta["rate"]
+    assert len(axis["ticks"]) >= 4 and axis["ticks"][0] == 0 and axis["ticks"][-1] <= duration + 1e-9
+    assert duration - axis["ticks"][-1] < axis["step"]
+    import cv2
+
+    tl = driver.find_element("id", "timeline")
+    shot = tl.screenshot_as_png
+    (tmp_path / "timeline.png").write_bytes(shot)
+    img = cv2.imdecode(np.frombuffer(shot, np.uint8), cv2.IMREAD_COLOR)
+    band = img[int(axis["y"]) + 5:, 60:]
+    assert (np.abs(band.astype(int) - band[0, 0].astype(int)).max(axis=2) > 60).sum() > 200  # tick labels
+    # the two faces are labelled, each over its own face
+    if not driver.find_element("id", "show-truth").is_selected():
+        driver.find_element("id", "show-truth").click()
+    wait(driver, "return document.getElementById('label-truth').style.display !== 'none'", what="the truth label")
+    (tmp_path / "faces.png").write_bytes(driver.find_element("id", "view").screenshot_as_png)
+    view = driver.find_element("id", "view").rect
+    labels = {}
+    for name in ("solve", "truth"):
+        el = driver.find_element("id", f"label-{name}")
+        assert el.is_displayed() and el.text == name
+        labels[name] = el.rect["x"] + el.rect["width"] / 2 - view["x"]
+        assert 0 < labels[name] < view["width"]
+    assert abs(labels["solve"] - labels["truth"]) > 120
+    mask = face_mask(driver.find_element("id", "face").screenshot_as_png)
+    for x in labels.values():  # a face under each label
+        assert mask[:, max(0, int(x) - 10):int(x) + 10].sum() > 500
+    # every control of the side column stays inside it
+    over = driver.execute_script("""
+        const side = document.getElementById('side').getBoundingClientRect();
+        return [...document.querySelectorAll('#side *')].filter((e) => e.getBoundingClientRect().width > 0)
+          .map((e) => [e.id || e.tagName, e.getBoundingClientRect().right - side.right]).filter((d) => d[1] > 0.5);""")
+    assert over == []
+    # the favicon is served: no 404 in the console
+    status = driver.execute_async_script("fetch('/favicon.ico').then((r) => arguments[0](r.status))")
+    assert status == 200
+    errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
+    assert errors == [], errors
