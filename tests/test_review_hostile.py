@@ -75,15 +75,14 @@ def test_foreign_pages_can_neither_change_nor_read_the_session(server):
     assert raw(server, "/api/meta", None, {"Host": host.replace("127.0.0.1", "localhost"), **ok})[0] == 200
 
 
-def test_the_printed_url_sets_a_cookie_and_the_page_carries_the_token(server):
+def test_the_printed_url_gives_the_page_with_its_token_and_a_cookie(server):
     import http.cookiejar
     import urllib.request
 
     jar = http.cookiejar.CookieJar()
     opener = urllib.request.build_opener(urllib.request.HTTPCookieProcessor(jar))
-    with opener.open(server.url, timeout=60) as r:  # ?token= -> redirect to / with the cookie
+    with opener.open(server.url, timeout=60) as r:  # ?token=: the page, and the cookie for later calls
         page = r.read().decode()
-        assert r.url == server.base + "/"
     assert f'content="{server.token}"' in page
     with opener.open(server.base + "/export/weights.csv", timeout=60) as r:  # the cookie alone suffices
         assert r.read().startswith(b"frame,time,")
@@ -184,3 +183,11 @@ def test_a_tab_cannot_undo_another_tabs_edit(server):
     assert server.request("/api/curves", client="tabB")[1]["undo"] == 1
     assert server.request("/api/undo", {}, client="tabB")[0] == 200
     assert snapshot(server)[0] == original
+
+
+def test_allowed_hosts_name_this_server_with_its_port():
+    from livecap.review.guard import allowed_hosts
+
+    assert allowed_hosts("127.0.0.1", 8765) == {"localhost:8765", "127.0.0.1:8765", "[::1]:8765"}
+    assert "[fd00::5]:80" in allowed_hosts("fd00::5", 80) and "box:80" in allowed_hosts("::", 80, ("Box",))
+    assert not any(h.startswith("0.0.0.0") for h in allowed_hosts("0.0.0.0", 80))

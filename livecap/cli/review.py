@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     host, port = sock.getsockname()[:2]
     token = secrets.token_urlsafe(24)  # this run's secret: only the printed URL carries it
     app = make_app(session, glb_bytes(session.rig, session.names, np.zeros(1), rest, name="rig"), token,
-                   allowed_hosts(host, port, (socket.gethostname(),)))
+                   allowed_hosts(host, port, _machine_names() if host in ("0.0.0.0", "::") else ()))
     sock.listen(128)  # connections queue from here on, before the URL is printed
     url = f"http://{'[' + host + ']' if ':' in host else host}:{port}/?token={token}"
     print(f"livecap review: {session.n_frames} frames x {len(session.names)} shapes at {url}", flush=True)
@@ -65,6 +65,18 @@ def run(args: argparse.Namespace) -> int:
             pass
     asyncio.run(_serve(app, sock))
     return 0
+
+
+def _machine_names() -> tuple[str, ...]:
+    """This machine's name and addresses: how other machines reach a server bound to every interface."""
+    import socket
+
+    name = socket.gethostname()
+    try:
+        addresses = {a[4][0].split("%")[0] for a in socket.getaddrinfo(name, None)}
+    except OSError:
+        addresses = set()
+    return (name, *sorted(addresses))
 
 
 def _journal(session, args: argparse.Namespace) -> None:

@@ -25,10 +25,10 @@ OPEN = ("/favicon.ico", "/static/")  # no session data: the bundle and the icon
 
 def allowed_hosts(bound: str, port: int, extra: tuple[str, ...] = ()) -> set[str]:
     """The ``Host`` values that name this server: loopback names and the bound address, with the port."""
-    names = {"localhost", "127.0.0.1", "[::1]", *extra}
+    names = {"localhost", "127.0.0.1", "::1", *extra}
     if bound not in ("0.0.0.0", "::", ""):
-        names.add(f"[{bound}]" if ":" in bound else bound)
-    return {f"{n.lower()}:{port}" for n in names}
+        names.add(bound)
+    return {f"[{n.lower()}]:{port}" if ":" in n else f"{n.lower()}:{port}" for n in names}
 
 
 def cookie_name(hosts: set[str]) -> str:
@@ -60,12 +60,7 @@ def guard(token: str, hosts: set[str]):
                 return _refuse(request, 403, "missing or wrong token: open the URL `livecap review` printed")
         if request.method == "POST" and request.content_type != "application/json":
             return _refuse(request, 415, f"Content-Type: must be application/json, not {request.content_type!r}")
-        try:
-            response = await handler(request)
-        except web.HTTPException as exc:
-            if from_url and exc.status < 400:
-                exc.set_cookie(cookie, token, httponly=True, samesite="Strict", path="/")
-            raise
+        response = await handler(request)
         if from_url and not response.prepared:
             response.set_cookie(cookie, token, httponly=True, samesite="Strict", path="/")
         return response

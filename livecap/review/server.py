@@ -62,8 +62,6 @@ def make_app(session: ReviewSession, rig_glb: bytes, token: str, hosts: set[str]
         if not (STATIC / "app.js").exists():
             return web.Response(status=503, text="the review page is not built: run ./dev (npm run build in "
                                 "livecap/review/web)")
-        if "token" in request.query:  # the printed URL: drop the token from the address bar, keep the cookie
-            raise web.HTTPFound("/")
         page = (STATIC / "index.html").read_text().replace('content="LIVECAP_TOKEN"', f'content="{token}"')
         return web.Response(text=page, content_type="text/html",
                             headers={"Cache-Control": "no-store", "Referrer-Policy": "no-referrer"})
