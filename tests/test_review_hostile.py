@@ -151,7 +151,10 @@ def test_malformed_bodies_get_400_naming_the_field(server, path, cases):
 
 
 def test_curves_are_strict_json(server):
-    status, body = raw(server, "/api/curves", None, {"X-Livecap-Token": server.token})
+    head = {"X-Livecap-Token": server.token, "Content-Type": "application/json"}
+    nan = b'{"frame": 10, "weights": {"jawOpen": NaN}, "range": [0, 20]}'  # 775 NaN cells on the old server
+    assert raw(server, "/api/edit", nan, head)[0] == 400
+    status, body = raw(server, "/api/curves", None, head)
 
     def refuse(name):
         raise ValueError(name)
