@@ -8,7 +8,7 @@ import signal
 import numpy as np
 import pytest
 
-from livecap.review.journal import EditJournal, fingerprint
+from livecap.review.journal import EditJournal, fingerprint, open_journal
 
 
 def write(path, n):
@@ -34,14 +34,29 @@ def test_a_corrupt_tail_is_skipped_counted_and_cut(tmp_path):
     assert [e.get("op") for e in again.entries] == ["edit", "edit", "edit", "undo"] and again.skipped == 0
 
 
-def test_another_solves_journal_is_refused(tmp_path):
+def test_another_solves_journal_is_set_aside_never_replayed(tmp_path):
     path = tmp_path / "take.review-edits"
     write(path, 1)
+    kept = path.read_bytes()
     with pytest.raises(ValueError, match="another solve"):
         EditJournal(path, "other")
+    j, notice = open_journal(path, "other")
+    assert j.entries == [] and "another solve" in notice
+    j.close()
+    (aside,) = [p for p in tmp_path.iterdir() if p != path]
+    assert aside.read_bytes() == kept and str(aside) in notice
     path.write_bytes(b"garbage\n")
     with pytest.raises(ValueError, match="not a livecap review journal"):
         EditJournal(path, "fp")
+
+
+def test_one_server_at_a_time(tmp_path):
+    path = tmp_path / "take.review-edits"
+    j = EditJournal(path, "fp")
+    with pytest.raises(ValueError, match="in use"):
+        EditJournal(path, "fp")
+    j.close()
+    EditJournal(path, "fp").close()
 
 
 def test_fingerprint_tells_solves_apart():

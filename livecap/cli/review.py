@@ -84,17 +84,19 @@ def _journal(session, args: argparse.Namespace) -> None:
     import sys
     from pathlib import Path
 
-    from livecap.review.journal import EditJournal, fingerprint
+    from livecap.review.journal import fingerprint, open_journal
 
     path = Path(args.journal) if args.journal else Path(args.take + ".review-edits")
     try:
-        journal = EditJournal(path, fingerprint(session.names, session.weights))
+        journal, aside = open_journal(path, fingerprint(session.names, session.weights))
     except OSError as exc:
         if args.journal:
             raise OSError(f"--journal {path}: cannot write ({exc.strerror})") from None
         print(f"livecap review: warning: edits will not survive a restart: cannot write {path} "
               f"({exc.strerror}); pass --journal PATH", file=sys.stderr)
         return
+    if aside:
+        print(f"livecap review: {aside}", flush=True)
     n = session.attach_journal(journal)
     if n or journal.skipped:
         print(f"livecap review: replayed {n} journal entries (edits, undos, redos) from {path}"

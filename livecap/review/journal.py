@@ -7,14 +7,17 @@ every line, so each acknowledged edit is on disk. Each line carries a CRC-32 of 
 (a corrupt tail) are skipped, counted and cut off before new lines are appended.
 
 The first line is a header with a fingerprint of the solve the edits were made on; a journal
-written over another solve (other mode, other weights) is refused rather than replayed.
+written over another solve (other mode, other weights) is never replayed: :func:`open_journal`
+sets it aside under a new name and starts afresh. One server at a time holds a journal (a lock).
 """
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
+import time
 import zlib
 from pathlib import Path
 
@@ -47,6 +50,10 @@ def _decode(raw: bytes) -> dict | None:
     return entry if isinstance(entry, dict) else None
 
 
+class OtherSolve(ValueError):
+    """The journal was written over another solve of the take."""
+
+
 class EditJournal:
     """Open (and read back) the journal at ``path`` for the solve ``fp``.
 
@@ -64,7 +71,7 @@ class EditJournal:
                 raise ValueError(f"{self.path}: not a livecap review journal (or its header is corrupt)")
             if head is not None:
                 if head.get("fingerprint") != fp:
-                    raise ValueError(f"{self.path}: journal of another solve of this take (other --mode or "
+                    raise OtherSolve(f"{self.path}: journal of another solve of this take (other --mode or "
                                      f"--weights); move it away to start afresh")
                 good = len(lines[0])
                 for i, raw in enumerate(lines[1:], start=1):
@@ -75,6 +82,11 @@ class EditJournal:
                     self.entries.append(entry)
                     good += len(raw)
         self.fh = open(self.path, "r+b" if self.path.exists() else "w+b")  # noqa: SIM115 (open for the session)
+        try:
+            fcntl.flock(self.fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self.fh.close()
+            raise ValueError(f"{self.path}: in use by another livecap review of this take") from None
         self.fh.truncate(good)  # the corrupt tail goes before anything is appended
         self.fh.seek(good)
         if good == 0:
@@ -88,6 +100,18 @@ class EditJournal:
 
     def close(self) -> None:
         self.fh.close()
+
+
+def open_journal(path: str | Path, fp: str) -> tuple[EditJournal, str | None]:
+    """The journal at ``path`` for the solve ``fp``, and a one-line notice when one of another solve
+    was set aside (renamed ``PATH.<UTC time>``) so that a fresh one could start."""
+    path = Path(path)
+    try:
+        return EditJournal(path, fp), None
+    except OtherSolve:
+        aside = path.with_name(f"{path.name}.{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}")
+        path.rename(aside)
+        return EditJournal(path, fp), f"{path} held edits of another solve of this take: kept as {aside}"
 
 
 def _fsync_dir(folder: Path) -> None:
