@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
 import time
+import urllib.error
+import urllib.request
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -13,24 +16,48 @@ ROOT = Path(__file__).resolve().parent.parent
 
 class ReviewServer:
     """``livecap review`` on the demo take (a neutral-take profile and the qp solve: the fastest start),
-    killed on close."""
+    killed on close. ``url`` is the printed one (with the token), ``base`` the server's root."""
 
-    def __init__(self, workdir: Path, *extra: str) -> None:
+    def __init__(self, workdir: Path, *extra: str, journal: Path | None = None) -> None:
         rig = str(ROOT / "recordings/demo_rig.npz")
         profile = workdir / "actor.npz"  # calibrated on the neutral take: no tuning on the take at start-up
-        subprocess.run([sys.executable, "-m", "livecap", "calibrate", str(ROOT / "recordings/demo_neutral.c3d"),
-                        "--rig", rig, "--out", str(profile)], check=True, capture_output=True, timeout=300)
+        self.journal = journal or workdir / "take.review-edits"  # never beside the repository's demo take
+        if not profile.exists():
+            subprocess.run([sys.executable, "-m", "livecap", "calibrate", str(ROOT / "recordings/demo_neutral.c3d"),
+                            "--rig", rig, "--out", str(profile)], check=True, capture_output=True, timeout=300)
         cmd = [sys.executable, "-m", "livecap", "review", str(ROOT / "recordings/demo_take.c3d"), "--rig", rig,
-               "--profile", str(profile), "--mode", "qp", "--port", "0", "--no-browser", *extra]
+               "--profile", str(profile), "--mode", "qp", "--port", "0", "--no-browser",
+               "--journal", str(self.journal), *extra]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                      env={**os.environ, "PYTHONUNBUFFERED": "1"})
         start = time.monotonic()
+        self.notices = []
         line = self.proc.stdout.readline()
+        while line and "http://" not in line and len(self.notices) < 5:
+            self.notices.append(line.strip())
+            line = self.proc.stdout.readline()
         if "http://" not in line:
             self.close()
             raise RuntimeError(f"livecap review did not start: {line!r} {self.proc.stderr.read()[-2000:]}")
         self.url = line.split(" at ")[-1].strip()
+        self.base, _, self.token = self.url.partition("?token=")
+        self.base = self.base.rstrip("/")
         self.startup = time.monotonic() - start
+
+    def request(self, path: str, body: object = None, client: str = "", headers: dict | None = None):
+        """(status, decoded body) of one request with the session's token (JSON POST when ``body``)."""
+        head = {"X-Livecap-Token": self.token, "X-Livecap-Client": client, **(headers or {})}
+        data = None
+        if body is not None:
+            data = json.dumps(body).encode()
+            head.setdefault("Content-Type", "application/json")
+        req = urllib.request.Request(self.base + path, data, head)
+        try:
+            with urllib.request.urlopen(req, timeout=60) as r:
+                status, raw, ctype = r.status, r.read(), r.headers.get_content_type()
+        except urllib.error.HTTPError as exc:
+            status, raw, ctype = exc.code, exc.read(), exc.headers.get_content_type()
+        return status, json.loads(raw) if ctype == "application/json" else raw
 
     def close(self) -> None:
         if self.proc.poll() is None:

@@ -8,7 +8,7 @@ import argparse
 import json
 import re
 from pathlib import Path
-from urllib.request import urlopen
+from urllib.request import Request, urlopen
 
 import pytest
 
@@ -120,8 +120,8 @@ def test_every_command_runs_on_the_demo(tmp_path, monkeypatch, capsys, review_se
     order = first + [n for n in sorted(RUNS) if n not in first]
     for name in order:
         if name == "review":  # a server: the shared test process on the demo take answers its page and API
-            base = review_server.url.rstrip("/")
-            with urlopen(base + "/", timeout=30) as page, urlopen(base + "/api/meta", timeout=30) as api:
+            meta = Request(review_server.base + "/api/meta", headers={"X-Livecap-Token": review_server.token})
+            with urlopen(review_server.url, timeout=30) as page, urlopen(meta, timeout=30) as api:
                 assert page.status == 200 and json.load(api)["n_frames"] > 0
             continue
         if name == "rig transfer":

@@ -5,11 +5,8 @@ from __future__ import annotations
 import asyncio
 import csv
 import io
-import json
 import subprocess
 import sys
-import urllib.error
-import urllib.request
 
 import numpy as np
 import pytest
@@ -23,19 +20,13 @@ def server(review_server):
 
 
 def get(server, path):
-    with urllib.request.urlopen(server.url.rstrip("/") + path, timeout=30) as r:
-        body = r.read()
-    return json.loads(body) if r.headers.get_content_type() == "application/json" else body
+    status, body = server.request(path)
+    assert status == 200, body
+    return body
 
 
 def post(server, path, body):
-    req = urllib.request.Request(server.url.rstrip("/") + path, json.dumps(body).encode(),
-                                 {"Content-Type": "application/json"})
-    try:
-        with urllib.request.urlopen(req, timeout=30) as r:
-            return r.status, json.loads(r.read())
-    except urllib.error.HTTPError as exc:
-        return exc.code, json.loads(exc.read())
+    return server.request(path, body)
 
 
 def test_meta_frame_and_curves(server):
@@ -88,7 +79,7 @@ def test_drag_over_websocket_moves_the_site_towards_the_goal(server):
     goal = site + np.array([0.0, -6.0, 0.0])
 
     async def drag():
-        async with aiohttp.ClientSession() as s, s.ws_connect(server.url + "ws") as ws:
+        async with aiohttp.ClientSession() as s, s.ws_connect(f"{server.base}/ws?token={server.token}") as ws:
             await ws.send_str("{not json")
             bad = await ws.receive_json(timeout=30)
             await ws.send_json({"frame": 300, "pins": [{"marker": "noSuchMarker", "goal": [0, 0, 0]}]})
@@ -139,7 +130,7 @@ def test_keys_hold_the_bound_and_export(server, tmp_path):
 
 
 def test_review_refuses_a_busy_port(server):
-    port = server.url.rstrip("/").rsplit(":", 1)[1]
+    port = server.base.rsplit(":", 1)[1]
     r = subprocess.run([sys.executable, "-m", "livecap", "review", str(ROOT / "recordings/demo_take.c3d"),
                         "--rig", str(ROOT / "recordings/demo_rig.npz"), "--port", port, "--no-browser"],
                        capture_output=True, text=True, timeout=300)

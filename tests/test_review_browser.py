@@ -4,11 +4,9 @@ which are compared with the offscreen renderer's frame of the same weights (face
 
 from __future__ import annotations
 
-import json
 import shutil
 import tempfile
 import time
-import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +35,7 @@ def page(review_server):
               "--enable-unsafe-swiftshader", "--use-angle=swiftshader", f"--user-data-dir={profile}",
               "--window-size=1400,1000", "--force-device-scale-factor=1"):
         opts.add_argument(a)
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
     driver = webdriver.Chrome(options=opts, service=Service(str(DRIVER)))
     try:
         driver.get(server.url)
@@ -59,8 +58,9 @@ def wait(driver, script, timeout=30.0, what="the page"):
 
 
 def api(server, path):
-    with urllib.request.urlopen(server.url.rstrip("/") + path, timeout=30) as r:
-        return json.loads(r.read())
+    status, body = server.request(path)
+    assert status == 200, body
+    return body
 
 
 def face_mask(png: bytes) -> np.ndarray:
@@ -100,7 +100,7 @@ def test_scrub_edit_drag(page):
     driver, server = page
     meta = api(server, "/api/meta")
     names = meta["names"]
-    undo0 = api(server, "/api/curves")["undo"]  # the server is shared with the API tests
+    version0 = api(server, "/api/curves")["version"]  # the server is shared with the API tests
     for box in ("show-pose", "show-markers"):  # compare the bare face with the offscreen renderer's
         driver.find_element("id", box).click()
 
@@ -133,7 +133,7 @@ def test_scrub_edit_drag(page):
     curves = api(server, "/api/curves")
     j = names.index("jawOpen")
     assert curves["weights"][j][frame] == pytest.approx(0.95, abs=1e-4)
-    assert curves["undo"] == undo0 + 1
+    assert curves["version"] == version0 + 1
     edited = api(server, f"/api/frame/{frame}")["weights"]
     after_edit = face_mask(canvas.screenshot_as_png)
     assert iou(after_edit, offscreen_mask(dict(zip(names, edited, strict=True)))) > 0.9
@@ -162,7 +162,53 @@ def test_scrub_edit_drag(page):
     dragged = api(server, f"/api/frame/{frame}")["weights"]
     np.testing.assert_allclose(dragged, commit["weights"], atol=1e-9)
     assert dragged[j] < edited[j] - 0.05  # dragging the chin up closes the jaw
-    assert api(server, "/api/curves")["undo"] == undo0 + 2
+    assert api(server, "/api/curves")["version"] == version0 + 2
     wait(driver, f"return window.review.current && window.review.current.weights[{j}] === {dragged[j]!r}",
          what="the page to show the committed drag")
     assert iou(face_mask(canvas.screenshot_as_png), offscreen_mask(dict(zip(names, dragged, strict=True)))) > 0.9
+
+
+def test_page_polish(page, tmp_path):
+    """Issue 37 item 8: a time axis, labelled faces, the edit box inside its column, no console 404."""
+    driver, server = page
+    meta = api(server, "/api/meta")
+    # the time axis: round steps in seconds under the curves, drawn (not background) in its band
+    axis = driver.execute_script("return window.review.axis")
+    duration = (meta["n_frames"] - 1) / meta["rate"]
+    assert len(axis["ticks"]) >= 4 and axis["ticks"][0] == 0 and axis["ticks"][-1] <= duration + 1e-9
+    assert duration - axis["ticks"][-1] < axis["step"]
+    import cv2
+
+    tl = driver.find_element("id", "timeline")
+    shot = tl.screenshot_as_png
+    (tmp_path / "timeline.png").write_bytes(shot)
+    img = cv2.imdecode(np.frombuffer(shot, np.uint8), cv2.IMREAD_COLOR)
+    band = img[int(axis["y"]) + 5:, 60:]
+    assert (np.abs(band.astype(int) - band[0, 0].astype(int)).max(axis=2) > 60).sum() > 200  # tick labels
+    # the two faces are labelled, each over its own face
+    if not driver.find_element("id", "show-truth").is_selected():
+        driver.find_element("id", "show-truth").click()
+    wait(driver, "return document.getElementById('label-truth').style.display !== 'none'", what="the truth label")
+    (tmp_path / "faces.png").write_bytes(driver.find_element("id", "view").screenshot_as_png)
+    view = driver.find_element("id", "view").rect
+    labels = {}
+    for name in ("solve", "truth"):
+        el = driver.find_element("id", f"label-{name}")
+        assert el.is_displayed() and el.text == name
+        labels[name] = el.rect["x"] + el.rect["width"] / 2 - view["x"]
+        assert 0 < labels[name] < view["width"]
+    assert abs(labels["solve"] - labels["truth"]) > 120
+    mask = face_mask(driver.find_element("id", "face").screenshot_as_png)
+    for x in labels.values():  # a face under each label
+        assert mask[:, max(0, int(x) - 10):int(x) + 10].sum() > 500
+    # every control of the side column stays inside it
+    over = driver.execute_script("""
+        const side = document.getElementById('side').getBoundingClientRect();
+        return [...document.querySelectorAll('#side *')].filter((e) => e.getBoundingClientRect().width > 0)
+          .map((e) => [e.id || e.tagName, e.getBoundingClientRect().right - side.right]).filter((d) => d[1] > 0.5);""")
+    assert over == []
+    # the favicon is served: no 404 in the console
+    status = driver.execute_async_script("fetch('/favicon.ico').then((r) => arguments[0](r.status))")
+    assert status == 200
+    errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
+    assert errors == [], errors

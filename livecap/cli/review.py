@@ -24,16 +24,19 @@ def register(sub) -> None:
     p.add_argument("--port", type=int, default=8765, help="port (default 8765; 0 picks a free one)")
     p.add_argument("--interface", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--pull", type=float, default=1.0, help="direct manipulation: pull towards the current weights")
+    p.add_argument("--journal", help="edit journal (default <take>.review-edits beside the take; replayed on reopen)")
     p.add_argument("--no-browser", action="store_true", help="only print the URL")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
+    import secrets
     import socket
 
     import numpy as np
 
+    from livecap.review.guard import allowed_hosts
     from livecap.review.load import open_session
     from livecap.review.server import make_app
     from transport.gltf import glb_bytes
@@ -46,11 +49,14 @@ def run(args: argparse.Namespace) -> int:
         raise OSError(f"--port {args.port}: cannot listen on {args.interface} ({exc.strerror})") from None
     session = open_session(args.take, args.rig, args.markers, args.profile, args.weights, args.truth, args.mode,
                            args.neutral_seconds, args.pull)
+    _journal(session, args)
     rest = np.zeros((1, len(session.names)))
-    app = make_app(session, glb_bytes(session.rig, session.names, np.zeros(1), rest, name="rig"))
-    sock.listen(128)  # connections queue from here on, before the URL is printed
     host, port = sock.getsockname()[:2]
-    url = f"http://{'[' + host + ']' if ':' in host else host}:{port}/"
+    token = secrets.token_urlsafe(24)  # this run's secret: only the printed URL carries it
+    app = make_app(session, glb_bytes(session.rig, session.names, np.zeros(1), rest, name="rig"), token,
+                   allowed_hosts(host, port, _machine_names() if host in ("0.0.0.0", "::") else ()))
+    sock.listen(128)  # connections queue from here on, before the URL is printed
+    url = f"http://{'[' + host + ']' if ':' in host else host}:{port}/?token={token}"
     print(f"livecap review: {session.n_frames} frames x {len(session.names)} shapes at {url}", flush=True)
     if not args.no_browser:
         try:
@@ -59,6 +65,42 @@ def run(args: argparse.Namespace) -> int:
             pass
     asyncio.run(_serve(app, sock))
     return 0
+
+
+def _machine_names() -> tuple[str, ...]:
+    """This machine's name and addresses: how other machines reach a server bound to every interface."""
+    import socket
+
+    name = socket.gethostname()
+    try:
+        addresses = {a[4][0].split("%")[0] for a in socket.getaddrinfo(name, None)}
+    except OSError:
+        addresses = set()
+    return (name, *sorted(addresses))
+
+
+def _journal(session, args: argparse.Namespace) -> None:
+    """Attach the edit journal, replaying a previous run's edits on the same take (one line said)."""
+    import sys
+    from pathlib import Path
+
+    from livecap.review.journal import fingerprint, open_journal
+
+    path = Path(args.journal) if args.journal else Path(args.take + ".review-edits")
+    try:
+        journal, aside = open_journal(path, fingerprint(session.names, session.weights))
+    except OSError as exc:
+        if args.journal:
+            raise OSError(f"--journal {path}: cannot write ({exc.strerror})") from None
+        print(f"livecap review: warning: edits will not survive a restart: cannot write {path} "
+              f"({exc.strerror}); pass --journal PATH", file=sys.stderr)
+        return
+    if aside:
+        print(f"livecap review: {aside}", flush=True)
+    n = session.attach_journal(journal)
+    if n or journal.skipped:
+        print(f"livecap review: replayed {n} journal entries (edits, undos, redos) from {path}"
+              + (f"; skipped a corrupt tail of {journal.skipped} lines" if journal.skipped else ""), flush=True)
 
 
 async def _serve(app, sock) -> None:

@@ -8,50 +8,67 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from pathlib import Path
 
-import numpy as np
 from aiohttp import WSMsgType, web
 
-from livecap.review.session import Pin, ReviewSession
+from livecap.review.guard import guard
+from livecap.review.requests import BadRequest, edit_request, parse, pose_request
+from livecap.review.session import EditConflict, ReviewSession
 
 STATIC = Path(__file__).parent / "static"
+FAVICON = (b'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 16 16"><circle cx="8" cy="8" r="7" '
+           b'fill="#d9a68c"/></svg>')
 log = logging.getLogger(__name__)
 
 
-def _change(session: ReviewSession, c, ms: float | None = None) -> dict:
-    out = {"a": c.a, "b": c.b, "weights": session.weights[c.a:c.b + 1].tolist(),
-           "undo": len(session.undo_stack), "redo": len(session.redo_stack)}
+def _dumps(obj) -> str:
+    return json.dumps(obj, allow_nan=False)  # strict JSON out: a NaN is a bug, not a value to send
+
+
+def _json(obj, status: int = 200) -> web.Response:
+    return web.json_response(obj, status=status, dumps=_dumps)
+
+
+def _change(session: ReviewSession, c, client: str, ms: float | None = None) -> dict:
+    undo, redo = session.depth(client)
+    out = {"a": c.a, "b": c.b, "weights": session.weights[c.a:c.b + 1].tolist(), "undo": undo, "redo": redo}
     if ms is not None:
         out["server_ms"] = ms
     return out
 
 
-def _pins(body: dict) -> list[Pin]:
-    pins = []
-    for p in body.get("pins") or []:
-        goal = np.asarray(p.get("goal"), dtype=np.float64)
-        if goal.shape != (3,) or not np.all(np.isfinite(goal)):
-            raise ValueError(f"pin goal must be [x, y, z] in mm, not {p.get('goal')!r}")
-        pins.append(Pin(goal, vertex=p.get("vertex"), marker=p.get("marker")))
-    return pins
+def _client(request: web.Request) -> str:
+    """The browser tab (its own undo/redo history): a short id the page keeps in sessionStorage."""
+    c = request.headers.get("X-Livecap-Client") or request.query.get("client") or ""
+    if len(c) > 64 or not c.replace("-", "").isalnum():
+        return ""
+    return c
 
 
-def make_app(session: ReviewSession, rig_glb: bytes) -> web.Application:
+def make_app(session: ReviewSession, rig_glb: bytes, token: str, hosts: set[str]) -> web.Application:
+    """The app. ``token`` is the session's secret (docs/review.md: what the server trusts); ``hosts`` the
+    ``host:port`` names the page may be reached by (the bound address and this machine's loopback names)."""
     routes = web.RouteTableDef()
     camera = _camera(session)
     skipped = {"ws": 0}  # bad WebSocket messages, counted and logged
 
     def bad(exc: Exception) -> web.Response:
-        return web.json_response({"error": str(exc)}, status=400)
+        return _json({"error": str(exc)}, status=409 if isinstance(exc, EditConflict) else 400)
 
     @routes.get("/")
     async def index(request):
-        page = STATIC / "index.html"
         if not (STATIC / "app.js").exists():
             return web.Response(status=503, text="the review page is not built: run ./dev (npm run build in "
                                 "livecap/review/web)")
-        return web.FileResponse(page)
+        page = (STATIC / "index.html").read_text().replace('content="LIVECAP_TOKEN"', f'content="{token}"')
+        return web.Response(text=page, content_type="text/html",
+                            headers={"Cache-Control": "no-store", "Referrer-Policy": "no-referrer"})
+
+    @routes.get("/favicon.ico")
+    async def favicon(request):
+        return web.Response(body=FAVICON, content_type="image/svg+xml")
 
     @routes.get("/rig.glb")
     async def rig(request):
@@ -60,7 +77,7 @@ def make_app(session: ReviewSession, rig_glb: bytes) -> web.Application:
     @routes.get("/api/meta")
     async def meta(request):
         s = session
-        return web.json_response({
+        return _json({
             "names": s.names, "rig_names": s.rig.names, "n_frames": s.n_frames, "rate": s.take.rate,
             "first_frame": s.take.first_frame, "labels": s.profile.labels, "has_truth": s.truth is not None,
             "n_vertices": s.rig.n_vertices, "camera": camera, "lower": s.profile.lower.tolist(),
@@ -69,74 +86,86 @@ def make_app(session: ReviewSession, rig_glb: bytes) -> web.Application:
     @routes.get("/api/curves")
     async def curves(request):
         s = session
-        return web.json_response({"weights": s.weights.T.round(5).tolist(), "residual": s.residuals().round(4).tolist(),
-                                  "truth": None if s.truth is None else s.truth.T.round(5).tolist(),
-                                  "undo": len(s.undo_stack), "redo": len(s.redo_stack)})
+        undo, redo = s.depth(_client(request))
+        return _json({"weights": s.weights.T.round(5).tolist(), "residual": s.residuals().round(4).tolist(),
+                      "truth": None if s.truth is None else s.truth.T.round(5).tolist(),
+                      "undo": undo, "redo": redo, "version": s.version})
 
     @routes.get("/api/frame/{i}")
     async def frame(request):
         try:
-            return web.json_response(session.frame(int(request.match_info["i"])))
+            return _json(session.frame(int(request.match_info["i"])))
         except ValueError as exc:
             return bad(exc)
+
+    async def body(request: web.Request) -> object:
+        return parse(await request.text())
 
     @routes.post("/api/edit")
     async def edit(request):
         try:
-            body = await request.json()
-            k = int(body["frame"])
-            a, b = body.get("range") or [k, k]
-            c, sec = session.edit(k, {str(n): float(v) for n, v in body["weights"].items()}, int(a), int(b))
-        except (ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
+            k, values, a, b = edit_request(await body(request), session)
+            client = _client(request)
+            c, sec = session.edit(k, values, a, b, client)
+        except ValueError as exc:
             return bad(exc)
-        return web.json_response(_change(session, c, sec * 1e3))
+        return _json(_change(session, c, client, sec * 1e3))
 
-    @routes.post("/api/undo")
-    async def undo(request):
-        c = session.undo()
-        return web.json_response(None if c is None else _change(session, c))
+    for op in ("undo", "redo"):
+        async def move(request, op=op):
+            client = _client(request)
+            try:
+                c = getattr(session, op)(client)
+            except ValueError as exc:
+                return bad(exc)
+            return _json(None if c is None else _change(session, c, client))
+        routes.post(f"/api/{op}")(move)
 
-    @routes.post("/api/redo")
-    async def redo(request):
-        c = session.redo()
-        return web.json_response(None if c is None else _change(session, c))
-
-    def pose(body: dict) -> dict:
-        k = int(body["frame"])
-        w, sec = session.pose(k, _pins(body))
+    def pose(data: object, client: str) -> dict:
+        k, pins, commit, a, b = pose_request(data, session)
+        w, sec = session.pose(k, pins)
         out = {"frame": k, "weights": w.tolist(), "server_ms": sec * 1e3}
-        if body.get("commit"):
-            a, b = body.get("range") or [k, k]
-            c, esec = session.edit(k, dict(zip(session.names, w.tolist(), strict=True)), int(a), int(b))
-            out["change"] = _change(session, c, esec * 1e3)
+        if commit:
+            c, esec = session.edit(k, dict(zip(session.names, w.tolist(), strict=True)), a, b, client)
+            out["change"] = _change(session, c, client, esec * 1e3)
         return out
 
     @routes.post("/api/pose")
     async def pose_http(request):
         try:
-            return web.json_response(pose(await request.json()))
-        except (ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
+            return _json(pose(await body(request), _client(request)))
+        except ValueError as exc:
             return bad(exc)
 
     @routes.get("/ws")
     async def ws(request):
-        sock = web.WebSocketResponse()
+        sock = web.WebSocketResponse(max_msg_size=1 << 20)
         await sock.prepare(request)
+        client = _client(request)
         async for msg in sock:
             if msg.type != WSMsgType.TEXT:
                 continue
             try:
-                await sock.send_json(pose(json.loads(msg.data)))
-            except (ValueError, KeyError, TypeError) as exc:
+                await sock.send_json(pose(parse(msg.data), client), dumps=_dumps)
+            except ValueError as exc:
                 skipped["ws"] += 1
                 log.warning("ws: bad drag message skipped (%d so far): %s", skipped["ws"], exc)
-                await sock.send_json({"error": str(exc), "skipped": skipped["ws"]})
+                await sock.send_json({"error": str(exc), "skipped": skipped["ws"]}, dumps=_dumps)
         return sock
+
+    def max_error(request) -> float:
+        try:
+            e = float(request.query.get("max_error", 0.01))
+        except ValueError:
+            raise BadRequest(f"max_error: must be a number, not {request.query.get('max_error')!r}") from None
+        if not (math.isfinite(e) and 0 < e <= 1):
+            raise BadRequest(f"max_error: must be in (0, 1], not {e}")
+        return e
 
     @routes.get("/api/keys")
     async def keys(request):
         try:
-            return web.json_response(session.keys_report(float(request.query.get("max_error", 0.01))))
+            return _json(session.keys_report(max_error(request)))
         except ValueError as exc:
             return bad(exc)
 
@@ -151,7 +180,7 @@ def make_app(session: ReviewSession, rig_glb: bytes) -> web.Application:
     @routes.get("/export/keys.csv")
     async def keys_csv(request):
         try:
-            text = session.keys_csv(float(request.query.get("max_error", 0.01)))
+            text = session.keys_csv(max_error(request))
         except ValueError as exc:
             return bad(exc)
         return attachment("keys.csv", "text/csv", text=text)
@@ -159,12 +188,20 @@ def make_app(session: ReviewSession, rig_glb: bytes) -> web.Application:
     @routes.get("/export/keys.glb")
     async def keys_glb(request):
         try:
-            body = session.keys_glb(float(request.query.get("max_error", 0.01)))
+            data = session.keys_glb(max_error(request))
         except ValueError as exc:
             return bad(exc)
-        return attachment("keys.glb", "model/gltf-binary", body=body)
+        return attachment("keys.glb", "model/gltf-binary", body=data)
 
-    app = web.Application()
+    @routes.get("/export/keys-linear.glb")
+    async def keys_linear_glb(request):
+        try:
+            data = session.linear_keys_glb(max_error(request))
+        except ValueError as exc:
+            return bad(exc)
+        return attachment("keys-linear.glb", "model/gltf-binary", body=data)
+
+    app = web.Application(middlewares=[guard(token, hosts)], client_max_size=4 << 20)
     app.add_routes(routes)
     app.router.add_static("/static", STATIC)
     return app

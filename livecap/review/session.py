@@ -25,12 +25,18 @@ EDIT_PAD = 32  # frames of context each side of an edit's range for solvers that
 
 @dataclass
 class Change:
-    """One undoable change: rows a..b of the weights before and after."""
+    """One undoable change: rows a..b of the weights before and after, made by ``client`` (a browser tab)."""
 
     a: int
     b: int
     before: np.ndarray
     after: np.ndarray
+    client: str = ""
+    id: int = 0
+
+
+class EditConflict(ValueError):
+    """An undo/redo whose rows were changed since by another client's edit."""
 
 
 @dataclass
@@ -88,8 +94,10 @@ class ReviewSession:
     editor: object  # anything with edit(W, edits, targets, valid) (livecap edit's movement solver)
     truth: np.ndarray | None = None
     pull: float = 1.0
-    undo_stack: list[Change] = field(default_factory=list)
-    redo_stack: list[Change] = field(default_factory=list)
+    undo_stacks: dict[str, list[Change]] = field(default_factory=dict)  # per client (browser tab)
+    redo_stacks: dict[str, list[Change]] = field(default_factory=dict)
+    journal: object | None = None  # an EditJournal (livecap.review.journal) once attached
+    version: int = 0  # bumped by every change: what cached results are keyed on
     _pins: dict = field(default_factory=dict)
     _keys_cache: dict = field(default_factory=dict)
 
@@ -133,7 +141,7 @@ class ReviewSession:
         return i
 
     # ------------------------------------------------------------------ edits
-    def edit(self, frame: int, values: dict[str, float], a: int, b: int) -> tuple[Change, float]:
+    def edit(self, frame: int, values: dict[str, float], a: int, b: int, client: str = "") -> tuple[Change, float]:
         """Spacetime edit (Seol §6): set ``values`` at ``frame``, re-solve frames a..b. Returns the change
         and the solver's time in seconds."""
         k = self._check_frame(frame)
@@ -152,30 +160,76 @@ class ReviewSession:
         start = time.perf_counter()
         E = self.editor.edit(self.weights[lo:hi].copy(), [edit], self.targets[lo:hi], self.valid[lo:hi])
         elapsed = time.perf_counter() - start
-        change = Change(a, b, self.weights[a:b + 1].copy(), E[a - lo:b + 1 - lo].copy())
+        after = E[a - lo:b + 1 - lo]
+        if not np.all(np.isfinite(after)):
+            raise ValueError(f"edit: the re-solve of frames {a}..{b} is not finite; nothing changed")
+        return self._record_edit(a, b, after.copy(), client), elapsed
+
+    def _record_edit(self, a: int, b: int, after: np.ndarray, client: str) -> Change:
+        self.version += 1
+        change = Change(a, b, self.weights[a:b + 1].copy(), after, client, self.version)
+        if self.journal is not None:  # on disk before it is applied or acknowledged
+            self.journal.append({"op": "edit", "id": change.id, "client": client, "a": a, "b": b,
+                                 "after": after.tolist()})
         self._apply(change, change.after)
-        self.undo_stack.append(change)
-        self.redo_stack.clear()
-        return change, elapsed
+        self.undo_stacks.setdefault(client, []).append(change)
+        self.redo_stacks.pop(client, None)
+        return change
 
     def _apply(self, change: Change, rows: np.ndarray) -> None:
         self.weights[change.a:change.b + 1] = rows
 
-    def undo(self) -> Change | None:
-        if not self.undo_stack:
+    def undo(self, client: str = "") -> Change | None:
+        """Undo ``client``'s last edit: only its own, and only while its rows are as it left them
+        (another tab's later edit over them must be undone first: :class:`EditConflict`)."""
+        return self._move(client, self.undo_stacks, self.redo_stacks, "undo")
+
+    def redo(self, client: str = "") -> Change | None:
+        return self._move(client, self.redo_stacks, self.undo_stacks, "redo")
+
+    def _move(self, client: str, source: dict, target: dict, op: str) -> Change | None:
+        stack = source.get(client)
+        if not stack:
             return None
-        c = self.undo_stack.pop()
-        self._apply(c, c.before)
-        self.redo_stack.append(c)
+        c = stack[-1]
+        now, to = (c.after, c.before) if op == "undo" else (c.before, c.after)
+        if not np.array_equal(self.weights[c.a:c.b + 1], now):
+            raise EditConflict(f"{op}: frames {c.a}..{c.b} were edited since (in another tab); "
+                               f"{op} that edit first")
+        if self.journal is not None:
+            self.journal.append({"op": op, "id": c.id, "client": client})
+        stack.pop()
+        self._apply(c, to)
+        target.setdefault(client, []).append(c)
+        self.version += 1
         return c
 
-    def redo(self) -> Change | None:
-        if not self.redo_stack:
-            return None
-        c = self.redo_stack.pop()
-        self._apply(c, c.after)
-        self.undo_stack.append(c)
-        return c
+    def depth(self, client: str = "") -> tuple[int, int]:
+        """How many edits ``client`` can undo and redo."""
+        return len(self.undo_stacks.get(client, ())), len(self.redo_stacks.get(client, ()))
+
+    def attach_journal(self, journal) -> int:
+        """Replay ``journal``'s entries (edits as their stored rows, no re-solve), then record into it.
+        Returns the number of entries replayed."""
+        for e in journal.entries:
+            client = str(e.get("client", ""))
+            if e.get("op") == "edit":
+                after = np.asarray(e["after"], dtype=np.float64)
+                a, b = int(e["a"]), int(e["b"])
+                if not (0 <= a <= b < self.n_frames and after.shape == (b - a + 1, len(self.names))
+                        and np.all(np.isfinite(after))):
+                    raise ValueError(f"{journal.path}: edit {e.get('id')} does not fit this take")
+                self._record_edit(a, b, after, client)
+            else:
+                source = self.undo_stacks if e.get("op") == "undo" else self.redo_stacks
+                stack = source.get(client) or []
+                if not stack or stack[-1].id != e.get("id"):
+                    raise ValueError(f"{journal.path}: {e.get('op')} of edit {e.get('id')} out of order")
+                self._move(client, source, self.redo_stacks if source is self.undo_stacks else self.undo_stacks,
+                           str(e["op"]))
+        self.version = max([self.version, *(int(e.get("id", 0)) for e in journal.entries)])
+        self.journal = journal
+        return len(journal.entries)
 
     # ------------------------------------------------------------------ direct manipulation
     def pose(self, frame: int, pins: list[Pin]) -> tuple[np.ndarray, float]:
@@ -199,9 +253,10 @@ class ReviewSession:
     def keys(self, max_error: float) -> list[Keys]:
         if not max_error > 0:
             raise ValueError(f"max_error must be > 0, not {max_error}")
-        version = (len(self.undo_stack), len(self.redo_stack), id(self.undo_stack[-1]) if self.undo_stack else 0)
-        if self._keys_cache.get("key") != (max_error, version):
-            self._keys_cache = {"key": (max_error, version),
+        if not np.isfinite(max_error):
+            raise ValueError(f"max_error must be finite, not {max_error}")
+        if self._keys_cache.get("key") != (max_error, self.version):
+            self._keys_cache = {"key": (max_error, self.version),
                                 "keys": reduce_curves(self.times, self.weights, KeySettings(max_error))}
         return self._keys_cache["keys"]
 
@@ -228,6 +283,14 @@ class ReviewSession:
 
         frames, values, ins, outs = shared_keys(self.keys(max_error), self.times)
         return glb_bytes(self.rig, self.names, self.times[frames], values, name="keys", tangents=(ins, outs))
+
+    def linear_keys_glb(self, max_error: float) -> bytes:
+        """The curves as shared LINEAR keys within ``max_error`` (for players that drop cubic tangents)."""
+        from livecap.review.linear import linear_keys
+        from transport.gltf import glb_bytes
+
+        frames = linear_keys(self.times, self.weights, max_error)
+        return glb_bytes(self.rig, self.names, self.times[frames], self.weights[frames], name="keys (linear)")
 
     def weights_csv(self) -> str:
         head = "frame,time," + ",".join(self.names)

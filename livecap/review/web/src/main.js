@@ -10,9 +10,15 @@ const state = { frame: 0, meta: null, curves: null, keys: null, selected: [], pi
   lastDrag: null, ready: false };
 window.review = state; // read by the browser test and handy in the console
 
+// the session's secret (docs/review.md) and this tab's id: each tab undoes only its own edits
+const TOKEN = document.querySelector('meta[name="livecap-token"]').content;
+const CLIENT = sessionStorage.getItem('livecap-client') || Math.random().toString(36).slice(2, 14);
+sessionStorage.setItem('livecap-client', CLIENT);
+const HEADERS = { 'X-Livecap-Token': TOKEN, 'X-Livecap-Client': CLIENT };
+
 async function api(path, body) {
-  const r = await fetch(path, body === undefined ? {} : {
-    method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body) });
+  const r = await fetch(path, body === undefined ? { headers: HEADERS } : {
+    method: 'POST', headers: { ...HEADERS, 'Content-Type': 'application/json' }, body: JSON.stringify(body) });
   const j = await r.json();
   if (!r.ok) throw new Error(j.error || r.statusText);
   return j;
@@ -125,15 +131,26 @@ async function showFrame(i) {
   truthFace.visible = $('show-truth').checked && f.truth !== null;
   aim(truthFace.visible);
   if (f.truth) setWeights(truthFace, f.truth);
+  label('label-solve', state.centre, true);
+  label('label-truth', state.centre.clone().add(truthFace.position), truthFace.visible);
   setPoints(pinPts, state.pins.map((p) => p.goal));
   render();
   timeline();
 }
 
+function label(id, centre, visible) { // a name above each face, placed where the face is drawn
+  const el = $(id);
+  el.style.display = visible ? '' : 'none';
+  if (!visible) return;
+  camera.updateMatrixWorld();
+  const p = centre.clone().project(camera);
+  el.style.left = `${Math.round((p.x + 1) / 2 * 640 - el.offsetWidth / 2)}px`;
+}
+
 // ---------------------------------------------------------------- timeline
 function timeline() {
   if (!state.curves) return;
-  drawTimeline($('timeline'), { ...state, names: state.meta.names });
+  state.axis = drawTimeline($('timeline'), { ...state, names: state.meta.names });
 }
 
 $('timeline').addEventListener('mousedown', (e) => {
@@ -201,15 +218,17 @@ $('edit-apply').addEventListener('click', async () => {
 });
 for (const op of ['undo', 'redo']) {
   $(op).addEventListener('click', async () => {
-    const c = await api(`/api/${op}`, {});
-    await refreshCurves();
-    status(c ? `${op}: frames ${c.a}..${c.b}` : `nothing to ${op}`);
-    await showFrame(state.frame);
+    try {
+      const c = await api(`/api/${op}`, {});
+      await refreshCurves();
+      status(c ? `${op}: frames ${c.a}..${c.b}` : `nothing to ${op} (in this tab)`);
+      await showFrame(state.frame);
+    } catch (err) { status(err.message); }
   });
 }
 
 // ---------------------------------------------------------------- direct manipulation
-const ws = new WebSocket(`ws://${location.host}/ws`);
+const ws = new WebSocket(`ws://${location.host}/ws?token=${encodeURIComponent(TOKEN)}&client=${CLIENT}`);
 let inflight = false, pending = null;
 ws.onmessage = (ev) => {
   const r = JSON.parse(ev.data);
@@ -298,7 +317,7 @@ $('keys').addEventListener('click', async () => {
   try {
     state.keys = await api(`/api/keys?max_error=${e}`);
     $('key-report').textContent = `${state.keys.keys} keys (${(100 * state.keys.fraction).toFixed(2)} % of samples), worst ${state.keys.worst.toFixed(4)}`;
-    for (const id of ['save-keys-csv', 'save-keys-glb']) $(id).href = $(id).href.split('?')[0] + `?max_error=${e}`;
+    for (const id of ['save-keys-csv', 'save-keys-glb', 'save-keys-linear-glb']) $(id).href = $(id).href.split('?')[0] + `?max_error=${e}`;
     timeline();
   } catch (err) { status('keys: ' + err.message); }
 });
