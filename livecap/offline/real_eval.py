@@ -23,7 +23,8 @@ from livecap.core.rig import Rig
 from livecap.demo.curves_take import CurveTake
 from livecap.modes.registry import build_solver, resolve_mode
 from livecap.offline.metrics import jitter, weight_rmse
-from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS, prepare_targets
+from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS, solve_take
+from livecap.offline.streamed import stream_take
 
 
 def oracle_weights(ct: CurveTake, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
@@ -104,24 +105,24 @@ def evaluate_curve_take(rig: Rig, layout: MarkerLayout, ct: CurveTake, modes: li
                         options: dict[str, dict] | None = None, prior: AnimationPrior | None = None) -> list[Row]:
     """The oracle and every mode in ``modes`` (plain profile from the neutral take, carrying ``prior`` as
     ``livecap calibrate --prior`` stores it, e.g. one trained on the other files) on one take; ``options``
-    per mode (``auto`` takes the options of the mode it stands for and is labelled ``auto=<mode>``)."""
+    per mode (``auto`` takes the options of the mode it stands for and is labelled ``auto=<mode>``).
+
+    Two rows per mode that streams: ``<mode> stream``, the take fed frame by frame through the live pipeline
+    as ``livecap run`` feeds it (causal head pose, no gap filling; livecap.offline.streamed), and
+    ``<mode> offline``, what ``livecap solve`` gives (smoothed head pose, filled gaps, the mode's whole-take
+    form when it has one). Modes with no ``step`` get the offline row only."""
     t0 = time.perf_counter()
     rows = [score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), time.perf_counter() - t0)]
     profile = plain_profile(rig, layout, ct)
     profile.prior = prior
-    take, targets, _, _ = prepare_targets(ct.take, profile)
     for name in modes:
         resolved = resolve_mode(name, profile)
         mode = name if resolved == name else f"{name}={resolved}"
-        solver = build_solver(resolved, profile, (options or {}).get(resolved, {}))
-        if hasattr(solver, "step"):  # streamed frame by frame; output aligned by the mode's latency
-            t0 = time.perf_counter()
-            W = streamed(solver, targets, take.valid)
-            label = f"{mode} stream" if hasattr(solver, "solve") else mode
-            rows.append(score(label, rig, ct, W, time.perf_counter() - t0))
-        if hasattr(solver, "solve"):
-            t0 = time.perf_counter()
-            W = np.asarray(solver.solve(targets, take.valid))
-            label = f"{mode} offline" if hasattr(solver, "step") else mode
-            rows.append(score(label, rig, ct, W, time.perf_counter() - t0))
+        opts = (options or {}).get(resolved, {})
+        solver = build_solver(resolved, profile, opts)
+        if hasattr(solver, "step"):
+            st = stream_take(ct.take, profile, resolved, opts)
+            rows.append(score(f"{mode} stream", rig, ct, st.weights, st.seconds))
+        solved = solve_take(ct.take, profile, solver)
+        rows.append(score(f"{mode} offline", rig, ct, solved.weights, solved.solve_seconds))
     return rows
