@@ -22,8 +22,9 @@ from livecap.core.markers import MarkerLayout
 from livecap.core.rig import Rig
 from livecap.demo.curves_take import CurveTake
 from livecap.modes.registry import build_solver, resolve_mode
+from livecap.modes.robust import tune_profile
 from livecap.offline.metrics import jitter, weight_rmse
-from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS, solve_take
+from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS, prepare_targets, solve_take
 from livecap.offline.streamed import stream_take
 
 
@@ -60,12 +61,16 @@ def blink_retention(blinks: list[int], weights: np.ndarray, truth: np.ndarray, r
 
 
 def plain_profile(rig: Rig, layout: MarkerLayout, ct: CurveTake) -> Profile:
-    """What plain ``livecap calibrate NEUTRAL`` stores (robust stabiliser, default gap and pose settings)."""
+    """What plain ``livecap calibrate NEUTRAL`` stores (robust stabiliser, default gap and pose settings, and the
+    noise level and ridges tuned on the neutral take, which every CLI calibration stores)."""
     sel = ct.neutral.select(layout.labels)
     neutral = estimate_neutral(sel, layout.stable, None)
     settings = {"max_gap_seconds": DEFAULT_MAX_GAP_SECONDS, "robust_stabilise": True,
                 "pose_smoothing_seconds": DEFAULT_POSE_SMOOTHING_SECONDS}
-    return calibrate(rig, layout, neutral, settings)
+    profile = calibrate(rig, layout, neutral, settings)
+    neutral_take, targets, _, _ = prepare_targets(ct.neutral, profile)
+    tune_profile(profile, targets, neutral_take.valid, ct.neutral.rate)
+    return profile
 
 
 @dataclass
