@@ -37,7 +37,7 @@ import numpy as np
 from livecap.calibration.profile import Profile
 from solvers.filters import CausalPolyFilter, FilteredSolver, FixedLagSmoother, OneEuroFilter, savgol_weights
 from solvers.observability import noise_floor
-from solvers.regularisation import PriorLeastSquares, estimate_noise, gcv_ridge, holdout_ridge
+from solvers.regularisation import PriorLeastSquares, estimate_noise, fit_residual, gcv_ridge, holdout_ridge
 from solvers.sparse_fit import HysteresisSparseFit, holdout_sparse_ridge, l1_weights, universal_threshold
 from solvers.tracking import IMMFilter, dwna_variance
 from solvers.trend import TrendFilter
@@ -107,16 +107,36 @@ def warn_untuned(profile: Profile, mode: str, fallback: str) -> None:
                     "(it stores one) or give the take to tune on with --tune", mode, fallback)
 
 
-def tune_profile(profile: Profile, targets: np.ndarray, valid: np.ndarray, rate: float) -> dict:
+NOISE_DISAGREES = 3.0  # residual / jitter above this: the data were smoothed, or the rig does not fit the actor
+
+
+def tune_profile(profile: Profile, targets: np.ndarray, valid: np.ndarray, rate: float,
+                 noise_mm: float | None = None) -> dict:
     """Select the noise level and the ridges from a take's stabilised displacements; store in the profile.
 
-    Deterministic: the folds, frame thinning and grids are fixed. Returns the stored dict.
+    The noise is what the solvers must not explain (issue 35.2): per marker the larger of the frame-to-frame
+    jitter (second differences) and the rig's fit residual (``solvers.regularisation.fit_residual``, which reads
+    the jitter on white noise and more where the rig cannot follow the actor), then the RMS over markers. A
+    smoothed capture cannot drive it to zero that way; ``noise_mm`` (``--noise-mm``) replaces it. A warning says
+    when the two estimates disagree. Deterministic: the folds, frame thinning and grids are fixed. Returns the
+    stored dict.
     """
-    noise = estimate_noise(targets, valid)
+    jitter = estimate_noise(targets, valid)
     held = holdout_ridge(profile.basis, targets, valid, lower=profile.lower, upper=profile.upper)
+    per_marker = np.maximum(jitter, fit_residual(profile.basis, targets, valid, held.value))
+    residual = float(np.sqrt(np.mean(per_marker**2)))
+    noise = float(noise_mm) if noise_mm is not None else residual
+    if noise_mm is None and residual > NOISE_DISAGREES * jitter:
+        worst = np.argsort(per_marker)[::-1][:3]
+        log.warning("marker noise: frame-to-frame jitter %.3f mm but the rig leaves %.3f mm RMS unexplained "
+                    "(most at %s): the data look smoothed or the rig does not fit this actor; solving with "
+                    "%.3f mm (override with --noise-mm)", jitter, residual,
+                    ", ".join(f"{profile.labels[i]} {per_marker[i]:.2f}" for i in worst), noise)
     gcv = gcv_ridge(profile.basis, targets, valid)
-    tuned = {"noise_mm": noise, "ridge": held.value, "ridge_gcv": gcv.value, "rate": float(rate),
-             "criterion": held.criterion}
+    tuned = {"noise_mm": noise, "jitter_mm": jitter, "residual_mm": residual,
+             "marker_noise_mm": [float(x) for x in per_marker],
+             "noise_source": "given" if noise_mm is not None else "residual" if residual > jitter else "jitter",
+             "ridge": held.value, "ridge_gcv": gcv.value, "rate": float(rate), "criterion": held.criterion}
     # the sparse fit sees markers through the causal filter: select its ridge on what it will see
     filt = marker_filter(float(rate), RobustSettings.marker_window)
     smoothed = filt.filter(targets, np.broadcast_to(np.asarray(valid, bool)[..., None], np.shape(targets)))
@@ -128,6 +148,15 @@ def tune_profile(profile: Profile, targets: np.ndarray, valid: np.ndarray, rate:
     profile.settings.setdefault("noise_mm", noise)
     profile.settings.setdefault("ridge_selected", held.value)
     return tuned
+
+
+def override_noise(profile: Profile, noise_mm: float) -> None:
+    """``--noise-mm`` on a saved profile: every mode that reads the noise uses ``noise_mm`` instead."""
+    if not noise_mm > 0:
+        raise ValueError(f"--noise-mm must be positive, got {noise_mm}")
+    profile.settings["robust"] = {**profile.settings.get("robust", {}), "noise_mm": float(noise_mm),
+                                  "noise_source": "given"}
+    profile.settings["noise_mm"] = float(noise_mm)
 
 
 def marker_filter(rate: float, seconds: float) -> CausalPolyFilter:
