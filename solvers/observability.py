@@ -127,3 +127,39 @@ def tying_prior(report: ObservabilityReport, strength: float) -> np.ndarray:
         P[i, j] -= c
         P[j, i] -= c
     return strength * P
+
+
+QUIET_SD = 1.0  # a shape whose per-frame weight noise sd exceeds this (the weight range) is not seen by the markers
+
+
+MAX_QUIET_SHAPES = 400  # above this many shapes the analysis (one NNLS per shape per removal) is skipped
+
+
+def quiet_shapes(basis: np.ndarray, noise_mm: float, threshold: float = QUIET_SD) -> np.ndarray:
+    """Shapes the markers cannot tell apart from noise and from the other shapes, removed greedily (the worst first,
+    then the rest re-measured: of two nearly parallel shapes the weaker goes and its partner then carries their
+    common motion). Indices, ascending.
+
+    Per-frame least squares gives shape k a weight sd of ``sigma / d_k``, ``d_k`` the distance of its marker motion
+    from the span of the others (module docstring: the diagonal of ``sigma^2 (B^T B)^-1``). The weights are
+    non-negative, so here ``d_k`` is the distance from the others' *cone* (NNLS): jawLeft and jawRight move the
+    markers in opposite directions and stay apart; eyeWide and eyeLookUp (cosine 0.94 on the ICT rig) do not.
+
+    Issue 35.3: shapes left free here become a dustbin for whatever the rig cannot explain (eye gaze, frowns on a
+    real capture); held at rest or at the prior's conditional mean, that misfit stays in the residual."""
+    from scipy.optimize import nnls
+
+    B = np.asarray(basis, dtype=np.float64)
+    m = B.shape[1]
+    if m < 2 or m > MAX_QUIET_SHAPES or not noise_mm > 0:
+        return np.zeros(0, dtype=int)
+    keep = list(range(m))
+    out = []
+    while len(keep) > 1:
+        dist = np.array([nnls(B[:, [i for i in keep if i != k]], B[:, k])[1] for k in keep])
+        sd = noise_mm / np.maximum(dist, 1e-300)
+        j = int(np.argmax(sd))
+        if not sd[j] > threshold:
+            break
+        out.append(keep.pop(j))
+    return np.sort(np.asarray(out, dtype=int))

@@ -13,6 +13,7 @@ from livecap.calibration.profile import Profile
 from livecap.modes.marker_kalman import kalman_mode, kalman_prior
 from livecap.modes.movement import build_movement
 from livecap.modes.per_frame import lsq_mode, qp_mode, rbf_mode
+from livecap.modes.quiet import build_quiet
 from livecap.modes.robust import ROBUST_MODES
 
 # The mode a user gets without choosing (docs/modes.md "The default mode"; measured leave one file out
@@ -48,4 +49,5 @@ def build_solver(mode: str, profile: Profile, options: dict | None = None):
         factory = MODES[mode]
     except KeyError:
         raise ValueError(f"unknown solver mode {mode!r} (choose from {sorted(MODES_AND_AUTO)})") from None
-    return factory(profile, options or {})
+    options = options or {}
+    return build_quiet(factory, profile, options, reduce=mode != "rbf" and options.get("basis") != "actor")
