@@ -107,6 +107,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
     if profile.prior is not None:
         print(f"prior     {args.prior}: {profile.prior.frames} frames of {len(profile.prior.sources)} performances; "
               f"default mode {resolve_mode(DEFAULT_MODE, profile)}")
+    else:
+        share = tuned.get("active_fraction")
+        print("acting    " + ("no evidence (a still take; --tune a take of the actor performing)" if share is None
+                              else f"{tuned['acting']} ({share:.2f} of the shapes active a frame in the sparse fit)")
+              + f": default mode {resolve_mode(DEFAULT_MODE, profile)}")
     print(f"profile   {args.out}")
     return 0
 
@@ -173,6 +178,8 @@ def run_report(args: argparse.Namespace) -> int:
 
     def make_solver(p: Profile):  # each variant's profile tuned on the take for the modes that read the noise
         p.prior = p.prior or prior  # --profile's animation prior, as solve with that profile would use
+        if id(p) not in tuned and args.mode == DEFAULT_MODE:  # auto reads the acting that tuning measures
+            tuned[id(p)] = tune_on_take(p, take)
         mode = resolve_mode(args.mode, p)
         resolved.append(mode)
         if id(p) not in tuned and mode in ("movement", *ROBUST_MODES):

@@ -17,10 +17,10 @@ from livecap.modes.quiet import build_quiet
 from livecap.modes.robust import ROBUST_MODES
 
 # The mode a user gets without choosing (docs/modes.md "The default mode"; measured leave one file out
-# on real performances in docs/robustness.md): ``kalman`` -- a dense fit under a Gaussian prior -- when
-# an animation prior learned from real acting is given (profile or option), else ``robust`` -- the
-# sparse L1 fit -- which wins where nothing says the acting is dense. Both run per frame with at most
-# one frame of latency and have an offline form.
+# on real performances in docs/robustness.md): ``kalman`` -- a dense fit under a Gaussian prior, or a ridge
+# without one -- unless the take calibration tuned on shows sparse acting (few shapes at a time, as the bundled
+# demo take's script: livecap.modes.robust.acting_density), where ``robust`` -- the sparse L1 fit -- wins. Both
+# run per frame with at most one frame of latency and have an offline form.
 DEFAULT_MODE = "auto"
 
 MODES: dict[str, Callable] = {
@@ -33,14 +33,20 @@ MODES: dict[str, Callable] = {
 }
 MODES.update(ROBUST_MODES)  # noise-robust modes (livecap/modes/robust.py, docs/robustness.md)
 MODES_AND_AUTO = [DEFAULT_MODE, *MODES]  # what --mode accepts
-MODE_HELP = f"solver mode (default {DEFAULT_MODE}: kalman when an animation prior is given, else robust)"
+MODE_HELP = (f"solver mode (default {DEFAULT_MODE}: kalman, or robust when no animation prior is given and the take "
+             "calibration tuned on shows sparse acting)")
 
 
 def resolve_mode(mode: str, profile: Profile, options: dict | None = None) -> str:
     """The mode ``auto`` stands for with this profile and options; any other name unchanged."""
     if mode != DEFAULT_MODE:
         return mode
-    return "kalman" if kalman_prior(profile, options) is not None else "robust"
+    if kalman_prior(profile, options) is not None:
+        return "kalman"
+    tuned = profile.settings.get("robust", {})
+    if "noise_mm" not in tuned:  # a profile written before calibration tuned (nothing measured): as it was then
+        return "robust"
+    return "robust" if tuned.get("acting") == "sparse" else "kalman"
 
 
 def build_solver(mode: str, profile: Profile, options: dict | None = None):

@@ -145,9 +145,33 @@ def tune_profile(profile: Profile, targets: np.ndarray, valid: np.ndarray, rate:
                                   profile.lower, profile.upper)
     tuned.update(sparse_ridge=sparse.value, sparse_criterion=sparse.criterion)
     profile.settings["robust"] = tuned
+    tuned.update(acting_density(profile, targets, valid))
     profile.settings.setdefault("noise_mm", noise)
     profile.settings.setdefault("ridge_selected", held.value)
     return tuned
+
+
+ACTIVE_WEIGHT = 0.05  # a shape counts as active in a frame above this weight
+SPARSE_ACTING = 0.08  # mean share of shapes active in the sparse fit below which the acting is sparse
+ACTING_EVIDENCE = 0.2  # share of frames with any active shape below which the take says nothing (a still face)
+
+
+def acting_density(profile: Profile, targets: np.ndarray, valid: np.ndarray) -> dict:
+    """What the tuning take says of the acting, for the default mode (livecap.modes.registry.resolve_mode): the
+    sparse fit (``robust``, run over the take) keeps few shapes where the acting is sparse and many where it is dense.
+
+    Measured (issue 41.1, 2026-12-04, docs/modes.md): the bundled demo take's scripted acting keeps 2.3 of 43
+    shapes a frame on average (0.05); takes driven by the six real performances keep 6-13 of 53 on the ICT rig and
+    6-12 of 43 on the demo rig (0.11-0.27), though 19-32 are truly active. A still take (a neutral) keeps none:
+    no evidence, ``acting`` None."""
+    from livecap.modes.robust_take import whole_take
+
+    W = whole_take(robust_solver(profile), targets, valid)
+    active = np.sum(W > ACTIVE_WEIGHT, axis=1)
+    if not len(W) or np.mean(active > 0) < ACTING_EVIDENCE:
+        return {"acting": None, "active_fraction": None}
+    share = float(np.mean(active) / W.shape[1])
+    return {"acting": "sparse" if share < SPARSE_ACTING else "dense", "active_fraction": share}
 
 
 def override_noise(profile: Profile, noise_mm: float) -> None:
