@@ -49,9 +49,11 @@ def test_realeval_rows_say_stream_or_offline(ict, tmp_path):
         pytest.skip("no real performances in ../shared/realdata/performance")
     out = tmp_path / "r.json"
     assert main(["realeval", "--rig", "ict", "--noise", "0.5", "--seconds", "2", "--curves", str(csv[0]),
-                 "--modes", "kalman", "--no-prior", "--json", str(out)]) == 0
-    modes = [r["mode"] for r in json.loads(out.read_text())["rows"]]
-    assert modes == ["oracle", "kalman stream", "kalman offline"]
+                 "--modes", "kalman", "--no-prior", "--bias", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["mode"] for r in rows] == ["oracle", "kalman stream", "kalman offline"]
+    # issue 41.6: on request, per-shape bias and the truly active shapes the solve keeps
+    assert all(0 <= r["active_kept"] <= r["active_true"] and len(r["bias"]) == 53 for r in rows)
 
 
 def test_the_causality_check_catches_the_offline_path(profile):

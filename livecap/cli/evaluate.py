@@ -29,6 +29,7 @@ from livecap.offline.metrics import (
     vertex_error_stats,
     weight_rmse,
 )
+from livecap.offline.real_eval import ACTIVE
 from livecap.offline.solve import prepare_targets
 from livecap.offline.streamed import stream_take
 from transport.takefile import read_take
@@ -96,7 +97,8 @@ def _print_bias(table: list[dict], top: int = 3) -> None:
     for row in table:
         if "bias" in row:
             worst = sorted(row["bias"].items(), key=lambda kv: -abs(kv[1]))[:top]
-            print(f"  {row['mode']:18s} " + "  ".join(f"{n} {b:+.3f}" for n, b in worst))
+            print(f"  {row['mode']:24s} " + "  ".join(f"{n} {b:+.3f}" for n, b in worst)
+                  + f"  (active kept {row['active_kept']:.1f} of {row['active_true']:.1f})")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -163,6 +165,8 @@ def run(args: argparse.Namespace) -> int:
                    "jitter_ratio": jitter(W) / truth_jitter,
                    "blink_peak": peak_retention(W, W_true, blinks), "jaw_peak": peak_retention(W, W_true, jaws),
                    "bias": dict(zip(rig.names, bias.tolist(), strict=True)),
+                   "active_true": float((W_true > ACTIVE).sum(1).mean()),
+                   "active_kept": float(((W_true > ACTIVE) & (W > ACTIVE)).sum(1).mean()),
                    "ms_per_frame": float(np.mean(times)) * 1e3 if kind == "offline" else float(times[0]) * 1e3,
                    "p99_ms": float(np.percentile(times, 99)) * 1e3 if kind == "offline" and len(times) > 1
                    else float(times[1]) * 1e3 if kind == "stream" else None}
@@ -175,7 +179,8 @@ def run(args: argparse.Namespace) -> int:
     print("(rows: what `livecap solve` gives (smoothed head pose, filled gaps); '<mode> stream': fed frame by frame "
           "through the live pipeline as `livecap run` feeds it, ms/frame = its step's p50)")
     print("(vertex p95: 95th percentile over frames of each frame's worst vertex; blink / jaw: solved peak over "
-          "true peak, mean over true peaks >= half the largest; bias: mean solved - true weight)")
+          "true peak, mean over true peaks >= half the largest; bias: mean solved - true weight; active kept: "
+          "shapes > 0.05 in the truth that the solve has > 0.05 too, mean per frame)")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"take": str(take_path), "frames": take.n_frames, "rows": table},

@@ -73,6 +73,9 @@ def plain_profile(rig: Rig, layout: MarkerLayout, ct: CurveTake) -> Profile:
     return profile
 
 
+ACTIVE = 0.05  # a shape is active in a frame above this weight (issue 41: "keeps 14 of 27 active shapes")
+
+
 @dataclass
 class Row:
     mode: str
@@ -81,13 +84,18 @@ class Row:
     jitter_x: float
     blink: float
     ms_per_frame: float
+    active_true: float = float("nan")  # shapes active in the truth, mean over frames
+    active_kept: float = float("nan")  # of those, active in the solve too
+    bias: dict[str, float] | None = None  # per shape: mean solved - true weight
 
 
 def score(label: str, rig: Rig, ct: CurveTake, W: np.ndarray, seconds: float) -> Row:
     truth = ct.weights
+    on = truth > ACTIVE
     return Row(label, weight_rmse(W, truth), vertex_p95(rig, W, truth),
                jitter(W) / max(jitter(truth), 1e-12), blink_retention(ct.blinks, W, truth, ct.take.rate),
-               seconds * 1e3 / max(len(W), 1))
+               seconds * 1e3 / max(len(W), 1), float(on.sum(1).mean()), float((on & (W > ACTIVE)).sum(1).mean()),
+               dict(zip(rig.names, (W - truth).mean(0).tolist(), strict=True)))
 
 
 def streamed(solver, targets: np.ndarray, valid: np.ndarray, step_us: np.ndarray | None = None) -> np.ndarray:
