@@ -48,6 +48,8 @@ def register(sub) -> None:
     p.add_argument("--no-prior", action="store_true", help="the profile carries no animation prior (so auto is "
                    "robust, kalman fits under a ridge); by default it carries one built from the other files "
                    "(leave one file out), as 'livecap calibrate --prior' stores it")
+    p.add_argument("--warp", default="rbf", choices=["rbf", "similarity", "rigid"],
+                   help="the calibration's proportion match, as 'livecap calibrate --warp' (default rbf)")
     p.add_argument("--bias", action="store_true", help="per take and mode, the shapes with the largest mean signed "
                    "error and how many of the truly active shapes (> 0.05) the solve keeps active")
     p.set_defaults(func=run)
@@ -100,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
                     from livecap.calibration.animation_prior import build_prior
 
                     prior = build_prior(others, rig.names, rig.lower, rig.upper, mapping)
-                rows = evaluate_curve_take(rig, layout, ct, args.modes, options, prior)
+                rows = evaluate_curve_take(rig, layout, ct, args.modes, options, prior, args.warp)
                 oracle = rows[0]
                 took = time.perf_counter() - t0
                 print(f"{rig_name} {noise:g} mm {f.name} ({ct.take.n_frames} frames, {took:.0f} s): "

@@ -60,14 +60,14 @@ def blink_retention(blinks: list[int], weights: np.ndarray, truth: np.ndarray, r
     return float(np.median(ratios)) if ratios else float("nan")
 
 
-def plain_profile(rig: Rig, layout: MarkerLayout, ct: CurveTake) -> Profile:
+def plain_profile(rig: Rig, layout: MarkerLayout, ct: CurveTake, warp: str = "rbf") -> Profile:
     """What plain ``livecap calibrate NEUTRAL`` stores (robust stabiliser, default gap and pose settings, and the
     noise level and ridges tuned on the neutral take, which every CLI calibration stores)."""
     sel = ct.neutral.select(layout.labels)
     neutral = estimate_neutral(sel, layout.stable, None)
     settings = {"max_gap_seconds": DEFAULT_MAX_GAP_SECONDS, "robust_stabilise": True,
                 "pose_smoothing_seconds": DEFAULT_POSE_SMOOTHING_SECONDS}
-    profile = calibrate(rig, layout, neutral, settings)
+    profile = calibrate(rig, layout, neutral, settings, warp=warp)
     neutral_take, targets, _, _ = prepare_targets(ct.neutral, profile)
     tune_profile(profile, targets, neutral_take.valid, ct.neutral.rate)
     return profile
@@ -115,10 +115,12 @@ def streamed(solver, targets: np.ndarray, valid: np.ndarray, step_us: np.ndarray
 
 
 def evaluate_curve_take(rig: Rig, layout: MarkerLayout, ct: CurveTake, modes: list[str],
-                        options: dict[str, dict] | None = None, prior: AnimationPrior | None = None) -> list[Row]:
+                        options: dict[str, dict] | None = None, prior: AnimationPrior | None = None,
+                        warp: str = "rbf") -> list[Row]:
     """The oracle and every mode in ``modes`` (plain profile from the neutral take, carrying ``prior`` as
     ``livecap calibrate --prior`` stores it, e.g. one trained on the other files) on one take; ``options``
-    per mode (``auto`` takes the options of the mode it stands for and is labelled ``auto=<mode>``).
+    per mode (``auto`` takes the options of the mode it stands for and is labelled ``auto=<mode>``); ``warp``: the
+    calibration's proportion match (``livecap calibrate --warp``).
 
     Two rows per mode that streams: ``<mode> stream``, the take fed frame by frame through the live pipeline
     as ``livecap run`` feeds it (causal head pose, no gap filling; livecap.offline.streamed), and
@@ -126,7 +128,7 @@ def evaluate_curve_take(rig: Rig, layout: MarkerLayout, ct: CurveTake, modes: li
     form when it has one). Modes with no ``step`` get the offline row only."""
     t0 = time.perf_counter()
     rows = [score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), time.perf_counter() - t0)]
-    profile = plain_profile(rig, layout, ct)
+    profile = plain_profile(rig, layout, ct, warp)
     profile.prior = prior
     for name in modes:
         resolved = resolve_mode(name, profile)
