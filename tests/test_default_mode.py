@@ -142,3 +142,15 @@ def test_the_acting_decides_the_default_without_a_prior(tmp_path):
     assert still.settings["robust"]["acting"] is None and resolve_mode("auto", still) == "kalman"
     assert acting.settings["robust"]["acting"] == "sparse" and resolve_mode("auto", acting) == "robust"
     assert acting.settings["robust"]["active_fraction"] < 0.08
+
+
+def test_without_a_prior_a_large_rig_keeps_the_sparse_fit():
+    """kalman costs 94 / 343 ms p50 / p99 a frame at 72 markers x 1000 shapes (docs/modes.md): no default there."""
+    from livecap.modes.registry import DENSE_MAX_SHAPES, resolve_mode
+
+    m = DENSE_MAX_SHAPES + 1
+    p = Profile(["a"], [f"s{i}" for i in range(m)], np.zeros((1, 3)), np.ones(1, bool), np.zeros((3, m)),
+                np.zeros(m), np.ones(m), np.zeros((1, 3)), {"robust": {"noise_mm": 0.5, "acting": None}})
+    assert resolve_mode("auto", p) == "robust"
+    small = Profile(**{**vars(p), "names": p.names[:10], "basis": p.basis[:, :10]})
+    assert resolve_mode("auto", small) == "kalman"

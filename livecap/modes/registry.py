@@ -22,6 +22,7 @@ from livecap.modes.robust import ROBUST_MODES
 # demo take's script: livecap.modes.robust.acting_density), where ``robust`` -- the sparse L1 fit -- wins. Both
 # run per frame with at most one frame of latency and have an offline form.
 DEFAULT_MODE = "auto"
+DENSE_MAX_SHAPES = 200  # without a prior, rigs with more shapes keep robust: kalman's per-frame cost grows too fast
 
 MODES: dict[str, Callable] = {
     "lsq": lsq_mode,
@@ -45,6 +46,8 @@ def resolve_mode(mode: str, profile: Profile, options: dict | None = None) -> st
         return "kalman"
     tuned = profile.settings.get("robust", {})
     if "noise_mm" not in tuned:  # a profile written before calibration tuned (nothing measured): as it was then
+        return "robust"
+    if len(profile.names) > DENSE_MAX_SHAPES:  # kalman cannot stream there (docs/modes.md: 94 / 343 ms at 1000)
         return "robust"
     return "robust" if tuned.get("acting") == "sparse" else "kalman"
 
