@@ -70,7 +70,7 @@ def test_a_lagged_mode_publishes_each_frame_with_its_own_pose_and_markers(setup,
 def test_auto_resolves_with_the_profile_and_the_report_says_to_what(setup):
     _, _, take, profile = setup
     p = Pipeline(take.frames(), [Capture()], profile=profile, mode="auto", max_frames=5)
-    assert p.run()["mode"] == "robust" and "mode robust" in p.report().splitlines()[0]  # untuned: as before
+    assert p.run()["mode"] == "robust" and "mode robust" in p.report().splitlines()[0]
 
 
 def test_a_solver_error_leaves_the_lagged_pairing_intact(setup):
