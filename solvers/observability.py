@@ -14,7 +14,7 @@ indistinguishable pairs, so noise cannot trade one for the other).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -30,6 +30,7 @@ class ObservabilityReport:
     pairs: list[tuple[int, int, float]]  # (i, j, cosine) of nearly parallel columns
     noise_mm: float
     seen_mm: float
+    held: list[int] = field(default_factory=list)  # quiet_shapes at noise_mm: held in every mode (issue 35.3)
 
     @property
     def condition(self) -> float:
@@ -64,6 +65,8 @@ class ObservabilityReport:
         out.append(f"  directions with weight noise sd > 1 per frame: {len(weak)}")
         for k in weak[:6]:
             out.append(f"    s={s[k]:.3g}: {self.describe_direction(k)}")
+        out.append(f"  held in every mode at {self.noise_mm:g} mm (at rest, or the prior's conditional mean): "
+                   + (", ".join(self.names[i] for i in self.held) or "none"))
         return out
 
 
@@ -88,7 +91,7 @@ def observability(basis: np.ndarray, names: list[str], noise_mm: float = 0.5, se
     pairs = [(i, j, float(C[i, j])) for i in range(m) for j in range(i + 1, m) if C[i, j] >= pair_cosine]
     pairs.sort(key=lambda p: -p[2])
     return ObservabilityReport(list(names), s, Vt.T, disp, count.astype(int), sd, pairs, float(noise_mm),
-                               float(seen_mm))
+                               float(seen_mm), quiet_shapes(B, noise_mm).tolist())
 
 
 def noise_floor(basis: np.ndarray, noise_mm: float, ridge: float | np.ndarray = 0.0) -> np.ndarray:

@@ -73,3 +73,11 @@ def test_with_a_prior_held_shapes_follow_its_conditional_mean(noisy_profile, tak
     st = build_solver("kalman", p)
     w = st.step(np.zeros((len(p.labels), 3)), np.ones(len(p.labels), bool))
     assert w.shape == (m,)
+
+
+def test_info_observability_names_the_held_shapes(noisy_profile):
+    from solvers.observability import observability
+
+    rep = observability(noisy_profile.basis, noisy_profile.names, 2.0)
+    names = [noisy_profile.names[i] for i in quiet_shapes(noisy_profile.basis, 2.0)]
+    assert rep.lines()[-1].endswith(", ".join(names)) and names
