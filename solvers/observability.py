@@ -139,9 +139,9 @@ MAX_QUIET_SHAPES = 400  # above this many shapes the analysis (one NNLS per shap
 
 
 def quiet_shapes(basis: np.ndarray, noise_mm: float, threshold: float = QUIET_SD) -> np.ndarray:
-    """Shapes the markers cannot tell apart from noise and from the other shapes, removed greedily (the worst first,
-    then the rest re-measured: of two nearly parallel shapes the weaker goes and its partner then carries their
-    common motion). Indices, ascending.
+    """Shapes the markers cannot tell apart from noise and from the other shapes, removed greedily (of those whose
+    noise sd exceeds ``threshold``, the one that moves the markers least, then the rest re-measured: of two nearly
+    parallel shapes the weaker goes and its partner then carries their common motion). Indices, ascending.
 
     Per-frame least squares gives shape k a weight sd of ``sigma / d_k``, ``d_k`` the distance of its marker motion
     from the span of the others (module docstring: the diagonal of ``sigma^2 (B^T B)^-1``). The weights are
@@ -156,13 +156,15 @@ def quiet_shapes(basis: np.ndarray, noise_mm: float, threshold: float = QUIET_SD
     m = B.shape[1]
     if m < 2 or m > MAX_QUIET_SHAPES or not noise_mm > 0:
         return np.zeros(0, dtype=int)
+    norms = np.linalg.norm(B, axis=0)
     keep = list(range(m))
     out = []
     while len(keep) > 1:
         dist = np.array([nnls(B[:, [i for i in keep if i != k]], B[:, k])[1] for k in keep])
         sd = noise_mm / np.maximum(dist, 1e-300)
-        j = int(np.argmax(sd))
-        if not sd[j] > threshold:
+        over = np.flatnonzero(sd > threshold)
+        if not len(over):
             break
+        j = int(over[np.argmin(norms[np.asarray(keep)[over]])])  # the weakest of them: it moves the markers least
         out.append(keep.pop(j))
     return np.sort(np.asarray(out, dtype=int))
