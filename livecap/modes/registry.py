@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from livecap.calibration.profile import Profile
+from livecap.modes.a2f import a2f_mode
 from livecap.modes.marker_kalman import kalman_mode, kalman_prior
 from livecap.modes.movement import build_movement
 from livecap.modes.per_frame import lsq_mode, qp_mode, rbf_mode
@@ -31,6 +32,7 @@ MODES: dict[str, Callable] = {
     "qp": qp_mode,
     "rbf": rbf_mode,
     "kalman": kalman_mode,  # marker-space Kalman filter / RTS smoother -> bounded QP (issue 15)
+    "a2f": a2f_mode,  # baseline: NVIDIA Audio2Face-3D's published blendshape solve (issue 41.7)
 }
 MODES.update(ROBUST_MODES)  # noise-robust modes (livecap/modes/robust.py, docs/robustness.md)
 MODES_AND_AUTO = [DEFAULT_MODE, *MODES]  # what --mode accepts
