@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 REALDATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "realdata"
-DEFAULT_MODES = ["auto", "robust", "robust-lag", "movement"]
+DEFAULT_MODES = ["auto", "robust", "robust-lag", "movement", "a2f"]  # a2f: the peer baseline (issue 41.7)
 
 
 def _realdata() -> Path:
