@@ -9,9 +9,11 @@ makes the solve slow (issue 18) and the weights jittery. This suite measures wha
 
 Per Live Link Face CSV in ``$LIVECAP_SHARED/realdata/performance`` (or ``../shared``): a 10 s take of the rig
 driven by it (``livecap.demo.curves_take``, 5 % of marker-frames occluded in bursts, the given marker noise), the
-plain profile ``livecap realeval`` uses, then every solver streamed frame by frame. Weight RMSE and vertex p95 are
+plain profile ``livecap realeval`` uses, then every solver streamed frame by frame through the live pipeline
+(``livecap.offline.streamed``: causal head pose, no gap filling, as ``livecap run``). Weight RMSE and vertex p95 are
 ratios to the true-basis, true-pose oracle (as in ``livecap realeval``); jitter is x the ground truth's; time is
-the wall p50 / p99 of ``step``. ``makehuman`` is the CC0 MakeHuman head with the markers ``livecap rig transfer``
+the wall p50 / p99 of ``step`` as the pipeline times it (after its warm-up).
+``makehuman`` is the CC0 MakeHuman head with the markers ``livecap rig transfer``
 places from the ICT rig (``livecap.transfer.transfer``, ~9 s, as ``livecap rig transfer --target-units cm``) and
 ``examples/makehuman_arkit.json``.
 """
@@ -28,7 +30,6 @@ from benchmarks.timing import suite_main, table
 
 ROOT = Path(__file__).resolve().parents[1]
 MEANS = ("rmse", "rmse_x", "p95_x", "jitter_x", "blink")  # averaged over files in the summary
-WARMUP = 10  # steps of each take left out of the timing
 
 
 def _rig(name: str):
@@ -59,9 +60,8 @@ def run(quick: bool = False, rigs=("ict", "demo", "makehuman"), ridges=("0", "1"
         noise=("0.5",)) -> dict:
     from livecap.cli.realeval import _realdata
     from livecap.demo.curves_take import CurveTakeSettings, curves_take
-    from livecap.modes.registry import build_solver
-    from livecap.offline.real_eval import oracle_weights, plain_profile, score, streamed
-    from livecap.offline.solve import prepare_targets
+    from livecap.offline.real_eval import oracle_weights, plain_profile, score
+    from livecap.offline.streamed import stream_take
     from transport.llf_csv import read_llf_csv
 
     files = sorted((_realdata() / "performance").glob("*.csv"))
@@ -81,16 +81,13 @@ def run(quick: bool = False, rigs=("ict", "demo", "makehuman"), ridges=("0", "1"
                 ct = curves_take(rig, layout, f, s, mapping)
                 oracle = score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), 0.0)
                 profile = plain_profile(rig, layout, ct)
-                take, targets, _, _ = prepare_targets(ct.take, profile)
-                us = np.empty(take.n_frames)
                 for mode, options in solvers:
-                    W = streamed(build_solver(mode, profile, options), targets, take.valid, us)
-                    r = score(mode, rig, ct, W, 0.0)
-                    timed = us[WARMUP:]  # the first steps compile kernels (once per process) and fill filter windows
+                    st = stream_take(ct.take, profile, mode, options)  # as `livecap run` feeds it (issue 41.4)
+                    r = score(mode, rig, ct, st.weights, 0.0)
                     rows.append({"rig": rig_name, "noise_mm": sigma, "file": f.name, "mode": mode,
                                  "ridge": options.get("ridge"), "rmse": r.rmse, "rmse_x": r.rmse / oracle.rmse,
                                  "p95_x": r.p95_mm / oracle.p95_mm, "jitter_x": r.jitter_x, "blink": r.blink,
-                                 "p50_us": float(np.median(timed)), "p99_us": float(np.percentile(timed, 99))})
+                                 "p50_us": st.step_ms["p50_ms"] * 1e3, "p99_us": st.step_ms["p99_ms"] * 1e3})
     summary = []
     for key in dict.fromkeys((r["rig"], r["noise_mm"], r["mode"], r["ridge"]) for r in rows):
         sel = [r for r in rows if (r["rig"], r["noise_mm"], r["mode"], r["ridge"]) == key]

@@ -14,7 +14,7 @@ indistinguishable pairs, so noise cannot trade one for the other).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -30,6 +30,7 @@ class ObservabilityReport:
     pairs: list[tuple[int, int, float]]  # (i, j, cosine) of nearly parallel columns
     noise_mm: float
     seen_mm: float
+    held: list[int] = field(default_factory=list)  # quiet_shapes at noise_mm: held in every mode (issue 35.3)
 
     @property
     def condition(self) -> float:
@@ -64,6 +65,8 @@ class ObservabilityReport:
         out.append(f"  directions with weight noise sd > 1 per frame: {len(weak)}")
         for k in weak[:6]:
             out.append(f"    s={s[k]:.3g}: {self.describe_direction(k)}")
+        out.append(f"  held in every mode at {self.noise_mm:g} mm (at rest, or the prior's conditional mean): "
+                   + (", ".join(self.names[i] for i in self.held) or "none"))
         return out
 
 
@@ -88,7 +91,7 @@ def observability(basis: np.ndarray, names: list[str], noise_mm: float = 0.5, se
     pairs = [(i, j, float(C[i, j])) for i in range(m) for j in range(i + 1, m) if C[i, j] >= pair_cosine]
     pairs.sort(key=lambda p: -p[2])
     return ObservabilityReport(list(names), s, Vt.T, disp, count.astype(int), sd, pairs, float(noise_mm),
-                               float(seen_mm))
+                               float(seen_mm), quiet_shapes(B, noise_mm).tolist())
 
 
 def noise_floor(basis: np.ndarray, noise_mm: float, ridge: float | np.ndarray = 0.0) -> np.ndarray:
@@ -127,3 +130,41 @@ def tying_prior(report: ObservabilityReport, strength: float) -> np.ndarray:
         P[i, j] -= c
         P[j, i] -= c
     return strength * P
+
+
+QUIET_SD = 1.0  # a shape whose per-frame weight noise sd exceeds this (the weight range) is not seen by the markers
+
+
+MAX_QUIET_SHAPES = 400  # above this many shapes the analysis (one NNLS per shape per removal) is skipped
+
+
+def quiet_shapes(basis: np.ndarray, noise_mm: float, threshold: float = QUIET_SD) -> np.ndarray:
+    """Shapes the markers cannot tell apart from noise and from the other shapes, removed greedily (of those whose
+    noise sd exceeds ``threshold``, the one that moves the markers least, then the rest re-measured: of two nearly
+    parallel shapes the weaker goes and its partner then carries their common motion). Indices, ascending.
+
+    Per-frame least squares gives shape k a weight sd of ``sigma / d_k``, ``d_k`` the distance of its marker motion
+    from the span of the others (module docstring: the diagonal of ``sigma^2 (B^T B)^-1``). The weights are
+    non-negative, so here ``d_k`` is the distance from the others' *cone* (NNLS): jawLeft and jawRight move the
+    markers in opposite directions and stay apart; eyeWide and eyeLookUp (cosine 0.94 on the ICT rig) do not.
+
+    Issue 35.3: shapes left free here become a dustbin for whatever the rig cannot explain (eye gaze, frowns on a
+    real capture); held at rest or at the prior's conditional mean, that misfit stays in the residual."""
+    from scipy.optimize import nnls
+
+    B = np.asarray(basis, dtype=np.float64)
+    m = B.shape[1]
+    if m < 2 or m > MAX_QUIET_SHAPES or not noise_mm > 0:
+        return np.zeros(0, dtype=int)
+    norms = np.linalg.norm(B, axis=0)
+    keep = list(range(m))
+    out = []
+    while len(keep) > 1:
+        dist = np.array([nnls(B[:, [i for i in keep if i != k]], B[:, k])[1] for k in keep])
+        sd = noise_mm / np.maximum(dist, 1e-300)
+        over = np.flatnonzero(sd > threshold)
+        if not len(over):
+            break
+        j = int(over[np.argmin(norms[np.asarray(keep)[over]])])  # the weakest of them: it moves the markers least
+        out.append(keep.pop(j))
+    return np.sort(np.asarray(out, dtype=int))

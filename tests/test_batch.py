@@ -73,7 +73,8 @@ def test_local_cluster_equals_solve_and_reports_bad_takes(library, client, tmp_p
     assert "broken.c3d" in errors["broken"] and "not a readable C3D" in errors["broken"]
     assert "wrong labels" in errors["wrong_labels"]
     for stem in ("take2",):  # bit for bit what livecap solve writes
-        solo = _solve(library["takes"] / f"{stem}.c3d", tmp_path / f"{stem}.solo.csv", "--profile", library["profile"])
+        solo = _solve(library["takes"] / f"{stem}.c3d", tmp_path / f"{stem}.solo.csv", "--profile", library["profile"],
+                      "--mode", "robust")
         assert (out / f"{stem}.csv").read_bytes() == solo
     # the prepared solver is built once per worker, not once per take
     built = client.run(lambda dask_worker: dask_worker.plugins[PLUGIN_NAME].built)
@@ -179,7 +180,7 @@ def test_glb_and_jsonl_outputs_and_a_reused_solver(library, tmp_path):
     assert cache.built == 1
     (tmp_path / "solo").mkdir()
     for fmt in ("glb", "csv"):
-        solo = _solve(take, tmp_path / "solo" / f"take2.{fmt}", "--profile", library["profile"])
+        solo = _solve(take, tmp_path / "solo" / f"take2.{fmt}", "--profile", library["profile"], "--mode", "robust")
         assert (tmp_path / f"take2.{fmt}").read_bytes() == solo
     names, frames = read_jsonl_recording(tmp_path / "take2.jsonl")
     csv_names, W, _ = read_weights_csv(tmp_path / "take2.csv")

@@ -65,7 +65,8 @@ def test_offline_suite_runs_a_whole_take_file_end_to_end(tmp_path, demo):
     rig.save(tmp_path / "rig.npz")
     p = solve_process(take_path, tmp_path / "rig.npz", profile_path, tmp_path / "p.csv", 1.5, runs=1)
     assert p["process_s"] > p["floor_s"] > 0
-    assert np.abs(read_weights_csv(tmp_path / "p.csv")[1] - whole["weights"]).max() <= 1e-6  # the default: robust
+    default = solve_end_to_end("auto", take_path, profile_path, tmp_path / "w.csv", truth)  # the default mode
+    assert np.abs(read_weights_csv(tmp_path / "p.csv")[1] - default["weights"]).max() <= 1e-6
 
 
 def test_head_fit_ab_makes_its_hostile_frames_and_compares_two_trees():

@@ -96,6 +96,6 @@ def test_realeval_cli_reports_ratios_to_the_oracle(tmp_path, short_csv, capsys):
     assert main(["realeval", "--rig", "demo", "--noise", "0.5", "--seconds", "3", "--curves", str(short_csv),
                  "--modes", "robust", "--json", str(out)]) == 0
     rows = json.loads(out.read_text())["rows"]
-    assert [r["mode"] for r in rows] == ["oracle", "robust"]
+    assert [r["mode"] for r in rows] == ["oracle", "robust stream", "robust offline"]
     assert rows[0]["rmse_x"] == 1.0 and np.isfinite(rows[1]["rmse_x"]) and rows[1]["p95_mm"] > 0
-    assert "| demo | 0.5 | robust |" in capsys.readouterr().out
+    assert "| demo | 0.5 | robust stream |" in capsys.readouterr().out

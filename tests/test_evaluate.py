@@ -32,5 +32,7 @@ def test_rom_then_solve_rbf_and_actor_qp_then_evaluate(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "qp actor-basis" in text and "rbf" in text and "weight RMSE" in text
     rows = {r["mode"]: r for r in json.loads(table.read_text())["rows"]}
-    assert set(rows) == {"qp", "rbf", "qp actor-basis", "qp ridge1 temp20"}
+    offline = {"qp", "rbf", "qp actor-basis", "qp ridge1 temp20"}
+    assert set(rows) == offline | {f"{m} stream" for m in offline}
+    assert {rows[m]["kind"] for m in offline} == {"offline"} and rows["qp stream"]["kind"] == "stream"
     assert all(0 <= r["weight_rmse"] < 0.5 for r in rows.values())

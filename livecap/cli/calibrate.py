@@ -10,7 +10,7 @@ import numpy as np
 
 from livecap.calibration.animation_prior import AnimationPrior
 from livecap.calibration.profile import WARPS, Profile, calibrate, estimate_neutral
-from livecap.cli.common import add_rig_arguments, check_labels, load_rig, progress_bar, tune_on_take
+from livecap.cli.common import add_noise_argument, add_rig_arguments, check_labels, load_rig, progress_bar, tune_on_take
 from livecap.cli.progress import stage
 from livecap.modes.registry import DEFAULT_MODE, MODES_AND_AUTO, resolve_mode
 from livecap.modes.robust import ROBUST_MODES
@@ -38,6 +38,7 @@ def register(sub) -> None:
                    "select the noise level and regularisation from it and store them in the profile "
                    "(default: from the neutral take)")
     p.add_argument("--plain-stabilise", action="store_true", help="plain Kabsch instead of the robust fit")
+    add_noise_argument(p)
     p.add_argument("--prior", metavar="PRIOR.npz", help="animation prior for this rig ('livecap prior build'): stored "
                    "in the profile; every solve with it then defaults to the dense kalman fit under that prior")
     p.set_defaults(func=run_calibrate)
@@ -88,8 +89,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
             raise ValueError(f"{args.prior}: {exc} (rig {args.rig})") from None
     tune_path = args.tune or args.neutral  # every profile carries the noise estimate every mode needs
     with stage(f"tuning on {tune_path}"):
-        tuned = tune_on_take(profile, read_take(args.tune) if args.tune else take)
-    print(f"tuned     on {tune_path}: noise {tuned['noise_mm']:.3f} mm, ridge {tuned['ridge']:.3g} "
+        tuned = tune_on_take(profile, read_take(args.tune) if args.tune else take, args.noise_mm)
+    print(f"tuned     on {tune_path}: noise {tuned['noise_mm']:.3f} mm ({tuned['noise_source']}; jitter "
+          f"{tuned['jitter_mm']:.3f}, fit residual {tuned['residual_mm']:.3f}), ridge {tuned['ridge']:.3g} "
           f"({tuned['criterion']})")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     profile.save(args.out)
@@ -105,6 +107,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
     if profile.prior is not None:
         print(f"prior     {args.prior}: {profile.prior.frames} frames of {len(profile.prior.sources)} performances; "
               f"default mode {resolve_mode(DEFAULT_MODE, profile)}")
+    else:
+        share = tuned.get("active_fraction")
+        print("acting    " + ("no evidence (a still take; --tune a take of the actor performing)" if share is None
+                              else f"{tuned['acting']} ({share:.2f} of the shapes active a frame in the sparse fit)")
+              + f": default mode {resolve_mode(DEFAULT_MODE, profile)}")
     print(f"profile   {args.out}")
     return 0
 
@@ -171,6 +178,8 @@ def run_report(args: argparse.Namespace) -> int:
 
     def make_solver(p: Profile):  # each variant's profile tuned on the take for the modes that read the noise
         p.prior = p.prior or prior  # --profile's animation prior, as solve with that profile would use
+        if id(p) not in tuned and args.mode == DEFAULT_MODE:  # auto reads the acting that tuning measures
+            tuned[id(p)] = tune_on_take(p, take)
         mode = resolve_mode(args.mode, p)
         resolved.append(mode)
         if id(p) not in tuned and mode in ("movement", *ROBUST_MODES):

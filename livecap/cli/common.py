@@ -52,6 +52,21 @@ def add_take_solve_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES_AND_AUTO), help=MODE_HELP)
     p.add_argument("--ridge", type=float,
                    help="ridge weight lambda (default: the mode's, or the one calibration selected)")
+    add_noise_argument(p)
+
+
+def add_noise_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--noise-mm", type=float, help="marker noise sigma per coordinate, mm, that the solvers must "
+                   "not explain (default: what calibration measured: jitter and the rig's fit residual; "
+                   "docs/calibration.md)")
+
+
+def _given_noise(args: argparse.Namespace, profile: Profile) -> Profile:
+    if getattr(args, "noise_mm", None) is not None:
+        from livecap.modes.robust import override_noise
+
+        override_noise(profile, args.noise_mm)
+    return profile
 
 
 def add_calibration_arguments(p: argparse.ArgumentParser) -> None:
@@ -66,12 +81,12 @@ def profile_for(args: argparse.Namespace, rig: Rig, layout: MarkerLayout, take: 
     selected from the take itself (livecap.modes.robust.tune_profile)."""
     check_labels(take, layout.labels, getattr(args, "take", "take"), args.rig)
     if getattr(args, "profile", None):
-        return Profile.load(args.profile)
+        return _given_noise(args, Profile.load(args.profile))
     sel = take.select(layout.labels)
     with progress.stage("calibrating and tuning on the take (give --profile to skip)"):
         neutral = estimate_neutral(sel, layout.stable, max(1, int(args.neutral_seconds * take.rate)))
         profile = calibrate(rig, layout, neutral)
-        tune_on_take(profile, take)
+        tune_on_take(profile, take, getattr(args, "noise_mm", None))
     return profile
 
 
@@ -82,15 +97,15 @@ def saved_profile(args: argparse.Namespace, take: Take) -> Profile:
         raise ValueError(f"{args.rig}: no such rig (an OBJ folder or .npz)")
     profile = Profile.load(args.profile)
     check_labels(take, profile.labels, getattr(args, "take", "take"), args.rig)
-    return profile
+    return _given_noise(args, profile)
 
 
-def tune_on_take(profile: Profile, take: Take) -> dict:
+def tune_on_take(profile: Profile, take: Take, noise_mm: float | None = None) -> dict:
     from livecap.modes.robust import tune_profile
     from livecap.offline.solve import prepare_targets
 
     sel, targets, _, _ = prepare_targets(take, profile)
-    return tune_profile(profile, targets, sel.valid, take.rate)
+    return tune_profile(profile, targets, sel.valid, take.rate, noise_mm)
 
 
 def solver_options(args: argparse.Namespace) -> dict:

@@ -29,7 +29,9 @@ from livecap.offline.metrics import (
     vertex_error_stats,
     weight_rmse,
 )
+from livecap.offline.real_eval import ACTIVE
 from livecap.offline.solve import prepare_targets
+from livecap.offline.streamed import stream_take
 from transport.takefile import read_take
 
 RECORDINGS = Path(__file__).resolve().parents[2] / "recordings"
@@ -95,7 +97,8 @@ def _print_bias(table: list[dict], top: int = 3) -> None:
     for row in table:
         if "bias" in row:
             worst = sorted(row["bias"].items(), key=lambda kv: -abs(kv[1]))[:top]
-            print(f"  {row['mode']:18s} " + "  ".join(f"{n} {b:+.3f}" for n, b in worst))
+            print(f"  {row['mode']:24s} " + "  ".join(f"{n} {b:+.3f}" for n, b in worst)
+                  + f"  (active kept {row['active_kept']:.1f} of {row['active_true']:.1f})")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -131,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"take {take_path.name}: {take.n_frames} frames at {take.rate:g} Hz, {take.n_markers} markers, "
           f"{(~take.valid).mean() * 100:.1f}% missing; rig {rig.n_shapes} shapes, {rig.n_vertices} vertices"
           + (f"; keys {Path(keys_path).name} ({len(options['keys'].names)} keys)" if keys_path else ""))
-    header = f"{'mode':18s} {'weight RMSE':>11s} {'vertex mm':>9s} {'p95 mm':>7s} {'max mm':>7s} {'jitter x':>8s} " \
+    header = f"{'mode':24s} {'weight RMSE':>11s} {'vertex mm':>9s} {'p95 mm':>7s} {'max mm':>7s} {'jitter x':>8s} " \
              f"{'blink':>5s} {'jaw':>5s} {'ms/frame':>8s} {'p99 ms':>7s}"
     print(header)
     table = []
@@ -142,29 +145,42 @@ def run(args: argparse.Namespace) -> int:
         try:
             solver = build_solver(mode, profile, {**options, **extra})
         except (ValueError, OSError, KeyError) as exc:
-            print(f"{label:18s} unavailable: {exc}")
+            print(f"{label:24s} unavailable: {exc}")
             table.append({"mode": label, "error": str(exc)})
             continue
         finally:
             quiet.setLevel(level)
         with progress_bar(f"{label}", take.n_frames) as update:
             W, times = evaluate_mode(solver, targets, valid, update)
-        vert = vertex_error_stats(rig, W, W_true)
-        bias = shape_bias(W, W_true)
-        row = {"mode": label, "weight_rmse": weight_rmse(W, W_true), "vertex_mm": vert["mean"],
-               "vertex_p95_mm": vert["p95"], "vertex_max_mm": vert["max"], "jitter_ratio": jitter(W) / truth_jitter,
-               "blink_peak": peak_retention(W, W_true, blinks), "jaw_peak": peak_retention(W, W_true, jaws),
-               "bias": dict(zip(rig.names, bias.tolist(), strict=True)),
-               "ms_per_frame": float(np.mean(times)) * 1e3,
-               "p99_ms": float(np.percentile(times, 99)) * 1e3 if len(times) > 1 else None}
-        table.append(row)
-        p99 = f"{row['p99_ms']:7.3f}" if row["p99_ms"] is not None else f"{'-':>7s}"
-        print(f"{label:18s} {row['weight_rmse']:11.4f} {vert['mean']:9.3f} {vert['p95']:7.3f} {vert['max']:7.3f} "
-              f"{row['jitter_ratio']:8.2f} {_ratio(row['blink_peak'])} {_ratio(row['jaw_peak'])} "
-              f"{row['ms_per_frame']:8.3f} {p99}")
+        runs = [(label, "offline", W, times)]
+        if hasattr(solver, "step"):  # as `livecap run` feeds it: causal head pose, no gap filling
+            st = stream_take(take, profile, mode, {**options, **extra})
+            runs.append((f"{label} stream", "stream", st.weights,
+                         np.array([st.step_ms["p50_ms"], st.step_ms["p99_ms"]]) / 1e3))
+        for row_label, kind, W, times in runs:
+            vert = vertex_error_stats(rig, W, W_true)
+            bias = shape_bias(W, W_true)
+            row = {"mode": row_label, "kind": kind, "weight_rmse": weight_rmse(W, W_true), "vertex_mm": vert["mean"],
+                   "vertex_p95_mm": vert["p95"], "vertex_max_mm": vert["max"],
+                   "jitter_ratio": jitter(W) / truth_jitter,
+                   "blink_peak": peak_retention(W, W_true, blinks), "jaw_peak": peak_retention(W, W_true, jaws),
+                   "bias": dict(zip(rig.names, bias.tolist(), strict=True)),
+                   "active_true": float((W_true > ACTIVE).sum(1).mean()),
+                   "active_kept": float(((W_true > ACTIVE) & (W > ACTIVE)).sum(1).mean()),
+                   "ms_per_frame": float(np.mean(times)) * 1e3 if kind == "offline" else float(times[0]) * 1e3,
+                   "p99_ms": float(np.percentile(times, 99)) * 1e3 if kind == "offline" and len(times) > 1
+                   else float(times[1]) * 1e3 if kind == "stream" else None}
+            table.append(row)
+            p99 = f"{row['p99_ms']:7.3f}" if row["p99_ms"] is not None else f"{'-':>7s}"
+            print(f"{row_label:24s} {row['weight_rmse']:11.4f} {vert['mean']:9.3f} {vert['p95']:7.3f} "
+                  f"{vert['max']:7.3f} {row['jitter_ratio']:8.2f} {_ratio(row['blink_peak'])} "
+                  f"{_ratio(row['jaw_peak'])} {row['ms_per_frame']:8.3f} {p99}")
     _print_bias(table)
+    print("(rows: what `livecap solve` gives (smoothed head pose, filled gaps); '<mode> stream': fed frame by frame "
+          "through the live pipeline as `livecap run` feeds it, ms/frame = its step's p50)")
     print("(vertex p95: 95th percentile over frames of each frame's worst vertex; blink / jaw: solved peak over "
-          "true peak, mean over true peaks >= half the largest; bias: mean solved - true weight)")
+          "true peak, mean over true peaks >= half the largest; bias: mean solved - true weight; active kept: "
+          "shapes > 0.05 in the truth that the solve has > 0.05 too, mean per frame)")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"take": str(take_path), "frames": take.n_frames, "rows": table},

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 REALDATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "realdata"
-DEFAULT_MODES = ["auto", "robust", "robust-lag", "movement"]
+DEFAULT_MODES = ["auto", "robust", "robust-lag", "movement", "a2f"]  # a2f: the peer baseline (issue 41.7)
 
 
 def _realdata() -> Path:
@@ -48,6 +48,10 @@ def register(sub) -> None:
     p.add_argument("--no-prior", action="store_true", help="the profile carries no animation prior (so auto is "
                    "robust, kalman fits under a ridge); by default it carries one built from the other files "
                    "(leave one file out), as 'livecap calibrate --prior' stores it")
+    p.add_argument("--warp", default="rbf", choices=["rbf", "similarity", "rigid"],
+                   help="the calibration's proportion match, as 'livecap calibrate --warp' (default rbf)")
+    p.add_argument("--bias", action="store_true", help="per take and mode, the shapes with the largest mean signed "
+                   "error and how many of the truly active shapes (> 0.05) the solve keeps active")
     p.set_defaults(func=run)
 
 
@@ -99,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
                     from livecap.calibration.animation_prior import build_prior
 
                     prior = build_prior(others, rig.names, rig.lower, rig.upper, mapping)
-                rows = evaluate_curve_take(rig, layout, ct, args.modes, options, prior)
+                rows = evaluate_curve_take(rig, layout, ct, args.modes, options, prior, args.warp)
                 oracle = rows[0]
                 took = time.perf_counter() - t0
                 print(f"{rig_name} {noise:g} mm {f.name} ({ct.take.n_frames} frames, {took:.0f} s): "
@@ -107,10 +111,16 @@ def run(args: argparse.Namespace) -> int:
                 for r in rows:
                     rec = {"rig": rig_name, "noise_mm": noise, "file": f.name, **vars(r),
                            "rmse_x": r.rmse / oracle.rmse, "p95_x": r.p95_mm / oracle.p95_mm}
+                    if not args.bias:
+                        rec.pop("bias")
                     out.append(rec)
                     print(f"  {r.mode:12s} RMSE {r.rmse:.3f} ({rec['rmse_x']:.2f}x)  p95 {r.p95_mm:.2f} mm "
                           f"({rec['p95_x']:.2f}x)  jitter {r.jitter_x:7.2f}x  blink {r.blink:.2f}")
-    print(summary_table(out))
+                    if args.bias:
+                        worst = sorted(r.bias.items(), key=lambda kv: -abs(kv[1]))[:5]
+                        print(f"    active kept {r.active_kept:.1f} of {r.active_true:.1f}; bias "
+                              + "  ".join(f"{n} {b:+.3f}" for n, b in worst))
+    print(summary_table(out, args.bias))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"machine": platform.node(), "date": time.strftime("%Y-%m-%d"),
@@ -119,11 +129,12 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def summary_table(rows: list[dict]) -> str:
-    """Markdown: per rig, noise and mode, the mean over files (oracle's absolute figures beside)."""
+def summary_table(rows: list[dict], kept: bool = False) -> str:
+    """Markdown: per rig, noise and mode, the mean over files (oracle's absolute figures beside); ``kept``: the
+    truly active shapes the solve keeps active, and the solve's mean absolute per-shape bias."""
     lines = ["| rig | noise mm | mode | weight RMSE (x oracle) | vertex p95 mm (x oracle) | jitter x truth "
-             "| blink kept |",
-             "|---|---|---|---|---|---|---|"]
+             "| blink kept |" + (" active kept / true | mean abs bias |" if kept else ""),
+             "|---|---|---|---|---|---|---|" + ("---|---|" if kept else "")]
     keys = []
     for r in rows:
         k = (r["rig"], r["noise_mm"], r["mode"])
@@ -136,6 +147,11 @@ def summary_table(rows: list[dict]) -> str:
             vals = np.array([r[field] for r in sel], dtype=float)
             return float(np.mean(vals[np.isfinite(vals)])) if np.isfinite(vals).any() else float("nan")
 
+        extra = ""
+        if kept:
+            bias = np.mean([np.mean(np.abs(list(r["bias"].values()))) for r in sel])
+            extra = f" {mean('active_kept'):.1f} / {mean('active_true'):.1f} | {bias:.3f} |"
         lines.append(f"| {k[0]} | {k[1]:g} | {k[2]} | {mean('rmse'):.3f} ({mean('rmse_x'):.2f}) | "
-                     f"{mean('p95_mm'):.2f} ({mean('p95_x'):.2f}) | {mean('jitter_x'):.2f} | {mean('blink'):.2f} |")
+                     f"{mean('p95_mm'):.2f} ({mean('p95_x'):.2f}) | {mean('jitter_x'):.2f} | {mean('blink'):.2f} |"
+                     + extra)
     return "\n".join(lines)

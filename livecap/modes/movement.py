@@ -9,7 +9,9 @@ Offline on a profile that carries a noise estimate (``settings["robust"]``, stor
 ``livecap.modes.robust.tune_profile`` on every CLI calibration path) the mode is the noise-robust
 :class:`livecap.modes.robust_movement.RobustMovement` (smoothed markers, alpha 0, beta from the
 smoother, L1 at the noise threshold, bounded limits, smoothed weights); explicit options still
-override its alpha/beta/limits/...; option ``robust: false`` gives the plain Seol solve.
+override its alpha/beta/limits/...; option ``robust: false`` gives the plain Seol solve. An animation prior
+(the profile's, stored by ``calibrate --prior``, by default; or ``prior``) replaces its L1 term there, weighted
+by :func:`prior_alpha` (issue 41.3: it was silently weighted 0).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from livecap.calibration.profile import Profile
 from livecap.modes.robust import robust_settings, warn_untuned
 from livecap.modes.robust_movement import BOUND_TOL, RobustMovement, smoother_beta
 from solvers.blocks import IllPosedError
+from solvers.filters import savgol_weights
 from solvers.movement import MovementMatching
 from solvers.prior import PCAPrior
 from solvers.streaming import StreamingMovement
@@ -76,8 +79,25 @@ def movement_settings(profile: Profile, options: Mapping | None = None) -> Movem
     if robust:
         base = replace(base, alpha=0.0, beta=smoother_beta(base.lag), limits="bound",
                        bound_options={"tol": BOUND_TOL})
+        if profile.prior is not None and "prior" not in given:  # the one ``calibrate --prior`` stored (issue 41.3)
+            base = replace(base, prior="profile")
+        if _animation_prior(given.get("prior", base.prior)):
+            base = replace(base, alpha=prior_alpha(float(noise), base.lag))
     resolved = ("robust", "noise_mm", "lag", "trend")  # from the profile and robust_settings above
     return replace(base, **{k: v for k, v in given.items() if k in _FIELDS and k not in resolved})
+
+
+def _animation_prior(spec) -> bool:
+    """True when ``spec`` names a prior learned from animation (the user asked for it: it must be used)."""
+    return spec is not None and not (isinstance(spec, str) and spec in ("shapes", "none"))
+
+
+def prior_alpha(noise_mm: float, lag: int) -> float:
+    """The noise-robust solve's prior weight: the Gaussian prior's Mahalanobis cost (Seol §5, Eq. 4) against the
+    velocity term normalised to 1, by the same inverse-variance weighting that sets beta (module docstring of
+    livecap.modes.robust_movement): the velocity residual's variance after the smoother, sigma^2 sum(diff(h)^2)."""
+    h = savgol_weights(int(lag))
+    return float(noise_mm**2 * np.sum(np.diff(np.r_[0.0, h, 0.0]) ** 2))
 
 
 def marker_weights(labels: list[str], spec: Mapping[str, float] | None) -> np.ndarray | None:
@@ -141,7 +161,9 @@ def build_movement(profile: Profile, options: Mapping | MovementSettings | None 
         inner = _build(profile, replace(s, ridge=ridge))
     if not s.robust:
         return inner
-    return RobustMovement(inner, float(s.noise_mm), lag=s.lag, trend=s.trend, reweight=int(s.reweight))
+    # with a prior from animation, that prior is the plausibility term; the L1 (a sparse prior) would count twice
+    return RobustMovement(inner, float(s.noise_mm), lag=s.lag, trend=s.trend, reweight=int(s.reweight),
+                          l1=inner.blocks.alpha == 0)
 
 
 def _build(profile: Profile, s: MovementSettings):

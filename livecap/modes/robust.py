@@ -37,7 +37,7 @@ import numpy as np
 from livecap.calibration.profile import Profile
 from solvers.filters import CausalPolyFilter, FilteredSolver, FixedLagSmoother, OneEuroFilter, savgol_weights
 from solvers.observability import noise_floor
-from solvers.regularisation import PriorLeastSquares, estimate_noise, gcv_ridge, holdout_ridge
+from solvers.regularisation import PriorLeastSquares, estimate_noise, fit_residual, gcv_ridge, holdout_ridge
 from solvers.sparse_fit import HysteresisSparseFit, holdout_sparse_ridge, l1_weights, universal_threshold
 from solvers.tracking import IMMFilter, dwna_variance
 from solvers.trend import TrendFilter
@@ -107,16 +107,36 @@ def warn_untuned(profile: Profile, mode: str, fallback: str) -> None:
                     "(it stores one) or give the take to tune on with --tune", mode, fallback)
 
 
-def tune_profile(profile: Profile, targets: np.ndarray, valid: np.ndarray, rate: float) -> dict:
+NOISE_DISAGREES = 3.0  # residual / jitter above this: the data were smoothed, or the rig does not fit the actor
+
+
+def tune_profile(profile: Profile, targets: np.ndarray, valid: np.ndarray, rate: float,
+                 noise_mm: float | None = None) -> dict:
     """Select the noise level and the ridges from a take's stabilised displacements; store in the profile.
 
-    Deterministic: the folds, frame thinning and grids are fixed. Returns the stored dict.
+    The noise is what the solvers must not explain (issue 35.2): per marker the larger of the frame-to-frame
+    jitter (second differences) and the rig's fit residual (``solvers.regularisation.fit_residual``, which reads
+    the jitter on white noise and more where the rig cannot follow the actor), then the RMS over markers. A
+    smoothed capture cannot drive it to zero that way; ``noise_mm`` (``--noise-mm``) replaces it. A warning says
+    when the two estimates disagree. Deterministic: the folds, frame thinning and grids are fixed. Returns the
+    stored dict.
     """
-    noise = estimate_noise(targets, valid)
+    jitter = estimate_noise(targets, valid)
     held = holdout_ridge(profile.basis, targets, valid, lower=profile.lower, upper=profile.upper)
+    per_marker = np.maximum(jitter, fit_residual(profile.basis, targets, valid, held.value))
+    residual = float(np.sqrt(np.mean(per_marker**2)))
+    noise = float(noise_mm) if noise_mm is not None else residual
+    if noise_mm is None and residual > NOISE_DISAGREES * jitter:
+        worst = np.argsort(per_marker)[::-1][:3]
+        log.warning("marker noise: frame-to-frame jitter %.3f mm but the rig leaves %.3f mm RMS unexplained "
+                    "(most at %s): the data look smoothed or the rig does not fit this actor; solving with "
+                    "%.3f mm (override with --noise-mm)", jitter, residual,
+                    ", ".join(f"{profile.labels[i]} {per_marker[i]:.2f}" for i in worst), noise)
     gcv = gcv_ridge(profile.basis, targets, valid)
-    tuned = {"noise_mm": noise, "ridge": held.value, "ridge_gcv": gcv.value, "rate": float(rate),
-             "criterion": held.criterion}
+    tuned = {"noise_mm": noise, "jitter_mm": jitter, "residual_mm": residual,
+             "marker_noise_mm": [float(x) for x in per_marker],
+             "noise_source": "given" if noise_mm is not None else "residual" if residual > jitter else "jitter",
+             "ridge": held.value, "ridge_gcv": gcv.value, "rate": float(rate), "criterion": held.criterion}
     # the sparse fit sees markers through the causal filter: select its ridge on what it will see
     filt = marker_filter(float(rate), RobustSettings.marker_window)
     smoothed = filt.filter(targets, np.broadcast_to(np.asarray(valid, bool)[..., None], np.shape(targets)))
@@ -125,9 +145,42 @@ def tune_profile(profile: Profile, targets: np.ndarray, valid: np.ndarray, rate:
                                   profile.lower, profile.upper)
     tuned.update(sparse_ridge=sparse.value, sparse_criterion=sparse.criterion)
     profile.settings["robust"] = tuned
+    tuned.update(acting_density(profile, targets, valid))
     profile.settings.setdefault("noise_mm", noise)
     profile.settings.setdefault("ridge_selected", held.value)
     return tuned
+
+
+ACTIVE_WEIGHT = 0.05  # a shape counts as active in a frame above this weight
+SPARSE_ACTING = 0.08  # mean share of shapes active in the sparse fit below which the acting is sparse
+ACTING_EVIDENCE = 0.2  # share of frames with any active shape below which the take says nothing (a still face)
+
+
+def acting_density(profile: Profile, targets: np.ndarray, valid: np.ndarray) -> dict:
+    """What the tuning take says of the acting, for the default mode (livecap.modes.registry.resolve_mode): the
+    sparse fit (``robust``, run over the take) keeps few shapes where the acting is sparse and many where it is dense.
+
+    Measured (issue 41.1, 2026-12-04, docs/modes.md): the bundled demo take's scripted acting keeps 2.3 of 43
+    shapes a frame on average (0.05); takes driven by the six real performances keep 6-13 of 53 on the ICT rig and
+    6-12 of 43 on the demo rig (0.11-0.27), though 19-32 are truly active. A still take (a neutral) keeps none:
+    no evidence, ``acting`` None."""
+    from livecap.modes.robust_take import whole_take
+
+    W = whole_take(robust_solver(profile), targets, valid)
+    active = np.sum(W > ACTIVE_WEIGHT, axis=1)
+    if not len(W) or np.mean(active > 0) < ACTING_EVIDENCE:
+        return {"acting": None, "active_fraction": None}
+    share = float(np.mean(active) / W.shape[1])
+    return {"acting": "sparse" if share < SPARSE_ACTING else "dense", "active_fraction": share}
+
+
+def override_noise(profile: Profile, noise_mm: float) -> None:
+    """``--noise-mm`` on a saved profile: every mode that reads the noise uses ``noise_mm`` instead."""
+    if not noise_mm > 0:
+        raise ValueError(f"--noise-mm must be positive, got {noise_mm}")
+    profile.settings["robust"] = {**profile.settings.get("robust", {}), "noise_mm": float(noise_mm),
+                                  "noise_source": "given"}
+    profile.settings["noise_mm"] = float(noise_mm)
 
 
 def marker_filter(rate: float, seconds: float) -> CausalPolyFilter:

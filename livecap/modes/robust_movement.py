@@ -66,12 +66,14 @@ class RobustMovement:
     ``inner`` is the plain :class:`MovementMatching` (alpha 0, beta from the smoother, bounded
     limits); ``noise_mm`` the raw marker noise sigma; ``lag`` the smoother half-width (frames);
     ``trend`` the weight trend filter's penalty in weight noise sds (0: none); ``reweight`` the number of
-    reweighted-L1 re-solves. ``step``/``reset`` are the inner solver's (live use is the plain
+    reweighted-L1 re-solves; ``l1`` False drops the L1 term (when ``inner`` carries an animation prior instead).
+    ``step``/``reset`` are the inner solver's (live use is the plain
     streaming solver).
     """
 
     def __init__(self, inner: MovementMatching, noise_mm: float, lag: int = RobustSettings.lag,
-                 trend: float = RobustSettings.trend, z: float | None = None, reweight: int = 0) -> None:
+                 trend: float = RobustSettings.trend, z: float | None = None, reweight: int = 0,
+                 l1: bool = True) -> None:
         self.inner = inner
         self.lower, self.upper = inner.lower, inner.upper
         self.lag = int(lag)
@@ -82,7 +84,7 @@ class RobustMovement:
         zz = universal_threshold(B.shape[1]) if z is None else float(z)
         scale = inner.blocks.beta if inner.blocks.beta > 0 else 1.0
         self.noise_mm = float(noise_mm)
-        self.mu = scale * l1_weights(B, self.noise_mm * np.sqrt(gain), zz)
+        self.mu = scale * l1_weights(B, self.noise_mm * np.sqrt(gain), zz) * float(l1)
         self.eps = self.mu / (2.0 * scale * np.maximum(np.sum(B**2, axis=0), 1e-12))  # L1 offset, weight units
         self.reweight = int(reweight)
 
@@ -100,7 +102,7 @@ class RobustMovement:
             return self.inner.solve(S, valid, fixed)
         smoothed = self.smooth(S, valid)
         W = self.inner.solve(smoothed, valid, fixed, linear=self.mu)
-        for _ in range(self.reweight):
+        for _ in range(self.reweight if self.mu.any() else 0):
             W = self.inner.solve(smoothed, valid, fixed, linear=self.mu * self.eps / (np.maximum(W, 0.0) + self.eps))
         if self.trend is not None and len(W) > 2:
             W = np.clip(self.trend.filter(W), self.lower, self.upper)

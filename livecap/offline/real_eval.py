@@ -22,8 +22,10 @@ from livecap.core.markers import MarkerLayout
 from livecap.core.rig import Rig
 from livecap.demo.curves_take import CurveTake
 from livecap.modes.registry import build_solver, resolve_mode
+from livecap.modes.robust import tune_profile
 from livecap.offline.metrics import jitter, weight_rmse
-from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS, prepare_targets
+from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS, prepare_targets, solve_take
+from livecap.offline.streamed import stream_take
 
 
 def oracle_weights(ct: CurveTake, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
@@ -58,13 +60,20 @@ def blink_retention(blinks: list[int], weights: np.ndarray, truth: np.ndarray, r
     return float(np.median(ratios)) if ratios else float("nan")
 
 
-def plain_profile(rig: Rig, layout: MarkerLayout, ct: CurveTake) -> Profile:
-    """What plain ``livecap calibrate NEUTRAL`` stores (robust stabiliser, default gap and pose settings)."""
+def plain_profile(rig: Rig, layout: MarkerLayout, ct: CurveTake, warp: str = "rbf") -> Profile:
+    """What plain ``livecap calibrate NEUTRAL`` stores (robust stabiliser, default gap and pose settings, and the
+    noise level and ridges tuned on the neutral take, which every CLI calibration stores)."""
     sel = ct.neutral.select(layout.labels)
     neutral = estimate_neutral(sel, layout.stable, None)
     settings = {"max_gap_seconds": DEFAULT_MAX_GAP_SECONDS, "robust_stabilise": True,
                 "pose_smoothing_seconds": DEFAULT_POSE_SMOOTHING_SECONDS}
-    return calibrate(rig, layout, neutral, settings)
+    profile = calibrate(rig, layout, neutral, settings, warp=warp)
+    neutral_take, targets, _, _ = prepare_targets(ct.neutral, profile)
+    tune_profile(profile, targets, neutral_take.valid, ct.neutral.rate)
+    return profile
+
+
+ACTIVE = 0.05  # a shape is active in a frame above this weight (issue 41: "keeps 14 of 27 active shapes")
 
 
 @dataclass
@@ -75,13 +84,18 @@ class Row:
     jitter_x: float
     blink: float
     ms_per_frame: float
+    active_true: float = float("nan")  # shapes active in the truth, mean over frames
+    active_kept: float = float("nan")  # of those, active in the solve too
+    bias: dict[str, float] | None = None  # per shape: mean solved - true weight
 
 
 def score(label: str, rig: Rig, ct: CurveTake, W: np.ndarray, seconds: float) -> Row:
     truth = ct.weights
+    on = truth > ACTIVE
     return Row(label, weight_rmse(W, truth), vertex_p95(rig, W, truth),
                jitter(W) / max(jitter(truth), 1e-12), blink_retention(ct.blinks, W, truth, ct.take.rate),
-               seconds * 1e3 / max(len(W), 1))
+               seconds * 1e3 / max(len(W), 1), float(on.sum(1).mean()), float((on & (W > ACTIVE)).sum(1).mean()),
+               dict(zip(rig.names, (W - truth).mean(0).tolist(), strict=True)))
 
 
 def streamed(solver, targets: np.ndarray, valid: np.ndarray, step_us: np.ndarray | None = None) -> np.ndarray:
@@ -101,27 +115,29 @@ def streamed(solver, targets: np.ndarray, valid: np.ndarray, step_us: np.ndarray
 
 
 def evaluate_curve_take(rig: Rig, layout: MarkerLayout, ct: CurveTake, modes: list[str],
-                        options: dict[str, dict] | None = None, prior: AnimationPrior | None = None) -> list[Row]:
+                        options: dict[str, dict] | None = None, prior: AnimationPrior | None = None,
+                        warp: str = "rbf") -> list[Row]:
     """The oracle and every mode in ``modes`` (plain profile from the neutral take, carrying ``prior`` as
     ``livecap calibrate --prior`` stores it, e.g. one trained on the other files) on one take; ``options``
-    per mode (``auto`` takes the options of the mode it stands for and is labelled ``auto=<mode>``)."""
+    per mode (``auto`` takes the options of the mode it stands for and is labelled ``auto=<mode>``); ``warp``: the
+    calibration's proportion match (``livecap calibrate --warp``).
+
+    Two rows per mode that streams: ``<mode> stream``, the take fed frame by frame through the live pipeline
+    as ``livecap run`` feeds it (causal head pose, no gap filling; livecap.offline.streamed), and
+    ``<mode> offline``, what ``livecap solve`` gives (smoothed head pose, filled gaps, the mode's whole-take
+    form when it has one). Modes with no ``step`` get the offline row only."""
     t0 = time.perf_counter()
     rows = [score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), time.perf_counter() - t0)]
-    profile = plain_profile(rig, layout, ct)
+    profile = plain_profile(rig, layout, ct, warp)
     profile.prior = prior
-    take, targets, _, _ = prepare_targets(ct.take, profile)
     for name in modes:
         resolved = resolve_mode(name, profile)
         mode = name if resolved == name else f"{name}={resolved}"
-        solver = build_solver(resolved, profile, (options or {}).get(resolved, {}))
-        if hasattr(solver, "step"):  # streamed frame by frame; output aligned by the mode's latency
-            t0 = time.perf_counter()
-            W = streamed(solver, targets, take.valid)
-            label = f"{mode} stream" if hasattr(solver, "solve") else mode
-            rows.append(score(label, rig, ct, W, time.perf_counter() - t0))
-        if hasattr(solver, "solve"):
-            t0 = time.perf_counter()
-            W = np.asarray(solver.solve(targets, take.valid))
-            label = f"{mode} offline" if hasattr(solver, "step") else mode
-            rows.append(score(label, rig, ct, W, time.perf_counter() - t0))
+        opts = (options or {}).get(resolved, {})
+        solver = build_solver(resolved, profile, opts)
+        if hasattr(solver, "step"):
+            st = stream_take(ct.take, profile, resolved, opts)
+            rows.append(score(f"{mode} stream", rig, ct, st.weights, st.seconds))
+        solved = solve_take(ct.take, profile, solver)
+        rows.append(score(f"{mode} offline", rig, ct, solved.weights, solved.solve_seconds))
     return rows
