@@ -102,15 +102,22 @@ class MarkerLayout:
             layout.check(rig, str(path))
         return layout
 
-    def save(self, path: str | Path) -> None:
+    def save(self, path: str | Path, rig: Rig | None = None, extra: dict[str, dict] | None = None) -> None:
+        """Write markers.json; triangle bindings need the ``rig`` (their triangle index); ``extra`` adds
+        per-label keys (a binding's report) that :meth:`load` ignores."""
+        tri_index = {} if rig is None else {tuple(t): i for i, t in enumerate(np.asarray(rig.triangles).tolist())}
         markers = []
         for lab, v, b, s in zip(self.labels, self.vertices, self.barycentric, self.stable, strict=True):
             entry: dict = {"label": lab}
             if b[0] == 1.0 and v[0] == v[1] == v[2]:
                 entry["vertex"] = int(v[0])
+            elif tuple(int(i) for i in v) in tri_index:
+                entry["triangle"] = tri_index[tuple(int(i) for i in v)]
+                entry["barycentric"] = [float(x) for x in b]
             else:
-                raise LayoutError("saving triangle bindings needs the triangle index; bind to vertices")
+                raise LayoutError(f"{path}: marker {lab} is bound inside a triangle; saving it needs the rig")
             entry["stable"] = bool(s)
+            entry.update((extra or {}).get(lab, {}))
             markers.append(entry)
         Path(path).write_text(json.dumps({"units": self.units, "markers": markers}, indent=1))
 
