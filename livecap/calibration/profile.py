@@ -132,6 +132,50 @@ def rig_fingerprint(rig: Rig) -> str:
     return h.hexdigest()[:16]
 
 
+def check_rig_path(profile: Profile, rig_path: str | Path, profile_path: str | Path) -> None:
+    """The rig at ``rig_path`` must be the one ``profile`` was calibrated against (its fingerprint), read
+    cheaply: the shape names from the folder listing or the .npz, the neutral alone (not every shape's OBJ)."""
+    from livecap.core.objfile import read_obj
+    from livecap.core.rig import _folder_metadata
+    from livecap.core.units import to_mm
+
+    stored = profile.settings.get("rig_fingerprint")
+    path = Path(rig_path)
+    if path.is_dir():
+        names = {p.stem for p in path.glob("*.obj") if p.stem != "neutral" and not {"@", "+"} & set(p.stem)}
+        neutral = read_obj(path / "neutral.obj")[0] * to_mm(1.0, _folder_metadata(path).get("units", "mm"))
+    else:
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                names, neutral = {str(n) for n in z["names"]}, z["neutral"]
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            raise CalibrationError(f"{rig_path}: not a livecap rig file ({exc})") from None
+    if names != set(profile.names):
+        raise CalibrationError(f"{profile_path}: calibrated for a rig with {len(profile.names)} shapes, but --rig "
+                               f"{rig_path} has {len(names)} ({sorted(names ^ set(profile.names))[:3]} differ)")
+    if stored is not None:
+        h = hashlib.sha1("\n".join(profile.names).encode())
+        h.update(np.round(np.asarray(neutral, dtype=np.float64), 2).astype("<f8").tobytes())
+        if h.hexdigest()[:16] != stored:
+            raise CalibrationError(f"{profile_path}: calibrated against rig {stored}, but --rig {rig_path} is "
+                                   f"{h.hexdigest()[:16]} (another neutral mesh): recalibrate, or give its rig")
+
+
+def check_layout_labels(profile: Profile, markers_path: str | Path, profile_path: str | Path) -> None:
+    """``--markers`` beside ``--profile`` must name the markers the profile was calibrated with."""
+    from livecap.core.markers import LayoutError
+
+    try:
+        labels = [str(m.get("label")) for m in json.loads(Path(markers_path).read_text())["markers"]]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise LayoutError(f"{markers_path}: cannot read marker layout ({exc})") from None
+    if labels != list(profile.labels):
+        diff = sorted(set(labels) ^ set(profile.labels))
+        raise CalibrationError(f"{profile_path}: calibrated with {len(profile.labels)} markers, but --markers "
+                               f"{markers_path} binds {len(labels)}" + (f" ({diff[:4]} differ)" if diff else
+                                                                        " in another order") + ": recalibrate")
+
+
 def _rig_arrays(rig: Rig, p: str) -> dict[str, np.ndarray]:
     n = rig.n_vertices
     return {
@@ -259,6 +303,16 @@ def fit_warp(kind: str, sites: np.ndarray, neutral: np.ndarray, smoothing: float
     raise CalibrationError(f"unknown warp {kind!r} (choose from {', '.join(WARPS)})")
 
 
+def _check_fit(scale: float, fit_mm: float, neutral: np.ndarray, warp: str) -> None:
+    """A proportion fit that explodes (a negative or huge scale, a residual larger than the face) is an
+    error, not a profile: every solve with it would return nothing."""
+    size = float(np.sqrt(np.mean(np.sum((neutral - neutral.mean(0)) ** 2, axis=1))))
+    if not (np.isfinite(scale) and 0.2 < scale < 5.0 and np.isfinite(fit_mm) and fit_mm < 0.5 * size):
+        raise CalibrationError(f"the {warp} proportion fit exploded (overall scale {scale:.4g}, fit at the markers "
+                               f"{fit_mm:.3g} mm RMS on a face of {size:.0f} mm RMS radius): check the marker layout "
+                               "against the take (labels, units, sites)")
+
+
 def calibrate(rig: Rig, layout: MarkerLayout, neutral: np.ndarray, settings: dict | None = None,
               warp: str = "rbf", smoothing: float = 0.0) -> Profile:
     """Profile for ``rig`` seen through ``layout`` on an actor whose rest markers are ``neutral``.
@@ -269,6 +323,10 @@ def calibrate(rig: Rig, layout: MarkerLayout, neutral: np.ndarray, settings: dic
     neutral = np.asarray(neutral, dtype=np.float64)
     if neutral.shape != (layout.n_markers, 3) or not np.isfinite(neutral).all():
         raise CalibrationError(f"neutral must be {layout.n_markers} x 3 finite positions, got {neutral.shape}")
+    same = layout.coincident()
+    if same:
+        raise CalibrationError(f"markers {' and '.join(same[0])} are bound to the same rig point: the proportion "
+                               "warp cannot map one site to two markers (fix the marker layout)")
     sites_rig = layout.marker_rig(rig)
     sites = sites_rig.neutral
     Rc, tc = kabsch(neutral, sites)  # actor neutral -> rig frame, rigid only
@@ -277,6 +335,7 @@ def calibrate(rig: Rig, layout: MarkerLayout, neutral: np.ndarray, settings: dic
     mrig = warp_rig(sites_rig, d)
     basis = mrig.deltas.reshape(rig.n_shapes, -1).T.copy()
     fit_mm = float(np.sqrt(np.mean(np.sum((mrig.neutral - neutral_rig) ** 2, axis=1))))
+    _check_fit(d.mean_scale, fit_mm, neutral_rig, warp)
     info = {"warp": warp, "scale": d.mean_scale, "warp_fit_rms_mm": fit_mm, "frame": "rig", "smoothing": smoothing,
             "rig_fingerprint": rig_fingerprint(rig)}
     return Profile(list(layout.labels), list(rig.names), neutral_rig, layout.stable.copy(), basis,

@@ -98,9 +98,30 @@ class MarkerLayout:
         if dups:
             raise LayoutError(f"{path}: marker labels {dups[:5]} appear more than once")
         layout = cls(labels, verts, bary, stable, units)
+        same = layout.coincident()
+        if same:
+            raise LayoutError(f"{path}: markers {' and '.join(same[0])} are bound to the same rig point"
+                              + (f" (and {len(same) - 1} more pairs)" if len(same) > 1 else "")
+                              + "; every marker needs its own site")
         if rig is not None:
             layout.check(rig, str(path))
         return layout
+
+    def coincident(self) -> list[tuple[str, str]]:
+        """Pairs of markers bound to the same rig point (same vertex, or same triangle and barycentric):
+        their sites coincide, so the proportion warp cannot map them to two actor markers."""
+        seen: dict[tuple, str] = {}
+        out = []
+        for lab, v, b in zip(self.labels, self.vertices, self.barycentric, strict=True):
+            weights: dict[int, float] = {}
+            for i, w in zip(v.tolist(), b.tolist(), strict=True):
+                weights[i] = weights.get(i, 0.0) + w
+            key = tuple(sorted((i, round(w, 9)) for i, w in weights.items() if abs(w) > 1e-12))
+            if key in seen:
+                out.append((seen[key], lab))
+            else:
+                seen[key] = lab
+        return out
 
     def save(self, path: str | Path, rig: Rig | None = None, extra: dict[str, dict] | None = None) -> None:
         """Write markers.json; triangle bindings need the ``rig`` (their triangle index); ``extra`` adds
