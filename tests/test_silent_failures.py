@@ -90,3 +90,35 @@ def test_solve_with_a_profile_refuses_other_markers(profile, tmp_path, capsys):
     assert str(fewer) in err and "calibrated with" in err
     assert main(["solve", TAKE, "--profile", str(profile), "--rig", RIG, "--markers", LAYOUT,
                  "--out", str(tmp_path / "w.csv")]) == 0
+
+
+def test_calibrate_span_takes_the_neutral_from_seconds_inside_the_take(tmp_path, capsys):
+    from livecap.calibration.profile import Profile, estimate_neutral
+    from transport.takefile import read_take
+
+    out = tmp_path / "span.npz"
+    assert main(["calibrate", TAKE, "--rig", RIG, "--span", "0.5:1.5", "--out", str(out)]) == 0
+    take = read_take(TAKE)
+    layout = MarkerLayout.load(LAYOUT)
+    s0, s1 = int(round(0.5 * take.rate)), int(round(1.5 * take.rate))
+    expect = estimate_neutral(take.select(layout.labels).slice(s0, s1), layout.stable)
+    prof = Profile.load(out)
+    assert prof.settings["neutral_frames"] == s1 - s0
+    first = estimate_neutral(take.select(layout.labels), layout.stable, s1 - s0)
+    got = calibrate(Rig.load(RIG), layout, expect).source_neutral
+    assert np.allclose(prof.source_neutral, got) and not np.allclose(prof.source_neutral, calibrate(
+        Rig.load(RIG), layout, first).source_neutral)
+    capsys.readouterr()
+    assert main(["calibrate", TAKE, "--rig", RIG, "--span", "5:1", "--out", str(out)]) == 1
+    assert "--span 5:1" in _one_error_line(capsys)
+
+
+def test_calibration_report_gives_a_residual_per_marker(capsys):
+    assert main(["calibration-report", TAKE, "--rig", RIG, "--stride", "24", "--mode", "lsq"]) == 0
+    out = capsys.readouterr().out.split("per-marker fit residual", 1)[1]
+    rows = [line.split() for line in out.splitlines()[1:] if line.startswith("  ")]
+    labels = MarkerLayout.load(LAYOUT).labels
+    named = [r for r in rows if r and r[0] in labels]
+    assert len(named) == len(labels)
+    rms = [float(r[1]) for r in named]
+    assert rms == sorted(rms, reverse=True) and all(np.isfinite(rms))
