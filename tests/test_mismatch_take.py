@@ -44,3 +44,18 @@ def test_generate_actor_rig_writes_a_take_its_bound_markers_and_the_curves_as_tr
     jaw = list(ict.names).index("jawOpen")
     r = np.corrcoef(solved.weights[:, jaw], truth["weights"][:, jaw])[0, 1]
     assert r > 0.8, r
+
+
+@pytest.mark.skipif(not (MH.exists() and ICT.exists() and CSV.exists()),
+                    reason=f"MakeHuman head, ICT rig or apfel.csv absent under {SHARED / 'realdata'}")
+def test_realeval_takes_the_model_mismatch_takes_beside_the_same_rig_ones(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "r.json"
+    assert main(["realeval", "--rig", "ict", "--actor-rig", str(MH), "--actor-mapping",
+                 str(ROOT / "examples" / "makehuman_arkit.json"), "--noise", "0.3", "--seconds", "4",
+                 "--curves", str(CSV), "--modes", "robust", "--no-prior", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["mode"] for r in rows] == ["robust"]  # no oracle: the actor is another rig
+    assert 0 < rows[0]["rmse"] < 0.5 and 0 <= rows[0]["phantom"] < 0.3
+    assert "no oracle" in capsys.readouterr().out

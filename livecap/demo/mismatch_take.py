@@ -27,6 +27,7 @@ from livecap.demo.curves_take import _bursts, arkit_to_rig
 from livecap.demo.performance import head_motion
 from livecap.transfer.bind import BindResult, _icp, _starts, bind_capture
 from livecap.transfer.surface import Surface
+from transport.arkit import ARKIT_NAMES
 from transport.llf_csv import read_llf_csv
 
 
@@ -56,6 +57,7 @@ class MismatchTake:
     names: list[str]
     actor_weights: np.ndarray  # T x k the actor rig's weights
     source: str
+    blinks: list[int]  # target shapes the ARKit blinks drive
 
     def save_truth(self, path: str | Path) -> None:
         np.savez_compressed(path, weights=self.weights.astype(np.float32), names=np.array(self.names),
@@ -108,7 +110,10 @@ def mismatch_take(actor: Rig, target: Rig, target_layout: MarkerLayout, csv_path
         raise ValueError(f"{csv_path}: start {s.start} s is past its end ({len(arkit) / s.rate:.1f} s)")
     arkit = arkit[i0:i1]
     W_actor = np.clip(arkit @ arkit_to_rig(list(actor.names), actor_mapping).T, actor.lower, actor.upper)
-    W_target = np.clip(arkit @ arkit_to_rig(list(target.names)).T, target.lower, target.upper)
+    A = arkit_to_rig(list(target.names))
+    W_target = np.clip(arkit @ A.T, target.lower, target.upper)
+    blinks = sorted(np.flatnonzero(A[:, [ARKIT_NAMES.index("eyeBlinkLeft"),
+                                         ARKIT_NAMES.index("eyeBlinkRight")]].any(1)).tolist())
     layout, offset = actor_sites(actor, target, target_layout, s, rng)
     mrig = layout.marker_rig(actor)
     labels = list(layout.labels)
@@ -120,4 +125,4 @@ def mismatch_take(actor: Rig, target: Rig, target_layout: MarkerLayout, csv_path
     both = Take(labels, np.concatenate([nraw, raw]), np.concatenate([nvalid, valid]), s.rate)
     binding = bind_capture(both, target, None, span=(0, n0))  # stability measured over the performance
     return MismatchTake(take, neutral, binding.layout(target), binding, W_target, list(target.names), W_actor,
-                        Path(csv_path).name)
+                        Path(csv_path).name, blinks)
