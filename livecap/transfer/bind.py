@@ -66,6 +66,7 @@ class BindOptions:
     max_distance: float = 8.0  # mm: farther from the surface after the fit, a marker is not on the rig's skin
     stable_ratio: float = 1.5  # stable: rigidity score within this factor of the most rigid marker's
     boundary_mm: float = 2.0  # mm: a marker this far beyond the rig's open boundary is off its face (hair, headband)
+    rigid_floor_mm: float = 0.1  # rigidity scores below this count as this (noise-free takes: no 1.5 x 0)
     min_stable: int = 4  # at least this many stable markers (the most rigid ones) for head stabilisation
     use_names: bool = True  # start from NAME_HINTS anchors when the rig's layout has the landmarks
 
@@ -131,17 +132,22 @@ def stability(take: Take, neutral: np.ndarray, options: BindOptions = BindOption
     """
     pos, val = take.positions, take.valid
     n = take.n_markers
+    # white marker noise inflates every spread alike and would hide rigidity: take it out, per marker, from
+    # the second differences (var(p[t+1] - 2p[t] + p[t-1]) = 6 sigma^2 per axis for white noise)
+    acc = np.diff(pos, 2, axis=0)
+    seen = val[2:] & val[1:-1] & val[:-2]
+    noise = np.array([np.mean(acc[seen[:, i], i] ** 2) / 6 if seen[:, i].any() else 0.0 for i in range(n)])
     spread = np.zeros((n, n))
     for i in range(n):
         d = np.linalg.norm(pos - pos[:, i:i + 1], axis=2)
         w = val & val[:, i:i + 1]
         cnt = np.maximum(w.sum(axis=0), 1)
         mean = (d * w).sum(axis=0) / cnt
-        spread[i] = np.sqrt((((d - mean) ** 2) * w).sum(axis=0) / cnt)
+        spread[i] = np.sqrt(np.maximum((((d - mean) ** 2) * w).sum(axis=0) / cnt - noise[i] - noise, 0.0))
     np.fill_diagonal(spread, np.inf)
     k = max(options.min_stable - 1, n // 4)
     score = np.sort(spread, axis=1)[:, :k].mean(axis=1)
-    stable = score <= options.stable_ratio * score.min()
+    stable = score <= options.stable_ratio * max(score.min(), options.rigid_floor_mm)
     stable[np.argsort(score)[:options.min_stable]] = True
     w = val * stable
     R, t = kabsch(pos, np.broadcast_to(neutral, pos.shape), w)
