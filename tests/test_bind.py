@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import subprocess
 import sys
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from livecap.calibration.profile import calibrate
 from livecap.core.markers import MarkerLayout
@@ -29,6 +32,11 @@ pytestmark = pytest.mark.skipif(not (ANIMFACE.exists() and ICT.exists()),
 def ict():
     rig = Rig.load(ICT)
     return rig, MarkerLayout.load(ICT / "markers.json", rig)
+
+
+@functools.cache
+def _ict_rig() -> Rig:
+    return Rig.load(ICT)
 
 
 def _take(name: str) -> Take:
@@ -153,3 +161,19 @@ def test_stable_set_sees_through_white_marker_noise():
              if m["stable"]}
     assert truth <= chosen and len(chosen) < 30
     assert not {lab for lab in chosen if lab.startswith(("LIP", "CORNER", "CHIN", "JAW", "MTH"))}
+
+
+@settings(max_examples=4, deadline=None)
+@given(axis=st.tuples(*[st.floats(-1, 1)] * 3).filter(lambda v: np.linalg.norm(v) > 0.1),
+       degrees=st.floats(-5, 5), shift=st.tuples(*[st.floats(-300, 300)] * 3))
+def test_binding_does_not_depend_on_where_the_capture_volume_puts_the_head(axis, degrees, shift):
+    """Invariant: a rigid move of the whole capture (a few degrees, any shift) binds to the same sites."""
+    from scipy.spatial.transform import Rotation
+
+    rig = _ict_rig()
+    take = _take("JawMoCap.c3d")
+    R = Rotation.from_rotvec(np.radians(degrees) * np.asarray(axis) / np.linalg.norm(axis)).as_matrix()
+    moved = Take(take.labels, take.positions @ R.T + np.asarray(shift), take.valid, take.rate)
+    a, b = bind_capture(take, rig), bind_capture(moved, rig)
+    assert np.linalg.norm(_points(a, rig) - _points(b, rig), axis=1).max() < 0.5
+    assert [m.stable for m in a.markers] == [m.stable for m in b.markers]
