@@ -177,3 +177,16 @@ def test_binding_does_not_depend_on_where_the_capture_volume_puts_the_head(axis,
     a, b = bind_capture(take, rig), bind_capture(moved, rig)
     assert np.linalg.norm(_points(a, rig) - _points(b, rig), axis=1).max() < 0.5
     assert [m.stable for m in a.markers] == [m.stable for m in b.markers]
+
+
+def test_a_range_of_motion_take_is_where_rigidity_is_measured(ict):
+    from livecap.transfer.bind import BindError, stability
+
+    rig, layout = ict
+    jaw, cheeks = _take("JawMoCap.c3d"), _take("CheeksMoCap.c3d")
+    res = bind_capture(jaw, rig, layout, rom=cheeks)
+    _, expect = stability(cheeks.select(jaw.labels), span_neutral(jaw, res.span))
+    assert [m.stable for m in res.markers] == list(expect)
+    assert [m.stable for m in res.markers] != [m.stable for m in bind_capture(jaw, rig, layout).markers]
+    with pytest.raises(BindError, match="lacks markers"):
+        bind_capture(jaw, rig, layout, rom=cheeks.select(cheeks.labels[:-1]))

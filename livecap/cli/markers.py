@@ -24,6 +24,8 @@ def register(sub) -> None:
     b.add_argument("--rig-markers", help="the rig's markers.json (landmarks for name hints; default: beside the rig)")
     b.add_argument("--out", required=True, help="markers.json to write")
     b.add_argument("--span", metavar="START:END", help="near-neutral span in seconds (default: auto-detected)")
+    b.add_argument("--rom", metavar="TAKE", help="range-of-motion take of the same markers: measure rigidity (the "
+                   "stable set) there instead of over TAKE")
     b.add_argument("--no-names", action="store_true", help="ignore marker names (geometry only)")
     b.set_defaults(func=run_bind)
     p.set_defaults(func=lambda args: p.print_help() or 2)
@@ -52,7 +54,8 @@ def run_bind(args: argparse.Namespace) -> int:
     mpath = Path(args.rig_markers) if args.rig_markers else markers_path(args.rig)
     layout = MarkerLayout.load(mpath, rig) if mpath.exists() else None
     span = parse_span(args.span, take.rate, take.n_frames) if args.span else None
-    res = bind_capture(take, rig, layout, span, BindOptions(use_names=not args.no_names))
+    rom = read_take(args.rom) if args.rom else None
+    res = bind_capture(take, rig, layout, span, BindOptions(use_names=not args.no_names), rom)
     s0, s1 = res.span
     print(f"neutral span {s0 / take.rate:.2f}-{s1 / take.rate:.2f} s; actor -> rig scale {res.alignment.scale:.3f}; "
           f"RMS marker-surface distance {res.rms:.2f} mm; start from "

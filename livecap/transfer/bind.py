@@ -4,9 +4,9 @@ A real optical capture puts markers on skin, 2-5 mm from any rig's surface, on a
 proportions are not the rig's. From a near-neutral span of the take and the rig alone:
 
 1. the span: the stillest ``window`` seconds within the take's first ``search`` seconds (or given);
-2. stability: every frame rigidly aligned to the neutral on the most rigid markers, iterated
-   (Seol et al. 2012 §3.1's head stabilisation, with the stable set chosen by measurement): a
-   marker's stability is its RMS deviation from the neutral in the head frame over the take;
+2. the stable set, by rigidity over the take (or a range-of-motion take when given): markers whose
+   distances to their most rigid partners vary least, white noise taken out; a marker's stability
+   is its RMS deviation from the neutral in the head frame fitted on that set (Seol et al. 2012 §3.1);
 3. a similarity of the markers onto the rig's surface. Start: when the rig's layout carries the
    multi-PIE landmarks (the rig transfer's landmarks, docs/transfer.md) and the capture's names
    match a common convention (``NAME_HINTS``), a similarity on those anchors; otherwise (names
@@ -202,13 +202,20 @@ def _starts(neutral: np.ndarray, rig: Rig) -> list[Similarity]:
 
 
 def bind_capture(take: Take, rig: Rig, layout: MarkerLayout | None = None, span: tuple[int, int] | None = None,
-                 options: BindOptions = BindOptions()) -> BindResult:
-    """Bind every marker of ``take`` to ``rig``'s surface; ``layout`` (the rig's own markers) gives landmarks."""
+                 options: BindOptions = BindOptions(), rom: Take | None = None) -> BindResult:
+    """Bind every marker of ``take`` to ``rig``'s surface; ``layout`` (the rig's own markers) gives landmarks;
+    ``rom`` (a range-of-motion take of the same markers), when given, is where rigidity is measured."""
     span = span or neutral_span(take, options.window, options.search)
     if not 0 <= span[0] < span[1] <= take.n_frames:
         raise BindError(f"span {span} is outside the take's {take.n_frames} frames")
     neutral = span_neutral(take, span)
-    dev, stable = stability(take, neutral, options)
+    if rom is not None:
+        missing = sorted(set(take.labels) - set(rom.labels))
+        if missing:
+            raise BindError(f"the range-of-motion take lacks markers {missing[:5]}")
+        dev, stable = stability(rom.select(take.labels), neutral, options)
+    else:
+        dev, stable = stability(take, neutral, options)
     surface = Surface(rig.neutral, rig.triangles)
     anchors, src, dst = _hint_anchors(take.labels, neutral, layout if options.use_names else None, rig)
     starts = ([_umeyama(src, dst, True)] if len(anchors) >= 4 else []) + _starts(neutral, rig)
