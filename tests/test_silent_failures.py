@@ -122,3 +122,16 @@ def test_calibration_report_gives_a_residual_per_marker(capsys):
     assert len(named) == len(labels)
     rms = [float(r[1]) for r in named]
     assert rms == sorted(rms, reverse=True) and all(np.isfinite(rms))
+
+
+def test_solve_with_a_profile_refuses_markers_bound_elsewhere(profile, tmp_path, capsys):
+    data = json.loads(open(LAYOUT).read())
+    used = {m["vertex"] for m in data["markers"]}
+    data["markers"][2]["vertex"] = next(v for v in range(10_000) if v not in used)
+    moved = tmp_path / "moved.json"
+    moved.write_text(json.dumps(data))
+    capsys.readouterr()
+    assert main(["solve", TAKE, "--profile", str(profile), "--rig", RIG, "--markers", str(moved),
+                 "--out", str(tmp_path / "w.csv")]) == 1
+    err = _one_error_line(capsys)
+    assert str(moved) in err and data["markers"][2]["label"] in err and "other sites" in err

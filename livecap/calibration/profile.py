@@ -132,9 +132,11 @@ def rig_fingerprint(rig: Rig) -> str:
     return h.hexdigest()[:16]
 
 
-def check_rig_path(profile: Profile, rig_path: str | Path, profile_path: str | Path) -> None:
+def check_rig_path(profile: Profile, rig_path: str | Path, profile_path: str | Path
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """The rig at ``rig_path`` must be the one ``profile`` was calibrated against (its fingerprint), read
-    cheaply: the shape names from the folder listing or the .npz, the neutral alone (not every shape's OBJ)."""
+    cheaply: the shape names from the folder listing or the .npz, the neutral alone (not every shape's OBJ).
+    Returns the neutral (mm) and triangles it read."""
     from livecap.core.objfile import read_obj
     from livecap.core.rig import _folder_metadata
     from livecap.core.units import to_mm
@@ -143,11 +145,12 @@ def check_rig_path(profile: Profile, rig_path: str | Path, profile_path: str | P
     path = Path(rig_path)
     if path.is_dir():
         names = {p.stem for p in path.glob("*.obj") if p.stem != "neutral" and not {"@", "+"} & set(p.stem)}
-        neutral = read_obj(path / "neutral.obj")[0] * to_mm(1.0, _folder_metadata(path).get("units", "mm"))
+        neutral, triangles = read_obj(path / "neutral.obj")
+        neutral = neutral * to_mm(1.0, _folder_metadata(path).get("units", "mm"))
     else:
         try:
             with np.load(path, allow_pickle=False) as z:
-                names, neutral = {str(n) for n in z["names"]}, z["neutral"]
+                names, neutral, triangles = {str(n) for n in z["names"]}, z["neutral"], z["triangles"]
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             raise CalibrationError(f"{rig_path}: not a livecap rig file ({exc})") from None
     if names != set(profile.names):
@@ -159,10 +162,13 @@ def check_rig_path(profile: Profile, rig_path: str | Path, profile_path: str | P
         if h.hexdigest()[:16] != stored:
             raise CalibrationError(f"{profile_path}: calibrated against rig {stored}, but --rig {rig_path} is "
                                    f"{h.hexdigest()[:16]} (another neutral mesh): recalibrate, or give its rig")
+    return neutral, triangles
 
 
-def check_layout_labels(profile: Profile, markers_path: str | Path, profile_path: str | Path) -> None:
-    """``--markers`` beside ``--profile`` must name the markers the profile was calibrated with."""
+def check_layout_labels(profile: Profile, markers_path: str | Path, profile_path: str | Path,
+                        mesh: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    """``--markers`` beside ``--profile`` must name the markers the profile was calibrated with, and, given the
+    rig's (neutral, triangles), bind them to the same sites."""
     from livecap.core.markers import LayoutError
 
     try:
@@ -174,6 +180,20 @@ def check_layout_labels(profile: Profile, markers_path: str | Path, profile_path
         raise CalibrationError(f"{profile_path}: calibrated with {len(profile.labels)} markers, but --markers "
                                f"{markers_path} binds {len(labels)}" + (f" ({diff[:4]} differ)" if diff else
                                                                         " in another order") + ": recalibrate")
+    if mesh is None:
+        return
+    from types import SimpleNamespace
+
+    from livecap.core.markers import MarkerLayout
+
+    neutral, triangles = mesh
+    layout = MarkerLayout.load(markers_path, SimpleNamespace(triangles=triangles, n_vertices=len(neutral)))
+    moved = np.where(np.linalg.norm(layout.sampling_matrix(len(neutral)) @ neutral - profile.target_sites,
+                                    axis=1) > 0.01)[0]
+    if len(moved):
+        raise CalibrationError(f"{profile_path}: --markers {markers_path} binds {len(moved)} markers to other sites "
+                               f"than the profile was calibrated with ({[profile.labels[i] for i in moved[:4]]}): "
+                               "recalibrate with these markers")
 
 
 def _rig_arrays(rig: Rig, p: str) -> dict[str, np.ndarray]:

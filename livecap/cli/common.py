@@ -79,9 +79,9 @@ def saved_profile(args: argparse.Namespace, take: Take) -> Profile:
         raise ValueError(f"{args.rig}: no such rig (an OBJ folder or .npz)")
     profile = Profile.load(args.profile)
     check_labels(take, profile.labels, getattr(args, "take", "take"), args.rig)
-    check_rig_path(profile, args.rig, args.profile)
+    mesh = check_rig_path(profile, args.rig, args.profile)
     if getattr(args, "markers", None):
-        check_layout_labels(profile, args.markers, args.profile)
+        check_layout_labels(profile, args.markers, args.profile, mesh)
     return profile
 
 
