@@ -127,8 +127,15 @@ class Profile:
 def rig_fingerprint(rig: Rig) -> str:
     """A short id of a rig's shape names and neutral mesh (to 0.01 mm): a profile stores the id
     of the rig it was calibrated against, so ``livecap run --rig`` can refuse another rig's profile."""
-    h = hashlib.sha1("\n".join(rig.names).encode())
-    h.update(np.round(np.asarray(rig.neutral, dtype=np.float64), 2).astype("<f8").tobytes())
+    return _fingerprint(rig.names, rig.neutral)
+
+
+def _fingerprint(names, neutral: np.ndarray, single: bool = False) -> str:
+    """``single``: of the neutral as a rig's .npz stores it (float32), so a rig calibrated in memory and then
+    saved is still recognised."""
+    v = np.asarray(neutral, dtype=np.float32 if single else np.float64).astype(np.float64)
+    h = hashlib.sha1("\n".join(names).encode())
+    h.update(np.round(v, 2).astype("<f8").tobytes())
     return h.hexdigest()[:16]
 
 
@@ -157,11 +164,11 @@ def check_rig_path(profile: Profile, rig_path: str | Path, profile_path: str | P
         raise CalibrationError(f"{profile_path}: calibrated for a rig with {len(profile.names)} shapes, but --rig "
                                f"{rig_path} has {len(names)} ({sorted(names ^ set(profile.names))[:3]} differ)")
     if stored is not None:
-        h = hashlib.sha1("\n".join(profile.names).encode())
-        h.update(np.round(np.asarray(neutral, dtype=np.float64), 2).astype("<f8").tobytes())
-        if h.hexdigest()[:16] != stored:
+        mine = _fingerprint(profile.names, neutral)
+        single = profile.settings.get("rig_fingerprint_f32")
+        if mine != stored and (single is None or _fingerprint(profile.names, neutral, True) != single):
             raise CalibrationError(f"{profile_path}: calibrated against rig {stored}, but --rig {rig_path} is "
-                                   f"{h.hexdigest()[:16]} (another neutral mesh): recalibrate, or give its rig")
+                                   f"{mine} (another neutral mesh): recalibrate, or give its rig")
     return neutral, triangles
 
 
@@ -357,6 +364,6 @@ def calibrate(rig: Rig, layout: MarkerLayout, neutral: np.ndarray, settings: dic
     fit_mm = float(np.sqrt(np.mean(np.sum((mrig.neutral - neutral_rig) ** 2, axis=1))))
     _check_fit(d.mean_scale, fit_mm, neutral_rig, warp)
     info = {"warp": warp, "scale": d.mean_scale, "warp_fit_rms_mm": fit_mm, "frame": "rig", "smoothing": smoothing,
-            "rig_fingerprint": rig_fingerprint(rig)}
+            "rig_fingerprint": rig_fingerprint(rig), "rig_fingerprint_f32": _fingerprint(rig.names, rig.neutral, True)}
     return Profile(list(layout.labels), list(rig.names), neutral_rig, layout.stable.copy(), basis,
                    rig.lower.copy(), rig.upper.copy(), sites, {**info, **(settings or {})}, d, mrig)
