@@ -17,6 +17,7 @@ from livecap.core.markers import MarkerLayout
 from livecap.core.rig import Rig
 from livecap.core.take import Take
 from livecap.transfer.bind import bind_capture, neutral_span, span_neutral
+from livecap.transfer.surface import Surface
 from tests.bind_hand_fit import hand_fit
 from tests.conftest import ICT, SHARED
 
@@ -26,12 +27,6 @@ TAKES = ["JawMoCap.c3d", "CheeksMoCap.c3d"]
 
 pytestmark = pytest.mark.skipif(not (ANIMFACE.exists() and ICT.exists()),
                                 reason=f"real capture or ICT rig absent under {SHARED / 'realdata'}")
-
-
-@pytest.fixture(scope="module")
-def ict():
-    rig = Rig.load(ICT)
-    return rig, MarkerLayout.load(ICT / "markers.json", rig)
 
 
 @functools.cache
@@ -99,8 +94,7 @@ def test_calibration_residual_is_no_worse_than_the_hand_fit(ict, name):
     auto = calibrate(rig, res.layout(rig), neutral, warp="similarity").settings["warp_fit_rms_mm"]
     sites = dict(zip(layout.labels, layout.sampling_matrix(rig.n_vertices) @ rig.neutral, strict=True))
     hand_pts = hand_fit(take.labels, neutral, sites, rig.neutral, rig.triangles)
-    _, tri, bary = __import__("livecap.transfer.surface", fromlist=["Surface"]).Surface(
-        rig.neutral, rig.triangles).closest(hand_pts)
+    _, tri, bary = Surface(rig.neutral, rig.triangles).closest(hand_pts)
     hand_layout = MarkerLayout(list(take.labels), rig.triangles[tri], bary, np.ones(take.n_markers, bool))
     hand = calibrate(rig, hand_layout, neutral, warp="similarity").settings["warp_fit_rms_mm"]
     assert auto <= hand * 1.02 + 0.01, (auto, hand)
