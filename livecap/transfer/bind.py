@@ -174,7 +174,7 @@ def _hint_anchors(labels: list[str], neutral: np.ndarray, layout: MarkerLayout |
     return pairs, np.array(src).reshape(-1, 3), np.array(dst).reshape(-1, 3)
 
 
-def _icp(points: np.ndarray, surface: Surface, start: Similarity, trim: float, iterations: int = 60
+def _icp(points: np.ndarray, surface: Surface, start: Similarity, trim: float, iterations: int = 300
          ) -> tuple[Similarity, float]:
     current, rms = start, np.inf
     for _ in range(iterations):
