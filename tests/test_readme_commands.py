@@ -26,7 +26,7 @@ def table_commands() -> list[str]:
     for row in re.findall(r"^\| (`livecap .*?) \| ", table.replace("\\|", "/"), re.M):
         for code in re.findall(r"`([^`]*)`", row):
             words = code.removeprefix("livecap ").split()
-            names.append(" ".join(words[:2]) if words[0] == "rig" else words[0])
+            names.append(" ".join(words[:2]) if words[0] in ("rig", "markers") else words[0])
     return names
 
 
@@ -63,6 +63,7 @@ RUNS = {
                "--frames", "png", "--every", "120", "--size", "160x120"],
     "rig transfer": ["rig", "transfer", "--generic", "rec/demo_rig.npz", "--target", "objrig/neutral.obj",
                      "--out", "transferred"],
+    "markers bind": ["markers", "bind", "rec/demo_take.c3d", "--rig", "rec/demo_rig.npz", "--out", "bound.json"],
     "rom": ["rom", "--out", "rom", "--rate", "30"],
     "composite": ["composite", "--demo", "--out", "composite"],
     "map": ["map", "w.csv", "--out", "mapped.csv"],

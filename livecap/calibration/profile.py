@@ -127,9 +127,80 @@ class Profile:
 def rig_fingerprint(rig: Rig) -> str:
     """A short id of a rig's shape names and neutral mesh (to 0.01 mm): a profile stores the id
     of the rig it was calibrated against, so ``livecap run --rig`` can refuse another rig's profile."""
-    h = hashlib.sha1("\n".join(rig.names).encode())
-    h.update(np.round(np.asarray(rig.neutral, dtype=np.float64), 2).astype("<f8").tobytes())
+    return _fingerprint(rig.names, rig.neutral)
+
+
+def _fingerprint(names, neutral: np.ndarray, single: bool = False) -> str:
+    """``single``: of the neutral as a rig's .npz stores it (float32), so a rig calibrated in memory and then
+    saved is still recognised."""
+    v = np.asarray(neutral, dtype=np.float32 if single else np.float64).astype(np.float64)
+    h = hashlib.sha1("\n".join(names).encode())
+    h.update(np.round(v, 2).astype("<f8").tobytes())
     return h.hexdigest()[:16]
+
+
+def check_rig_path(profile: Profile, rig_path: str | Path, profile_path: str | Path
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The rig at ``rig_path`` must be the one ``profile`` was calibrated against (its fingerprint), read
+    cheaply: the shape names from the folder listing or the .npz, the neutral alone (not every shape's OBJ).
+    Returns the neutral (mm) and triangles it read."""
+    from livecap.core.objfile import read_obj
+    from livecap.core.rig import _folder_metadata
+    from livecap.core.units import to_mm
+
+    stored = profile.settings.get("rig_fingerprint")
+    path = Path(rig_path)
+    if path.is_dir():
+        names = {p.stem for p in path.glob("*.obj") if p.stem != "neutral" and not {"@", "+"} & set(p.stem)}
+        neutral, triangles = read_obj(path / "neutral.obj")
+        neutral = neutral * to_mm(1.0, _folder_metadata(path).get("units", "mm"))
+    else:
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                names, neutral, triangles = {str(n) for n in z["names"]}, z["neutral"], z["triangles"]
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            raise CalibrationError(f"{rig_path}: not a livecap rig file ({exc})") from None
+    if names != set(profile.names):
+        raise CalibrationError(f"{profile_path}: calibrated for a rig with {len(profile.names)} shapes, but --rig "
+                               f"{rig_path} has {len(names)} ({sorted(names ^ set(profile.names))[:3]} differ)")
+    if stored is not None:
+        mine = _fingerprint(profile.names, neutral)
+        single = profile.settings.get("rig_fingerprint_f32")
+        if mine != stored and (single is None or _fingerprint(profile.names, neutral, True) != single):
+            raise CalibrationError(f"{profile_path}: calibrated against rig {stored}, but --rig {rig_path} is "
+                                   f"{mine} (another neutral mesh): recalibrate, or give its rig")
+    return neutral, triangles
+
+
+def check_layout_labels(profile: Profile, markers_path: str | Path, profile_path: str | Path,
+                        mesh: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    """``--markers`` beside ``--profile`` must name the markers the profile was calibrated with, and, given the
+    rig's (neutral, triangles), bind them to the same sites."""
+    from livecap.core.markers import LayoutError
+
+    try:
+        labels = [str(m.get("label")) for m in json.loads(Path(markers_path).read_text())["markers"]]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise LayoutError(f"{markers_path}: cannot read marker layout ({exc})") from None
+    if labels != list(profile.labels):
+        diff = sorted(set(labels) ^ set(profile.labels))
+        raise CalibrationError(f"{profile_path}: calibrated with {len(profile.labels)} markers, but --markers "
+                               f"{markers_path} binds {len(labels)}" + (f" ({diff[:4]} differ)" if diff else
+                                                                        " in another order") + ": recalibrate")
+    if mesh is None:
+        return
+    from types import SimpleNamespace
+
+    from livecap.core.markers import MarkerLayout
+
+    neutral, triangles = mesh
+    layout = MarkerLayout.load(markers_path, SimpleNamespace(triangles=triangles, n_vertices=len(neutral)))
+    moved = np.where(np.linalg.norm(layout.sampling_matrix(len(neutral)) @ neutral - profile.target_sites,
+                                    axis=1) > 0.01)[0]
+    if len(moved):
+        raise CalibrationError(f"{profile_path}: --markers {markers_path} binds {len(moved)} markers to other sites "
+                               f"than the profile was calibrated with ({[profile.labels[i] for i in moved[:4]]}): "
+                               "recalibrate with these markers")
 
 
 def _rig_arrays(rig: Rig, p: str) -> dict[str, np.ndarray]:
@@ -259,6 +330,16 @@ def fit_warp(kind: str, sites: np.ndarray, neutral: np.ndarray, smoothing: float
     raise CalibrationError(f"unknown warp {kind!r} (choose from {', '.join(WARPS)})")
 
 
+def _check_fit(scale: float, fit_mm: float, neutral: np.ndarray, warp: str) -> None:
+    """A proportion fit that explodes (a negative or huge scale, a residual larger than the face) is an
+    error, not a profile: every solve with it would return nothing."""
+    size = float(np.sqrt(np.mean(np.sum((neutral - neutral.mean(0)) ** 2, axis=1))))
+    if not (np.isfinite(scale) and 0.2 < scale < 5.0 and np.isfinite(fit_mm) and fit_mm < 0.5 * size):
+        raise CalibrationError(f"the {warp} proportion fit exploded (overall scale {scale:.4g}, fit at the markers "
+                               f"{fit_mm:.3g} mm RMS on a face of {size:.0f} mm RMS radius): check the marker layout "
+                               "against the take (labels, units, sites)")
+
+
 def calibrate(rig: Rig, layout: MarkerLayout, neutral: np.ndarray, settings: dict | None = None,
               warp: str = "rbf", smoothing: float = 0.0) -> Profile:
     """Profile for ``rig`` seen through ``layout`` on an actor whose rest markers are ``neutral``.
@@ -269,6 +350,10 @@ def calibrate(rig: Rig, layout: MarkerLayout, neutral: np.ndarray, settings: dic
     neutral = np.asarray(neutral, dtype=np.float64)
     if neutral.shape != (layout.n_markers, 3) or not np.isfinite(neutral).all():
         raise CalibrationError(f"neutral must be {layout.n_markers} x 3 finite positions, got {neutral.shape}")
+    same = layout.coincident()
+    if same:
+        raise CalibrationError(f"markers {' and '.join(same[0])} are bound to the same rig point: the proportion "
+                               "warp cannot map one site to two markers (fix the marker layout)")
     sites_rig = layout.marker_rig(rig)
     sites = sites_rig.neutral
     Rc, tc = kabsch(neutral, sites)  # actor neutral -> rig frame, rigid only
@@ -277,7 +362,8 @@ def calibrate(rig: Rig, layout: MarkerLayout, neutral: np.ndarray, settings: dic
     mrig = warp_rig(sites_rig, d)
     basis = mrig.deltas.reshape(rig.n_shapes, -1).T.copy()
     fit_mm = float(np.sqrt(np.mean(np.sum((mrig.neutral - neutral_rig) ** 2, axis=1))))
+    _check_fit(d.mean_scale, fit_mm, neutral_rig, warp)
     info = {"warp": warp, "scale": d.mean_scale, "warp_fit_rms_mm": fit_mm, "frame": "rig", "smoothing": smoothing,
-            "rig_fingerprint": rig_fingerprint(rig)}
+            "rig_fingerprint": rig_fingerprint(rig), "rig_fingerprint_f32": _fingerprint(rig.names, rig.neutral, True)}
     return Profile(list(layout.labels), list(rig.names), neutral_rig, layout.stable.copy(), basis,
                    rig.lower.copy(), rig.upper.copy(), sites, {**info, **(settings or {})}, d, mrig)

@@ -165,6 +165,21 @@ def compare(take: Take, rig: Rig, layout: MarkerLayout, neutral: np.ndarray,
     return out
 
 
+def marker_residual(result: VariantResult) -> tuple[np.ndarray, np.ndarray]:
+    """Per marker: RMS and 95th percentile (mm) of the solve's fit residual over the frames it is seen.
+
+    A marker the rig cannot follow (bound off its anatomy, on hair, a loose marker) stands out here
+    long before it shows in the per-frame averages."""
+    solved, prof = result.solved, result.profile
+    fit = (solved.weights @ prof.basis.T).reshape(solved.targets.shape)
+    err = np.linalg.norm(fit - solved.targets, axis=2)
+    seen = solved.valid
+    rms = np.sqrt(np.where(seen, err ** 2, 0.0).sum(0) / np.maximum(seen.sum(0), 1))
+    p95 = np.array([np.percentile(err[seen[:, j], j], 95) if seen[:, j].any() else np.nan
+                    for j in range(err.shape[1])])
+    return rms, p95
+
+
 def subsample(take: Take, stride: int) -> Take:
     """Every ``stride``-th frame (the report's quick mode; per-frame solvers only)."""
     if stride <= 1:

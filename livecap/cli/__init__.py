@@ -33,6 +33,7 @@ COMMANDS = [
     "realeval",
     "label",
     "prior",
+    "markers",
 ]
 
 

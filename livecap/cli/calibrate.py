@@ -11,6 +11,7 @@ import numpy as np
 from livecap.calibration.animation_prior import AnimationPrior
 from livecap.calibration.profile import WARPS, Profile, calibrate, estimate_neutral
 from livecap.cli.common import add_noise_argument, add_rig_arguments, check_labels, load_rig, progress_bar, tune_on_take
+from livecap.cli.markers import parse_span
 from livecap.cli.progress import stage
 from livecap.modes.registry import DEFAULT_MODE, MODES_AND_AUTO, resolve_mode
 from livecap.modes.robust import ROBUST_MODES
@@ -28,6 +29,7 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="profile to write (.npz)")
     p.add_argument("--warp", default="rbf", choices=WARPS, help="proportion match (default rbf, Seol 2012 §3.2)")
     p.add_argument("--seconds", type=float, help="use only the first SECONDS of the take (default: all)")
+    p.add_argument("--span", metavar="START:END", help="use only this span of the take, in seconds (e.g. 12.5:14)")
     p.add_argument("--smoothing", type=float, default=0.0, help="RBF smoothing (0 = exact at the markers)")
     p.add_argument("--max-gap", type=float, default=DEFAULT_MAX_GAP_SECONDS,
                    help=f"offline gap fill: longest gap in seconds (default {DEFAULT_MAX_GAP_SECONDS}; 0 = off)")
@@ -76,10 +78,14 @@ def run_calibrate(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.neutral}: {len(absent)} markers of {args.rig} never seen in the neutral take: "
                          f"{absent[:8]}{hint}")
     frames = max(1, int(round(args.seconds * take.rate))) if args.seconds else None
+    if args.span:
+        if args.seconds:
+            raise ValueError("give --seconds or --span, not both")
+        sel = sel.slice(*parse_span(args.span, take.rate, take.n_frames))
     neutral = estimate_neutral(sel, layout.stable, frames)
     settings = {"max_gap_seconds": args.max_gap, "robust_stabilise": not args.plain_stabilise,
                 "pose_smoothing_seconds": args.pose_smoothing,
-                "neutral_take": str(args.neutral), "neutral_frames": frames or take.n_frames}
+                "neutral_take": str(args.neutral), "neutral_frames": frames or sel.n_frames}
     profile = calibrate(rig, layout, neutral, settings, warp=args.warp, smoothing=args.smoothing)
     if args.prior:
         profile.prior = AnimationPrior.load(args.prior)
@@ -97,7 +103,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     profile.save(args.out)
     local, _, _ = profile.stabiliser().stabilise(sel.positions[:frames], sel.valid[:frames])
     spread = np.linalg.norm(local - profile.source_neutral, axis=2)[sel.valid[:frames]]
-    print(f"neutral   {args.neutral}: {frames or take.n_frames} frames, {layout.n_markers} markers "
+    print(f"neutral   {args.neutral}: {frames or sel.n_frames} frames, {layout.n_markers} markers "
           f"({int(layout.stable.sum())} stable), spread about the neutral {np.sqrt(np.mean(spread ** 2)):.3f} mm RMS")
     print(f"warp      {args.warp}: overall scale {profile.settings['scale']:.4f}, "
           f"fit at the markers {profile.settings['warp_fit_rms_mm']:.2e} mm RMS")
@@ -149,7 +155,7 @@ def _stats(a: np.ndarray) -> str:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from livecap.calibration.report import compare, subsample
+    from livecap.calibration.report import compare, marker_residual, subsample
     from livecap.modes.registry import build_solver
 
     rig, layout = load_rig(args)
@@ -214,6 +220,10 @@ def run_report(args: argparse.Namespace) -> int:
             print(f"  {r.variant.name:{width}s} identical to '{same[id(r)]}'")
             continue
         print(f"  {r.variant.name:{width}s} {_stats(r.frame_marker_error)}")
+    rms, p95 = marker_residual(base)
+    print(f"\nper-marker fit residual of '{base.variant.name}' (mm over the take, worst first)    RMS     p95")
+    for j in np.argsort(-rms):
+        print(f"  {base.profile.labels[j]:20s} {rms[j]:7.3f} {p95[j]:7.3f}")
     if truth is not None:
         print(f"\n{'head pose vs ground truth':{width + 17}s}    mean  median     p95     max")
         for r in results:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from livecap.calibration.profile import Profile, calibrate, estimate_neutral
+from livecap.calibration.profile import Profile, calibrate, check_layout_labels, check_rig_path, estimate_neutral
 from livecap.cli import progress
 from livecap.core.markers import MarkerLayout
 from livecap.core.rig import Rig
@@ -97,6 +97,9 @@ def saved_profile(args: argparse.Namespace, take: Take) -> Profile:
         raise ValueError(f"{args.rig}: no such rig (an OBJ folder or .npz)")
     profile = Profile.load(args.profile)
     check_labels(take, profile.labels, getattr(args, "take", "take"), args.rig)
+    mesh = check_rig_path(profile, args.rig, args.profile)
+    if getattr(args, "markers", None):
+        check_layout_labels(profile, args.markers, args.profile, mesh)
     return _given_noise(args, profile)
 
 

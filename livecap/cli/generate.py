@@ -32,10 +32,22 @@ def register(sub) -> None:
     c.add_argument("--mapping", help="JSON {ARKit name: rig shape | [shapes]} for rigs whose names are not ARKit's")
     c.add_argument("--start", type=float, default=0.0, help="seconds into the CSV")
     c.add_argument("--actor-seed", type=int, default=7, help="the actor's proportions (same seed, same face)")
+    a = p.add_argument_group("model mismatch (--curves with --actor-rig)")
+    a.add_argument("--actor-rig", metavar="RIG", help="the actor is this other rig (e.g. the MakeHuman head) driven by "
+                   "--curves through --mapping; its markers, placed like --rig's and bound to --rig as "
+                   "'livecap markers bind' does, go to OUT/<curves>.markers.json; truth: the curves on --rig")
+    a.add_argument("--skin-offset", default="2:5", metavar="MIN:MAX", help="markers off the actor's skin, mm (2:5)")
+    a.add_argument("--placement-mm", type=float, default=2.0, help="marker placement error, +- mm (default 2)")
+    a.add_argument("--smoothing-hz", type=float, default=6.0,
+                   help="the capture pipeline's low-pass cut-off in Hz (default 6; 0 = none)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.actor_rig:
+        if not args.curves or not args.rig:
+            raise ValueError("--actor-rig needs --curves and --rig (the target rig)")
+        return run_mismatch(args)
     if args.curves:
         return run_curves(args)
     s = PerformanceSettings(seconds=args.seconds or 20.0, rate=args.rate or 120.0, noise_mm=args.noise_mm,
@@ -83,6 +95,46 @@ def run_curves(args: argparse.Namespace) -> int:
           f"above 0.05 per frame, {(~ct.take.valid).mean() * 100:.1f}% missing")
     if ct.unmapped:
         print(f"rig shapes no ARKit curve drives (held at 0): {', '.join(ct.unmapped)}")
+    for path in (truth_path(take_path), neutral_path):
+        print(path)
+    return 0
+
+
+def run_mismatch(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from livecap.cli.common import load_rig
+    from livecap.core.rig import Rig
+    from livecap.demo import truth_path
+    from livecap.demo.mismatch_take import MismatchSettings, mismatch_take
+    from transport.arkit import load_mapping
+    from transport.takefile import write_take
+
+    try:
+        lo, hi = (float(x) for x in args.skin_offset.split(":"))
+    except ValueError:
+        raise ValueError(f"--skin-offset: expected MIN:MAX in mm, got {args.skin_offset!r}") from None
+    target, layout = load_rig(args)
+    actor = Rig.load(args.actor_rig)
+    given = {"rate": args.rate, "seconds": args.seconds, "occlusion": args.occlusion,
+             "head_degrees": args.head_degrees, "head_mm": args.head_mm}
+    s = MismatchSettings(**{k: v for k, v in given.items() if v is not None}, start=args.start, seed=args.seed + 1,
+                         noise_mm=args.noise_mm, skin_offset_mm=(lo, hi), placement_mm=args.placement_mm,
+                         smoothing_hz=args.smoothing_hz)
+    mt = mismatch_take(actor, target, layout, args.curves, load_mapping(args.mapping) if args.mapping else None, s)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = Path(args.curves).stem
+    take_path, neutral_path, markers = out / f"{stem}.c3d", out / f"{stem}_neutral.c3d", out / f"{stem}.markers.json"
+    write_take(mt.take, take_path)
+    mt.save_truth(truth_path(take_path))
+    write_take(mt.neutral, neutral_path)
+    mt.layout.save(markers, target, {m.label: {"distance_mm": round(m.distance, 3)} for m in mt.binding.markers
+                                     if m.bound})
+    d = [m.distance for m in mt.binding.markers if m.bound]
+    print(f"{take_path}: {mt.take.n_frames} frames at {s.rate:g} Hz, actor {args.actor_rig}, "
+          f"{(~mt.take.valid).mean() * 100:.1f}% missing; {markers}: {mt.layout.n_markers} of "
+          f"{mt.take.n_markers} markers bound to {args.rig} (median {np.median(d):.1f} mm off its surface)")
     for path in (truth_path(take_path), neutral_path):
         print(path)
     return 0

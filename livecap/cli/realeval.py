@@ -52,6 +52,9 @@ def register(sub) -> None:
                    help="the calibration's proportion match, as 'livecap calibrate --warp' (default rbf)")
     p.add_argument("--bias", action="store_true", help="per take and mode, the shapes with the largest mean signed "
                    "error and how many of the truly active shapes (> 0.05) the solve keeps active")
+    p.add_argument("--actor-rig", metavar="RIG", help="model mismatch: this other rig (e.g. the MakeHuman head, with "
+                   "--actor-mapping) acts, its markers bound to each --rig ('livecap generate --actor-rig'); no oracle")
+    p.add_argument("--actor-mapping", help="ARKit name mapping JSON for --actor-rig")
     p.set_defaults(func=run)
 
 
@@ -78,7 +81,7 @@ def _rig(name: str, markers: str | None = None):
 
 def run(args: argparse.Namespace) -> int:
     from livecap.demo.curves_take import CurveTakeSettings, curves_take
-    from livecap.offline.real_eval import evaluate_curve_take
+    from livecap.offline.real_eval import Row, evaluate_curve_take
     from transport.arkit import load_mapping
     from transport.llf_csv import read_llf_csv
 
@@ -95,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
                 start = max(0.0, min(args.start, length - args.seconds))
                 s = CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise, occlusion=args.occlusion)
                 t0 = time.perf_counter()
-                ct = curves_take(rig, layout, f, s, mapping)
+                ct = curves_take(rig, layout, f, s, mapping) if not args.actor_rig else \
+                    _mismatch(args, rig, layout, f, start, noise)
                 options = {"kalman": {"rate": ct.take.rate}}  # the IMM's process noise is per second
                 others = [o for o in files if o != f]
                 prior = None
@@ -103,11 +107,13 @@ def run(args: argparse.Namespace) -> int:
                     from livecap.calibration.animation_prior import build_prior
 
                     prior = build_prior(others, rig.names, rig.lower, rig.upper, mapping)
-                rows = evaluate_curve_take(rig, layout, ct, args.modes, options, prior, args.warp)
-                oracle = rows[0]
+                rows = evaluate_curve_take(rig, getattr(ct, "layout", layout), ct, args.modes, options, prior,
+                                           args.warp)
+                oracle = rows[0] if rows[0].mode == "oracle" else Row("none", *[float("nan")] * 5)
                 took = time.perf_counter() - t0
                 print(f"{rig_name} {noise:g} mm {f.name} ({ct.take.n_frames} frames, {took:.0f} s): "
-                      f"oracle RMSE {oracle.rmse:.3f} p95 {oracle.p95_mm:.2f} mm")
+                      + (f"oracle RMSE {oracle.rmse:.3f} p95 {oracle.p95_mm:.2f} mm" if oracle.mode == "oracle"
+                         else f"actor {args.actor_rig}, no oracle"))
                 for r in rows:
                     rec = {"rig": rig_name, "noise_mm": noise, "file": f.name, **vars(r),
                            "rmse_x": r.rmse / oracle.rmse, "p95_x": r.p95_mm / oracle.p95_mm}
@@ -115,7 +121,8 @@ def run(args: argparse.Namespace) -> int:
                         rec.pop("bias")
                     out.append(rec)
                     print(f"  {r.mode:12s} RMSE {r.rmse:.3f} ({rec['rmse_x']:.2f}x)  p95 {r.p95_mm:.2f} mm "
-                          f"({rec['p95_x']:.2f}x)  jitter {r.jitter_x:7.2f}x  blink {r.blink:.2f}")
+                          f"({rec['p95_x']:.2f}x)  jitter {r.jitter_x:7.2f}x  blink {r.blink:.2f}  "
+                          f"phantom {r.phantom:.3f}")
                     if args.bias:
                         worst = sorted(r.bias.items(), key=lambda kv: -abs(kv[1]))[:5]
                         print(f"    active kept {r.active_kept:.1f} of {r.active_true:.1f}; bias "
@@ -127,6 +134,17 @@ def run(args: argparse.Namespace) -> int:
                                                "seconds": args.seconds, "occlusion": args.occlusion,
                                                "rows": out}, indent=1))
     return 0
+
+
+def _mismatch(args: argparse.Namespace, rig, layout, f: Path, start: float, noise: float):
+    from livecap.core.rig import Rig
+    from livecap.demo.mismatch_take import MismatchSettings, mismatch_take
+    from transport.arkit import load_mapping
+
+    actor = Rig.load(args.actor_rig)
+    mapping = load_mapping(args.actor_mapping) if args.actor_mapping else None
+    return mismatch_take(actor, rig, layout, f, mapping, MismatchSettings(start=start, seconds=args.seconds,
+                                                                          noise_mm=noise, occlusion=args.occlusion))
 
 
 def summary_table(rows: list[dict], kept: bool = False) -> str:

@@ -98,19 +98,47 @@ class MarkerLayout:
         if dups:
             raise LayoutError(f"{path}: marker labels {dups[:5]} appear more than once")
         layout = cls(labels, verts, bary, stable, units)
+        same = layout.coincident()
+        if same:
+            raise LayoutError(f"{path}: markers {' and '.join(same[0])} are bound to the same rig point"
+                              + (f" (and {len(same) - 1} more pairs)" if len(same) > 1 else "")
+                              + "; every marker needs its own site")
         if rig is not None:
             layout.check(rig, str(path))
         return layout
 
-    def save(self, path: str | Path) -> None:
+    def coincident(self) -> list[tuple[str, str]]:
+        """Pairs of markers bound to the same rig point (same vertex, or same triangle and barycentric):
+        their sites coincide, so the proportion warp cannot map them to two actor markers."""
+        seen: dict[tuple, str] = {}
+        out = []
+        for lab, v, b in zip(self.labels, self.vertices, self.barycentric, strict=True):
+            weights: dict[int, float] = {}
+            for i, w in zip(v.tolist(), b.tolist(), strict=True):
+                weights[i] = weights.get(i, 0.0) + w
+            key = tuple(sorted((i, round(w, 9)) for i, w in weights.items() if abs(w) > 1e-12))
+            if key in seen:
+                out.append((seen[key], lab))
+            else:
+                seen[key] = lab
+        return out
+
+    def save(self, path: str | Path, rig: Rig | None = None, extra: dict[str, dict] | None = None) -> None:
+        """Write markers.json; triangle bindings need the ``rig`` (their triangle index); ``extra`` adds
+        per-label keys (a binding's report) that :meth:`load` ignores."""
+        tri_index = {} if rig is None else {tuple(t): i for i, t in enumerate(np.asarray(rig.triangles).tolist())}
         markers = []
         for lab, v, b, s in zip(self.labels, self.vertices, self.barycentric, self.stable, strict=True):
             entry: dict = {"label": lab}
             if b[0] == 1.0 and v[0] == v[1] == v[2]:
                 entry["vertex"] = int(v[0])
+            elif tuple(int(i) for i in v) in tri_index:
+                entry["triangle"] = tri_index[tuple(int(i) for i in v)]
+                entry["barycentric"] = [float(x) for x in b]
             else:
-                raise LayoutError("saving triangle bindings needs the triangle index; bind to vertices")
+                raise LayoutError(f"{path}: marker {lab} is bound inside a triangle; saving it needs the rig")
             entry["stable"] = bool(s)
+            entry.update((extra or {}).get(lab, {}))
             markers.append(entry)
         Path(path).write_text(json.dumps({"units": self.units, "markers": markers}, indent=1))
 

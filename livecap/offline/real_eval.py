@@ -87,6 +87,7 @@ class Row:
     active_true: float = float("nan")  # shapes active in the truth, mean over frames
     active_kept: float = float("nan")  # of those, active in the solve too
     bias: dict[str, float] | None = None  # per shape: mean solved - true weight
+    phantom: float = float("nan")   # mean weight where the truth rests (< 0.01): activity never asked for
 
 
 def score(label: str, rig: Rig, ct: CurveTake, W: np.ndarray, seconds: float) -> Row:
@@ -95,7 +96,8 @@ def score(label: str, rig: Rig, ct: CurveTake, W: np.ndarray, seconds: float) ->
     return Row(label, weight_rmse(W, truth), vertex_p95(rig, W, truth),
                jitter(W) / max(jitter(truth), 1e-12), blink_retention(ct.blinks, W, truth, ct.take.rate),
                seconds * 1e3 / max(len(W), 1), float(on.sum(1).mean()), float((on & (W > ACTIVE)).sum(1).mean()),
-               dict(zip(rig.names, (W - truth).mean(0).tolist(), strict=True)))
+               dict(zip(rig.names, (W - truth).mean(0).tolist(), strict=True)),
+               float(np.asarray(W)[truth < 0.01].mean()) if (truth < 0.01).any() else float("nan"))
 
 
 def streamed(solver, targets: np.ndarray, valid: np.ndarray, step_us: np.ndarray | None = None) -> np.ndarray:
@@ -127,7 +129,9 @@ def evaluate_curve_take(rig: Rig, layout: MarkerLayout, ct: CurveTake, modes: li
     ``<mode> offline``, what ``livecap solve`` gives (smoothed head pose, filled gaps, the mode's whole-take
     form when it has one). Modes with no ``step`` get the offline row only."""
     t0 = time.perf_counter()
-    rows = [score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), time.perf_counter() - t0)]
+    rows = []
+    if hasattr(ct, "actor_basis"):  # a model-mismatch take (livecap.demo.mismatch_take) has no oracle
+        rows.append(score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), time.perf_counter() - t0))
     profile = plain_profile(rig, layout, ct, warp)
     profile.prior = prior
     for name in modes:

@@ -1,0 +1,150 @@
+"""Plausibility of solves on real optical captures (issue 35): AnimFace takes bound to the ICT rig.
+
+Per take and mode: ``livecap markers bind`` in process, calibration on the first second (near
+neutral), tuning on the take (as ``livecap calibrate --tune TAKE``), a whole-take solve, then the
+metrics of :mod:`livecap.offline.plausibility`: weight sum over the first second, largest eye-gaze
+weight, mean mouthFrown, per-shape activity on frames where the shape's markers are still, the
+main shapes' correlation with the marker geometry, and the share of single-frame jumps > 0.1; the same,
+with the weight RMSE and phantom activity against the truth, on model-mismatch takes (the MakeHuman head
+acting real curves, its markers bound to ICT: ``livecap generate --actor-rig``).
+
+    python -m benchmarks.realcapture [--modes auto,movement] [--takes JawMoCap,CheeksMoCap] [--mismatch S07-001,apfel]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from livecap.offline.plausibility import Signal
+
+# AnimFace names (capture-animface/README.md); +y up in the head frame
+SIGNALS = [
+    Signal("jawOpen", "distance", ("Chin", "NoseHead")),
+    Signal("mouthSmile_L", "rise", ("Mouth_Lend",)),
+    Signal("mouthSmile_R", "rise", ("Mouth_Rend",)),
+    Signal("mouthSmile_L", "distance", ("Mouth_Lend", "Mouth_Rend")),
+    Signal("browInnerUp_L", "rise", ("Leyebrow_Inside",)),
+    Signal("browOuterUp_L", "rise", ("Leyebrow_Outside",)),
+    Signal("browOuterUp_R", "rise", ("Reyebrow_Outside",)),
+]
+
+# the same geometry on the model-mismatch takes, whose markers carry ICT's multi-PIE labels (+x the actor's left)
+MISMATCH_SIGNALS = [
+    Signal("jawOpen", "distance", ("M08_jaw", "M30_nose")),
+    Signal("mouthSmile_L", "rise", ("M54_lip",)),
+    Signal("mouthSmile_R", "rise", ("M48_lip",)),
+    Signal("mouthSmile_L", "distance", ("M54_lip", "M48_lip")),
+    Signal("browInnerUp_L", "rise", ("M22_brow",)),
+    Signal("browOuterUp_L", "rise", ("M26_brow",)),
+    Signal("browOuterUp_R", "rise", ("M17_brow",)),
+]
+
+
+def metrics(profile, solved, signals, first: int) -> dict:
+    """The plausibility figures of one solve (``first``: frames of the near-neutral start)."""
+    from livecap.offline import plausibility as pl
+
+    W, names = solved.weights, list(profile.names)
+    frown = [j for j, n in enumerate(names) if n.startswith("mouthFrown")]
+    quiet = pl.quiet_activity(W, solved.targets, solved.valid, pl.shape_markers(profile.basis))
+    worst = np.argsort(-np.nan_to_num(quiet))[:3]
+    jumps, per_shape = pl.jump_share(W)
+    return {"sum_first_s": pl.weight_sum(W, slice(0, first)), "gaze_max": pl.max_weight(W, names),
+            "frown_mean": float(W[:, frown].mean()), "quiet_worst": [(names[j], float(quiet[j])) for j in worst],
+            "corr": pl.signal_correlations(signals, names, W, profile.labels, solved.targets, profile.source_neutral),
+            "jumps": jumps, "jumpiest": names[int(np.argmax(per_shape))]}
+
+
+def run_mismatch(curves: str, modes: list[str], seconds: float = 20.0) -> list[dict]:
+    """The MakeHuman head performing ``curves`` (a performance in realdata/performance), bound to ICT: the same
+    figures, plus the weight RMSE and phantom activity against the driving curves."""
+    from livecap.calibration.profile import calibrate, estimate_neutral
+    from livecap.cli.common import tune_on_take
+    from livecap.cli.realeval import _realdata
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
+    from livecap.demo.mismatch_take import MismatchSettings, mismatch_take
+    from livecap.modes.registry import build_solver, resolve_mode
+    from livecap.offline.solve import solve_take
+    from transport.arkit import load_mapping
+
+    real = _realdata()
+    ict, mh = Rig.load(real / "ict-face"), Rig.load(real / "makehuman-head")
+    mapping = load_mapping(Path(__file__).resolve().parents[1] / "examples" / "makehuman_arkit.json")
+    mt = mismatch_take(mh, ict, MarkerLayout.load(real / "ict-face" / "markers.json", ict),
+                       real / "performance" / f"{curves}.csv", mapping, MismatchSettings(seconds=seconds, start=10.0))
+    rows = []
+    for mode in modes:
+        profile = calibrate(ict, mt.layout, estimate_neutral(mt.neutral.select(mt.layout.labels), mt.layout.stable))
+        tuned = tune_on_take(profile, mt.take)
+        solved = solve_take(mt.take, profile, build_solver(mode, profile, {}))
+        rest = mt.weights < 0.01
+        rows.append({"take": f"{curves} (MakeHuman -> ICT)", "mode": resolve_mode(mode, profile),
+                     "noise_mm": tuned["noise_mm"], "frames": mt.take.n_frames,
+                     "rmse": float(np.sqrt(np.mean((solved.weights - mt.weights) ** 2))),
+                     "phantom": float(solved.weights[rest].mean()),
+                     **metrics(profile, solved, MISMATCH_SIGNALS, int(round(mt.take.rate)))})
+    return rows
+
+
+def run_take(name: str, modes: list[str]) -> list[dict]:
+    from livecap.calibration.profile import calibrate, estimate_neutral
+    from livecap.cli.common import tune_on_take
+    from livecap.cli.realeval import _realdata
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
+    from livecap.modes.registry import build_solver, resolve_mode
+    from livecap.offline.solve import solve_take
+    from livecap.transfer.bind import bind_capture
+    from transport.takefile import read_take
+
+    path, ict = _realdata() / "capture-animface" / f"{name}.c3d", _realdata() / "ict-face"
+    if not path.exists() or not ict.exists():
+        raise SystemExit(f"realcapture: no {path} or {ict}")
+    take = read_take(path)
+    rig = Rig.load(ict)
+    layout = bind_capture(take, rig, MarkerLayout.load(ict / "markers.json", rig)).layout(rig)
+    sel = take.select(layout.labels)
+    second = int(round(take.rate))
+    rows = []
+    for mode in modes:
+        profile = calibrate(rig, layout, estimate_neutral(sel, layout.stable, second))
+        tuned = tune_on_take(profile, take)
+        solver = build_solver(mode, profile, {})
+        t0 = time.perf_counter()
+        solved = solve_take(take, profile, solver)
+        seconds = time.perf_counter() - t0
+        rows.append({"take": name, "mode": resolve_mode(mode, profile), "noise_mm": tuned["noise_mm"],
+                     "solve_s": seconds, "frames": take.n_frames, **metrics(profile, solved, SIGNALS, second)})
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--modes", default="auto,movement", help="comma list of modes (default auto,movement)")
+    p.add_argument("--takes", default="JawMoCap,CheeksMoCap", help="comma list of AnimFace takes")
+    p.add_argument("--mismatch", default="S07-001,apfel", help="performances the MakeHuman head acts, bound to "
+                   "ICT (model mismatch with truth); 'none' to skip")
+    args = p.parse_args(argv)
+    modes = args.modes.split(",")
+    runs = [run_take(name, modes) for name in args.takes.split(",")]
+    if args.mismatch != "none":
+        runs += [run_mismatch(c, modes) for c in args.mismatch.split(",")]
+    for r in (row for rows in runs for row in rows):
+        if "rmse" in r:
+            print(f"{r['take']} {r['mode']}: weight RMSE vs the curves {r['rmse']:.3f}, phantom {r['phantom']:.3f}")
+        print(f"{r['take']} {r['mode']}: noise {r['noise_mm']:.3f} mm; weight sum over the first second mean "
+              f"{r['sum_first_s'][0]:.3f} max {r['sum_first_s'][1]:.3f}; eye gaze max {r['gaze_max']:.3f}; "
+              f"mouthFrown mean {r['frown_mean']:.3f}; jumps > 0.1 on {r['jumps'] * 100:.1f} % of frames "
+              f"(most: {r['jumpiest']}); {r['frames']} frames")
+        print("   still-marker activity, worst: " + ", ".join(f"{n} {v:.3f}" for n, v in r["quiet_worst"]))
+        print("   " + "; ".join(f"{k} r={v:.2f}" for k, v in r["corr"].items()))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,110 @@
+"""Plausibility of a solve on a real capture, where no ground truth exists (issue 35).
+
+What a solve should show is judged from the markers themselves: a still, near-neutral face gives
+weights near zero; a shape whose markers do not move stays quiet; the main shapes follow the
+marker geometry that defines them (the chin drops -> jawOpen; the mouth corners rise and widen ->
+smile; the brows rise -> brow raise); weights do not jump between single frames. Every function
+takes the solved weights (T x m) and, where needed, the stabilised marker displacements from the
+neutral (``SolvedTake.targets``, T x n x 3, head frame, mm).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+GAZE = re.compile(r"eyeLook", re.IGNORECASE)
+
+
+def weight_sum(weights: np.ndarray, frames: slice) -> tuple[float, float]:
+    """(mean, max) over ``frames`` of the per-frame sum of weights: near 0 on a near-neutral span."""
+    s = np.asarray(weights)[frames].sum(axis=1)
+    return float(s.mean()), float(s.max())
+
+
+def shape_markers(basis: np.ndarray, threshold_mm: float = 1.0) -> list[np.ndarray]:
+    """Per shape, the markers it moves by more than ``threshold_mm`` at full weight (basis 3n x m)."""
+    n = basis.shape[0] // 3
+    disp = np.linalg.norm(basis.T.reshape(basis.shape[1], n, 3), axis=2)
+    return [np.where(d > threshold_mm)[0] for d in disp]
+
+
+def quiet_activity(weights: np.ndarray, targets: np.ndarray, valid: np.ndarray, markers: Sequence[np.ndarray],
+                   still_mm: float = 0.5) -> np.ndarray:
+    """Per shape: mean weight on the frames where none of its markers is displaced more than ``still_mm``
+    from the neutral (NaN when there is no such frame, or the shape moves no marker). A shape active
+    there is explaining misfit, not the face (a phantom)."""
+    disp = np.where(valid, np.linalg.norm(targets, axis=2), 0.0)
+    out = np.full(weights.shape[1], np.nan)
+    for j, idx in enumerate(markers):
+        if not len(idx):
+            continue
+        still = (disp[:, idx] <= still_mm).all(axis=1)
+        if still.any():
+            out[j] = float(weights[still, j].mean())
+    return out
+
+
+def jump_share(weights: np.ndarray, jump: float = 0.1) -> tuple[float, np.ndarray]:
+    """(share of frame steps where any weight jumps by more than ``jump``, per-shape share)."""
+    d = np.abs(np.diff(np.asarray(weights), axis=0)) > jump
+    return float(d.any(axis=1).mean()), d.mean(axis=0)
+
+
+def correlation(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson correlation (NaN when either curve is constant)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    if a.std() == 0 or b.std() == 0:
+        return float("nan")
+    return float(np.corrcoef(a, b)[0, 1])
+
+
+def distance(targets: np.ndarray, neutral: np.ndarray, i: int, j: int) -> np.ndarray:
+    """Per frame: distance (mm) between markers ``i`` and ``j`` in the head frame."""
+    p = targets + neutral
+    return np.linalg.norm(p[:, i] - p[:, j], axis=1)
+
+
+def rise(targets: np.ndarray, i: int, axis: int = 1) -> np.ndarray:
+    """Per frame: displacement of marker ``i`` along ``axis`` (default +y, up) from the neutral (mm)."""
+    return targets[:, i, axis]
+
+
+@dataclass(frozen=True)
+class Signal:
+    """A shape and the marker geometry that should follow it (by marker labels)."""
+
+    shape: str
+    kind: str  # "distance" (between two markers) or "rise" (mean +y of the markers)
+    markers: tuple[str, ...]
+
+
+def signal_curve(signal: Signal, labels: Sequence[str], targets: np.ndarray, neutral: np.ndarray) -> np.ndarray:
+    idx = [list(labels).index(lab) for lab in signal.markers]
+    if signal.kind == "distance":
+        return distance(targets, neutral, idx[0], idx[1])
+    if signal.kind == "rise":
+        return np.mean([rise(targets, i) for i in idx], axis=0)
+    raise ValueError(f"unknown signal kind {signal.kind!r} (distance or rise)")
+
+
+def signal_correlations(signals: Sequence[Signal], names: Sequence[str], weights: np.ndarray,
+                        labels: Sequence[str], targets: np.ndarray, neutral: np.ndarray) -> dict[str, float]:
+    """Correlation of each signal's shape weight with its marker geometry (signals whose shape or
+    markers are absent are left out)."""
+    out = {}
+    for s in signals:
+        if s.shape not in names or not set(s.markers) <= set(labels):
+            continue
+        out[f"{s.shape}~{s.kind}({','.join(s.markers)})"] = correlation(
+            weights[:, list(names).index(s.shape)], signal_curve(s, labels, targets, neutral))
+    return out
+
+
+def max_weight(weights: np.ndarray, names: Sequence[str], pattern: re.Pattern = GAZE) -> float:
+    """Largest weight of any shape whose name matches ``pattern`` (eye gaze by default) over the take."""
+    cols = [j for j, n in enumerate(names) if pattern.search(n)]
+    return float(np.asarray(weights)[:, cols].max()) if cols else float("nan")

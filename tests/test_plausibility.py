@@ -1,0 +1,45 @@
+"""Plausibility metrics for real captures (issue 35 item 5): unit checks, and a run on one real take."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from livecap.offline import plausibility as pl
+
+
+def test_metrics_on_a_known_case():
+    T, n = 100, 3
+    W = np.zeros((T, 2))
+    W[50:, 0] = np.linspace(0, 1, 50)  # a shape that follows marker 0 rising
+    W[10, 1] = 0.5  # a phantom spike on a shape whose marker never moves
+    targets = np.zeros((T, n, 3))
+    targets[50:, 0, 1] = np.linspace(0, 5, 50)
+    valid = np.ones((T, n), bool)
+    basis = np.zeros((3 * n, 2))
+    basis[1, 0] = 5.0  # shape 0 moves marker 0 up
+    basis[3 * 2 + 1, 1] = 3.0  # shape 1 moves marker 2
+    markers = pl.shape_markers(basis)
+    assert [list(m) for m in markers] == [[0], [2]]
+    quiet = pl.quiet_activity(W, targets, valid, markers)
+    assert quiet[0] == pytest.approx(W[:55, 0][targets[:55, 0, 1] <= 0.5].mean()) and quiet[1] == pytest.approx(0.005)
+    assert pl.weight_sum(W, slice(0, 10)) == (0.0, 0.0)
+    share, per = pl.jump_share(W)
+    assert share == pytest.approx(2 / 99) and per[1] == pytest.approx(2 / 99)
+    sig = pl.Signal("a", "rise", ("m0",))
+    corr = pl.signal_correlations([sig, pl.Signal("zz", "rise", ("m0",))], ["a", "b"], W, ["m0", "m1", "m2"],
+                                  targets, np.zeros((n, 3)))
+    assert list(corr) == ["a~rise(m0)"] and corr["a~rise(m0)"] == pytest.approx(1.0)
+    assert np.isnan(pl.max_weight(W, ["a", "b"])) and pl.max_weight(W, ["eyeLookIn_L", "b"]) == 1.0
+
+
+def test_real_capture_baseline_runs_and_jaw_follows_the_chin():
+    from livecap.cli.realeval import _realdata
+
+    if not (_realdata() / "capture-animface" / "JawMoCap.c3d").exists():
+        pytest.skip(f"AnimFace capture absent under {_realdata()}")
+    from benchmarks.realcapture import run_take
+
+    (row,) = run_take("JawMoCap", ["auto"])
+    assert row["corr"]["jawOpen~distance(Chin,NoseHead)"] > 0.9
+    assert 0 <= row["jumps"] <= 1 and np.isfinite(row["sum_first_s"][0])
