@@ -70,6 +70,38 @@ def test_glb_is_valid_and_carries_mesh_targets_and_curves(rig, tmp_path):
                                atol=1e-5)
 
 
+def _area_weighted_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Reference: per vertex, the sum over its triangles of area x unit face normal, normalised."""
+    total = np.zeros_like(vertices)
+    for a, b, c in triangles:
+        n = np.cross(vertices[b] - vertices[a], vertices[c] - vertices[a])
+        area = np.linalg.norm(n) / 2
+        if area > 0:
+            total[[a, b, c]] += area * n / np.linalg.norm(n)
+    return total / np.linalg.norm(total, axis=1, keepdims=True)
+
+
+def test_glb_normals_are_the_meshes_area_weighted_normals(rig, tmp_path):
+    path = tmp_path / "take.glb"
+    write_glb(path, rig, rig.names[:1], np.array([0.0]), np.zeros((1, 1)))
+    report = validate(path)  # NORMAL must be unit length, target NORMALs any delta
+    assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, report["issues"]
+    doc = pygltflib.GLTF2.load(str(path))
+    prim = doc.meshes[0].primitives[0]
+    assert prim.attributes.NORMAL is not None
+    base = _accessor(doc, prim.attributes.NORMAL, 3)
+    np.testing.assert_allclose(base, _area_weighted_normals(rig.neutral, rig.triangles), atol=1e-5)
+    assert all("NORMAL" in t for t in prim.targets)
+    for k in (0, rig.n_shapes // 2, rig.n_shapes - 1):  # base + delta, renormalised as a renderer does
+        shaded = base + _accessor(doc, prim.targets[k]["NORMAL"], 3)
+        shaded /= np.linalg.norm(shaded, axis=1, keepdims=True)
+        np.testing.assert_allclose(shaded, _area_weighted_normals(rig.neutral + rig.deltas[k], rig.triangles),
+                                   atol=1e-4)
+    three = three_load(path)  # three.js takes the file's normals instead of computing flat ones
+    assert three["targetNormals"] == rig.n_shapes
+    np.testing.assert_allclose(three["normals"], base[:10].reshape(-1), atol=1e-6)
+
+
 def test_glb_rejects_bad_curves(rig):
     with pytest.raises(ValueError, match="noSuchShape"):
         glb_bytes(rig, ["noSuchShape"], np.array([0.0]), np.zeros((1, 1)))

@@ -28,15 +28,15 @@ from livecap.core.result import SolveResult
 from livecap.core.timecode import frame_rate_fraction, now_of_day
 from tests.conftest import ROOT, SHARED
 from transport.livelink import LiveLinkSink, device_id, encode_livelink
-from transport.vmc import VmcSink
+from transport.vmc import STANDARD_REST, VmcSink
 
 TAKE = ROOT / "recordings" / "demo_take.c3d"
 RIG = ROOT / "recordings" / "demo_rig.npz"
 APP_CSVS = SHARED / "realdata" / "performance"
 
 # The VMC spec's (protocol.vmc.info, performer -> marionette) addresses and OSC type tags we send.
-VMC_TYPES = {"/VMC/Ext/OK": "i", "/VMC/Ext/T": "f", "/VMC/Ext/Bone/Pos": "sfffffff", "/VMC/Ext/Blend/Val": "sf",
-             "/VMC/Ext/Blend/Apply": ""}
+VMC_TYPES = {"/VMC/Ext/OK": "i", "/VMC/Ext/T": "f", "/VMC/Ext/Root/Pos": "sfffffff", "/VMC/Ext/Bone/Pos": "sfffffff",
+             "/VMC/Ext/Blend/Val": "sf", "/VMC/Ext/Blend/Apply": ""}
 # HumanBodyBones names a VMC receiver maps bones by.
 VMC_BONES = {"Head", "LeftEye", "RightEye"}
 VRM0 = {"A", "I", "U", "E", "O", "Blink", "Blink_L", "Blink_R", "Joy", "Angry", "Sorrow", "Fun"}
@@ -77,6 +77,8 @@ def check_vmc_spec(messages) -> None:
         assert tags == VMC_TYPES[addr], (addr, args)
         if addr == "/VMC/Ext/Bone/Pos":
             assert args[0] in VMC_BONES
+        if addr == "/VMC/Ext/Root/Pos":
+            assert args[0] == "root" and args[4:] == (0.0, 0.0, 0.0, 1.0)  # translation only
 
 
 @pytest.fixture(scope="module")
@@ -101,8 +103,13 @@ def test_vmc_perfect_sync_names_and_head_on_its_neck(vmc_runs):
     assert all(n[0].isupper() for n in names)  # Perfect Sync clip names, as exact-match receivers want
     heads = np.array([args[1:] for addr, args in msgs if addr == "/VMC/Ext/Bone/Pos" and args[0] == "Head"])
     assert len(heads) > 300
-    shift = np.linalg.norm(heads[:, :3], axis=1)
-    assert shift.max() < 0.05, f"head local position up to {shift.max():.3f} m from its neck"
+    # the bone's local position is its rest offset from the Neck in every frame (EVMC4U applies it
+    # as localPosition); the head's sway moves the model root instead
+    np.testing.assert_allclose(heads[:, :3], np.tile(STANDARD_REST["Head"], (len(heads), 1)), atol=1e-7)
+    roots = np.array([args[1:4] for addr, args in msgs if addr == "/VMC/Ext/Root/Pos"])
+    assert len(roots) == len(heads)
+    shift = np.linalg.norm(roots, axis=1)
+    assert 0.001 < shift.max() < 0.05, f"head shift up to {shift.max():.3f} m"
     turn = np.degrees(Rotation.from_quat(heads[:, 3:]).magnitude())
     assert np.median(turn) < 15 and turn.max() < 45  # relative to the neutral, not the capture's axes
 
@@ -136,6 +143,9 @@ def test_vmc_eye_bones_from_eye_look_shapes():
     bones = {m.params[0]: m.params[1:] for m in OscBundle(rx.recv(65536)) if m.address == "/VMC/Ext/Bone/Pos"}
     sink.close()
     assert set(bones) == {"Head", "LeftEye", "RightEye"}
+    for bone in bones:  # rest offsets, not the parent's origin
+        np.testing.assert_allclose(bones[bone][:3], STANDARD_REST[bone], atol=1e-7)
+    assert bones["LeftEye"][0] < 0 < bones["RightEye"][0]  # Unity +x is the avatar's right
     # Unity: +yaw about +Y looks to the avatar's right; both eyes look to the avatar's left here
     left = Rotation.from_quat(bones["LeftEye"][3:]).as_rotvec()
     right = Rotation.from_quat(bones["RightEye"][3:]).as_rotvec()
@@ -144,6 +154,22 @@ def test_vmc_eye_bones_from_eye_look_shapes():
     dgram = no_eyes.datagrams(SolveResult(0, 0.0, ["jawOpen"], np.array([0.5]), np.array([0, 0, 0, 1.0]),
                                           np.zeros(3)))
     assert {m.params[0] for d in dgram for m in OscBundle(d) if m.address == "/VMC/Ext/Bone/Pos"} == {"Head"}
+
+
+def test_vmc_avatar_rest_offsets_replace_the_standard_ones():
+    rest = {"Head": (0.0, 0.11, -0.01), "LeftEye": (-0.03, 0.05, 0.07)}
+    sink = VmcSink("127.0.0.1", 9, names="perfect-sync", rest_offsets=rest)
+    dgrams = sink.datagrams(SolveResult(0, 0.0, ["eyeLookOutLeft", "jawOpen"], np.array([0.5, 0.1]),
+                                        np.array([0, 0, 0, 1.0]), np.array([4.0, 5.0, 6.0])))
+    sink.close()
+    msgs = [m for d in dgrams for m in OscBundle(d)]
+    check_vmc_spec([(m.address, tuple(m.params)) for m in msgs])
+    bones = {m.params[0]: m.params[1:4] for m in msgs if m.address == "/VMC/Ext/Bone/Pos"}
+    np.testing.assert_allclose(bones["Head"], rest["Head"], atol=1e-7)
+    np.testing.assert_allclose(bones["LeftEye"], rest["LeftEye"], atol=1e-7)
+    np.testing.assert_allclose(bones["RightEye"], STANDARD_REST["RightEye"], atol=1e-7)
+    with pytest.raises(ValueError, match="rest_offsets"):
+        VmcSink("127.0.0.1", 9, rest_offsets={"Neck": (0, 0.1, 0)})
 
 
 class LiveLinkReceiver:

@@ -15,7 +15,7 @@ from livecap.core.result import SolveResult
 from transport.arkit import ARKIT_NAMES, arkit_matrix, is_arkit
 from transport.livelink import LiveLinkSink
 from transport.security import Curve, keygen, udp_address, zmq_address
-from transport.vmc import VmcSink, to_unity
+from transport.vmc import STANDARD_REST, VmcSink, to_unity
 from transport.wire import decode_payload
 from transport.zmq_sink import ZmqSink
 
@@ -108,7 +108,9 @@ def test_vmc_bundle_per_frame_with_apply_last():
     assert vals == pytest.approx(dict(zip(NAMES, result().weights, strict=True)), abs=1e-6)
     head = next(m for m in msgs if m.address == "/VMC/Ext/Bone/Pos").params
     assert head[0] == "Head"
-    np.testing.assert_allclose(head[1:4], [-0.010, -0.020, 0.030], atol=1e-7)
+    np.testing.assert_allclose(head[1:4], STANDARD_REST["Head"], atol=1e-7)  # rest offset; the shift is the root's
+    root = next(m for m in msgs if m.address == "/VMC/Ext/Root/Pos").params
+    np.testing.assert_allclose(root[1:4], [-0.010, -0.020, 0.030], atol=1e-7)
 
 
 def test_vmc_splits_big_rigs_and_keeps_apply_last():

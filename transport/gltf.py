@@ -7,6 +7,11 @@ trimesh, whose exporter writes static meshes only: morph targets, ``targetNames`
 channels have to be set on the JSON model anyway. glTF morph targets are linear, so a rig's
 in-between and corrective shapes are not carried: each target is the shape's full delta.
 Units are metres (the rig's millimetres / 1000), axes as the rig's (glTF expects +Y up).
+
+Vertex normals are written (the base mesh's NORMAL and each target's NORMAL delta, §3.7.2.1 and
+§3.7.2.2): without them Blender imports every polygon flat and three.js shades faceted. They are the
+area-weighted average of the incident triangles' normals, so a target's normal delta is the normal of
+the fully applied shape minus the neutral's (renderers add then renormalise).
 """
 
 from __future__ import annotations
@@ -44,6 +49,21 @@ class _Blob:
             acc.max = [float(v) for v in flat.max(axis=0)]
         self.doc.accessors.append(acc)
         return len(self.doc.accessors) - 1
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Unit area-weighted vertex normals (V x 3); a vertex in no triangle of non-zero area gets +Z so
+    the NORMAL accessor stays unit length, as the spec requires."""
+    v = np.asarray(vertices, dtype=np.float64)
+    tri = np.asarray(triangles, dtype=np.int64)
+    face = np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]])  # length = 2 x area
+    acc = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(acc, tri[:, k], face)
+    length = np.linalg.norm(acc, axis=1, keepdims=True)
+    out = np.divide(acc, length, out=np.zeros_like(acc), where=length > 0)
+    out[length[:, 0] <= 0] = (0.0, 0.0, 1.0)
+    return out
 
 
 def _check(rig: Rig, names: list[str], times: np.ndarray, weights: np.ndarray,
@@ -85,9 +105,16 @@ def glb_bytes(rig: Rig, names: list[str], times: np.ndarray, weights: np.ndarray
     positions = blob.add(rig.neutral / 1000.0, g.VEC3, _FLOAT, g.ARRAY_BUFFER, bounds=True)
     indices = blob.add(rig.triangles.reshape(-1), g.SCALAR, _UINT, g.ELEMENT_ARRAY_BUFFER)
     targets = [{"POSITION": blob.add(d / 1000.0, g.VEC3, _FLOAT, g.ARRAY_BUFFER, bounds=True)} for d in rig.deltas]
+    normals = None
+    if len(rig.triangles):  # a marker-only rig has no surface to shade
+        base = vertex_normals(rig.neutral, rig.triangles)
+        normals = blob.add(base, g.VEC3, _FLOAT, g.ARRAY_BUFFER)
+        for target, d in zip(targets, rig.deltas, strict=True):
+            target["NORMAL"] = blob.add(vertex_normals(rig.neutral + d, rig.triangles) - base, g.VEC3, _FLOAT,
+                                        g.ARRAY_BUFFER)
     doc.meshes = [g.Mesh(name="face", weights=[0.0] * rig.n_shapes, extras={"targetNames": list(rig.names)},
-                         primitives=[g.Primitive(attributes=g.Attributes(POSITION=positions), indices=indices,
-                                                 targets=targets, mode=g.TRIANGLES)])]
+                         primitives=[g.Primitive(attributes=g.Attributes(POSITION=positions, NORMAL=normals),
+                                                 indices=indices, targets=targets, mode=g.TRIANGLES)])]
     doc.nodes = [g.Node(name="head", mesh=0)]
 
     time_acc = blob.add(times, g.SCALAR, _FLOAT, bounds=True)

@@ -4,16 +4,22 @@ Per frame, one OSC bundle (split into several when large, ``Apply`` in the last)
 
     /VMC/Ext/OK        ,i        1                 (a model is loaded)
     /VMC/Ext/T         ,f        time (seconds)
-    /VMC/Ext/Bone/Pos  ,sfffffff "Head" px py pz qx qy qz qw
-    /VMC/Ext/Bone/Pos  ,sfffffff "LeftEye"/"RightEye" 0 0 0 qx qy qz qw  (rigs with eye-look shapes)
+    /VMC/Ext/Root/Pos  ,sfffffff "root" px py pz 0 0 0 1   (the head's shift from its neutral position)
+    /VMC/Ext/Bone/Pos  ,sfffffff "Head" rx ry rz qx qy qz qw   (rest offset from the Neck, turn)
+    /VMC/Ext/Bone/Pos  ,sfffffff "LeftEye"/"RightEye" rx ry rz qx qy qz qw  (rigs with eye-look shapes)
     /VMC/Ext/Blend/Val ,sf       name value        (one per shape or expression)
     /VMC/Ext/Blend/Apply                            (apply this frame's values)
 
 Bone values are local (relative to the parent bone) in Unity's frame: left-handed, metres, +y
-up, +z forward. The Head bone carries the head's rotation relative to the actor's neutral head
-pose and its shift from the neutral position (a few cm): a receiver that applies bone positions
-(EVMC4U by default) keeps the head on the neck, one that ignores them loses only the shift. Both
-come from livecap.core.headpose, which also removes the capture's own axes (Z-up volumes).
+up, +z forward. A bone's position is its *rest* offset from its parent (the VMC sample sender
+sends ``Transform.localPosition``), never a motion: EVMC4U applies bone positions by default
+(``BonePositionSynchronize``), so anything else there moves the head onto the neck or the eyeballs
+out of their sockets. livecap knows no avatar skeleton, so the offsets are ``rest_offsets`` when the
+caller has the avatar's, else :data:`STANDARD_REST` (a typical adult humanoid, documented in
+docs/protocol.md §4). The head's translation travels as the model root's position
+(``/VMC/Ext/Root/Pos``, applied by EVMC4U's default ``RootPositionSynchronize``): the whole
+avatar follows the head's sway instead of the neck stretching. Rotation and shift are relative to
+the actor's neutral head pose, from livecap.core.headpose (which also removes the capture's axes).
 
 Shape names: the rig's own; Perfect Sync (the 52 ARKit clips as Perfect Sync avatars name them,
 ``EyeBlinkLeft``, matched exactly by receivers such as VMC4B); or VRM 0.x / 1.0 expression
@@ -36,6 +42,10 @@ from transport.vrm import VrmExpressions, eye_rotations
 PERFECT_SYNC_NAMES = [n[0].upper() + n[1:] for n in ARKIT_NAMES]
 NAME_MODES = ("rig", "perfect-sync", "vrm0", "vrm1")
 
+# Local rest positions (Unity metres) of the bones sent, when the avatar's own are not known: the
+# Head ~8 cm above the Neck joint, the eyes 6.5 cm above and 6 cm in front of the Head joint, 64 mm
+# apart (a typical adult's interpupillary distance). Unity's +x is the avatar's right.
+STANDARD_REST = {"Head": (0.0, 0.08, 0.0), "LeftEye": (-0.032, 0.065, 0.06), "RightEye": (0.032, 0.065, 0.06)}
 DEFAULT_PORT = 39539
 MAX_DATAGRAM = 8192  # bundles beyond this are split: stays far below UDP's 64 KB and typical MTU reassembly limits
 
@@ -75,14 +85,22 @@ class VmcSink:
     """Send VMC bundles to ``host:port`` (default 127.0.0.1:39539). ``names``: ``rig`` (the rig's
     shape names), ``perfect-sync`` (ARKit, PascalCase, through the name mapping; ``arkit=True`` is
     the same), ``vrm0`` or ``vrm1`` (VRM expression presets from ``vrm_table``, default
-    transport.vrm.VRM1_TABLE). The head pose is relative to the mean of the first ``neutral_frames``."""
+    transport.vrm.VRM1_TABLE). The head pose is relative to the mean of the first ``neutral_frames``.
+    ``rest_offsets``: the avatar's local rest positions of Head / LeftEye / RightEye (Unity metres);
+    bones it leaves out take :data:`STANDARD_REST`."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_PORT, arkit: bool = False,
                  mapping: dict | None = None, where: str = "mapping", names: str = "rig",
-                 vrm_table: dict | None = None, neutral_frames: int = 1) -> None:
+                 vrm_table: dict | None = None, neutral_frames: int = 1,
+                 rest_offsets: dict[str, Sequence[float]] | None = None) -> None:
         if names not in NAME_MODES:
             raise ValueError(f"VMC names {names!r}: one of {', '.join(NAME_MODES)}")
         self.target = (host, port)
+        rest = {**STANDARD_REST, **(rest_offsets or {})}
+        if set(rest) != set(STANDARD_REST) or any(np.shape(v) != (3,) or not np.all(np.isfinite(v))
+                                                  for v in rest.values()):
+            raise ValueError(f"rest_offsets: finite x, y, z (metres) for bones among {', '.join(STANDARD_REST)}")
+        self.rest = {bone: tuple(map(float, v)) for bone, v in rest.items()}
         self.mode = "perfect-sync" if arkit and names == "rig" else names
         self.arkit = self.mode != "rig"
         self.vrm = VrmExpressions(int(self.mode[3]), vrm_table) if self.mode.startswith("vrm") else None
@@ -118,10 +136,11 @@ class VmcSink:
         rel_q, shift = self.neutral.relative(result.head_rotation, result.head_translation)
         q, p = _mirror(rel_q, shift)
         msgs = [self._ok, osc_message("/VMC/Ext/T", "f", float(result.timestamp)),
-                osc_message("/VMC/Ext/Bone/Pos", "sfffffff", "Head", *map(float, p), *map(float, q))]
+                osc_message("/VMC/Ext/Root/Pos", "sfffffff", "root", *map(float, p), 0.0, 0.0, 0.0, 1.0),
+                osc_message("/VMC/Ext/Bone/Pos", "sfffffff", "Head", *self.rest["Head"], *map(float, q))]
         eyes = eye_rotations(arkit, self._eyes_present)
         if eyes is not None:
-            msgs += [osc_message("/VMC/Ext/Bone/Pos", "sfffffff", bone, 0.0, 0.0, 0.0, *map(float, eq))
+            msgs += [osc_message("/VMC/Ext/Bone/Pos", "sfffffff", bone, *self.rest[bone], *map(float, eq))
                      for bone, eq in zip(("LeftEye", "RightEye"), eyes, strict=True)]
         vals = np.asarray(w, dtype=">f4").tobytes()
         msgs += [pre + vals[4 * i:4 * i + 4] for i, pre in enumerate(self._prefixes)]

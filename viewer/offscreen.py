@@ -3,7 +3,9 @@
 No display is needed: Mesa's EGL + llvmpipe (Debian: libegl1, libgl1-mesa-dri) renders on the
 CPU. Video is H.264 (yuv420p, the profile every browser plays) through PyAV, whose wheels ship
 FFmpeg with libx264; OpenCV's pip wheels only write MPEG-4 part 2 ('mp4v'), which most browsers
-do not play and which came out ~10x larger.
+do not play and which came out ~10x larger. The index (moov) is written before the media data
+(mp4 muxer's ``movflags=faststart``, a second pass at close) so a browser or a DCC tool can start
+playing or seeking before the whole file has arrived.
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ class FrameWriter:
             if self.size[0] % 2 or self.size[1] % 2:
                 raise ValueError(f"{self.video_path}: H.264 (yuv420p) needs an even frame size, got "
                                  f"{self.size[0]}x{self.size[1]}")
-            self._video = av.open(str(self.video_path), "w")
+            self._video = av.open(str(self.video_path), "w", options={"movflags": "faststart"})
             self._stream = self._video.add_stream(VIDEO_CODEC, rate=Fraction(fps).limit_denominator(1001),
                                                   options={"crf": "23", "preset": "veryfast"})
             self._stream.width, self._stream.height = self.size

@@ -10,6 +10,8 @@ new GLTFLoader().parse(buffer, "", (gltf) => {
   const clip = gltf.animations[0];
   console.log(JSON.stringify({
     vertices: mesh.geometry.attributes.position.count,
+    normals: mesh.geometry.attributes.normal ? Array.from(mesh.geometry.attributes.normal.array.slice(0, 30)) : null,
+    targetNormals: (mesh.geometry.morphAttributes.normal || []).length,
     targets: Object.keys(mesh.morphTargetDictionary),
     tracks: clip.tracks.map((t) => ({ name: t.name, times: t.times.length, values: t.values.length })),
     duration: clip.duration,
