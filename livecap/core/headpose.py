@@ -63,6 +63,12 @@ class NeutralWindow:
         self._t: list[np.ndarray] = []
         self.pose: NeutralPose | None = None
 
+    def fix(self, pose: NeutralPose) -> None:
+        """Use ``pose`` from now on: a source whose angles are already relative to its own neutral
+        (the iPhone's) passes them through with the identity."""
+        self.frames = 0
+        self.pose = pose
+
     def relative(self, quaternion: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         q = np.asarray(quaternion, dtype=np.float64)
         t = np.asarray(translation, dtype=np.float64)
