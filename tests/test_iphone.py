@@ -5,6 +5,7 @@ docs/protocol.md) as a receiver would."""
 
 from __future__ import annotations
 
+import csv
 import gzip
 import re
 import socket
@@ -15,14 +16,18 @@ import time
 
 import numpy as np
 import pytest
-from pylivelinkface import PyLiveLinkFace
+from pylivelinkface import FaceBlendShape, PyLiveLinkFace
 from pythonosc.osc_bundle import OscBundle
+from scipy.spatial.transform import Rotation
 
+from livecap.core.eyes import EYE_PITCH, EYE_YAW
+from livecap.core.result import SolveResult
 from tests.conftest import SHARED
-from transport.arkit import head_angles
-from transport.livelink import encode_livelink
+from transport.arkit import POSE_NAMES, head_angles
+from transport.livelink import LiveLinkSink, encode_livelink
 from transport.livelink_source import LiveLinkFaceSource, decode_livelink, head_quaternion
-from transport.vmc import PERFECT_SYNC_NAMES
+from transport.recorders import CsvRecorder
+from transport.vmc import PERFECT_SYNC_NAMES, VmcSink
 
 PACKETS = SHARED / "realdata" / "performance" / "dao.gesichter"
 
@@ -178,3 +183,53 @@ def test_vmc_perfect_sync_carries_every_packet_weight_and_head_rotation(session)
         q[1:3] *= -1  # Unity's left-handed axes back to the rig's (livecap.core.headpose.to_unity)
         assert np.allclose(head_angles(q), p.values[52:55], atol=1e-5)
     assert "frames in 180, out 180" in out and "bad input: none" in out
+
+
+LOOKING = ["eyeLookOutLeft", "eyeLookInRight", "eyeLookDownLeft", "eyeLookDownRight", "jawOpen"]
+
+
+def _looking(w=(1.0, 1.0, 0.5, 0.5, 0.3), t=0.0):
+    return SolveResult(0, t, LOOKING, np.array(w), np.array([0, 0, 0, 1.0]), np.zeros(3))
+
+
+def test_livelink_packets_carry_eye_angles_from_the_look_shapes():
+    """Issue 37.6: eye yaw/pitch as the app sends them (both eyes to the subject's left, down), read
+    by PyLiveLinkFace; the same function drives the VMC eye bones."""
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(2)
+    sink = LiveLinkSink("127.0.0.1", rx.getsockname()[1])
+    try:
+        sink.publish(_looking())
+        ok, face = PyLiveLinkFace.decode(rx.recv(4096))
+    finally:
+        sink.close()
+        rx.close()
+    assert ok
+    got = [face.get_blendshape(FaceBlendShape[n]) for n in POSE_NAMES[3:]]
+    assert np.allclose(got, [-EYE_YAW, 0.5 * EYE_PITCH, 0, -EYE_YAW, 0.5 * EYE_PITCH, 0], atol=1e-6)
+    vmc = VmcSink("127.0.0.1", 9, names="perfect-sync")
+    bones = {m.params[0]: m.params[4:] for d in vmc.datagrams(_looking()) for m in OscBundle(d)
+             if m.address == "/VMC/Ext/Bone/Pos"}
+    vmc.close()
+    yaw_pitch = Rotation.from_quat(bones["LeftEye"]).as_euler("YXZ")[:2]
+    assert np.allclose(yaw_pitch, [-EYE_YAW, 0.5 * EYE_PITCH], atol=1e-6)
+
+
+def test_llf_csv_carries_eye_angles_and_one_row_per_timecode_frame(tmp_path):
+    """Issues 37.6 and 37.3: a 120 Hz stream recorded in the app's layout keeps one row per 60 fps
+    timecode frame (the first), read by a reader that keys rows by frame; eye angles as the app's."""
+    path = tmp_path / "w.csv"
+    rec = CsvRecorder(path, rate=120.0, layout="livelinkface", timecode="01:00:00:00")
+    for k in range(240):
+        rec.publish(_looking(w=(1.0, 1.0, 0.5, 0.5, k / 240), t=k / 120))
+    rec.close()
+    rows = list(csv.reader(open(path)))
+    header, body = rows[0], rows[1:]
+    by_frame = {r[0][:11]: r for r in body}
+    assert len(by_frame) == len(body) == 120 and rec.merged == 120
+    assert [r[0] for r in body[:2]] == ["01:00:00:00.000", "01:00:00:01.000"]
+    row = dict(zip(header, body[0], strict=True))
+    assert float(row["LeftEyeYaw"]) == pytest.approx(-EYE_YAW) and float(row["RightEyeYaw"]) == pytest.approx(-EYE_YAW)
+    assert float(row["LeftEyePitch"]) == pytest.approx(0.5 * EYE_PITCH)
+    assert float(body[1][header.index("JawOpen")]) == pytest.approx(2 / 240)  # the frame's first result

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from livecap.core.eyes import LOOKS, eye_angles
 from livecap.core.names import match_names
 
 # The order of the Live Link Face UDP packet (PyLiveLinkFace's FaceBlendShape enum, 0..51).
@@ -35,6 +36,15 @@ ARKIT_NAMES = [
 # The nine rotations after the 52 shapes in a Live Link Face packet / CSV row.
 POSE_NAMES = ["HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
               "RightEyeYaw", "RightEyePitch", "RightEyeRoll"]
+
+EYE_LOOK_INDEX = np.array([[ARKIT_NAMES.index(f"eyeLook{look}{side}") for look in LOOKS]
+                           for side in ("Left", "Right")])
+
+
+def arkit_eye_angles(arkit: np.ndarray) -> np.ndarray:
+    """Eye (yaw, pitch) of the left and right eye (2 x 2, radians) from 52 ARKit weights."""
+    return eye_angles(np.asarray(arkit, dtype=float)[EYE_LOOK_INDEX])
+
 
 def is_arkit(names: Sequence[str]) -> bool:
     """True when every shape name is an ARKit name (any case): the rig speaks ARKit natively."""
