@@ -16,11 +16,14 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pylivelinkface import FaceBlendShape, PyLiveLinkFace
 from pythonosc.osc_bundle import OscBundle
 from scipy.spatial.transform import Rotation
 
 from livecap.core.eyes import EYE_PITCH, EYE_YAW
+from livecap.core.headpose import NeutralPose
 from livecap.core.result import SolveResult
 from tests.conftest import SHARED
 from transport.arkit import POSE_NAMES, head_angles
@@ -233,3 +236,18 @@ def test_llf_csv_carries_eye_angles_and_one_row_per_timecode_frame(tmp_path):
     assert float(row["LeftEyeYaw"]) == pytest.approx(-EYE_YAW) and float(row["RightEyeYaw"]) == pytest.approx(-EYE_YAW)
     assert float(row["LeftEyePitch"]) == pytest.approx(0.5 * EYE_PITCH)
     assert float(body[1][header.index("JawOpen")]) == pytest.approx(2 / 240)  # the frame's first result
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-1.4, 1.4), min_size=3, max_size=3), st.lists(st.floats(-1, 1), min_size=4, max_size=4))
+def test_closed_form_rotations_agree_with_scipy(angles, q0):
+    """head_quaternion / head_angles / NeutralPose.relative skip scipy per frame; same results."""
+    ang = np.array(angles)
+    q = head_quaternion(ang)
+    assert np.allclose(np.abs(q @ Rotation.from_euler("YXZ", ang).as_quat()), 1.0, atol=1e-9)
+    assert np.allclose(head_angles(q), Rotation.from_quat(q).as_euler("YXZ"), atol=1e-7)
+    if np.linalg.norm(q0) > 0.1:
+        pose = NeutralPose(Rotation.from_quat(q0).as_matrix(), np.zeros(3))
+        fast, _ = pose.relative(q, np.zeros(3))
+        slow, _ = pose.relative(q[None], np.zeros((1, 3)))
+        assert np.allclose(np.abs(fast @ slow[0]), 1.0, atol=1e-9)

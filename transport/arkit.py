@@ -16,7 +16,6 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from livecap.core.eyes import LOOKS, eye_angles
 from livecap.core.names import match_names
@@ -96,6 +95,10 @@ def head_angles(quat_xyzw: np.ndarray) -> np.ndarray:
     the face (roll); intrinsic Y-X-Z order.
     """
     q = np.asarray(quat_xyzw, dtype=float)
-    if not np.isfinite(q).all() or np.linalg.norm(q) < 1e-9:
+    n = np.linalg.norm(q)
+    if not np.isfinite(q).all() or n < 1e-9:
         return np.zeros(3)
-    return Rotation.from_quat(q).as_euler("YXZ")
+    x, y, z, w = q / n  # the matrix entries of R = Ry(yaw) Rx(pitch) Rz(roll) that give the angles
+    return np.array([np.arctan2(2 * (x * z + w * y), 1 - 2 * (x * x + y * y)),
+                     np.arcsin(np.clip(-2 * (y * z - w * x), -1.0, 1.0)),
+                     np.arctan2(2 * (x * y + w * z), 1 - 2 * (x * x + z * z))])

@@ -25,8 +25,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from livecap.core.headpose import hamilton
 from livecap.core.result import SolveResult
 from transport.arkit import ARKIT_NAMES
 from transport.badinput import BadInput, FrameOrder
@@ -97,8 +97,11 @@ def decode_livelink(dgram: bytes) -> LiveLinkPacket:
 
 
 def head_quaternion(yaw_pitch_roll: np.ndarray) -> np.ndarray:
-    """The rotation (x, y, z, w) whose :func:`transport.arkit.head_angles` are these angles."""
-    return Rotation.from_euler("YXZ", np.asarray(yaw_pitch_roll, dtype=float)).as_quat()
+    """The rotation (x, y, z, w) whose :func:`transport.arkit.head_angles` are these angles:
+    intrinsic Y, X, Z, i.e. Ry(yaw) Rx(pitch) Rz(roll)."""
+    a, b, c = np.asarray(yaw_pitch_roll, dtype=float) / 2
+    return hamilton(hamilton([0.0, np.sin(a), 0.0, np.cos(a)], [np.sin(b), 0.0, 0.0, np.cos(b)]),
+                    [0.0, 0.0, np.sin(c), np.cos(c)])
 
 
 class LiveLinkFaceSource:

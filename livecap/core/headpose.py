@@ -44,9 +44,23 @@ class NeutralPose:
         """Head rotation (x, y, z, w) and shift (metres) relative to this pose, in the rig's axes."""
         q = np.asarray(quaternions, dtype=np.float64)
         t = np.asarray(translations, dtype=np.float64)
-        rel = self._inverse * Rotation.from_quat(q.reshape(-1, 4))
         shift = (t.reshape(-1, 3) - self.translation) @ self.rotation / 1000.0
+        if q.shape == (4,):  # a live frame: scipy's per-call overhead (~0.1 ms) is most of a sink's time
+            return hamilton(self._inverse_quat, q / np.linalg.norm(q)), shift.reshape(t.shape)
+        rel = self._inverse * Rotation.from_quat(q.reshape(-1, 4))
         return rel.as_quat().reshape(q.shape), shift.reshape(t.shape)
+
+    @cached_property
+    def _inverse_quat(self) -> np.ndarray:
+        return self._inverse.as_quat()
+
+
+def hamilton(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Quaternion product ``a b`` (x, y, z, w): the rotation b, then a."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz])
 
 
 def to_unity(quaternion: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
