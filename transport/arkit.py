@@ -16,8 +16,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from livecap.core.eyes import LOOKS, eye_angles
 from livecap.core.names import match_names
 
 # The order of the Live Link Face UDP packet (PyLiveLinkFace's FaceBlendShape enum, 0..51).
@@ -35,6 +35,15 @@ ARKIT_NAMES = [
 # The nine rotations after the 52 shapes in a Live Link Face packet / CSV row.
 POSE_NAMES = ["HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
               "RightEyeYaw", "RightEyePitch", "RightEyeRoll"]
+
+EYE_LOOK_INDEX = np.array([[ARKIT_NAMES.index(f"eyeLook{look}{side}") for look in LOOKS]
+                           for side in ("Left", "Right")])
+
+
+def arkit_eye_angles(arkit: np.ndarray) -> np.ndarray:
+    """Eye (yaw, pitch) of the left and right eye (2 x 2, radians) from 52 ARKit weights."""
+    return eye_angles(np.asarray(arkit, dtype=float)[EYE_LOOK_INDEX])
+
 
 def is_arkit(names: Sequence[str]) -> bool:
     """True when every shape name is an ARKit name (any case): the rig speaks ARKit natively."""
@@ -86,6 +95,10 @@ def head_angles(quat_xyzw: np.ndarray) -> np.ndarray:
     the face (roll); intrinsic Y-X-Z order.
     """
     q = np.asarray(quat_xyzw, dtype=float)
-    if not np.isfinite(q).all() or np.linalg.norm(q) < 1e-9:
+    n = np.linalg.norm(q)
+    if not np.isfinite(q).all() or n < 1e-9:
         return np.zeros(3)
-    return Rotation.from_quat(q).as_euler("YXZ")
+    x, y, z, w = q / n  # the matrix entries of R = Ry(yaw) Rx(pitch) Rz(roll) that give the angles
+    return np.array([np.arctan2(2 * (x * z + w * y), 1 - 2 * (x * x + y * y)),
+                     np.arcsin(np.clip(-2 * (y * z - w * x), -1.0, 1.0)),
+                     np.arctan2(2 * (x * y + w * z), 1 - 2 * (x * x + z * z))])

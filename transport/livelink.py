@@ -18,7 +18,8 @@ uint8                 61 (number of values)
 PyLiveLinkFace writes the same bytes as a little-endian uint32 6 followed by ``$`` + UUID: its
 ``$`` is the last byte of the length 36 (0x24). The frame time is a time of day: whole frames
 since midnight at numerator/denominator fps plus the sub-frame (livecap.core.timecode), so
-Unreal's timecode lines up with other sources. The device id is derived from the actor's name,
+Unreal's timecode lines up with other sources. Eye yaw and pitch come from the eye-look shapes
+(livecap.core.eyes, as the VMC eye bones), eye roll is 0. The device id is derived from the actor's name,
 so Unreal sees the same device every session. Head angles are relative to the actor's neutral
 head pose (livecap.core.headpose). Rotations are radians. UDP, fire-and-forget: a send that
 would block is dropped and counted.
@@ -35,7 +36,7 @@ import numpy as np
 
 from livecap.core.headpose import NeutralWindow
 from livecap.core.timecode import TimecodeClock, frame_rate_fraction, split_frames
-from transport.arkit import ARKIT_NAMES, arkit_matrix, head_angles
+from transport.arkit import ARKIT_NAMES, arkit_eye_angles, arkit_matrix, head_angles
 
 VERSION = 6
 N_VALUES = 61
@@ -92,6 +93,7 @@ class LiveLinkSink:
         out[:52] = self._M @ np.asarray(result.weights, dtype=float)
         rotation, _ = self.neutral.relative(result.head_rotation, result.head_translation)
         out[52:55] = head_angles(rotation)
+        out[[55, 56, 58, 59]] = arkit_eye_angles(out[:52]).ravel()  # eye rolls stay 0
         return out
 
     def publish(self, result) -> None:

@@ -36,7 +36,7 @@ import numpy as np
 from livecap.core.headpose import NeutralWindow
 from livecap.core.take import MarkerFrame, Take
 from livecap.core.timecode import TimecodeClock, format_timecode
-from transport.arkit import ARKIT_NAMES, POSE_NAMES, arkit_matrix, head_angles, is_arkit
+from transport.arkit import ARKIT_NAMES, POSE_NAMES, arkit_eye_angles, arkit_matrix, head_angles, is_arkit
 
 # Column order of the Live Link Face app's CSV (it lists jaw and mouth Right before Left).
 LLF_CSV_SHAPES = [n[0].upper() + n[1:] for n in ARKIT_NAMES]
@@ -107,7 +107,9 @@ def parse_timecode(tc: str, rate: float) -> float:
 
 class CsvRecorder(_Lines):
     """Weights CSV; ``layout`` is ``auto`` (Live Link Face layout when every shape name is an
-    ARKit name), ``livecap`` or ``livelinkface``."""
+    ARKit name), ``livecap`` or ``livelinkface``. In the Live Link Face layout a stream faster than
+    the 60 fps timecode (120 Hz markers) keeps the first result of each timecode frame, as the
+    app writes at most one row per frame; the others are counted in ``merged``."""
 
     def __init__(self, path: str | Path, rate: float = 60.0, layout: str = "auto", mapping: dict | None = None,
                  fsync: bool = False, timecode: str = "clock", neutral_frames: int = 1) -> None:
@@ -122,6 +124,8 @@ class CsvRecorder(_Lines):
         self.neutral = NeutralWindow(neutral_frames)
         self._names = None
         self._M: np.ndarray | None = None
+        self._last_frame = ""
+        self.merged = 0  # results in a timecode frame that already has its row (Live Link Face layout)
 
     def _start(self, names) -> None:
         if self._names is not None:
@@ -132,11 +136,15 @@ class CsvRecorder(_Lines):
             M = arkit_matrix(names, self.mapping, str(self.path))
             order = [ARKIT_NAMES.index(n[0].lower() + n[1:]) for n in LLF_CSV_SHAPES]
             self._M = M[order]
+            self._to_arkit = np.argsort(order)  # the CSV's (app's) shape order back to ARKit's
             self._writer = csv.writer(self.fh, lineterminator="\n")
             self._writer.writerow(LLF_CSV_HEADER)
         else:
             self.layout = "livecap"
             self._writer.writerow(["frame", "time", *names])
+
+    def stats(self) -> dict:
+        return {**super().stats(), "merged": self.merged}
 
     def publish(self, result) -> None:
         if result.names is not self._names:
@@ -145,8 +153,14 @@ class CsvRecorder(_Lines):
         if self._M is not None:
             pose = np.zeros(9)
             pose[:3] = head_angles(self.neutral.relative(result.head_rotation, result.head_translation)[0])
+            arkit = self._M @ w
+            pose[[3, 4, 6, 7]] = arkit_eye_angles(arkit[self._to_arkit]).ravel()
             tc = format_timecode(self.clock.seconds_of_day(result.timestamp), LLF_CSV_FPS)
-            row = [tc, 61, *map(_fixed, (self._M @ w).tolist()), *map(_fixed, pose.tolist())]
+            if tc[:11] == self._last_frame:  # the app writes at most one row per timecode frame: the first
+                self.merged += 1
+                return
+            self._last_frame = tc[:11]
+            row = [tc, 61, *map(_fixed, arkit.tolist()), *map(_fixed, pose.tolist())]
         else:
             row = [int(result.frame), repr(float(result.timestamp)), *map(repr, w.tolist())]
         self._writer.writerow(row)

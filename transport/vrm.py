@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from transport.arkit import ARKIT_NAMES
+from transport.arkit import ARKIT_NAMES, EYE_LOOK_INDEX, arkit_eye_angles
 
 BLINK_BOTH = "min(eyeBlinkLeft,eyeBlinkRight)"
 
@@ -97,23 +97,14 @@ def load_vrm_table(path: str | Path) -> dict[str, dict[str, float]]:
     return data
 
 
-def eye_rotations(arkit: np.ndarray, present: Sequence[bool], yaw_deg: float = 30.0,
-                  pitch_deg: float = 25.0) -> tuple[np.ndarray, np.ndarray] | None:
-    """LeftEye and RightEye local rotations (Unity quaternions x, y, z, w) from the eye-look shapes,
-    or None when the rig has none of them. A full look shape turns the eye ``yaw_deg`` sideways or
-    ``pitch_deg`` up/down (about ARKit's range). Unity: +yaw about +Y turns the eye to the
-    avatar's right, +pitch about +X turns it down."""
-    idx = {n: ARKIT_NAMES.index(n) for n in ARKIT_NAMES if n.startswith("eyeLook")}
-    if not any(present[i] for i in idx.values()):
+def eye_rotations(arkit: np.ndarray, present: Sequence[bool]) -> tuple[np.ndarray, np.ndarray] | None:
+    """LeftEye and RightEye local rotations (Unity quaternions x, y, z, w) from the eye-look shapes
+    (livecap.core.eyes), or None when the rig has none of them. Unity: +yaw about +Y turns the eye
+    to the avatar's right, +pitch about +X turns it down: the app's signs."""
+    if not any(present[i] for i in EYE_LOOK_INDEX.ravel()):
         return None
-
-    def w(name: str) -> float:
-        return float(arkit[idx[name]])
-
     out = []
-    for side, outward in (("Left", -1.0), ("Right", 1.0)):
-        yaw = np.radians(yaw_deg) * outward * (w(f"eyeLookOut{side}") - w(f"eyeLookIn{side}"))
-        pitch = np.radians(pitch_deg) * (w(f"eyeLookDown{side}") - w(f"eyeLookUp{side}"))
+    for yaw, pitch in arkit_eye_angles(arkit):
         qy = np.array([0.0, np.sin(yaw / 2), 0.0, np.cos(yaw / 2)])
         qx = np.array([np.sin(pitch / 2), 0.0, 0.0, np.cos(pitch / 2)])
         out.append(_hamilton(qy, qx))  # Unity's Euler order: yaw applied after pitch

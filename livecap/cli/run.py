@@ -39,6 +39,8 @@ def register(sub) -> None:
     src.add_argument("--lsl-in", help="Lab Streaming Layer marker stream name (labels from its description)")
     src.add_argument("--qtm-in", help="Qualisys QTM RT server HOST[:PORT] (3D, or 3D-no-labels with --unlabelled)")
     src.add_argument("--natnet-in", help="OptiTrack Motive NatNet server HOST[:PORT] (unicast; metres)")
+    src.add_argument("--livelink-in", help="[HOST:]PORT to receive Live Link Face UDP on (the iPhone app's ARKit "
+                     "weights and head angles; no --profile/--rig needed; docs/iphone.md)")
     src.add_argument("--unlabelled", action="store_true",
                      help="the source's points are unlabelled (or wrongly named): label them against --profile")
     src.add_argument("--speed", type=float, default=1.0, help="replay speed factor (default 1)")
@@ -151,9 +153,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     from transport.security import udp_address, zmq_address
 
     options = _apply_session(args)
-    sources = [x for x in (args.zmq_in, args.osc_in, args.replay, args.lsl_in, args.qtm_in, args.natnet_in) if x]
+    sources = [x for x in (args.zmq_in, args.osc_in, args.replay, args.lsl_in, args.qtm_in, args.natnet_in,
+                           args.livelink_in) if x]
     if len(sources) != 1:
-        raise ValueError("give exactly one source: --zmq-in, --osc-in, --replay, --lsl-in, --qtm-in or --natnet-in")
+        raise ValueError("give exactly one source: --zmq-in, --osc-in, --replay, --lsl-in, --qtm-in, --natnet-in "
+                         "or --livelink-in")
     if args.unlabelled and not (args.profile and not (args.zmq_in or args.osc_in)):
         raise ValueError("--unlabelled needs --profile and a source other than --zmq-in/--osc-in (they carry labels)")
     profile = rig = layout = None
@@ -169,6 +173,8 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     elif args.rig:
         rig, layout = load_rig(args)
         labels = list(layout.labels)
+    elif args.livelink_in:
+        labels = []
     else:
         raise ValueError("give --profile, or --rig to calibrate on the start of the stream")
     curve = _curve(args)
@@ -212,6 +218,15 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
 
         source, what = capture_source(args.qtm_in, args.natnet_in, labels, args.unlabelled, args.idle_timeout)
         described.append(what)
+    elif args.livelink_in:
+        from transport.livelink import DEFAULT_PORT
+        from transport.livelink_source import LiveLinkFaceSource
+
+        host, port = udp_address(args.livelink_in, DEFAULT_PORT, args.interface)
+        source = LiveLinkFaceSource(host, port, idle_timeout=args.idle_timeout,
+                                    first_frame_timeout=_first_frame_timeout(args))
+        rate = 60.0  # the app's frame rate (its packets say 60/1)
+        described.append(f"livelink-in {host}:{source.port}")
     else:
         from transport.osc_source import OscSource
 
@@ -247,7 +262,8 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     if args.lsl_out:
         from transport.lsl import LslWeightSink
 
-        sinks.append(LslWeightSink(args.lsl_out, profile.names if profile else rig.names, rate))
+        sinks.append(LslWeightSink(args.lsl_out, profile.names if profile else rig.names if rig else source.names,
+                                   rate))
         described.append(f"lsl-out {args.lsl_out}")
     if args.vmc:
         from transport.vmc import DEFAULT_PORT, VmcSink
@@ -300,6 +316,11 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
                 window.set_profile(calibrated)
             return calibrated
 
+    if args.livelink_in:
+        from livecap.live.relay import WeightsPipeline
+
+        return WeightsPipeline(source, sinks, rate=rate, flush_every=args.flush_every, max_frames=args.max_frames,
+                               stats_file=args.stats_file, stats_every=args.stats_every), described
     pipeline = Pipeline(source, sinks, profile=profile, calibrator=calibrator,
                         calibrate_frames=max(1, int(round(args.neutral_seconds * rate))), labels=labels, rate=rate,
                         mode=args.mode, options=options, marker_recorder=marker_recorder,

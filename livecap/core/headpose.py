@@ -12,6 +12,7 @@ forward, so its pose is the mirror image in X.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -34,13 +35,32 @@ class NeutralPose:
             return cls(np.eye(3), np.zeros(3))
         return cls(Rotation.from_quat(q[ok]).mean().as_matrix(), t[ok].mean(axis=0))
 
+    @cached_property
+    def _inverse(self) -> Rotation:
+        """Built once per pose: from_matrix costs ~0.1 ms, per frame and per sink otherwise."""
+        return Rotation.from_matrix(self.rotation.T)
+
     def relative(self, quaternions: np.ndarray, translations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Head rotation (x, y, z, w) and shift (metres) relative to this pose, in the rig's axes."""
         q = np.asarray(quaternions, dtype=np.float64)
         t = np.asarray(translations, dtype=np.float64)
-        rel = Rotation.from_matrix(self.rotation.T) * Rotation.from_quat(q.reshape(-1, 4))
         shift = (t.reshape(-1, 3) - self.translation) @ self.rotation / 1000.0
+        if q.shape == (4,):  # a live frame: scipy's per-call overhead (~0.1 ms) is most of a sink's time
+            return hamilton(self._inverse_quat, q / np.linalg.norm(q)), shift.reshape(t.shape)
+        rel = self._inverse * Rotation.from_quat(q.reshape(-1, 4))
         return rel.as_quat().reshape(q.shape), shift.reshape(t.shape)
+
+    @cached_property
+    def _inverse_quat(self) -> np.ndarray:
+        return self._inverse.as_quat()
+
+
+def hamilton(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Quaternion product ``a b`` (x, y, z, w): the rotation b, then a."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz])
 
 
 def to_unity(quaternion: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -62,6 +82,12 @@ class NeutralWindow:
         self._q: list[np.ndarray] = []
         self._t: list[np.ndarray] = []
         self.pose: NeutralPose | None = None
+
+    def fix(self, pose: NeutralPose) -> None:
+        """Use ``pose`` from now on: a source whose angles are already relative to its own neutral
+        (the iPhone's) passes them through with the identity."""
+        self.frames = 0
+        self.pose = pose
 
     def relative(self, quaternion: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         q = np.asarray(quaternion, dtype=np.float64)

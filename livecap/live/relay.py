@@ -1,0 +1,36 @@
+"""A live session whose source already yields weights (the iPhone's ARKit curves): no calibration
+and no solve, the same loop, sinks, flushing, stats and signal handling as the marker pipeline."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+
+from livecap.core.headpose import NeutralPose, NeutralWindow
+from livecap.core.result import SolveResult
+from livecap.live.pipeline import Pipeline
+
+
+def _never_calibrate(take):
+    raise AssertionError("a weights source needs no calibration")
+
+
+class WeightsPipeline(Pipeline):
+    """:class:`Pipeline` for a source of :class:`SolveResult`: each one is published as it comes.
+
+    The source's head rotation is already relative to its neutral (the app zeroes it on the
+    phone), so every sink sends it unchanged rather than relative to the stream's first frames."""
+
+    def __init__(self, source: Iterable[SolveResult], sinks: list, **kwargs) -> None:
+        super().__init__(source, sinks, calibrator=_never_calibrate, **kwargs)
+        self._solver = self  # marks the session ready: run() publishes from the first frame
+        self.solver_mode = "weights-in"
+        for sink in self.sinks:
+            neutral = getattr(sink, "neutral", None)
+            if isinstance(neutral, NeutralWindow):
+                neutral.fix(NeutralPose(np.eye(3), np.zeros(3)))
+
+    def solve_frame(self, frame: SolveResult) -> SolveResult:
+        self._step_time = 0.0
+        return frame
