@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.calibration.animation_prior import AnimationPrior
-from livecap.calibration.profile import WARPS, Profile, calibrate, estimate_neutral
-from livecap.cli.common import add_rig_arguments, check_labels, load_rig, progress_bar, tune_on_take
+from livecap.calibration.profile import WARPS, Profile, estimate_neutral
+from livecap.cli.common import add_rig_arguments, load_rig, progress_bar, tune_on_take
 from livecap.cli.progress import stage
 from livecap.modes.registry import DEFAULT_MODE, MODES_AND_AUTO, resolve_mode
 from livecap.modes.robust import ROBUST_MODES
+from livecap.offline.setup import calibrate_neutral
 from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS
 from transport.takefile import read_take
 
@@ -65,27 +65,12 @@ def register(sub) -> None:
 def run_calibrate(args: argparse.Namespace) -> int:
     rig, layout = load_rig(args)
     take = read_take(args.neutral)
-    check_labels(take, layout.labels, args.neutral, args.rig)
+    profile = calibrate_neutral(rig, layout, take, take_path=args.neutral, rig_path=args.rig, seconds=args.seconds,
+                                warp=args.warp, smoothing=args.smoothing, max_gap_seconds=args.max_gap,
+                                pose_smoothing_seconds=args.pose_smoothing,
+                                robust_stabilise=not args.plain_stabilise, prior=args.prior)
     sel = take.select(layout.labels)
-    absent = [lab for lab, seen in zip(layout.labels, sel.valid.any(0), strict=True) if not seen]
-    if absent:
-        shared = len(set(take.labels) & set(layout.labels))
-        hint = f"; the take shares only {shared} of {layout.n_markers} labels: wrong take?" \
-            if shared < layout.n_markers / 2 else ""
-        raise ValueError(f"{args.neutral}: {len(absent)} markers of {args.rig} never seen in the neutral take: "
-                         f"{absent[:8]}{hint}")
     frames = max(1, int(round(args.seconds * take.rate))) if args.seconds else None
-    neutral = estimate_neutral(sel, layout.stable, frames)
-    settings = {"max_gap_seconds": args.max_gap, "robust_stabilise": not args.plain_stabilise,
-                "pose_smoothing_seconds": args.pose_smoothing,
-                "neutral_take": str(args.neutral), "neutral_frames": frames or take.n_frames}
-    profile = calibrate(rig, layout, neutral, settings, warp=args.warp, smoothing=args.smoothing)
-    if args.prior:
-        profile.prior = AnimationPrior.load(args.prior)
-        try:
-            profile.prior.check(profile.names)
-        except ValueError as exc:
-            raise ValueError(f"{args.prior}: {exc} (rig {args.rig})") from None
     tune_path = args.tune or args.neutral  # every profile carries the noise estimate every mode needs
     with stage(f"tuning on {tune_path}"):
         tuned = tune_on_take(profile, read_take(args.tune) if args.tune else take)
