@@ -5,10 +5,10 @@ Rooms (each package's docstring says what it holds and what it may import):
 * ``livecap.core``: the types every package may import (Rig, MarkerLayout, Take, MarkerFrame,
   SolveResult, units, OBJ files), importing nothing of livecap above them.
 * ``livecap.calibration``: from a neutral take to a Profile: neutral, head stabilisation, proportion
-  warp, gap filling, actor basis, key pairs, the calibration report.
+  warp, gap filling, actor basis, key pairs, a take's solve targets.
 * ``livecap.modes``: solver modes by name: the registry and one module per mode family.
 * ``livecap.live``: the live pipeline and session files.
-* ``livecap.offline``: whole-take solving, accuracy metrics, rig-to-rig weight mapping.
+* ``livecap.offline``: whole-take solving, accuracy metrics, rig-to-rig weight mapping, the calibration report.
 * ``livecap.api``: the Python API (docs/api.md), exported here: ``livecap.solve(...)``, ``livecap.Solver``...
 * ``livecap.cli``, ``livecap.demo``, ``livecap.transfer``: the command, the demo generator, rig transfer.
 

@@ -127,8 +127,8 @@ def _stats(a: np.ndarray) -> str:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from livecap.calibration.report import compare, subsample
     from livecap.modes.registry import build_solver
+    from livecap.offline.calibration_report import compare, subsample
 
     rig, layout = load_rig(args)
     take = read_take(args.take)
