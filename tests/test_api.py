@@ -125,3 +125,14 @@ def test_import_livecap_loads_no_api():
             "print(sorted(before), 'livecap.api' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True, cwd=ROOT).stdout
     assert out.split() == ["[]", "True"]
+
+
+def test_glb_is_the_commands(tmp_path):
+    """``Weights.to_glb`` writes the bytes of ``livecap solve --out X.glb`` (same file name: the animation is
+    named after it)."""
+    (tmp_path / "cli").mkdir()
+    cli = tmp_path / "cli" / "take.glb"
+    subprocess.run([sys.executable, "-m", "livecap", "solve", str(TAKE), "--rig", str(RIG), "--out", str(cli)],
+                   check=True, capture_output=True, cwd=ROOT)
+    api = livecap.solve(TAKE, rig=RIG).to_glb(tmp_path / "take.glb", livecap.load_rig(RIG))
+    assert api.read_bytes() == cli.read_bytes()

@@ -86,7 +86,7 @@ def calibrate_neutral(rig: Rig, layout: MarkerLayout, take: Take, *, take_path: 
                 else pose_smoothing_seconds,
                 "neutral_take": str(take_path), "neutral_frames": frames or take.n_frames}
     profile = calibrate(rig, layout, neutral, settings, warp=warp, smoothing=smoothing)
-    if prior is not None:
+    if prior:  # a path, or an AnimationPrior
         profile.prior = prior if isinstance(prior, AnimationPrior) else AnimationPrior.load(prior)
         try:
             profile.prior.check(profile.names)
