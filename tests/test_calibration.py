@@ -121,8 +121,8 @@ def test_profile_round_trip_keeps_warp_and_marker_rig(demo, tmp_path):
 
 
 def test_calibrated_pipeline_beats_uncalibrated_on_a_generated_take(demo):
-    from livecap.calibration.report import VARIANTS, compare
     from livecap.modes.registry import build_solver
+    from livecap.offline.calibration_report import VARIANTS, compare
 
     rig, layout = demo
     s = PerformanceSettings(seconds=4.5, rate=40, seed=11)
@@ -141,7 +141,7 @@ def test_calibrated_pipeline_beats_uncalibrated_on_a_generated_take(demo):
 
 def test_calibration_on_the_ict_rig(ict):
     """The real ICT-FaceKit rig (cm on disk, 53 shapes): stabilise, warp and model a generated take."""
-    from livecap.calibration.report import model_error
+    from livecap.offline.calibration_report import model_error
     from livecap.offline.solve import prepare_targets
 
     rig, layout = ict

@@ -107,9 +107,9 @@ def test_keys_are_checked_before_any_work(extra, tmp_path, capsys):
 
 def test_calibration_report_defaults_and_layout(short_take, capsys):
     """Finding 5: the default solver's mode, identical rows folded, full row labels, no leading blank lines."""
-    from livecap.calibration.report import VARIANTS
     from livecap.cli import build_parser
     from livecap.modes.registry import DEFAULT_MODE
+    from livecap.offline.calibration_report import VARIANTS
 
     assert build_parser().parse_args(["calibration-report", "t.c3d", "--rig", RIG]).mode == DEFAULT_MODE
     assert main(["calibration-report", str(short_take), "--rig", RIG, "--stride", "8", "--mode", "qp"]) == 0

@@ -50,3 +50,32 @@ def test_the_rule_catches_a_forbidden_import(tmp_path, monkeypatch):
     (tmp_path / "transport" / "bad.py").write_text("def f():\n    from livecap.live.pipeline import Pipeline\n")
     monkeypatch.setitem(globals(), "ROOT", tmp_path)
     assert _violations("transport", lambda m: m.startswith(("transport", "livecap.core"))) != []
+
+
+# The arrows still to remove (issue 38): a batch manifest's options are ``livecap solve`` flags, parsed on the
+# client and the workers by the solve command's own parser. ``__main__`` is the command's entry point.
+CLI_IMPORTERS = {"livecap/__main__.py", "livecap/batch/worker.py"}
+
+
+def _cli_or_argparse(m: str) -> bool:
+    return m == "argparse" or m == "livecap.cli" or m.startswith("livecap.cli.")
+
+
+def test_only_the_command_speaks_argparse():
+    """No module outside livecap/cli/ imports livecap.cli or argparse: the library is below the command."""
+    found = {f for f, m in _imports("livecap") if _cli_or_argparse(m) and not f.startswith("livecap/cli/")}
+    assert found - CLI_IMPORTERS == set()
+    assert CLI_IMPORTERS - found == set(), "an exemption no longer needed: remove it from CLI_IMPORTERS"
+
+
+def test_the_argparse_rule_catches_a_library_module(tmp_path, monkeypatch):
+    (tmp_path / "livecap" / "review").mkdir(parents=True)
+    (tmp_path / "livecap" / "review" / "load.py").write_text("import argparse\nfrom livecap.cli import common\n")
+    monkeypatch.setitem(globals(), "ROOT", tmp_path)
+    assert {m for _, m in _imports("livecap") if _cli_or_argparse(m)} == {"argparse", "livecap.cli"}
+
+
+def test_calibration_sits_below_offline():
+    """Calibration is what offline solving uses, so it imports nothing of livecap.offline (nor the demo)."""
+    assert [f"{f}: {m}" for f, m in _imports("livecap/calibration")
+            if m.startswith(("livecap.offline", "livecap.demo", "livecap.cli"))] == []

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import csv
 import glob
 import shlex
@@ -145,7 +144,3 @@ def read_manifest(path: str | Path) -> list[dict]:
         out.append(clean)
     return out
 
-
-def check_options(job: Job, parser: argparse.ArgumentParser) -> None:
-    """Parse the job as ``livecap solve`` would, so a bad flag fails before any work is sent."""
-    parser.parse_args(["solve", *job.solve_argv()])

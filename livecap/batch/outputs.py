@@ -39,7 +39,7 @@ def write_output(job: Job, solved: SolvedTake, residual: np.ndarray, rig=None) -
     elif job.fmt == "jsonl":
         _write_jsonl(tmp, solved, residual)
     elif job.fmt == "glb":
-        from livecap.cli.solve import write_solved_glb
+        from livecap.offline.glb import write_solved_glb
 
         write_solved_glb(str(tmp), rig, solved, max(1, int(job.neutral_seconds * solved.rate)))
     else:

@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
-import io
 import logging
 from pathlib import Path
 
 from livecap.batch.jobs import RECORDS, Job, expand_takes, read_manifest
-from livecap.batch.worker import cli_parser, one_line, solve_parser
+from livecap.batch.worker import one_line, solve_parser
 
 log = logging.getLogger(__name__)
 
@@ -17,19 +15,20 @@ log = logging.getLogger(__name__)
 def calibrated_profile(neutral: str, rig: str, markers: str | None, out_dir: str | Path) -> str:
     """The profile ``livecap calibrate NEUTRAL --rig RIG`` writes, made once on the client and kept in
     the output folder (remade only when the neutral take or the rig is newer)."""
-    from livecap.cli import calibrate
+    from livecap.offline.setup import calibrate_neutral, load_rig_layout, tune_on_take
+    from transport.takefile import read_take
 
     tag = hashlib.sha1(f"{Path(neutral).resolve()}|{Path(rig).resolve()}|{markers}".encode()).hexdigest()[:10]
     path = Path(out_dir) / RECORDS / "profiles" / f"{Path(neutral).stem}-{tag}.npz"
     sources = [Path(p) for p in (neutral, rig, markers) if p]
     if path.is_file() and all(path.stat().st_mtime_ns > p.stat().st_mtime_ns for p in sources if p.exists()):
         return str(path)
-    parser = cli_parser("calibrate")
-    argv = ["calibrate", neutral, "--rig", rig, "--out", str(path)] + (["--markers", markers] if markers else [])
-    args = parser.parse_args(argv)
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
-        calibrate.run_calibrate(args)
+    rig_, layout = load_rig_layout(rig, markers)
+    take = read_take(neutral)
+    profile = calibrate_neutral(rig_, layout, take, take_path=neutral, rig_path=rig)
+    tune_on_take(profile, take)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    profile.save(path)
     log.info("calibrated %s from %s", path, neutral)
     return str(path)
 

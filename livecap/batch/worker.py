@@ -16,8 +16,8 @@ from distributed.diagnostics.plugin import WorkerPlugin
 from livecap.batch.jobs import Job
 from livecap.batch.outputs import write_output
 from livecap.batch.stats import take_stats
-from livecap.cli.common import load_rig, profile_for
 from livecap.modes.registry import build_solver
+from livecap.offline.setup import check_labels, load_rig_layout, profile_from_take
 from livecap.offline.solve import solve_take
 from transport.takefile import read_take
 
@@ -82,7 +82,7 @@ class SolverCache(WorkerPlugin):
         key = (args.rig, args.markers)
         with self._lock:
             if key not in self.rigs:
-                self.rigs[key] = load_rig(args)
+                self.rigs[key] = load_rig_layout(args.rig, args.markers)
             return self.rigs[key]
 
     def profile(self, path: str):
@@ -168,7 +168,8 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
             profile_key, profile = cache.profile(args.profile)
             solver = cache.solver(job, profile_key, profile, options)
         else:
-            profile = profile_for(args, rig, layout, take)
+            check_labels(take, layout.labels, args.take, args.rig)
+            profile = profile_from_take(rig, layout, take, args.neutral_seconds)
             solver = build_solver(args.mode, profile, options)
         solved = solve_take(take, profile, solver)
         stats = take_stats(take, solved, profile)

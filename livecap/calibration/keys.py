@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from livecap.calibration.profile import Profile
+from livecap.calibration.targets import prepare_targets
 from livecap.core.take import Take
-from livecap.offline.solve import prepare_targets
 
 
 class KeyFileError(ValueError):

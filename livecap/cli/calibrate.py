@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.calibration.animation_prior import AnimationPrior
-from livecap.calibration.profile import WARPS, Profile, calibrate, estimate_neutral
-from livecap.cli.common import add_noise_argument, add_rig_arguments, check_labels, load_rig, progress_bar, tune_on_take
+from livecap.calibration.profile import WARPS, Profile, estimate_neutral
+from livecap.cli.common import add_noise_argument, add_rig_arguments, load_rig, progress_bar, tune_on_take
 from livecap.cli.markers import parse_span
 from livecap.cli.progress import stage
 from livecap.modes.registry import DEFAULT_MODE, MODES_AND_AUTO, resolve_mode
 from livecap.modes.robust import ROBUST_MODES
+from livecap.offline.setup import calibrate_neutral
 from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS
 from transport.takefile import read_take
 
@@ -68,31 +68,17 @@ def register(sub) -> None:
 def run_calibrate(args: argparse.Namespace) -> int:
     rig, layout = load_rig(args)
     take = read_take(args.neutral)
-    check_labels(take, layout.labels, args.neutral, args.rig)
+    if args.span and args.seconds:
+        raise ValueError("give --seconds or --span, not both")
+    span = parse_span(args.span, take.rate, take.n_frames) if args.span else None
+    profile = calibrate_neutral(rig, layout, take, take_path=args.neutral, rig_path=args.rig, seconds=args.seconds,
+                                warp=args.warp, smoothing=args.smoothing, max_gap_seconds=args.max_gap,
+                                pose_smoothing_seconds=args.pose_smoothing,
+                                robust_stabilise=not args.plain_stabilise, prior=args.prior, span=span)
     sel = take.select(layout.labels)
-    absent = [lab for lab, seen in zip(layout.labels, sel.valid.any(0), strict=True) if not seen]
-    if absent:
-        shared = len(set(take.labels) & set(layout.labels))
-        hint = f"; the take shares only {shared} of {layout.n_markers} labels: wrong take?" \
-            if shared < layout.n_markers / 2 else ""
-        raise ValueError(f"{args.neutral}: {len(absent)} markers of {args.rig} never seen in the neutral take: "
-                         f"{absent[:8]}{hint}")
+    if span is not None:
+        sel = sel.slice(*span)
     frames = max(1, int(round(args.seconds * take.rate))) if args.seconds else None
-    if args.span:
-        if args.seconds:
-            raise ValueError("give --seconds or --span, not both")
-        sel = sel.slice(*parse_span(args.span, take.rate, take.n_frames))
-    neutral = estimate_neutral(sel, layout.stable, frames)
-    settings = {"max_gap_seconds": args.max_gap, "robust_stabilise": not args.plain_stabilise,
-                "pose_smoothing_seconds": args.pose_smoothing,
-                "neutral_take": str(args.neutral), "neutral_frames": frames or sel.n_frames}
-    profile = calibrate(rig, layout, neutral, settings, warp=args.warp, smoothing=args.smoothing)
-    if args.prior:
-        profile.prior = AnimationPrior.load(args.prior)
-        try:
-            profile.prior.check(profile.names)
-        except ValueError as exc:
-            raise ValueError(f"{args.prior}: {exc} (rig {args.rig})") from None
     tune_path = args.tune or args.neutral  # every profile carries the noise estimate every mode needs
     with stage(f"tuning on {tune_path}"):
         tuned = tune_on_take(profile, read_take(args.tune) if args.tune else take, args.noise_mm)
@@ -155,8 +141,8 @@ def _stats(a: np.ndarray) -> str:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from livecap.calibration.report import compare, marker_residual, subsample
     from livecap.modes.registry import build_solver
+    from livecap.offline.calibration_report import compare, marker_residual, subsample
 
     rig, layout = load_rig(args)
     take = read_take(args.take)

@@ -5,35 +5,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from livecap.calibration.profile import Profile, calibrate, check_layout_labels, check_rig_path, estimate_neutral
+from livecap.calibration.profile import Profile, check_layout_labels, check_rig_path
 from livecap.cli import progress
 from livecap.core.markers import MarkerLayout
 from livecap.core.rig import Rig
 from livecap.core.take import Take
+from livecap.offline.setup import check_labels, load_rig_layout, markers_path, profile_from_take, tune_on_take
 
-
-def markers_path(rig_path: str | Path) -> Path:
-    """A rig's markers.json: inside an OBJ folder, or ``<rig>.markers.json`` beside a .npz."""
-    p = Path(rig_path)
-    return p / "markers.json" if p.is_dir() else p.with_name(p.stem + ".markers.json")
+__all__ = ["check_labels", "markers_path", "tune_on_take"]  # kept here for the commands that import them
 
 
 def load_rig(args: argparse.Namespace) -> tuple[Rig, MarkerLayout]:
-    from transport.rig_files import load_rig as load_rig_file  # glTF/VRM/USD readers load only for their files
-
-    rig = load_rig_file(args.rig)
-    mpath = Path(args.markers) if getattr(args, "markers", None) else markers_path(args.rig)
-    if not mpath.exists():
-        raise ValueError(f"{mpath}: no markers.json for rig {args.rig} (give --markers)")
-    return rig, MarkerLayout.load(mpath, rig)
-
-
-def check_labels(take: Take, labels: list[str], take_path, rig_path) -> None:
-    """A take that shares no marker label with the rig's ``labels`` is a wrong pairing, not a take with gaps: say so."""
-    if not set(take.labels) & set(labels):
-        raise ValueError(f"{take_path}: the take shares none of the {len(labels)} marker labels of rig {rig_path} "
-                         f"(take: {', '.join(take.labels[:4])}...; rig: {', '.join(labels[:4])}...); give "
-                         "a markers.json that binds the take's labels to the rig (--markers)")
+    return load_rig_layout(args.rig, getattr(args, "markers", None))
 
 
 def add_rig_arguments(p: argparse.ArgumentParser) -> None:
@@ -82,12 +65,8 @@ def profile_for(args: argparse.Namespace, rig: Rig, layout: MarkerLayout, take: 
     check_labels(take, layout.labels, getattr(args, "take", "take"), args.rig)
     if getattr(args, "profile", None):
         return _given_noise(args, Profile.load(args.profile))
-    sel = take.select(layout.labels)
     with progress.stage("calibrating and tuning on the take (give --profile to skip)"):
-        neutral = estimate_neutral(sel, layout.stable, max(1, int(args.neutral_seconds * take.rate)))
-        profile = calibrate(rig, layout, neutral)
-        tune_on_take(profile, take, getattr(args, "noise_mm", None))
-    return profile
+        return profile_from_take(rig, layout, take, args.neutral_seconds, getattr(args, "noise_mm", None))
 
 
 def saved_profile(args: argparse.Namespace, take: Take) -> Profile:
@@ -101,14 +80,6 @@ def saved_profile(args: argparse.Namespace, take: Take) -> Profile:
     if getattr(args, "markers", None):
         check_layout_labels(profile, args.markers, args.profile, mesh)
     return _given_noise(args, profile)
-
-
-def tune_on_take(profile: Profile, take: Take, noise_mm: float | None = None) -> dict:
-    from livecap.modes.robust import tune_profile
-    from livecap.offline.solve import prepare_targets
-
-    sel, targets, _, _ = prepare_targets(take, profile)
-    return tune_profile(profile, targets, sel.valid, take.rate, noise_mm)
 
 
 def solver_options(args: argparse.Namespace) -> dict:

@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
 from livecap.cli.common import (
     add_take_solve_arguments,
     load_rig,
@@ -16,11 +14,10 @@ from livecap.cli.common import (
     solver_options,
 )
 from livecap.cli.movement_args import add_movement_arguments, movement_options
-from livecap.core.headpose import NeutralPose
-from livecap.core.rig import Rig
 from livecap.modes.per_frame import QPSettings, check_keys
 from livecap.modes.registry import build_solver, resolve_mode
-from livecap.offline.solve import SolvedTake, solve_take
+from livecap.offline.glb import write_solved_glb
+from livecap.offline.solve import solve_take
 from transport.takefile import read_take
 from transport.weights_csv import write_weights_csv
 
@@ -76,11 +73,3 @@ def run(args: argparse.Namespace) -> int:
           f"({solved.solve_seconds * 1e3 / take.n_frames:.3f} ms/frame)")
     return 0
 
-
-def write_solved_glb(path: str, rig: Rig, solved: SolvedTake, neutral_frames: int) -> None:
-    """The .glb of a solve; the head pose relative to its mean over the neutral window (first frames)."""
-    from transport.gltf import write_glb  # pygltflib: imported by the solves that write a .glb
-    neutral = NeutralPose.mean_of(solved.head_rotation[:neutral_frames], solved.head_translation[:neutral_frames])
-    rotation, shift = neutral.relative(solved.head_rotation, solved.head_translation)
-    times = np.arange(len(solved.weights)) / solved.rate
-    write_glb(path, rig, solved.names, times, solved.weights, rotation, shift)

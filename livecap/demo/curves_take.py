@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from livecap.calibration.arkit_map import arkit_to_rig  # noqa: F401 - imported from here too
 from livecap.core.markers import MarkerLayout
-from livecap.core.names import match_names
 from livecap.core.rig import Rig
 from livecap.core.take import Take
 from livecap.demo.performance import actor_warp, head_motion
-from transport.arkit import ARKIT_NAMES, arkit_matrix
+from transport.arkit import ARKIT_NAMES
 from transport.llf_csv import read_llf_csv
 
 
@@ -38,26 +38,6 @@ class CurveTakeSettings:
     stable_dropout: float = 1.0  # seconds one stable marker is missing mid-take (0: never)
     seed: int = 1  # head motion, noise, occlusion
     actor_seed: int = 7  # the actor's proportions
-
-
-def arkit_to_rig(names: list[str], mapping: dict | None = None) -> np.ndarray:
-    """m x 52 matrix ``A`` with rig weights ``= A @ arkit``: the one place ARKit names meet the rig's.
-
-    Names pair by the project's one matcher (livecap.core.names: a side-less ARKit shape such as
-    ``browInnerUp`` drives both sided rig shapes); ``mapping`` (ARKit name -> rig shape(s), the
-    file format of ``transport.arkit.load_mapping``) replaces the match of every rig shape it
-    names, which then takes the mean of the ARKit shapes mapped onto it.
-    """
-    A = match_names(ARKIT_NAMES, names).matrix()
-    if mapping:
-        M = arkit_matrix(names, mapping) > 0  # validates the file's names
-        mapped = {ARKIT_NAMES.index(a) for a in (k for k in ARKIT_NAMES if k.lower() in
-                                                 {str(x).lower() for x in mapping})}
-        for j in np.where(M[sorted(mapped)].any(0))[0]:
-            cols = [i for i in sorted(mapped) if M[i, j]]
-            A[j] = 0.0
-            A[j, cols] = 1.0 / len(cols)
-    return A
 
 
 def _centred_warp(seed: int, centre: np.ndarray):

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
 
+from livecap.calibration.profile import Profile
 from livecap.calibration.stabilise import to_quaternion
-from livecap.cli.common import load_rig, profile_for
 from livecap.modes.movement import build_movement
 from livecap.modes.registry import build_solver
+from livecap.offline.setup import check_labels, load_rig_layout, profile_from_take
 from livecap.offline.solve import prepare_targets
 from livecap.review.session import ReviewSession
 from transport.takefile import read_take
@@ -24,10 +24,10 @@ def open_session(take_path: str, rig_path: str, markers: str | None = None, prof
 
     Edits re-solve by Seol's movement matching (``livecap edit --take --plain``): milliseconds per edit.
     ``robust_edits`` uses the noise-robust solve's edit (smoothed markers, trend filter), ~0.5 s each."""
-    args = argparse.Namespace(rig=rig_path, markers=markers, profile=profile, neutral_seconds=neutral_seconds)
-    rig, layout = load_rig(args)
+    rig, layout = load_rig_layout(rig_path, markers)
     take = read_take(take_path)
-    prof = profile_for(args, rig, layout, take)
+    check_labels(take, layout.labels, "take", rig_path)
+    prof = Profile.load(profile) if profile else profile_from_take(rig, layout, take, neutral_seconds)
     sel, targets, R, t = prepare_targets(take, prof)
     if weights:
         names, W, _ = read_weights_csv(weights)
