@@ -56,7 +56,7 @@ def register(sub) -> None:
     g = p.add_argument_group("retargeting scenario (without --take/--rig)")
     g.add_argument("--seconds", type=float, default=20.0, help="length of the performance (default 20)")
     g.add_argument("--rate", type=float, default=120.0, help="capture rate in Hz (default 120)")
-    g.add_argument("--noise-mm", type=float, nargs="+", default=[0.5, 0.0],
+    g.add_argument("--noise-mm", dest="noise_levels", type=float, nargs="+", default=[0.5, 0.0],
                    help="marker noise levels, one variant each (default: 0.5 as the demo take, and 0)")
     g.add_argument("--occlusion", type=float, default=0.02,
                    help="fraction of marker-frames missing, in bursts (default 0.02 as the demo take)")
@@ -220,7 +220,7 @@ def _variants(args: argparse.Namespace) -> list[tuple[str, str, np.ndarray, np.n
     from livecap.demo.retarget import retarget_scenario
 
     out = []
-    for noise in args.noise_mm:
+    for noise in args.noise_levels:
         sc = retarget_scenario(args.seconds, args.rate, noise, args.occlusion, source_seed=args.source_seed,
                                target_seed=args.target_seed, target_shapes=args.target_shapes,
                                subset_seed=args.subset_seed, performance_seed=args.performance_seed)
