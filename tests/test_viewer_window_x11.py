@@ -266,7 +266,8 @@ def test_a_frozen_display_never_slows_the_pipeline(xserver, take, tmp_path):
     assert frozen is not None, f"the pipeline stalled with the display frozen:\n{out}\n{err}"
     win = frozen["sinks"]["WindowSink:0"]
     # while frozen: nothing waits for the window; all but the frames it drew (at most the one in flight) dropped
-    assert frozen["frames_in"] == frozen["frames_out"] and frozen["pending_calibration"] == 0
+    # (a mode with one frame of latency, kalman, holds the newest frame until the next arrives)
+    assert 0 <= frozen["frames_in"] - frozen["frames_out"] <= 1 and frozen["pending_calibration"] == 0
     assert win["published"] == frozen["frames_out"]
     assert win["shown"] <= 1 and win["dropped"] >= frozen["frames_out"] - win["shown"] - 2
     assert not frozen["errors"]

@@ -231,7 +231,7 @@ class Pipeline:
         target = np.where(frame.valid[:, None], local - self._neutral, 0.0)
         t_step = time.perf_counter()
         try:
-            w = np.asarray(self._solver.step(target, frame.valid), dtype=float)
+            w = np.array(self._solver.step(target, frame.valid), dtype=float)  # a copy: sinks may encode later
         except Exception as exc:  # a solver bug must not end a live session
             self._error("solver_error", f"frame {frame.frame}: {type(exc).__name__}: {exc}")
             return None
@@ -240,7 +240,10 @@ class Pipeline:
         self.timing["step"].add(self._step_time)
         if len(self._lagged) < self._lagged.maxlen:
             return None
-        frame, local, R, t, target = self._lagged[0]
+        return self._result(self._lagged[0], w, t0)
+
+    def _result(self, lagged: tuple, w: np.ndarray, t0: float) -> SolveResult | None:
+        frame, local, R, t, target = lagged
         valid = frame.valid
         if not np.isfinite(w).all():
             self._error("solver_nonfinite", f"frame {frame.frame}: solver returned NaN/inf")
@@ -250,6 +253,29 @@ class Pipeline:
         self.timing["solve"].add(solve_time)
         return SolveResult(frame.frame, frame.timestamp, self._names, w, to_quaternion(R), t,
                            rms, solve_time, local, valid, at_bound)
+
+    def _drain(self) -> None:
+        """When the session ends, the last frames a solver with latency L still holds: each is solved by
+        stepping on frames with no marker seen (the filter predicts), so every frame solved is published."""
+        lag = self._lagged.maxlen - 1
+        if self._solver is None or lag == 0 or not self._lagged:
+            return
+        pending = list(self._lagged)[-min(len(self._lagged), lag):]
+        pad_valid = np.zeros(len(pending[-1][0].valid), bool)
+        pad_target = np.zeros_like(pending[-1][4])
+        skip = lag - len(pending)  # pad outputs that still belong to no frame (fewer frames seen than the lag)
+        for entry in [None] * skip + pending:
+            t0 = time.perf_counter()
+            try:
+                w = np.array(self._solver.step(pad_target, pad_valid), dtype=float)
+            except Exception as exc:
+                self._error("solver_error", f"draining the last frames: {type(exc).__name__}: {exc}")
+                return
+            if entry is not None:
+                res = self._result(entry, w, t0)
+                if res is not None:
+                    self.publish(res)
+        self._lagged.clear()
 
     def publish(self, result: SolveResult) -> None:
         t0 = time.perf_counter()
@@ -313,6 +339,7 @@ class Pipeline:
                     last_stats = now
                 if self._stop.is_set() or (self.max_frames and self.frames_in >= self.max_frames):
                     break
+            self._drain()
         finally:
             self.close()
         return self.stats()

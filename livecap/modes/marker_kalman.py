@@ -118,7 +118,8 @@ class MarkerKalmanSolver:
         noise = self.filter.noise_mm
         if self._imm is None or self._imm[0] != noise:  # noise settles in the first frames; rarely changes after
             self._imm = (noise, self.motion.imm(noise, self.norms))
-        return self._imm[1].step(w)
+        # the IMM's constant-velocity models overshoot a weight resting on its limit: back within the rig's limits
+        return np.clip(self._imm[1].step(w), self.lower, self.upper)
 
     def solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """RTS-smoothed markers -> joint pose and prior fit; POSE_PASSES times, the pose fitted on the
