@@ -98,7 +98,7 @@ def test_latency_stays_below_two_solve_times(profile, solve_periods):
     assert out.latency[-1] <= 2 * solve + 1e-9
     if solve_periods <= 1.0:
         assert stats["stale"] == 0  # a solver that keeps up solves every frame
-    else:
+    elif (solve_periods - 1.0) * 120 > 2:  # behind by more than two periods over the 120 frames
         assert stats["stale"] > 0
 
 

@@ -257,9 +257,10 @@ class Pipeline:
     def _drain(self) -> None:
         """When the session ends, the last frames a solver with latency L still holds: each is solved by
         stepping on frames with no marker seen (the filter predicts), so every frame solved is published."""
-        lag = self._lagged.maxlen - 1
-        if self._solver is None or lag == 0 or not self._lagged:
+        lagged = getattr(self, "_lagged", None)  # a pipeline that relays weights solves nothing
+        if getattr(self, "_solver", None) is None or not lagged or lagged.maxlen == 1:
             return
+        lag = lagged.maxlen - 1
         pending = list(self._lagged)[-min(len(self._lagged), lag):]
         pad_valid = np.zeros(len(pending[-1][0].valid), bool)
         pad_target = np.zeros_like(pending[-1][4])
