@@ -31,20 +31,25 @@ class QuietShapes:
     def __init__(self, inner, m: int, keep: np.ndarray, held: np.ndarray, fill: Callable[[np.ndarray], np.ndarray],
                  reduced: bool) -> None:
         self.inner, self.m, self.keep, self.held, self.fill, self.reduced = inner, m, keep, held, fill, reduced
+        if hasattr(inner, "solve"):  # a streaming-only mode stays streaming-only (callers test hasattr)
+            self.solve = self._solve
 
     def _full(self, W: np.ndarray) -> np.ndarray:
         W = np.asarray(W, dtype=float)
         kept = W[..., self.keep] if not self.reduced else W
-        out = np.zeros((*W.shape[:-1], self.m))
+        out = np.empty((*W.shape[:-1], self.m))
         out[..., self.keep] = kept
         out[..., self.held] = self.fill(kept)
         return out
 
-    def __getattr__(self, name: str):
-        attr = getattr(self.inner, name)
-        if name in ("step", "solve"):
-            return lambda *a, **k: self._full(attr(*a, **k))
-        return attr
+    def step(self, *args, **kwargs) -> np.ndarray:
+        return self._full(self.inner.step(*args, **kwargs))
+
+    def _solve(self, *args, **kwargs) -> np.ndarray:
+        return self._full(self.inner.solve(*args, **kwargs))
+
+    def __getattr__(self, name: str):  # latency_frames, edit, reset ... of the inner mode
+        return getattr(self.inner, name)
 
 
 def _fill(profile: Profile, keep: np.ndarray, held: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:

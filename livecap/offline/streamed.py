@@ -41,9 +41,9 @@ class Streamed:
 
 
 def stream_take(take: Take, profile: Profile, mode: str, options: dict | None = None) -> Streamed:
-    """``take`` fed frame by frame to the live pipeline. Frames it publishes nothing for (the last ``latency``
-    frames at the end of the stream, a frame the solver failed on) hold the previous published weights, as a
-    live sink would."""
+    """``take`` fed frame by frame to the live pipeline (which drains a lagged mode's last frames at the end). A
+    frame it publishes nothing for (one the solver failed on) holds the previous published weights, as a live sink
+    would."""
     sink = _Collect()
     pipe = Pipeline(take.select(profile.labels).frames(), [sink], profile=profile, rate=take.rate, mode=mode,
                     options=options)
