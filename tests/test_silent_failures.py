@@ -59,10 +59,8 @@ def test_calibrate_refuses_coincident_sites_and_an_exploding_fit(demo):
 
 
 @pytest.fixture(scope="module")
-def profile(tmp_path_factory):
-    out = tmp_path_factory.mktemp("p") / "actor.npz"
-    assert main(["calibrate", NEUTRAL, "--rig", RIG, "--out", str(out)]) == 0
-    return out
+def profile(demo_profile_path):
+    return demo_profile_path
 
 
 def test_solve_with_a_profile_refuses_another_rig(profile, tmp_path, capsys):
