@@ -9,8 +9,14 @@ from pathlib import Path
 import numpy as np
 
 from livecap.calibration.profile import WARPS, Profile, estimate_neutral
-from livecap.cli.common import add_noise_argument, add_rig_arguments, load_rig, progress_bar, tune_on_take
-from livecap.cli.markers import parse_span
+from livecap.cli.common import (
+    add_noise_argument,
+    add_rig_arguments,
+    load_rig,
+    parse_span,
+    progress_bar,
+    tune_on_take,
+)
 from livecap.cli.progress import stage
 from livecap.modes.registry import DEFAULT_MODE, MODES_AND_AUTO, resolve_mode
 from livecap.modes.robust import ROBUST_MODES

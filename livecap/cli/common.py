@@ -82,6 +82,18 @@ def saved_profile(args: argparse.Namespace, take: Take) -> Profile:
     return _given_noise(args, profile)
 
 
+def parse_span(text: str, rate: float, n_frames: int) -> tuple[int, int]:
+    """'START:END' seconds -> frames (start, stop), checked against the take."""
+    try:
+        a, b = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise ValueError(f"--span: expected START:END in seconds, got {text!r}") from None
+    start, stop = int(round(a * rate)), int(round(b * rate))
+    if not 0 <= start < stop <= n_frames:
+        raise ValueError(f"--span {text}: outside the take's 0:{n_frames / rate:g} s or empty")
+    return start, stop
+
+
 def solver_options(args: argparse.Namespace) -> dict:
     """Options common to every mode; unset flags are left out so modes keep their defaults."""
     ridge = getattr(args, "ridge", None)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from livecap.cli.common import markers_path
+from livecap.cli.common import markers_path, parse_span
 
 
 def register(sub) -> None:
@@ -29,18 +29,6 @@ def register(sub) -> None:
     b.add_argument("--no-names", action="store_true", help="ignore marker names (geometry only)")
     b.set_defaults(func=run_bind)
     p.set_defaults(func=lambda args: p.print_help() or 2)
-
-
-def parse_span(text: str, rate: float, n_frames: int) -> tuple[int, int]:
-    """'START:END' seconds -> frames (start, stop), checked against the take."""
-    try:
-        a, b = (float(x) for x in text.split(":"))
-    except ValueError:
-        raise ValueError(f"--span: expected START:END in seconds, got {text!r}") from None
-    start, stop = int(round(a * rate)), int(round(b * rate))
-    if not 0 <= start < stop <= n_frames:
-        raise ValueError(f"--span {text}: outside the take's 0:{n_frames / rate:g} s or empty")
-    return start, stop
 
 
 def run_bind(args: argparse.Namespace) -> int:
