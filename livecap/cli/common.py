@@ -19,6 +19,14 @@ def load_rig(args: argparse.Namespace) -> tuple[Rig, MarkerLayout]:
     return load_rig_layout(args.rig, getattr(args, "markers", None))
 
 
+def command_group(sub, name: str, help: str):
+    """A command with subcommands (``livecap rig import``, ``livecap markers bind``): the subparsers to add them
+    to; the command alone prints its help and exits 2."""
+    p = sub.add_parser(name, help=help)
+    p.set_defaults(func=lambda args: p.print_help() or 2)
+    return p.add_subparsers(dest=f"{name}_command", metavar=f"{name.upper()}_COMMAND")
+
+
 def add_rig_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", required=True, help="rig: OBJ folder (neutral.obj + one OBJ per shape), .npz, "
                    "glTF/GLB, VRM or USD (docs/rigs.md)")
