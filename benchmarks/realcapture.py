@@ -63,12 +63,12 @@ def run_mismatch(curves: str, modes: list[str], seconds: float = 20.0) -> list[d
     """The MakeHuman head performing ``curves`` (a performance in realdata/performance), bound to ICT: the same
     figures, plus the weight RMSE and phantom activity against the driving curves."""
     from livecap.calibration.profile import calibrate, estimate_neutral
-    from livecap.cli.common import tune_on_take
     from livecap.cli.realeval import _realdata
     from livecap.core.markers import MarkerLayout
     from livecap.core.rig import Rig
     from livecap.demo.mismatch_take import MismatchSettings, mismatch_take
     from livecap.modes.registry import build_solver, resolve_mode
+    from livecap.offline.setup import tune_on_take
     from livecap.offline.solve import solve_take
     from transport.arkit import load_mapping
 
@@ -77,10 +77,10 @@ def run_mismatch(curves: str, modes: list[str], seconds: float = 20.0) -> list[d
     mapping = load_mapping(Path(__file__).resolve().parents[1] / "examples" / "makehuman_arkit.json")
     mt = mismatch_take(mh, ict, MarkerLayout.load(real / "ict-face" / "markers.json", ict),
                        real / "performance" / f"{curves}.csv", mapping, MismatchSettings(seconds=seconds, start=10.0))
+    profile = calibrate(ict, mt.layout, estimate_neutral(mt.neutral.select(mt.layout.labels), mt.layout.stable))
+    tuned = tune_on_take(profile, mt.take)  # once: no solver changes the profile
     rows = []
     for mode in modes:
-        profile = calibrate(ict, mt.layout, estimate_neutral(mt.neutral.select(mt.layout.labels), mt.layout.stable))
-        tuned = tune_on_take(profile, mt.take)
         solved = solve_take(mt.take, profile, build_solver(mode, profile, {}))
         rest = mt.weights < 0.01
         rows.append({"take": f"{curves} (MakeHuman -> ICT)", "mode": resolve_mode(mode, profile),
@@ -93,11 +93,11 @@ def run_mismatch(curves: str, modes: list[str], seconds: float = 20.0) -> list[d
 
 def run_take(name: str, modes: list[str]) -> list[dict]:
     from livecap.calibration.profile import calibrate, estimate_neutral
-    from livecap.cli.common import tune_on_take
     from livecap.cli.realeval import _realdata
     from livecap.core.markers import MarkerLayout
     from livecap.core.rig import Rig
     from livecap.modes.registry import build_solver, resolve_mode
+    from livecap.offline.setup import tune_on_take
     from livecap.offline.solve import solve_take
     from livecap.transfer.bind import bind_capture
     from transport.takefile import read_take
@@ -110,10 +110,10 @@ def run_take(name: str, modes: list[str]) -> list[dict]:
     layout = bind_capture(take, rig, MarkerLayout.load(ict / "markers.json", rig)).layout(rig)
     sel = take.select(layout.labels)
     second = int(round(take.rate))
+    profile = calibrate(rig, layout, estimate_neutral(sel, layout.stable, second))
+    tuned = tune_on_take(profile, take)  # once: no solver changes the profile
     rows = []
     for mode in modes:
-        profile = calibrate(rig, layout, estimate_neutral(sel, layout.stable, second))
-        tuned = tune_on_take(profile, take)
         solver = build_solver(mode, profile, {})
         t0 = time.perf_counter()
         solved = solve_take(take, profile, solver)

@@ -41,6 +41,18 @@ def demo():
 
 
 @pytest.fixture(scope="session")
+def demo_profile_path(tmp_path_factory) -> Path:
+    """``livecap calibrate recordings/demo_neutral.c3d --rig recordings/demo_rig.npz`` (no other flag), run once:
+    the profile file. Each test loads its own copy (Profile.load), so none sees another's changes."""
+    from livecap.cli import main
+
+    out = tmp_path_factory.mktemp("demo-profile") / "actor.npz"
+    assert main(["calibrate", str(ROOT / "recordings" / "demo_neutral.c3d"),
+                 "--rig", str(ROOT / "recordings" / "demo_rig.npz"), "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
 def ict():
     """The real ICT-FaceKit rig from ../shared (skipped when that folder is absent)."""
     if not (ICT / "neutral.obj").exists():

@@ -132,7 +132,7 @@ def test_cli_writes_a_layout_that_calibration_reads(tmp_path):
     assert "neutral span 0.50-1.20 s" in proc.stdout and "Mouth_Lend" in proc.stdout
     data = json.loads(out.read_text())
     assert all("triangle" in m and "distance_mm" in m for m in data["markers"])
-    rig = Rig.load(ICT)
+    rig = _ict_rig()
     lay = MarkerLayout.load(out, rig)
     assert lay.n_markers == 41 and 4 <= lay.stable.sum() < 20
     bad = subprocess.run([sys.executable, "-m", "livecap", "markers", "bind", str(ANIMFACE / "CheeksMoCap.c3d"),

@@ -16,11 +16,9 @@ RIG = str(REC / "demo_rig.npz")
 
 
 @pytest.fixture(scope="module")
-def profile_path(tmp_path_factory):
+def profile_path(demo_profile_path):
     """The profile docs/calibration.md's first command writes: ``calibrate`` with no --tune."""
-    out = tmp_path_factory.mktemp("cal") / "actor.npz"
-    assert main(["calibrate", str(REC / "demo_neutral.c3d"), "--rig", RIG, "--out", str(out)]) == 0
-    return str(out)
+    return str(demo_profile_path)
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,6 @@ import pytest
 
 from livecap.calibration.animation_prior import AnimationPrior
 from livecap.calibration.profile import Profile
-from livecap.cli import main
 from livecap.modes.movement import movement_settings
 from livecap.modes.registry import build_solver
 from livecap.offline.solve import solve_take
@@ -21,11 +20,8 @@ REC = Path(__file__).resolve().parents[1] / "recordings"
 
 
 @pytest.fixture(scope="module")
-def profile(tmp_path_factory):
-    out = tmp_path_factory.mktemp("cal") / "actor.npz"
-    assert main(["calibrate", str(REC / "demo_neutral.c3d"), "--rig", str(REC / "demo_rig.npz"),
-                 "--out", str(out)]) == 0
-    p = Profile.load(out)
+def profile(demo_profile_path):
+    p = Profile.load(demo_profile_path)
     m = len(p.names)
     rng = np.random.default_rng(0)
     A = rng.normal(size=(m, m)) * 0.05

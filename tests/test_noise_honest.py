@@ -21,10 +21,8 @@ RIG = str(REC / "demo_rig.npz")
 
 
 @pytest.fixture(scope="module")
-def profile_path(tmp_path_factory):
-    out = tmp_path_factory.mktemp("cal") / "actor.npz"
-    assert main(["calibrate", str(REC / "demo_neutral.c3d"), "--rig", RIG, "--out", str(out)]) == 0
-    return out
+def profile_path(demo_profile_path):
+    return demo_profile_path
 
 
 @settings(max_examples=10, deadline=None)

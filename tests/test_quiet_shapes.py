@@ -10,7 +10,6 @@ import pytest
 
 from livecap.calibration.animation_prior import AnimationPrior
 from livecap.calibration.profile import Profile
-from livecap.cli import main
 from livecap.modes.registry import build_solver
 from livecap.modes.robust import override_noise
 from livecap.offline.solve import solve_take
@@ -21,12 +20,9 @@ REC = Path(__file__).resolve().parents[1] / "recordings"
 
 
 @pytest.fixture(scope="module")
-def noisy_profile(tmp_path_factory):
+def noisy_profile(demo_profile_path):
     """The demo actor, its markers trusted at 2 mm (as a capture whose rig misses the face by that much)."""
-    out = tmp_path_factory.mktemp("cal") / "actor.npz"
-    assert main(["calibrate", str(REC / "demo_neutral.c3d"), "--rig", str(REC / "demo_rig.npz"),
-                 "--out", str(out)]) == 0
-    p = Profile.load(out)
+    p = Profile.load(demo_profile_path)
     override_noise(p, 2.0)
     return p
 

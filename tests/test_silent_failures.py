@@ -25,13 +25,23 @@ def _one_error_line(capsys) -> str:
     return err
 
 
+def _write_layout(tmp_path, name: str, data: dict) -> str:
+    path = tmp_path / name
+    path.write_text(json.dumps(data))
+    return str(path)
+
+
+def _solve(profile, tmp_path, rig: str = RIG, markers: str | None = None) -> int:
+    """``livecap solve`` of the demo take with ``--profile`` (and ``--markers`` when given): its exit code."""
+    return main(["solve", TAKE, "--profile", str(profile), "--rig", str(rig),
+                 *(["--markers", markers] if markers else []), "--out", str(tmp_path / "w.csv")])
+
+
 def _dup_layout(tmp_path) -> tuple[str, str, str]:
     data = json.loads(open(LAYOUT).read())
     a, b = data["markers"][3], data["markers"][4]
     a["vertex"] = b["vertex"]
-    path = tmp_path / "dup.json"
-    path.write_text(json.dumps(data))
-    return str(path), a["label"], b["label"]
+    return _write_layout(tmp_path, "dup.json", data), a["label"], b["label"]
 
 
 def test_two_markers_on_one_vertex_is_an_error_naming_file_and_labels(tmp_path, capsys):
@@ -59,10 +69,8 @@ def test_calibrate_refuses_coincident_sites_and_an_exploding_fit(demo):
 
 
 @pytest.fixture(scope="module")
-def profile(tmp_path_factory):
-    out = tmp_path_factory.mktemp("p") / "actor.npz"
-    assert main(["calibrate", NEUTRAL, "--rig", RIG, "--out", str(out)]) == 0
-    return out
+def profile(demo_profile_path):
+    return demo_profile_path
 
 
 def test_solve_with_a_profile_refuses_another_rig(profile, tmp_path, capsys):
@@ -72,24 +80,21 @@ def test_solve_with_a_profile_refuses_another_rig(profile, tmp_path, capsys):
     other = tmp_path / "other.npz"
     moved.save(other)
     capsys.readouterr()
-    assert main(["solve", TAKE, "--profile", str(profile), "--rig", str(other), "--out", str(tmp_path / "w.csv")]) == 1
+    assert _solve(profile, tmp_path, rig=str(other)) == 1
     err = _one_error_line(capsys)
     assert str(profile) in err and str(other) in err and "calibrated against rig" in err
-    assert main(["solve", TAKE, "--profile", str(profile), "--rig", RIG, "--out", str(tmp_path / "w.csv")]) == 0
+    assert _solve(profile, tmp_path) == 0
 
 
 def test_solve_with_a_profile_refuses_other_markers(profile, tmp_path, capsys):
     data = json.loads(open(LAYOUT).read())
     data["markers"] = data["markers"][:-3]
-    fewer = tmp_path / "fewer.json"
-    fewer.write_text(json.dumps(data))
+    fewer = _write_layout(tmp_path, "fewer.json", data)
     capsys.readouterr()
-    assert main(["solve", TAKE, "--profile", str(profile), "--rig", RIG, "--markers", str(fewer),
-                 "--out", str(tmp_path / "w.csv")]) == 1
+    assert _solve(profile, tmp_path, markers=fewer) == 1
     err = _one_error_line(capsys)
     assert str(fewer) in err and "calibrated with" in err
-    assert main(["solve", TAKE, "--profile", str(profile), "--rig", RIG, "--markers", LAYOUT,
-                 "--out", str(tmp_path / "w.csv")]) == 0
+    assert _solve(profile, tmp_path, markers=LAYOUT) == 0
 
 
 def test_calibrate_span_takes_the_neutral_from_seconds_inside_the_take(tmp_path, capsys):
@@ -128,10 +133,8 @@ def test_solve_with_a_profile_refuses_markers_bound_elsewhere(profile, tmp_path,
     data = json.loads(open(LAYOUT).read())
     used = {m["vertex"] for m in data["markers"]}
     data["markers"][2]["vertex"] = next(v for v in range(10_000) if v not in used)
-    moved = tmp_path / "moved.json"
-    moved.write_text(json.dumps(data))
+    moved = _write_layout(tmp_path, "moved.json", data)
     capsys.readouterr()
-    assert main(["solve", TAKE, "--profile", str(profile), "--rig", RIG, "--markers", str(moved),
-                 "--out", str(tmp_path / "w.csv")]) == 1
+    assert _solve(profile, tmp_path, markers=moved) == 1
     err = _one_error_line(capsys)
     assert str(moved) in err and data["markers"][2]["label"] in err and "other sites" in err

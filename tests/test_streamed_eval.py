@@ -17,11 +17,8 @@ REC = Path(__file__).resolve().parents[1] / "recordings"
 
 
 @pytest.fixture(scope="module")
-def profile(tmp_path_factory):
-    out = tmp_path_factory.mktemp("cal") / "actor.npz"
-    assert main(["calibrate", str(REC / "demo_neutral.c3d"), "--rig", str(REC / "demo_rig.npz"),
-                 "--out", str(out)]) == 0
-    return Profile.load(out)
+def profile(demo_profile_path):
+    return Profile.load(demo_profile_path)
 
 
 @pytest.mark.parametrize("mode", ["kalman", "robust", "robust-lag"])

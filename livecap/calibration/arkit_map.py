@@ -20,10 +20,10 @@ def arkit_to_rig(names: list[str], mapping: dict | None = None) -> np.ndarray:
     A = match_names(ARKIT_NAMES, names).matrix()
     if mapping:
         M = arkit_matrix(names, mapping) > 0  # validates the file's names
-        mapped = {ARKIT_NAMES.index(a) for a in (k for k in ARKIT_NAMES if k.lower() in
-                                                 {str(x).lower() for x in mapping})}
-        for j in np.where(M[sorted(mapped)].any(0))[0]:
-            cols = [i for i in sorted(mapped) if M[i, j]]
+        keys = {str(x).lower() for x in mapping}
+        mapped = [i for i, a in enumerate(ARKIT_NAMES) if a.lower() in keys]
+        for j in np.where(M[mapped].any(0))[0]:
+            cols = [i for i in mapped if M[i, j]]
             A[j] = 0.0
             A[j, cols] = 1.0 / len(cols)
     return A

@@ -9,8 +9,14 @@ from pathlib import Path
 import numpy as np
 
 from livecap.calibration.profile import WARPS, Profile, estimate_neutral
-from livecap.cli.common import add_noise_argument, add_rig_arguments, load_rig, progress_bar, tune_on_take
-from livecap.cli.markers import parse_span
+from livecap.cli.common import (
+    add_noise_argument,
+    add_rig_arguments,
+    load_rig,
+    parse_span,
+    progress_bar,
+    tune_on_take,
+)
 from livecap.cli.progress import stage
 from livecap.modes.registry import DEFAULT_MODE, MODES_AND_AUTO, resolve_mode
 from livecap.modes.robust import ROBUST_MODES
@@ -78,7 +84,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     sel = take.select(layout.labels)
     if span is not None:
         sel = sel.slice(*span)
-    frames = max(1, int(round(args.seconds * take.rate))) if args.seconds else None
+    frames = profile.settings["neutral_frames"]  # what calibrate_neutral averaged over (--seconds, else all of sel)
     tune_path = args.tune or args.neutral  # every profile carries the noise estimate every mode needs
     with stage(f"tuning on {tune_path}"):
         tuned = tune_on_take(profile, read_take(args.tune) if args.tune else take, args.noise_mm)
@@ -89,7 +95,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     profile.save(args.out)
     local, _, _ = profile.stabiliser().stabilise(sel.positions[:frames], sel.valid[:frames])
     spread = np.linalg.norm(local - profile.source_neutral, axis=2)[sel.valid[:frames]]
-    print(f"neutral   {args.neutral}: {frames or sel.n_frames} frames, {layout.n_markers} markers "
+    print(f"neutral   {args.neutral}: {frames} frames, {layout.n_markers} markers "
           f"({int(layout.stable.sum())} stable), spread about the neutral {np.sqrt(np.mean(spread ** 2)):.3f} mm RMS")
     print(f"warp      {args.warp}: overall scale {profile.settings['scale']:.4f}, "
           f"fit at the markers {profile.settings['warp_fit_rms_mm']:.2e} mm RMS")

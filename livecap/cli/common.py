@@ -19,6 +19,14 @@ def load_rig(args: argparse.Namespace) -> tuple[Rig, MarkerLayout]:
     return load_rig_layout(args.rig, getattr(args, "markers", None))
 
 
+def command_group(sub, name: str, help: str):
+    """A command with subcommands (``livecap rig import``, ``livecap markers bind``): the subparsers to add them
+    to; the command alone prints its help and exits 2."""
+    p = sub.add_parser(name, help=help)
+    p.set_defaults(func=lambda args: p.print_help() or 2)
+    return p.add_subparsers(dest=f"{name}_command", metavar=f"{name.upper()}_COMMAND")
+
+
 def add_rig_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", required=True, help="rig: OBJ folder (neutral.obj + one OBJ per shape), .npz, "
                    "glTF/GLB, VRM or USD (docs/rigs.md)")
@@ -80,6 +88,18 @@ def saved_profile(args: argparse.Namespace, take: Take) -> Profile:
     if getattr(args, "markers", None):
         check_layout_labels(profile, args.markers, args.profile, mesh)
     return _given_noise(args, profile)
+
+
+def parse_span(text: str, rate: float, n_frames: int) -> tuple[int, int]:
+    """'START:END' seconds -> frames (start, stop), checked against the take."""
+    try:
+        a, b = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise ValueError(f"--span: expected START:END in seconds, got {text!r}") from None
+    start, stop = int(round(a * rate)), int(round(b * rate))
+    if not 0 <= start < stop <= n_frames:
+        raise ValueError(f"--span {text}: outside the take's 0:{n_frames / rate:g} s or empty")
+    return start, stop
 
 
 def solver_options(args: argparse.Namespace) -> dict:

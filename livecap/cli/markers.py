@@ -8,12 +8,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from livecap.cli.common import markers_path
+from livecap.cli.common import command_group, markers_path, parse_span
 
 
 def register(sub) -> None:
-    p = sub.add_parser("markers", help="marker layouts (bind a capture's markers to a rig)")
-    msub = p.add_subparsers(dest="markers_command", metavar="MARKERS_COMMAND")
+    msub = command_group(sub, "markers", "marker layouts (bind a capture's markers to a rig)")
     b = msub.add_parser(
         "bind", help="place every marker of a capture on a rig's surface (writes markers.json)",
         description="From a near-neutral span of a capture and the rig alone, bind each marker to a triangle of the "
@@ -28,19 +27,6 @@ def register(sub) -> None:
                    "stable set) there instead of over TAKE")
     b.add_argument("--no-names", action="store_true", help="ignore marker names (geometry only)")
     b.set_defaults(func=run_bind)
-    p.set_defaults(func=lambda args: p.print_help() or 2)
-
-
-def parse_span(text: str, rate: float, n_frames: int) -> tuple[int, int]:
-    """'START:END' seconds -> frames (start, stop), checked against the take."""
-    try:
-        a, b = (float(x) for x in text.split(":"))
-    except ValueError:
-        raise ValueError(f"--span: expected START:END in seconds, got {text!r}") from None
-    start, stop = int(round(a * rate)), int(round(b * rate))
-    if not 0 <= start < stop <= n_frames:
-        raise ValueError(f"--span {text}: outside the take's 0:{n_frames / rate:g} s or empty")
-    return start, stop
 
 
 def run_bind(args: argparse.Namespace) -> int:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.cli.common import markers_path, progress_bar
+from livecap.cli.common import command_group, markers_path, progress_bar
 from livecap.core.markers import MarkerLayout
 from livecap.core.objfile import read_obj
 from livecap.core.rig import Rig
@@ -23,8 +23,7 @@ from transport.rig_files import load_rig as load_rig_file
 
 
 def register(sub) -> None:
-    p = sub.add_parser("rig", help="rig tools (import a glTF/VRM/USD rig, transfer a rig to a new face)")
-    rsub = p.add_subparsers(dest="rig_command", metavar="RIG_COMMAND")
+    rsub = command_group(sub, "rig", "rig tools (import a glTF/VRM/USD rig, transfer a rig to a new face)")
     i = rsub.add_parser(
         "import", help="read a glTF/GLB, VRM 0.x/1.0 or USD rig (blend shapes) as a livecap rig",
         description="Read the face mesh and its morph targets (glTF, VRM) or UsdSkel blend shapes (USD) of a "
@@ -77,7 +76,6 @@ def register(sub) -> None:
     t.add_argument("--check-against", metavar="MARKERS_JSON",
                    help="markers.json of the new face (its vertex indices): print per-landmark distances to it")
     t.set_defaults(func=run_transfer)
-    p.set_defaults(func=lambda args: p.print_help() or 2)
 
 
 def run_import(args: argparse.Namespace) -> int:

@@ -20,10 +20,11 @@ from pathlib import Path
 import numpy as np
 from scipy.signal import butter, filtfilt
 
+from livecap.calibration.arkit_map import arkit_to_rig
 from livecap.core.markers import MarkerLayout
 from livecap.core.rig import Rig
 from livecap.core.take import Take
-from livecap.demo.curves_take import _bursts, arkit_to_rig
+from livecap.demo.curves_take import _bursts
 from livecap.demo.performance import head_motion
 from livecap.transfer.bind import BindResult, _icp, _starts, bind_capture
 from livecap.transfer.surface import Surface
@@ -82,7 +83,9 @@ def actor_sites(actor: Rig, target: Rig, target_layout: MarkerLayout, s: Mismatc
     return layout, offset
 
 
-def _capture(markers: np.ndarray, s: MismatchSettings, rng: np.random.Generator, occlusion: float) -> Take:
+def _capture(markers: np.ndarray, s: MismatchSettings, rng: np.random.Generator,
+             occlusion: float) -> tuple[np.ndarray, np.ndarray]:
+    """``markers`` (T x n x 3, head frame) as captured: (positions, valid)."""
     from scipy.spatial.transform import Rotation
 
     quat, trans = head_motion(len(markers), s.rate, s.head_degrees, s.head_mm, rng)

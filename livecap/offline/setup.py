@@ -8,6 +8,7 @@ from pathlib import Path
 
 from livecap.calibration.animation_prior import AnimationPrior
 from livecap.calibration.profile import Profile, calibrate, estimate_neutral
+from livecap.calibration.targets import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS, prepare_targets
 from livecap.core.markers import MarkerLayout
 from livecap.core.rig import Rig
 from livecap.core.take import Take
@@ -44,7 +45,6 @@ def tune_on_take(profile: Profile, take: Take, noise_mm: float | None = None) ->
     """Select the profile's noise level and regularisation from ``take`` (livecap.modes.robust.tune_profile);
     ``noise_mm`` overrides the measured noise."""
     from livecap.modes.robust import tune_profile
-    from livecap.offline.solve import prepare_targets
 
     sel, targets, _, _ = prepare_targets(take, profile)
     return tune_profile(profile, targets, sel.valid, take.rate, noise_mm)
@@ -71,8 +71,6 @@ def calibrate_neutral(rig: Rig, layout: MarkerLayout, take: Take, *, take_path: 
     or over frames ``span`` = (first, end), the proportion warp, the basis and the animation prior.
     Raises ValueError naming the take for markers
     it never sees, and naming the prior for one of other shapes."""
-    from livecap.offline.solve import DEFAULT_MAX_GAP_SECONDS, DEFAULT_POSE_SMOOTHING_SECONDS
-
     check_labels(take, layout.labels, take_path, rig_path)
     sel = take.select(layout.labels)
     absent = [lab for lab, seen in zip(layout.labels, sel.valid.any(0), strict=True) if not seen]
