@@ -49,6 +49,8 @@ while True:
 
 
 def real_packets() -> list[bytes]:
+    """The LLV recording: gzip of u8 version, u32 count, then count x (u32 size, packet); big-endian.
+    A ValueError unless its packets account for every byte (tests/test_iphone.py reads it here too)."""
     data = gzip.open(PACKETS).read()
     (count,) = struct.unpack_from(">I", data, 1)
     out, i = [], 5
@@ -56,6 +58,8 @@ def real_packets() -> list[bytes]:
         (size,) = struct.unpack_from(">I", data, i)
         out.append(data[i + 4:i + 4 + size])
         i += 4 + size
+    if i != len(data):
+        raise ValueError(f"{PACKETS}: {count} packets end at byte {i}, the file has {len(data)}")
     return out
 
 

@@ -144,12 +144,10 @@ def write_gltf(path: Path, rig: ObjRig, vrm: int | None = None, sparse: bool = F
                  g.Node(name="FaceNode", mesh=2), g.Node(name="TeethNode", mesh=1)]
     doc.scenes = [g.Scene(nodes=[0])]
     if skinned:
-        arm, head, jaw = _bones()["armature_trs"], _bones()["head_trs"], _bones()["jaw_trs"]
-        doc.nodes += [g.Node(name="Armature", children=[6, 7], **arm), g.Node(name="HeadBone", **head),
-                      g.Node(name="JawBone", **jaw)]
+        doc.nodes += [g.Node(name="Armature", children=[6, 7], **bones["armature_trs"]),
+                      g.Node(name="HeadBone", **bones["head_trs"]), g.Node(name="JawBone", **bones["jaw_trs"])]
         doc.nodes[0].children.append(5)
-        b = _bones()
-        ibm = np.stack([np.eye(4), np.linalg.inv(b["jaw"]) @ b["head"]])
+        ibm = np.stack([np.eye(4), np.linalg.inv(bones["jaw"]) @ bones["head"]])
         doc.skins = [g.Skin(joints=[6, 7], inverseBindMatrices=blob.accessor(
             ibm.transpose(0, 2, 1).reshape(2, 16), g.MAT4))]
         doc.nodes[3].skin = 0

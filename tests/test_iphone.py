@@ -6,7 +6,6 @@ docs/protocol.md) as a receiver would."""
 from __future__ import annotations
 
 import csv
-import gzip
 import re
 import socket
 import struct
@@ -22,32 +21,23 @@ from pylivelinkface import FaceBlendShape, PyLiveLinkFace
 from pythonosc.osc_bundle import OscBundle
 from scipy.spatial.transform import Rotation
 
+from benchmarks.iphone_latency import PACKETS
+from benchmarks.iphone_latency import real_packets as llv_packets
 from livecap.core.eyes import EYE_PITCH, EYE_YAW
 from livecap.core.headpose import NeutralPose
 from livecap.core.result import SolveResult
-from tests.conftest import SHARED
 from transport.arkit import POSE_NAMES, head_angles
 from transport.livelink import LiveLinkSink, encode_livelink
 from transport.livelink_source import LiveLinkFaceSource, decode_livelink, head_quaternion
 from transport.recorders import CsvRecorder
 from transport.vmc import PERFECT_SYNC_NAMES, VmcSink
 
-PACKETS = SHARED / "realdata" / "performance" / "dao.gesichter"
-
 
 def real_packets() -> list[bytes]:
-    """The LLV recording: gzip of u8 version, u32 count, then count x (u32 size, packet); big-endian."""
+    """The LLV recording's packets (every byte accounted for: benchmarks.iphone_latency.real_packets)."""
     if not PACKETS.exists():
         pytest.skip(f"{PACKETS} not present (real Live Link Face packets, ../shared/realdata)")
-    data = gzip.open(PACKETS).read()
-    (count,) = struct.unpack_from(">I", data, 1)
-    out, i = [], 5
-    for _ in range(count):
-        (size,) = struct.unpack_from(">I", data, i)
-        out.append(data[i + 4:i + 4 + size])
-        i += 4 + size
-    assert i == len(data)
-    return out
+    return llv_packets()
 
 
 def test_real_packets_decode_with_their_angles():

@@ -156,7 +156,16 @@ def test_a_rig_named_by_the_vrms_expressions_sends_its_clips_over_vmc_and_animat
     np.testing.assert_allclose(keys[:, perf.names.index("jawOpen")], weights[:, names.index("JawOpen")], atol=1e-6)
 
 
-def test_the_solves_head_rotation_turns_the_vrms_head_bone(avatar, tmp_path):
+@pytest.fixture(scope="module")
+def solved_glb(avatar, tmp_path_factory) -> Path:
+    """``livecap solve take.c3d --rig avatar.vrm --out take.glb``: one solve for the tests that animate it."""
+    vrm, take, _ = avatar
+    out = tmp_path_factory.mktemp("solved") / "take.glb"
+    livecap("solve", take, "--rig", vrm, "--out", out)
+    return out
+
+
+def test_the_solves_head_rotation_turns_the_vrms_head_bone(avatar, solved_glb, tmp_path):
     """``solve --out take.glb`` then ``rig animate avatar.vrm --weights take.glb``: three.js plays the VRM 0's
     head bone turned as the actor's head turned (truth, relative to the neutral second) within 2 degrees, the
     VRM's -Z facing and the bone's rest rotation undone."""
@@ -164,9 +173,8 @@ def test_the_solves_head_rotation_turns_the_vrms_head_bone(avatar, tmp_path):
 
     from tests.rig_writers import PARENT_Q
 
-    vrm, take, perf = avatar
-    livecap("solve", take, "--rig", vrm, "--out", tmp_path / "take.glb")
-    done = livecap("rig", "animate", vrm, "--weights", tmp_path / "take.glb", "--out", tmp_path / "out.vrm")
+    vrm, _, perf = avatar
+    done = livecap("rig", "animate", vrm, "--weights", solved_glb, "--out", tmp_path / "out.vrm")
     assert "and the head bone" in done.stdout
     assert validate(tmp_path / "out.vrm")["issues"]["numErrors"] == 0
     node = shutil.which("node")
@@ -193,7 +201,7 @@ def _vrm_tools() -> str:
     return node
 
 
-def test_a_vrm_runtime_resets_a_weights_animation_but_plays_the_vrma(avatar, tmp_path):
+def test_a_vrm_runtime_resets_a_weights_animation_but_plays_the_vrma(avatar, solved_glb, tmp_path):
     """three-vrm (@pixiv/three-vrm, the VRM runtime of three.js apps) reads the avatar's expressions as the
     importer does; it resets the morph targets they bind on every update, so the weights animation in the
     .vrm is lost there, while the .vrma (``rig animate --out take.vrma``) drives those expressions: the face's
@@ -201,10 +209,9 @@ def test_a_vrm_runtime_resets_a_weights_animation_but_plays_the_vrma(avatar, tmp
     from scipy.spatial.transform import Rotation
 
     node = _vrm_tools()
-    vrm, take, perf = avatar
-    livecap("solve", take, "--rig", vrm, "--out", tmp_path / "take.glb")
-    livecap("rig", "animate", vrm, "--weights", tmp_path / "take.glb", "--out", tmp_path / "out.vrm")
-    livecap("rig", "animate", vrm, "--weights", tmp_path / "take.glb", "--out", tmp_path / "take.vrma")
+    vrm, _, perf = avatar
+    livecap("rig", "animate", vrm, "--weights", solved_glb, "--out", tmp_path / "out.vrm")
+    livecap("rig", "animate", vrm, "--weights", solved_glb, "--out", tmp_path / "take.vrma")
     assert validate(tmp_path / "take.vrma")["issues"]["numErrors"] == 0
 
     def run(*args) -> dict:
@@ -223,7 +230,7 @@ def test_a_vrm_runtime_resets_a_weights_animation_but_plays_the_vrma(avatar, tmp
 
     from transport.rig_gltf_anim import read_solved_glb
 
-    names, times, weights, rotation = read_solved_glb(tmp_path / "take.glb")
+    names, times, weights, rotation = read_solved_glb(solved_glb)
     frames = [int(np.argmax(Rotation.from_quat(rotation).magnitude())), int(t * 120)]
     played = run(TOOL / "vrma_play.mjs", vrm, tmp_path / "take.vrma", *(times[f] for f in frames))
     keyed = [names.index(s) for s in ("jawOpen", "eyeBlink_L", "mouthSmile_L")]

@@ -27,12 +27,13 @@ _FLOAT = g.FLOAT
 _UINT = g.UNSIGNED_INT
 
 
-class _Blob:
-    """The GLB binary chunk, grown one 4-byte-aligned buffer view (with its accessor) at a time."""
+class Blob:
+    """The GLB binary chunk, grown one 4-byte-aligned buffer view (with its accessor) at a time, after
+    ``data`` (4-byte aligned) when given."""
 
-    def __init__(self, doc: g.GLTF2) -> None:
+    def __init__(self, doc: g.GLTF2, data: bytearray | None = None) -> None:
         self.doc = doc
-        self.data = bytearray()
+        self.data = bytearray() if data is None else data
 
     def add(self, array: np.ndarray, kind: str, component: int, target: int | None = None,
             bounds: bool = False) -> int:
@@ -101,7 +102,7 @@ def glb_bytes(rig: Rig, names: list[str], times: np.ndarray, weights: np.ndarray
     w = _check(rig, list(names), times, np.asarray(weights, dtype=np.float64), head_rotation, head_translation)
     doc = g.GLTF2(asset=g.Asset(generator="livecap", version="2.0"), scene=0, scenes=[g.Scene(nodes=[0])],
                   buffers=[], bufferViews=[], accessors=[])
-    blob = _Blob(doc)
+    blob = Blob(doc)
     positions = blob.add(rig.neutral / 1000.0, g.VEC3, _FLOAT, g.ARRAY_BUFFER, bounds=True)
     indices = blob.add(rig.triangles.reshape(-1), g.SCALAR, _UINT, g.ELEMENT_ARRAY_BUFFER)
     targets = [{"POSITION": blob.add(d / 1000.0, g.VEC3, _FLOAT, g.ARRAY_BUFFER, bounds=True)} for d in rig.deltas]

@@ -40,6 +40,7 @@ from transport.arkit import ARKIT_NAMES, arkit_eye_angles, arkit_matrix, head_an
 
 VERSION = 6
 N_VALUES = 61
+_EYE_ANGLES = np.array([55, 56, 58, 59])  # left eye yaw, pitch, right eye yaw, pitch (the rolls stay 0)
 DEFAULT_PORT = 11111
 
 
@@ -93,7 +94,7 @@ class LiveLinkSink:
         out[:52] = self._M @ np.asarray(result.weights, dtype=float)
         rotation, _ = self.neutral.relative(result.head_rotation, result.head_translation)
         out[52:55] = head_angles(rotation)
-        out[[55, 56, 58, 59]] = arkit_eye_angles(out[:52]).ravel()  # eye rolls stay 0
+        out[_EYE_ANGLES] = arkit_eye_angles(out[:52]).ravel()
         return out
 
     def publish(self, result) -> None:

@@ -90,6 +90,8 @@ def animate_gltf(source: str | Path, out: str | Path, imported: ImportedRig, nam
     ``head_rotation`` (T x 4, rig axes, relative to the neutral pose) turns a VRM's humanoid head bone."""
     import pygltflib as g
 
+    from transport.gltf import Blob
+
     source, out = Path(source), Path(out)
     if imported.node is None:
         raise RigError(f"{source}: mesh {imported.mesh!r} is on no node of the scene: nothing to animate")
@@ -119,22 +121,9 @@ def animate_gltf(source: str | Path, out: str | Path, imported: ImportedRig, nam
     for acc in doc.accessors or []:
         if acc.bufferView is None:  # pygltflib reads an absent byteOffset as 0, which needs a bufferView
             acc.byteOffset = None
-    blob = _pack(doc, buffers)
-
-    def accessor(array: np.ndarray, kind: str, bounds: bool) -> int:
-        raw = np.ascontiguousarray(array, dtype=np.float32)
-        blob.extend(b"\0" * (-len(blob) % 4))
-        doc.bufferViews.append(g.BufferView(buffer=0, byteOffset=len(blob), byteLength=raw.nbytes))
-        blob.extend(raw.tobytes())
-        acc = g.Accessor(bufferView=len(doc.bufferViews) - 1, componentType=g.FLOAT, count=len(raw), type=kind)
-        if bounds:
-            acc.min, acc.max = [float(raw.min())], [float(raw.max())]
-        doc.accessors.append(acc)
-        return len(doc.accessors) - 1
-
-    sampler = g.AnimationSampler(input=accessor(times, g.SCALAR, True), output=accessor(keys.reshape(-1), g.SCALAR,
-                                                                                        False),
-                                 interpolation=g.ANIM_LINEAR)
+    blob = Blob(doc, _pack(doc, buffers))
+    sampler = g.AnimationSampler(input=blob.add(times, g.SCALAR, g.FLOAT, bounds=True),
+                                 output=blob.add(keys.reshape(-1), g.SCALAR, g.FLOAT), interpolation=g.ANIM_LINEAR)
     samplers = [sampler]
     channels = [g.AnimationChannel(sampler=0, target=g.AnimationChannelTarget(node=imported.node, path=g.WEIGHTS))]
     if head_rotation is not None:
@@ -142,12 +131,11 @@ def animate_gltf(source: str | Path, out: str | Path, imported: ImportedRig, nam
         if head is None:
             raise RigError(f"{source}: no VRM humanoid head bone to turn (the head rotation needs a VRM)")
         keys_q = _head_keys(doc, head, head_rotation, imported.format == "VRM 0.x")
-        samplers.append(g.AnimationSampler(input=sampler.input, output=accessor(keys_q, g.VEC4, False),
+        samplers.append(g.AnimationSampler(input=sampler.input, output=blob.add(keys_q, g.VEC4, g.FLOAT),
                                            interpolation=g.ANIM_LINEAR))
         channels.append(g.AnimationChannel(sampler=1, target=g.AnimationChannelTarget(node=head, path=g.ROTATION)))
     doc.animations = [*(doc.animations or []), g.Animation(name=animation, samplers=samplers, channels=channels)]
-    blob.extend(b"\0" * (-len(blob) % 4))
-    doc.buffers = [g.Buffer(byteLength=len(blob))]
-    doc.set_binary_blob(bytes(blob))
+    doc.buffers = [g.Buffer(byteLength=len(blob.data))]
+    doc.set_binary_blob(bytes(blob.data))
     out.write_bytes(b"".join(doc.save_to_bytes()))
     return n_targets

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from livecap.core.headpose import hamilton
 from transport.arkit import ARKIT_NAMES, EYE_LOOK_INDEX, arkit_eye_angles
 
 BLINK_BOTH = "min(eyeBlinkLeft,eyeBlinkRight)"
@@ -107,12 +108,5 @@ def eye_rotations(arkit: np.ndarray, present: Sequence[bool]) -> tuple[np.ndarra
     for yaw, pitch in arkit_eye_angles(arkit):
         qy = np.array([0.0, np.sin(yaw / 2), 0.0, np.cos(yaw / 2)])
         qx = np.array([np.sin(pitch / 2), 0.0, 0.0, np.cos(pitch / 2)])
-        out.append(_hamilton(qy, qx))  # Unity's Euler order: yaw applied after pitch
+        out.append(hamilton(qy, qx))  # Unity's Euler order: yaw applied after pitch
     return out[0], out[1]
-
-
-def _hamilton(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz])

@@ -51,6 +51,8 @@ def vrma_bytes(imported: ImportedRig, vrm0_presets: dict[str, str], names: list[
     and the number of expressions it keys."""
     import pygltflib as g
 
+    from transport.gltf import Blob
+
     columns = expression_columns(imported, vrm0_presets)
     if not columns:
         raise RigError(f"mesh {imported.mesh!r}: no VRM expression drives one of its targets alone: a VRM "
@@ -67,24 +69,14 @@ def vrma_bytes(imported: ImportedRig, vrm0_presets: dict[str, str], names: list[
                  g.Node(name="head", translation=[0.0, 0.5, 0.0]),
                  g.Node(name="expressions", children=list(range(3, 3 + len(keyed))))]
     doc.nodes += [g.Node(name=e) for e in keyed]
-    blob = bytearray()
-
-    def accessor(array: np.ndarray, kind: str, bounds: bool = False) -> int:
-        raw = np.ascontiguousarray(array, dtype=np.float32)
-        doc.bufferViews.append(g.BufferView(buffer=0, byteOffset=len(blob), byteLength=raw.nbytes))
-        blob.extend(raw.tobytes())
-        acc = g.Accessor(bufferView=len(doc.bufferViews) - 1, componentType=g.FLOAT, count=len(raw), type=kind)
-        if bounds:
-            acc.min, acc.max = [float(raw.min())], [float(raw.max())]
-        doc.accessors.append(acc)
-        return len(doc.accessors) - 1
-
-    time_acc = accessor(times, g.SCALAR, True)
+    blob = Blob(doc)
+    time_acc = blob.add(times, g.SCALAR, g.FLOAT, bounds=True)
     samplers, channels = [], []
     for node, c in enumerate(keyed.values(), 3):
         xyz = np.zeros((len(times), 3))
         xyz[:, 0] = np.clip(np.nan_to_num(weights[:, c]), 0.0, 1.0)
-        samplers.append(g.AnimationSampler(input=time_acc, output=accessor(xyz, g.VEC3), interpolation=g.ANIM_LINEAR))
+        samplers.append(g.AnimationSampler(input=time_acc, output=blob.add(xyz, g.VEC3, g.FLOAT),
+                                           interpolation=g.ANIM_LINEAR))
         channels.append(g.AnimationChannel(sampler=len(samplers) - 1,
                                            target=g.AnimationChannelTarget(node=node, path=g.TRANSLATION)))
     ext: dict = {"specVersion": "1.0",
@@ -93,14 +85,15 @@ def vrma_bytes(imported: ImportedRig, vrm0_presets: dict[str, str], names: list[
            "humanoid": {"humanBones": {"hips": {"node": 0}, "head": {"node": 1}}}}
     if head_rotation is not None:
         q = np.asarray(head_rotation, dtype=np.float64)
-        samplers.append(g.AnimationSampler(input=time_acc, output=accessor(q / np.linalg.norm(q, axis=1)[:, None],
-                                                                           g.VEC4), interpolation=g.ANIM_LINEAR))
+        samplers.append(g.AnimationSampler(input=time_acc, output=blob.add(q / np.linalg.norm(q, axis=1)[:, None],
+                                                                           g.VEC4, g.FLOAT),
+                                           interpolation=g.ANIM_LINEAR))
         channels.append(g.AnimationChannel(sampler=len(samplers) - 1,
                                            target=g.AnimationChannelTarget(node=1, path=g.ROTATION)))
     doc.extensions = {"VRMC_vrm_animation": ext}
     doc.animations = [g.Animation(name="livecap", samplers=samplers, channels=channels)]
-    doc.buffers = [g.Buffer(byteLength=len(blob))]
-    doc.set_binary_blob(bytes(blob))
+    doc.buffers = [g.Buffer(byteLength=len(blob.data))]
+    doc.set_binary_blob(bytes(blob.data))
     return b"".join(doc.save_to_bytes()), len(keyed)
 
 

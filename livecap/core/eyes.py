@@ -15,11 +15,11 @@ import numpy as np
 EYE_YAW = np.radians(30.0)
 EYE_PITCH = np.radians(25.0)
 LOOKS = ("Out", "In", "Down", "Up")  # column order of :func:`eye_angles`' input
+_OUTWARD = np.array([-1.0, 1.0])  # the left eye looks out towards the subject's left
 
 
 def eye_angles(looks: np.ndarray, yaw: float = EYE_YAW, pitch: float = EYE_PITCH) -> np.ndarray:
     """2 x 2 (left, right) x (yaw, pitch) radians from ``looks``, 2 x 4 weights of eyeLook
     Out, In, Down, Up for the left and the right eye."""
     w = np.asarray(looks, dtype=float).reshape(2, 4)
-    outward = np.array([-1.0, 1.0])  # the left eye looks out towards the subject's left
-    return np.stack([yaw * outward * (w[:, 0] - w[:, 1]), pitch * (w[:, 2] - w[:, 3])], axis=1)
+    return np.stack([yaw * _OUTWARD * (w[:, 0] - w[:, 1]), pitch * (w[:, 2] - w[:, 3])], axis=1)
