@@ -221,12 +221,11 @@ class ReviewSession:
                     raise ValueError(f"{journal.path}: edit {e.get('id')} does not fit this take")
                 self._record_edit(a, b, after, client)
             else:
-                source = self.undo_stacks if e.get("op") == "undo" else self.redo_stacks
-                stack = source.get(client) or []
+                undo = e.get("op") == "undo"
+                stack = (self.undo_stacks if undo else self.redo_stacks).get(client)
                 if not stack or stack[-1].id != e.get("id"):
                     raise ValueError(f"{journal.path}: {e.get('op')} of edit {e.get('id')} out of order")
-                self._move(client, source, self.redo_stacks if source is self.undo_stacks else self.undo_stacks,
-                           str(e["op"]))
+                (self.undo if undo else self.redo)(client)
         self.version = max([self.version, *(int(e.get("id", 0)) for e in journal.entries)])
         self.journal = journal
         return len(journal.entries)
