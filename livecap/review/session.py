@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -110,10 +111,15 @@ class ReviewSession:
     def n_frames(self) -> int:
         return len(self.weights)
 
+    @cached_property
+    def _rig_order(self) -> np.ndarray:
+        """Each profile shape's index in the rig (looked up once, not per drag message)."""
+        return np.array([self.rig.index(n) for n in self.names], dtype=np.intp)
+
     def rig_weights(self, w: np.ndarray) -> np.ndarray:
         """Profile-ordered weights in the rig's shape order."""
         out = np.zeros(self.rig.n_shapes)
-        out[[self.rig.index(n) for n in self.names]] = w
+        out[self._rig_order] = w
         return out
 
     def residuals(self) -> np.ndarray:
@@ -241,12 +247,11 @@ class ReviewSession:
                 self._pins.clear()
             self._pins[key] = manipulator(self.rig, self.layout, pins, ManipulationSettings(pull=self.pull))
         dm = self._pins[key]
-        order = [self.rig.index(n) for n in self.names]
         current = self.rig_weights(self.weights[i])
         goals = np.array([p.goal for p in pins], dtype=np.float64)
         start = time.perf_counter()
         w = dm.step(goals, current)
-        return w[order], time.perf_counter() - start
+        return w[self._rig_order], time.perf_counter() - start
 
     # ------------------------------------------------------------------ keys
     def keys(self, max_error: float) -> list[Keys]:
