@@ -233,8 +233,9 @@ class ReviewSession:
                     raise ValueError(f"{journal.path}: {e.get('op')} of edit {e.get('id')} out of order")
                 (self.undo if undo else self.redo)(client)
         self.version = max([self.version, *(int(e.get("id", 0)) for e in journal.entries)])
+        n, journal.entries = len(journal.entries), []  # now in the undo stacks: not held twice for the session
         self.journal = journal
-        return len(journal.entries)
+        return n
 
     # ------------------------------------------------------------------ direct manipulation
     def pose(self, frame: int, pins: list[Pin]) -> tuple[np.ndarray, float]:
