@@ -54,6 +54,12 @@ class ReviewServer:
         status, raw, ctype = self.raw(path, data, head)
         return status, json.loads(raw) if ctype == "application/json" else raw
 
+    def get(self, path: str):
+        """The decoded body of a GET with the session's token, which must succeed (200)."""
+        status, body = self.request(path)
+        assert status == 200, body
+        return body
+
     def raw(self, path: str, data: bytes | None, headers: dict) -> tuple[int, bytes, str]:
         """(status, body, content type) of a request with exactly these headers (no token unless given)."""
         req = urllib.request.Request(self.base + path, data, headers)
