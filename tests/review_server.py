@@ -51,13 +51,23 @@ class ReviewServer:
         if body is not None:
             data = json.dumps(body).encode()
             head.setdefault("Content-Type", "application/json")
-        req = urllib.request.Request(self.base + path, data, head)
+        status, raw, ctype = self.raw(path, data, head)
+        return status, json.loads(raw) if ctype == "application/json" else raw
+
+    def get(self, path: str):
+        """The decoded body of a GET with the session's token, which must succeed (200)."""
+        status, body = self.request(path)
+        assert status == 200, body
+        return body
+
+    def raw(self, path: str, data: bytes | None, headers: dict) -> tuple[int, bytes, str]:
+        """(status, body, content type) of a request with exactly these headers (no token unless given)."""
+        req = urllib.request.Request(self.base + path, data, headers)
         try:
             with urllib.request.urlopen(req, timeout=60) as r:
-                status, raw, ctype = r.status, r.read(), r.headers.get_content_type()
+                return r.status, r.read(), r.headers.get_content_type()
         except urllib.error.HTTPError as exc:
-            status, raw, ctype = exc.code, exc.read(), exc.headers.get_content_type()
-        return status, json.loads(raw) if ctype == "application/json" else raw
+            return exc.code, exc.read(), exc.headers.get_content_type()
 
     def close(self) -> None:
         if self.proc.poll() is None:

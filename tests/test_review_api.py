@@ -20,9 +20,7 @@ def server(review_server):
 
 
 def get(server, path):
-    status, body = server.request(path)
-    assert status == 200, body
-    return body
+    return server.get(path)
 
 
 def post(server, path, body):

@@ -58,9 +58,7 @@ def wait(driver, script, timeout=30.0, what="the page"):
 
 
 def api(server, path):
-    status, body = server.request(path)
-    assert status == 200, body
-    return body
+    return server.get(path)
 
 
 def face_mask(png: bytes) -> np.ndarray:

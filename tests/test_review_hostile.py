@@ -24,16 +24,8 @@ def snapshot(server):
 
 
 def raw(server, path, data: bytes | None, headers: dict):
-    """A request with exactly these headers (no token unless given)."""
-    import urllib.error
-    import urllib.request
-
-    req = urllib.request.Request(server.base + path, data, headers)
-    try:
-        with urllib.request.urlopen(req, timeout=60) as r:
-            return r.status, r.read()
-    except urllib.error.HTTPError as exc:
-        return exc.code, exc.read()
+    """(status, body) of a request with exactly these headers (no token unless given)."""
+    return server.raw(path, data, headers)[:2]
 
 
 EDIT = json.dumps({"frame": 500, "weights": {"jawOpen": 0.9}, "range": [450, 549]}).encode()

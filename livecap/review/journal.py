@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from transport.recorders import _fsync_dir  # the marker recordings' own: one folder fsync
+
 MAGIC = "livecap-review-journal"
 
 
@@ -112,11 +114,3 @@ def open_journal(path: str | Path, fp: str) -> tuple[EditJournal, str | None]:
         aside = path.with_name(f"{path.name}.{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}")
         path.rename(aside)
         return EditJournal(path, fp), f"{path} held edits of another solve of this take: kept as {aside}"
-
-
-def _fsync_dir(folder: Path) -> None:
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)

@@ -177,29 +177,20 @@ def make_app(session: ReviewSession, rig_glb: bytes, token: str, hosts: set[str]
     async def weights_csv(request):
         return attachment("weights.csv", "text/csv", text=session.weights_csv())
 
-    @routes.get("/export/keys.csv")
-    async def keys_csv(request):
-        try:
-            text = session.keys_csv(max_error(request))
-        except ValueError as exc:
-            return bad(exc)
-        return attachment("keys.csv", "text/csv", text=text)
+    def keyed_export(filename: str, content_type: str, make):
+        """An export of the key-reduced curves at the request's ``max_error``: text or bytes from ``make``."""
+        async def export(request):
+            try:
+                data = make(max_error(request))
+            except ValueError as exc:
+                return bad(exc)
+            return attachment(filename, content_type, **{"text" if isinstance(data, str) else "body": data})
+        return export
 
-    @routes.get("/export/keys.glb")
-    async def keys_glb(request):
-        try:
-            data = session.keys_glb(max_error(request))
-        except ValueError as exc:
-            return bad(exc)
-        return attachment("keys.glb", "model/gltf-binary", body=data)
-
-    @routes.get("/export/keys-linear.glb")
-    async def keys_linear_glb(request):
-        try:
-            data = session.linear_keys_glb(max_error(request))
-        except ValueError as exc:
-            return bad(exc)
-        return attachment("keys-linear.glb", "model/gltf-binary", body=data)
+    for filename, content_type, make in (("keys.csv", "text/csv", session.keys_csv),
+                                         ("keys.glb", "model/gltf-binary", session.keys_glb),
+                                         ("keys-linear.glb", "model/gltf-binary", session.linear_keys_glb)):
+        routes.get(f"/export/{filename}")(keyed_export(filename, content_type, make))
 
     app = web.Application(middlewares=[guard(token, hosts)], client_max_size=4 << 20)
     app.add_routes(routes)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -110,10 +111,15 @@ class ReviewSession:
     def n_frames(self) -> int:
         return len(self.weights)
 
+    @cached_property
+    def _rig_order(self) -> np.ndarray:
+        """Each profile shape's index in the rig (looked up once, not per drag message)."""
+        return np.array([self.rig.index(n) for n in self.names], dtype=np.intp)
+
     def rig_weights(self, w: np.ndarray) -> np.ndarray:
         """Profile-ordered weights in the rig's shape order."""
         out = np.zeros(self.rig.n_shapes)
-        out[[self.rig.index(n) for n in self.names]] = w
+        out[self._rig_order] = w
         return out
 
     def residuals(self) -> np.ndarray:
@@ -221,15 +227,15 @@ class ReviewSession:
                     raise ValueError(f"{journal.path}: edit {e.get('id')} does not fit this take")
                 self._record_edit(a, b, after, client)
             else:
-                source = self.undo_stacks if e.get("op") == "undo" else self.redo_stacks
-                stack = source.get(client) or []
+                undo = e.get("op") == "undo"
+                stack = (self.undo_stacks if undo else self.redo_stacks).get(client)
                 if not stack or stack[-1].id != e.get("id"):
                     raise ValueError(f"{journal.path}: {e.get('op')} of edit {e.get('id')} out of order")
-                self._move(client, source, self.redo_stacks if source is self.undo_stacks else self.undo_stacks,
-                           str(e["op"]))
+                (self.undo if undo else self.redo)(client)
         self.version = max([self.version, *(int(e.get("id", 0)) for e in journal.entries)])
+        n, journal.entries = len(journal.entries), []  # now in the undo stacks: not held twice for the session
         self.journal = journal
-        return len(journal.entries)
+        return n
 
     # ------------------------------------------------------------------ direct manipulation
     def pose(self, frame: int, pins: list[Pin]) -> tuple[np.ndarray, float]:
@@ -242,12 +248,11 @@ class ReviewSession:
                 self._pins.clear()
             self._pins[key] = manipulator(self.rig, self.layout, pins, ManipulationSettings(pull=self.pull))
         dm = self._pins[key]
-        order = [self.rig.index(n) for n in self.names]
         current = self.rig_weights(self.weights[i])
         goals = np.array([p.goal for p in pins], dtype=np.float64)
         start = time.perf_counter()
         w = dm.step(goals, current)
-        return w[order], time.perf_counter() - start
+        return w[self._rig_order], time.perf_counter() - start
 
     # ------------------------------------------------------------------ keys
     def keys(self, max_error: float) -> list[Keys]:
