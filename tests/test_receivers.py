@@ -224,6 +224,11 @@ def test_livelink_timecode_follows_the_clock_device_stays_subject_is_actor():
     lag = np.array([arrived - _seconds(f) for f, arrived in rx.packets])
     assert np.abs(lag).min() < 1 / 120, f"no packet within a frame of the clock: lags {np.percentile(lag, [0, 50])}"
     assert np.all(np.diff([_seconds(f) for f in faces]) > 0)  # never repeats or runs backwards
+    # the session calibrates on the stream's first 120 frames and publishes them in a burst: their
+    # timecodes still keep the capture spacing, a whole number of 120 Hz frames (stale frames may be
+    # skipped), never squeezed to the publication rate (issue 37.2)
+    steps = np.diff([_seconds(f) for f in faces]) * 120
+    assert np.abs(steps - np.round(steps)).max() < 0.02, f"timecode steps off the frame grid: {steps[:8]}"
 
     rx2 = LiveLinkReceiver()
     try:

@@ -98,7 +98,8 @@ class LiveLinkSink:
         return out
 
     def publish(self, result) -> None:
-        frame, sub = split_frames(self.clock.seconds_of_day(result.timestamp), self.fps / self.denominator)
+        tod = self.clock.seconds_of_day(result.timestamp, result.received)
+        frame, sub = split_frames(tod, self.fps / self.denominator)
         pkt = encode_livelink(self.values(result), frame, self.subject, self.device, self.fps, self.denominator, sub)
         try:
             self.sock.sendto(pkt, self.target)

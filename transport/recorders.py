@@ -155,7 +155,7 @@ class CsvRecorder(_Lines):
             pose[:3] = head_angles(self.neutral.relative(result.head_rotation, result.head_translation)[0])
             arkit = self._M @ w
             pose[[3, 4, 6, 7]] = arkit_eye_angles(arkit[self._to_arkit]).ravel()
-            tc = format_timecode(self.clock.seconds_of_day(result.timestamp), LLF_CSV_FPS)
+            tc = format_timecode(self.clock.seconds_of_day(result.timestamp, result.received), LLF_CSV_FPS)
             if tc[:11] == self._last_frame:  # the app writes at most one row per timecode frame: the first
                 self.merged += 1
                 return

@@ -36,7 +36,7 @@ def register(sub) -> None:
                    help="one inline edit, e.g. 68:jawOpen=0.8,mouthSmileLeft=0.3@63-74 (repeatable)")
     p.add_argument("--out", required=True, help="edited weights CSV")
     p.add_argument("--take", help="the source take the weights were solved from (keeps its movement)")
-    p.add_argument("--rig", help="rig (OBJ folder or .npz); needed with --take")
+    p.add_argument("--rig", help="rig (OBJ folder, .npz, glTF/GLB, VRM or USD); needed with --take")
     p.add_argument("--markers", help="markers.json (default: beside the rig)")
     add_calibration_arguments(p)
     add_movement_arguments(p, stream=False)

@@ -27,7 +27,8 @@ def register(sub) -> None:
                    "shape, rig.json, markers.json): the layout your own rig needs (docs/quickstart.md)")
     c = p.add_argument_group("real curves")
     c.add_argument("--curves", help="Live Link Face CSV whose ARKit curves drive --rig")
-    c.add_argument("--rig", help="rig (folder or .npz) to drive (default: the bundled demo rig)")
+    c.add_argument("--rig", help="rig (OBJ folder, .npz, glTF/GLB, VRM or USD) to drive "
+                   "(default: the bundled demo rig)")
     c.add_argument("--markers", help="markers.json (default: beside the rig)")
     c.add_argument("--mapping", help="JSON {ARKit name: rig shape | [shapes]} for rigs whose names are not ARKit's")
     c.add_argument("--start", type=float, default=0.0, help="seconds into the CSV")
@@ -104,10 +105,10 @@ def run_mismatch(args: argparse.Namespace) -> int:
     import numpy as np
 
     from livecap.cli.common import load_rig
-    from livecap.core.rig import Rig
     from livecap.demo import truth_path
     from livecap.demo.mismatch_take import MismatchSettings, mismatch_take
     from transport.arkit import load_mapping
+    from transport.rig_files import load_rig as load_rig_file
     from transport.takefile import write_take
 
     try:
@@ -115,7 +116,7 @@ def run_mismatch(args: argparse.Namespace) -> int:
     except ValueError:
         raise ValueError(f"--skin-offset: expected MIN:MAX in mm, got {args.skin_offset!r}") from None
     target, layout = load_rig(args)
-    actor = Rig.load(args.actor_rig)
+    actor = load_rig_file(args.actor_rig)
     given = {"rate": args.rate, "seconds": args.seconds, "occlusion": args.occlusion,
              "head_degrees": args.head_degrees, "head_mm": args.head_mm}
     s = MismatchSettings(**{k: v for k, v in given.items() if v is not None}, start=args.start, seed=args.seed + 1,

@@ -15,7 +15,7 @@ from transport.takefile import READERS, read_take
 
 
 def register(sub) -> None:
-    p = sub.add_parser("info", help="describe a rig (OBJ folder / .npz) or a take (.c3d/.trc/.csv)")
+    p = sub.add_parser("info", help="describe a rig (OBJ folder, .npz, glTF/GLB, VRM, USD) or a take (.c3d/.trc/.csv)")
     p.add_argument("path")
     p.add_argument("--markers", help="markers.json for a rig (default: found beside it)")
     p.add_argument("--observability", action="store_true",

@@ -137,11 +137,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _mismatch(args: argparse.Namespace, rig, layout, f: Path, start: float, noise: float):
-    from livecap.core.rig import Rig
     from livecap.demo.mismatch_take import MismatchSettings, mismatch_take
     from transport.arkit import load_mapping
+    from transport.rig_files import load_rig
 
-    actor = Rig.load(args.actor_rig)
+    actor = load_rig(args.actor_rig)
     mapping = load_mapping(args.actor_mapping) if args.actor_mapping else None
     return mismatch_take(actor, rig, layout, f, mapping, MismatchSettings(start=start, seconds=args.seconds,
                                                                           noise_mm=noise, occlusion=args.occlusion))

@@ -18,6 +18,7 @@ class MarkerFrame:
     timestamp: float
     positions: np.ndarray  # n x 3, mm
     valid: np.ndarray  # n bool
+    received: float | None = None  # local time of day (s) livecap received it; the clock timecode's anchor
 
 
 @dataclass

@@ -5,12 +5,15 @@ day, SMPTE-style ``HH:MM:SS:FF``).
 A :class:`TimecodeClock` maps the stream's own timestamps to a time of day, so frames stay evenly
 spaced whatever the solve's jitter:
 
-* ``"clock"`` (default): the system clock's local time of day. The offset between timestamps and
-  the clock follows the smallest seen (the least-delayed frame is the closest to its capture), so
-  frames published late in a burst (the calibration window, a stall) do not keep the stream's
-  timecode late; once frames flow, the timecode is the clock's less the solve latency. The offset
-  comes down by at most half of each frame step (``SLEW``), so the timecode never repeats or runs
-  backwards: after the 1 s calibration burst it is back on the clock within about 2 s.
+* ``"clock"`` (default): the system clock's local time of day at capture. Each frame is anchored
+  at the time it reached livecap (``received``, stamped by the pipeline as the source hands it
+  over), not at the time it is published, so frames held back while the session calibrates on the
+  stream, or published late after a stall, keep their capture spacing (issue 37.2: anchored at
+  publication, the calibration burst was stamped at half the frame step). The offset between
+  timestamps and arrival follows the smallest seen (the least-delayed frame is the closest to its
+  capture) and comes down by at most half of each frame step (``SLEW``), so network jitter never
+  makes the timecode repeat or run backwards. A result with no arrival time falls back to the
+  clock at publication.
 * ``"HH:MM:SS:FF"``: that start timecode for the first frame (frames at the stream's rate);
 * ``"take"``: the take's own timestamps as the time of day.
 """
@@ -71,12 +74,14 @@ class TimecodeClock:
         if self.start not in ("clock", "take"):
             parse_timecode(self.start, self.rate)  # a bad start fails before the session runs
 
-    def seconds_of_day(self, timestamp: float) -> float:
+    def seconds_of_day(self, timestamp: float, received: float | None = None) -> float:
+        """Time of day of the frame at ``timestamp`` (stream seconds) that reached livecap at ``received``
+        (time of day; ``None``: now)."""
         ts = float(timestamp)
         if self.start == "take":
             return ts % SECONDS_PER_DAY
         if self.start == "clock":
-            offset = now_of_day() - ts
+            offset = (now_of_day() if received is None else received) - ts
             if self._offset is None:
                 self._offset = offset
             elif offset < self._offset and self._last is not None and ts > self._last:

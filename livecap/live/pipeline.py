@@ -43,6 +43,7 @@ from livecap.calibration.profile import CalibrationError, Profile
 from livecap.calibration.stabilise import to_quaternion
 from livecap.core.result import BOUND_TOL, SolveResult
 from livecap.core.take import MarkerFrame, Take
+from livecap.core.timecode import now_of_day
 from livecap.modes.registry import build_solver, resolve_mode
 
 log = logging.getLogger("livecap.live.pipeline")
@@ -252,7 +253,7 @@ class Pipeline:
         solve_time = time.perf_counter() - t0
         self.timing["solve"].add(solve_time)
         return SolveResult(frame.frame, frame.timestamp, self._names, w, to_quaternion(R), t,
-                           rms, solve_time, local, valid, at_bound)
+                           rms, solve_time, local, valid, at_bound, frame.received)
 
     def _drain(self) -> None:
         """When the session ends, the last frames a solver with latency L still holds: each is solved by
@@ -308,6 +309,8 @@ class Pipeline:
         last_flush = last_stats = time.monotonic()
         try:
             for frame in self.source:
+                if frame.received is None:
+                    frame.received = now_of_day()
                 self.timing["receive"].add(getattr(self.source, "last_decode_seconds", 0.0))
                 self.frames_in += 1
                 if self.marker_recorder is not None:
