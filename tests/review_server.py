@@ -18,16 +18,21 @@ class ReviewServer:
     """``livecap review`` on the demo take (a neutral-take profile and the qp solve: the fastest start),
     killed on close. ``url`` is the printed one (with the token), ``base`` the server's root."""
 
-    def __init__(self, workdir: Path, *extra: str, journal: Path | None = None) -> None:
-        rig = str(ROOT / "recordings/demo_rig.npz")
-        profile = workdir / "actor.npz"  # calibrated on the neutral take: no tuning on the take at start-up
+    def __init__(self, workdir: Path, *extra: str, journal: Path | None = None, take: Path | None = None,
+                 rig: Path | None = None) -> None:
+        """The demo take and rig unless ``take`` and ``rig`` are given (then calibrated on the take's start)."""
         self.journal = journal or workdir / "take.review-edits"  # never beside the repository's demo take
-        if not profile.exists():
-            subprocess.run([sys.executable, "-m", "livecap", "calibrate", str(ROOT / "recordings/demo_neutral.c3d"),
-                            "--rig", rig, "--out", str(profile)], check=True, capture_output=True, timeout=300)
-        cmd = [sys.executable, "-m", "livecap", "review", str(ROOT / "recordings/demo_take.c3d"), "--rig", rig,
-               "--profile", str(profile), "--mode", "qp", "--port", "0", "--no-browser",
-               "--journal", str(self.journal), *extra]
+        if take is None:
+            rig = ROOT / "recordings/demo_rig.npz"
+            take = ROOT / "recordings/demo_take.c3d"
+            profile = workdir / "actor.npz"  # calibrated on the neutral take: no tuning on the take at start-up
+            if not profile.exists():
+                subprocess.run([sys.executable, "-m", "livecap", "calibrate",
+                                str(ROOT / "recordings/demo_neutral.c3d"), "--rig", str(rig), "--out", str(profile)],
+                               check=True, capture_output=True, timeout=300)
+            extra = ("--profile", str(profile), *extra)
+        cmd = [sys.executable, "-m", "livecap", "review", str(take), "--rig", str(rig), "--mode", "qp",
+               "--port", "0", "--no-browser", "--journal", str(self.journal), *extra]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                      env={**os.environ, "PYTHONUNBUFFERED": "1"})
         start = time.monotonic()

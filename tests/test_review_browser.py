@@ -7,6 +7,7 @@ from __future__ import annotations
 import shutil
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -19,14 +20,14 @@ pytestmark = pytest.mark.skipif(not (CHROMIUM.exists() and DRIVER.exists()),
                                 reason="Debian chromium + chromium-driver not installed (./dev test installs them)")
 
 
-@pytest.fixture(scope="module")
-def page(review_server):
+@contextmanager
+def browse(server):
+    """Headless chromium on ``server``'s page once it has loaded its take: (driver, server)."""
     if not (ROOT / "livecap/review/static/app.js").exists():
         pytest.fail("the review page is not built (./dev builds it: npm run build in livecap/review/web)")
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
-    server = review_server
     profile = tempfile.mkdtemp(prefix="livecap-chromium-")
     opts = webdriver.ChromeOptions()
     opts.binary_location = str(CHROMIUM)
@@ -44,6 +45,12 @@ def page(review_server):
     finally:
         driver.quit()
         shutil.rmtree(profile, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def page(review_server):
+    with browse(review_server) as opened:
+        yield opened
 
 
 def wait(driver, script, timeout=30.0, what="the page"):

@@ -8,6 +8,7 @@ import json
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -242,3 +243,36 @@ def test_a_vrm_runtime_resets_a_weights_animation_but_plays_the_vrma(avatar, sol
         err = (flip.inv() * Rotation.from_quat(got["head"]) * flip * rel[f].inv()).magnitude()
         assert np.degrees(err) < 2.0, (f, np.degrees(rel[f].magnitude()), np.degrees(err))
     assert weights[frames[1], keyed[0]] > 0.3
+
+
+def test_the_review_page_shows_the_solve_on_the_vrm(avatar, tmp_path):
+    """``livecap review TAKE --rig avatar.vrm`` in chromium: the page loads the avatar's rig (three.js), draws
+    its face, and scrubbing to the open jaw shows the served weights and a changed silhouette."""
+    from tests.review_server import ReviewServer
+    from tests.test_review_browser import CHROMIUM, DRIVER, browse, face_mask, wait
+
+    if not (CHROMIUM.exists() and DRIVER.exists()):
+        pytest.skip("Debian chromium + chromium-driver not installed (./dev test installs them)")
+    vrm, take, perf = avatar
+    server = ReviewServer(tmp_path, take=take, rig=vrm)
+    try:
+        with browse(server) as (driver, _):
+            meta = server.get("/api/meta")
+            assert meta["rig_names"] == perf.names and meta["n_frames"] == 300
+            canvas = driver.find_element("id", "face")
+            rest = face_mask(canvas.screenshot_as_png)
+            assert rest.mean() > 0.01, "no face drawn"
+            peak = 225  # jawOpen 0.77 in the take
+            driver.execute_script(f"const f = document.getElementById('frame'); f.value = {peak};"
+                                  "f.dispatchEvent(new Event('change'));")
+            frame = wait(driver, "return window.review.current && window.review.current.frame > 150 && "
+                         "window.review.current.frame", what="the scrub")
+            assert abs(frame - peak) <= 3
+            shown = driver.execute_script("return window.review.current.weights")
+            np.testing.assert_allclose(shown, server.get(f"/api/frame/{frame}")["weights"], atol=1e-9)
+            assert shown[meta["names"].index("jawOpen")] > 0.5
+            time.sleep(0.3)
+            opened = face_mask(canvas.screenshot_as_png)
+            assert (opened != rest).mean() > 0.002, "the open jaw does not change the drawn face"
+    finally:
+        server.close()
