@@ -4,6 +4,7 @@ errors name the parameter, ``import livecap`` stays cheap."""
 from __future__ import annotations
 
 import doctest
+import json
 import subprocess
 import sys
 
@@ -105,6 +106,25 @@ def test_errors_name_the_parameter(profile, call, parameter):
     with pytest.raises(ApiError) as err:
         call(profile)
     assert err.value.parameter == parameter and str(err.value).startswith(f"{parameter}: ")
+
+
+def test_solve_refuses_a_profile_made_for_another_rig_or_markers(profile, tmp_path):
+    """As ``livecap solve --profile`` does (issue 35.6): the one-liner checks the profile against ``rig``."""
+    from livecap.core.rig import Rig
+
+    rig = Rig.load(RIG)
+    other = tmp_path / "other.npz"
+    Rig(rig.neutral + np.array([0.0, 0.0, 1.0]), rig.triangles, rig.names, rig.deltas, rig.lower, rig.upper,
+        rig.inbetweens, rig.correctives).save(other)
+    with pytest.raises(ApiError, match="calibrated against") as err:
+        livecap.solve(TAKE, rig=other, profile=profile)
+    assert err.value.parameter == "profile" and str(other) in str(err.value)
+    layout = tmp_path / "fewer.json"
+    data = json.loads(RIG.with_name("demo_rig.markers.json").read_text())
+    data["markers"] = data["markers"][:-3]
+    layout.write_text(json.dumps(data))
+    with pytest.raises(ApiError, match="calibrated with"):
+        livecap.solve(TAKE, rig=RIG, profile=profile, markers=layout)
 
 
 def test_every_public_name_has_a_docstring_and_type_hints():

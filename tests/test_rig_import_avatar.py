@@ -276,3 +276,15 @@ def test_the_review_page_shows_the_solve_on_the_vrm(avatar, tmp_path):
             assert (opened != rest).mean() > 0.002, "the open jaw does not change the drawn face"
     finally:
         server.close()
+
+
+def test_a_profile_calibrated_on_the_vrm_is_accepted_beside_it(avatar, tmp_path):
+    """``solve --profile`` checks the profile against ``--rig``: a VRM is read for that (it was refused as
+    'not a livecap rig file'), and another rig is still refused."""
+    vrm, take, _ = avatar
+    livecap("calibrate", take, "--rig", vrm, "--span", "0:1", "--out", tmp_path / "p.npz")
+    livecap("solve", take, "--rig", vrm, "--profile", tmp_path / "p.npz", "--out", tmp_path / "w.csv")
+    assert read_weights_csv(tmp_path / "w.csv")[1].shape[0] == 300
+    done = subprocess.run([sys.executable, "-m", "livecap", "solve", take, "--rig", ICT, "--profile",
+                           tmp_path / "p.npz", "--out", tmp_path / "x.csv"], capture_output=True, text=True)
+    assert done.returncode == 1 and "recalibrate" in done.stderr and done.stderr.count("\n") == 1, done.stderr

@@ -115,8 +115,8 @@ def solve(take_path: str | Path, *, rig: str | Path, profile: str | Path | Profi
           **settings) -> Weights:
     """``livecap solve`` in one call: the take at ``take_path`` solved for the rig at ``rig``, with
     ``profile`` (a path or a Profile), else one calibrated on the take's first ``neutral_seconds``."""
-    from livecap.api.load import load_layout, load_profile, load_rig, load_take
-    from livecap.offline.setup import check_labels, profile_from_take
+    from livecap.api.load import _existing, load_layout, load_profile, load_rig, load_take
+    from livecap.offline.setup import check_labels, check_profile_for_rig, profile_from_take
 
     take = load_take(take_path)
     if profile is None:
@@ -126,6 +126,12 @@ def solve(take_path: str | Path, *, rig: str | Path, profile: str | Path | Profi
         layout = load_layout(rig, rig_, markers=markers)
         check_labels(take, layout.labels, take_path, rig)
         profile = profile_from_take(rig_, layout, take, neutral_seconds)
-    elif not isinstance(profile, Profile):
-        profile = load_profile(profile)
+    else:
+        where = "profile" if isinstance(profile, Profile) else profile
+        if not isinstance(profile, Profile):
+            profile = load_profile(profile)
+        try:
+            check_profile_for_rig(profile, _existing("rig", rig), where, markers)
+        except ValueError as exc:  # another rig's profile, or markers bound elsewhere, would solve silently badly
+            raise ApiError("profile", str(exc)) from None
     return Solver(profile, mode, **settings).solve_take(take)

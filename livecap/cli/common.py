@@ -3,14 +3,20 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from livecap.calibration.profile import Profile, check_layout_labels, check_rig_path
+from livecap.calibration.profile import Profile
 from livecap.cli import progress
 from livecap.core.markers import MarkerLayout
 from livecap.core.rig import Rig
 from livecap.core.take import Take
-from livecap.offline.setup import check_labels, load_rig_layout, markers_path, profile_from_take, tune_on_take
+from livecap.offline.setup import (
+    check_labels,
+    check_profile_for_rig,
+    load_rig_layout,
+    markers_path,
+    profile_from_take,
+    tune_on_take,
+)
 
 __all__ = ["check_labels", "markers_path", "tune_on_take"]  # kept here for the commands that import them
 
@@ -80,13 +86,9 @@ def profile_for(args: argparse.Namespace, rig: Rig, layout: MarkerLayout, take: 
 def saved_profile(args: argparse.Namespace, take: Take) -> Profile:
     """``--profile`` when nothing else needs the rig: the profile holds the calibrated basis and the marker
     labels, so the rig's meshes (seconds of OBJ parsing for a real rig) are not read; its path must exist."""
-    if not Path(args.rig).exists():
-        raise ValueError(f"{args.rig}: no such rig (an OBJ folder or .npz)")
     profile = Profile.load(args.profile)
     check_labels(take, profile.labels, getattr(args, "take", "take"), args.rig)
-    mesh = check_rig_path(profile, args.rig, args.profile)
-    if getattr(args, "markers", None):
-        check_layout_labels(profile, args.markers, args.profile, mesh)
+    check_profile_for_rig(profile, args.rig, args.profile, getattr(args, "markers", None))
     return _given_noise(args, profile)
 
 

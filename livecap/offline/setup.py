@@ -33,6 +33,32 @@ def load_rig_layout(rig_path: str | Path, markers: str | Path | None = None,
     return rig, MarkerLayout.load(mpath, rig)
 
 
+def check_profile_for_rig(profile: Profile, rig_path: str | Path, profile_path: str | Path = "profile",
+                          markers: str | Path | None = None) -> None:
+    """A profile given beside a rig (and a markers.json) must be the one calibrated for them: another rig's
+    profile, or markers bound elsewhere, would solve silently badly (issue 35.6). An OBJ folder or .npz is
+    checked cheaply (names and neutral only); a glTF/VRM/USD file is read."""
+    from livecap.calibration.profile import CalibrationError, check_layout_labels, check_rig_path, rig_fingerprint
+
+    path = Path(rig_path)
+    if not path.exists():
+        raise ValueError(f"{rig_path}: no such rig (an OBJ folder, .npz, glTF/GLB, VRM or USD file)")
+    if path.is_dir() or path.suffix.lower() == ".npz":
+        mesh = check_rig_path(profile, rig_path, profile_path)
+    else:
+        from transport.rig_files import load_rig as load_rig_file
+
+        rig = load_rig_file(rig_path)
+        stored = profile.settings.get("rig_fingerprint")
+        if list(rig.names) != list(profile.names) or stored not in (None, rig_fingerprint(rig)):
+            raise CalibrationError(f"{profile_path}: calibrated against another rig than {rig_path} "
+                                   f"({len(profile.names)} shapes, rig {stored}; the file: {rig.n_shapes} shapes, "
+                                   f"rig {rig_fingerprint(rig)}): recalibrate, or give its rig")
+        mesh = (rig.neutral, rig.triangles)
+    if markers:
+        check_layout_labels(profile, markers, profile_path, mesh)
+
+
 def check_labels(take: Take, labels: list[str], take_path, rig_path) -> None:
     """A take that shares no marker label with the rig's ``labels`` is a wrong pairing, not a take with gaps: say so."""
     if not set(take.labels) & set(labels):
