@@ -12,26 +12,15 @@ the mean of the sides. A JSON mapping file overrides or completes the automatic 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from livecap.core.eyes import LOOKS, eye_angles
-from livecap.core.names import match_names
+from livecap.core.names import ARKIT_NAMES, arkit_matrix, is_arkit
 
-# The order of the Live Link Face UDP packet (PyLiveLinkFace's FaceBlendShape enum, 0..51).
-ARKIT_NAMES = [
-    "eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft", "eyeSquintLeft",
-    "eyeWideLeft", "eyeBlinkRight", "eyeLookDownRight", "eyeLookInRight", "eyeLookOutRight", "eyeLookUpRight",
-    "eyeSquintRight", "eyeWideRight", "jawForward", "jawLeft", "jawRight", "jawOpen", "mouthClose", "mouthFunnel",
-    "mouthPucker", "mouthLeft", "mouthRight", "mouthSmileLeft", "mouthSmileRight", "mouthFrownLeft",
-    "mouthFrownRight", "mouthDimpleLeft", "mouthDimpleRight", "mouthStretchLeft", "mouthStretchRight",
-    "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper", "mouthPressLeft", "mouthPressRight",
-    "mouthLowerDownLeft", "mouthLowerDownRight", "mouthUpperUpLeft", "mouthUpperUpRight", "browDownLeft",
-    "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight", "cheekPuff", "cheekSquintLeft",
-    "cheekSquintRight", "noseSneerLeft", "noseSneerRight", "tongueOut",
-]
+__all__ = ["ARKIT_NAMES", "arkit_matrix", "is_arkit"]  # the names below livecap.core; wire formats import them here
+
 # The nine rotations after the 52 shapes in a Live Link Face packet / CSV row.
 POSE_NAMES = ["HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll",
               "RightEyeYaw", "RightEyePitch", "RightEyeRoll"]
@@ -43,37 +32,6 @@ EYE_LOOK_INDEX = np.array([[ARKIT_NAMES.index(f"eyeLook{look}{side}") for look i
 def arkit_eye_angles(arkit: np.ndarray) -> np.ndarray:
     """Eye (yaw, pitch) of the left and right eye (2 x 2, radians) from 52 ARKit weights."""
     return eye_angles(np.asarray(arkit, dtype=float)[EYE_LOOK_INDEX])
-
-
-def is_arkit(names: Sequence[str]) -> bool:
-    """True when every shape name is an ARKit name (any case): the rig speaks ARKit natively."""
-    arkit = {n.lower() for n in ARKIT_NAMES}
-    return len(names) > 0 and all(n.lower() in arkit for n in names)
-
-
-def arkit_matrix(names: Sequence[str], mapping: dict | None = None, where: str = "mapping") -> np.ndarray:
-    """52 x m matrix ``M`` with ``arkit = M @ weights`` for a rig with shape ``names``.
-
-    ``mapping`` (ARKit name -> rig name or list of rig names, averaged) overrides the automatic
-    match; an ARKit shape with no match stays 0.
-    """
-    names = list(names)
-    M = match_names(names, ARKIT_NAMES).matrix()
-    if mapping:
-        where_name = {n: j for j, n in enumerate(names)}
-        arkit_where = {a.lower(): i for i, a in enumerate(ARKIT_NAMES)}
-        for a, src in mapping.items():
-            i = arkit_where.get(str(a).lower())
-            if i is None:
-                raise ValueError(f"{where}: {a!r} is not an ARKit blendshape name")
-            srcs = [src] if isinstance(src, str) else list(src)
-            missing = [s for s in srcs if s not in where_name]
-            if missing:
-                raise ValueError(f"{where}: rig has no shape {missing[0]!r} (mapped to {a})")
-            M[i] = 0.0
-            for s in srcs:
-                M[i, where_name[s]] = 1.0 / len(srcs)
-    return M
 
 
 def load_mapping(path: str | Path) -> dict:

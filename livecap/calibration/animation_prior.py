@@ -1,6 +1,6 @@
 """A Gaussian prior on a rig's weights learned from real animation (Lewis et al. 2014 §7.8-7.9).
 
-Live Link Face performances are mapped onto the rig's shapes (livecap.calibration.arkit_map.arkit_to_rig)
+Live Link Face performances are mapped onto the rig's shapes (livecap.core.names.arkit_to_rig)
 and their frames give a mean and a full covariance, and the covariance's principal axes give the
 PCA subspace (Seol et al. 2012 §5 build theirs from the rig's animation the same way). Shapes the
 curves never drive get a variance floor so the covariance is invertible.
@@ -88,7 +88,7 @@ def prior_from_spec(spec, stored: AnimationPrior | None):
 def build_prior(curves: Sequence[str | Path], names: Sequence[str], lower: np.ndarray, upper: np.ndarray,
                 mapping: dict | None = None, rate: float = 60.0) -> AnimationPrior:
     """Mean and full covariance of the curves' frames, mapped onto ``names`` and clipped to the limits."""
-    from livecap.calibration.arkit_map import arkit_to_rig  # here, not above: every profile load imports this module
+    from livecap.core.names import arkit_to_rig  # here, not above: every profile load imports this module
     from transport.llf_csv import read_llf_csv
 
     A = arkit_to_rig(list(names), mapping)

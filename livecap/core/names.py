@@ -86,3 +86,68 @@ def match_names(source: Sequence[str], target: Sequence[str]) -> NameMatch:
             cols = by_key.get(stem, [])
         out.append(tuple(cols))
     return NameMatch(source, target, tuple(out))
+
+
+# The order of the Live Link Face UDP packet (PyLiveLinkFace's FaceBlendShape enum, 0..51).
+ARKIT_NAMES = [
+    "eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft", "eyeSquintLeft",
+    "eyeWideLeft", "eyeBlinkRight", "eyeLookDownRight", "eyeLookInRight", "eyeLookOutRight", "eyeLookUpRight",
+    "eyeSquintRight", "eyeWideRight", "jawForward", "jawLeft", "jawRight", "jawOpen", "mouthClose", "mouthFunnel",
+    "mouthPucker", "mouthLeft", "mouthRight", "mouthSmileLeft", "mouthSmileRight", "mouthFrownLeft",
+    "mouthFrownRight", "mouthDimpleLeft", "mouthDimpleRight", "mouthStretchLeft", "mouthStretchRight",
+    "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper", "mouthPressLeft", "mouthPressRight",
+    "mouthLowerDownLeft", "mouthLowerDownRight", "mouthUpperUpLeft", "mouthUpperUpRight", "browDownLeft",
+    "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight", "cheekPuff", "cheekSquintLeft",
+    "cheekSquintRight", "noseSneerLeft", "noseSneerRight", "tongueOut",
+]
+
+
+def is_arkit(names: Sequence[str]) -> bool:
+    """True when every shape name is an ARKit name (any case): the rig speaks ARKit natively."""
+    arkit = {n.lower() for n in ARKIT_NAMES}
+    return len(names) > 0 and all(n.lower() in arkit for n in names)
+
+
+def arkit_matrix(names: Sequence[str], mapping: dict | None = None, where: str = "mapping") -> np.ndarray:
+    """52 x m matrix ``M`` with ``arkit = M @ weights`` for a rig with shape ``names``.
+
+    ``mapping`` (ARKit name -> rig name or list of rig names, averaged) overrides the automatic
+    match; an ARKit shape with no match stays 0.
+    """
+    names = list(names)
+    M = match_names(names, ARKIT_NAMES).matrix()
+    if mapping:
+        where_name = {n: j for j, n in enumerate(names)}
+        arkit_where = {a.lower(): i for i, a in enumerate(ARKIT_NAMES)}
+        for a, src in mapping.items():
+            i = arkit_where.get(str(a).lower())
+            if i is None:
+                raise ValueError(f"{where}: {a!r} is not an ARKit blendshape name")
+            srcs = [src] if isinstance(src, str) else list(src)
+            missing = [s for s in srcs if s not in where_name]
+            if missing:
+                raise ValueError(f"{where}: rig has no shape {missing[0]!r} (mapped to {a})")
+            M[i] = 0.0
+            for s in srcs:
+                M[i, where_name[s]] = 1.0 / len(srcs)
+    return M
+
+
+def arkit_to_rig(names: list[str], mapping: dict | None = None) -> np.ndarray:
+    """m x 52 matrix ``A`` with rig weights ``= A @ arkit``: the one place ARKit names meet the rig's.
+
+    Names pair by the project's one matcher (livecap.core.names: a side-less ARKit shape such as
+    ``browInnerUp`` drives both sided rig shapes); ``mapping`` (ARKit name -> rig shape(s), the
+    file format of ``transport.arkit.load_mapping``) replaces the match of every rig shape it
+    names, which then takes the mean of the ARKit shapes mapped onto it.
+    """
+    A = match_names(ARKIT_NAMES, names).matrix()
+    if mapping:
+        M = arkit_matrix(names, mapping) > 0  # validates the file's names
+        keys = {str(x).lower() for x in mapping}
+        mapped = [i for i, a in enumerate(ARKIT_NAMES) if a.lower() in keys]
+        for j in np.where(M[mapped].any(0))[0]:
+            cols = [i for i in mapped if M[i, j]]
+            A[j] = 0.0
+            A[j, cols] = 1.0 / len(cols)
+    return A

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from livecap.calibration.arkit_map import arkit_to_rig  # noqa: F401 - imported from here too
 from livecap.core.markers import MarkerLayout
+from livecap.core.names import arkit_to_rig  # noqa: F401 - imported from here too
 from livecap.core.rig import Rig
 from livecap.core.take import Take
 from livecap.demo.performance import actor_warp, head_motion

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 from scipy.signal import butter, filtfilt
 
-from livecap.calibration.arkit_map import arkit_to_rig
 from livecap.core.markers import MarkerLayout
+from livecap.core.names import arkit_to_rig
 from livecap.core.rig import Rig
 from livecap.core.take import Take
 from livecap.demo.curves_take import _bursts
