@@ -156,3 +156,19 @@ def test_glb_is_the_commands(tmp_path):
                    check=True, capture_output=True, cwd=ROOT)
     api = livecap.solve(TAKE, rig=RIG).to_glb(tmp_path / "take.glb", livecap.load_rig(RIG))
     assert api.read_bytes() == cli.read_bytes()
+
+
+def test_the_api_page_and_the_readme_name_the_same_operations():
+    """Each command docs/api.md's table gives an API for is in the README's command table, and the README
+    points to every API name that table lists (issue 38)."""
+    import re
+
+    from tests.test_readme_commands import table_commands
+
+    api_table = [r for r in (ROOT / "docs/api.md").read_text().split("| operation |", 1)[1].split("\n\n", 1)[0]
+                 .splitlines() if r.startswith("| ") and not r.startswith("|---")]
+    commands = {c for r in api_table for c in re.findall(r"`livecap (\w[\w-]*)", r.split(" | ")[-1])}
+    assert commands and commands <= set(table_commands()), commands - set(table_commands())
+    readme = (ROOT / "README.md").read_text()
+    names = {n for r in api_table for n in re.findall(r"`livecap\.(\w+)", r)}
+    assert names and {n for n in names if f"livecap.{n}" not in readme and f"`{n}`" not in readme} == set()
