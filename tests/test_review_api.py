@@ -153,3 +153,48 @@ def test_pose_command_reaches_a_pinned_vertex(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "livecap", "pose", "--rig", str(ROOT / "recordings/demo_rig.npz"),
                           "--pin", "12=1,2"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 1 and "--pin '12=1,2'" in bad.stderr
+
+
+def test_a_marker_moved_on_the_face_is_rebound_and_saved(tmp_path):
+    """Issue 35.1: a marker dropped on a rig triangle (the face as drawn at a frame) is bound there by
+    triangle + barycentric, the page's sites follow, and markers.json saves it for the next calibration.
+    Its own server: the move changes the session's layout."""
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
+    from tests.review_server import ReviewServer
+
+    rig = Rig.load(ROOT / "recordings/demo_rig.npz")
+    server = ReviewServer(tmp_path)
+    try:
+        def save(name: str) -> MarkerLayout:
+            status, body, _ = server.raw("/export/markers.json", None, {"X-Livecap-Token": server.token})
+            assert status == 200
+            (tmp_path / name).write_bytes(body)
+            return MarkerLayout.load(tmp_path / name, rig)
+
+        before = save("before.json")
+        label = before.labels[5]
+        tri = rig.triangles[1234]
+        corners = [int(v) for v in tri[::-1]]  # any corner order: the rig's own order is kept
+        w = np.zeros(rig.n_shapes)  # the face as drawn at frame 0
+        for n, x in zip(get(server, "/api/meta")["names"], get(server, "/api/frame/0")["weights"], strict=True):
+            w[rig.index(n)] = x
+        drawn = MarkerLayout.from_vertices(["a", "b", "c"], tri, [False] * 3).marker_rig(rig).evaluate(w)
+        point = drawn.mean(axis=0) + np.array([0.0, 0.0, 0.3])
+        status, r = post(server, "/api/markers", {"frame": 0, "label": label, "triangle": corners,
+                                                  "point": point.tolist()})
+        assert status == 200, r
+        assert r["triangle"] == tri.tolist() and r["moved"] == [label]
+        np.testing.assert_allclose(r["barycentric"], [1 / 3] * 3, atol=0.05)
+        site = np.array(get(server, "/api/frame/0")["sites"])[before.labels.index(label)]
+        assert np.linalg.norm(site - drawn.mean(axis=0)) < 1.0  # mm
+        after = save("markers.json")
+        i = after.labels.index(label)
+        assert after.vertices[i].tolist() == tri.tolist()
+        others = [j for j in range(after.n_markers) if j != i]
+        np.testing.assert_array_equal(after.vertices[others], before.vertices[others])
+        status, r = post(server, "/api/markers", {"frame": 0, "label": before.labels[6], "triangle": corners,
+                                                  "point": point.tolist()})
+        assert status == 400 and "share its site" in r["error"]  # two markers on one site is refused
+    finally:
+        server.close()

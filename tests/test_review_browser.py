@@ -217,3 +217,35 @@ def test_page_polish(page, tmp_path):
     assert status == 200
     errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
     assert errors == [], errors
+
+
+def test_drag_a_bound_marker_and_save(page):
+    """Issue 35.1: with "move markers" on, a marker's site is picked on screen and dropped on the face; the
+    server binds it to the triangle under the pointer and the saved markers.json has it."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    driver, server = page
+    for box, on in (("show-markers", True), ("show-truth", False), ("move-markers", True)):
+        if driver.find_element("id", box).is_selected() != on:
+            driver.find_element("id", box).click()
+    driver.execute_script("const f = document.getElementById('frame'); f.value = 0;"
+                          "f.dispatchEvent(new Event('change'));")
+    wait(driver, "return window.review.current && window.review.current.frame === 0", what="frame 0")
+    meta = api(server, "/api/meta")
+    before = np.array(api(server, "/api/frame/0")["sites"])
+    i = meta["labels"].index(next(lab for lab in meta["labels"] if "chin" in lab.lower() or "jaw" in lab.lower()))
+    x, y = driver.execute_script(f"return window.review.screenOf(window.review.current.sites[{i}])")
+    canvas = driver.find_element("id", "face").rect
+    cx, cy = canvas["x"] + canvas["width"] / 2, canvas["y"] + canvas["height"] / 2
+    face = driver.find_element("id", "face")
+    (ActionChains(driver).move_to_element_with_offset(face, int(x - cx), int(y - cy)).click_and_hold()
+     .move_by_offset(6, 0).move_by_offset(6, 0).release().perform())
+    moved = wait(driver, "return window.review.lastMarker", what="the marker move")
+    assert moved["label"] == meta["labels"][i] and len(moved["triangle"]) == 3
+    after = np.array(api(server, "/api/frame/0")["sites"])
+    shift = np.linalg.norm(after - before, axis=1)
+    assert shift[i] > 1.0 and np.delete(shift, i).max() < 1e-9  # mm: only that marker moved
+    status, saved = server.request("/export/markers.json")
+    entry = next(m for m in saved["markers"] if m["label"] == meta["labels"][i])
+    assert status == 200 and entry["barycentric"] == pytest.approx(moved["barycentric"])
+    driver.find_element("id", "move-markers").click()  # back to dragging the face

@@ -9,6 +9,8 @@ import json
 
 import pytest
 
+from tests.review_server import ROOT
+
 EVIL = "http://evil.example"
 
 
@@ -20,7 +22,7 @@ def server(review_server):
 def snapshot(server):
     status, csv = server.request("/export/weights.csv")
     assert status == 200
-    return csv, server.request("/api/curves")[1]["version"]
+    return csv, server.request("/api/curves")[1]["version"], server.request("/export/markers.json")[1]
 
 
 def raw(server, path, data: bytes | None, headers: dict):
@@ -46,6 +48,8 @@ def test_foreign_pages_can_neither_change_nor_read_the_session(server):
         ("/api/undo", b"{}", {"Content-Type": "application/json", "Origin": "null", **ok}),
         ("/api/pose", b'{"frame": 1, "pins": [{"vertex": 1, "goal": [0, 0, 0]}], "commit": true, "range": [0, 9]}',
          {"Content-Type": "text/plain", "Origin": EVIL}),
+        ("/api/markers", b'{"frame": 1, "label": "x", "triangle": [0, 1, 2], "point": [0, 0, 0]}',
+         {"Content-Type": "text/plain", "Origin": EVIL}),
     ]
     for path, data, headers in attacks:
         status, body = raw(server, path, data, headers)
@@ -56,6 +60,7 @@ def test_foreign_pages_can_neither_change_nor_read_the_session(server):
         ("/api/curves", {"Host": "attacker.example"}),
         ("/?token=" + server.token, {"Host": "attacker.example"}),
         ("/export/weights.csv", {}),  # no token
+        ("/export/markers.json", {"Host": "attacker.example", **ok}),
         ("/api/curves", {"Origin": EVIL, **ok}),
         ("/", {}),  # the page without the token gives nothing away
     ]
@@ -127,11 +132,33 @@ BAD_POSE = [
 ]
 
 
-@pytest.mark.parametrize("path,cases", [("/api/edit", BAD), ("/api/pose", BAD_POSE)])
+BAD_MARKER = [
+    ('{"frame": 10, "label": "nope", "triangle": [0, 1, 2], "point": [0, 0, 0]}', "label"),
+    ('{"frame": 10, "label": 3, "triangle": [0, 1, 2], "point": [0, 0, 0]}', "label"),
+    ('{"frame": 10, "label": "LABEL", "triangle": [0, 1], "point": [0, 0, 0]}', "triangle"),
+    ('{"frame": 10, "label": "LABEL", "triangle": [0, 1, 2.5], "point": [0, 0, 0]}', "triangle[2]"),
+    ('{"frame": 10, "label": "LABEL", "triangle": [0, 0, 0], "point": [0, 0, 0]}', "triangle"),
+    ('{"frame": 10, "label": "LABEL", "triangle": [-1, 99999999, 2], "point": [0, 0, 0]}', "triangle"),
+    ('{"frame": 10, "label": "LABEL", "triangle": TRI, "point": [0, NaN, 0]}', "NaN"),
+    ('{"frame": 10, "label": "LABEL", "triangle": TRI, "point": [0, 1e308, 0]}', "point"),
+    ('{"frame": 10, "label": "LABEL", "triangle": TRI, "point": "chin"}', "point"),
+    ('{"frame": -1, "label": "LABEL", "triangle": TRI, "point": [0, 0, 0]}', "frame"),
+]
+
+
+def _marker_cases(server) -> list[tuple[str, str]]:
+    from livecap.core.rig import Rig
+
+    label = server.get("/api/meta")["labels"][0]
+    tri = str(Rig.load(ROOT / "recordings/demo_rig.npz").triangles[0].tolist())
+    return [(t.replace("LABEL", label).replace("TRI", tri), f) for t, f in BAD_MARKER]
+
+
+@pytest.mark.parametrize("path,cases", [("/api/edit", BAD), ("/api/pose", BAD_POSE), ("/api/markers", None)])
 def test_malformed_bodies_get_400_naming_the_field(server, path, cases):
     before = snapshot(server)
     head = {"X-Livecap-Token": server.token, "Content-Type": "application/json"}
-    for text, field in cases:
+    for text, field in cases or _marker_cases(server):
         status, body = raw(server, path, text.encode(), head)
         assert status == 400, (text[:60], status, body[:300])
         error = json.loads(body)["error"]

@@ -126,6 +126,10 @@ class MarkerLayout:
     def save(self, path: str | Path, rig: Rig | None = None, extra: dict[str, dict] | None = None) -> None:
         """Write markers.json; triangle bindings need the ``rig`` (their triangle index); ``extra`` adds
         per-label keys (a binding's report) that :meth:`load` ignores."""
+        Path(path).write_text(self.to_json(rig, extra, where=str(path)))
+
+    def to_json(self, rig: Rig | None = None, extra: dict[str, dict] | None = None, where: str = "layout") -> str:
+        """The markers.json text :meth:`save` writes."""
         tri_index = {} if rig is None else {tuple(t): i for i, t in enumerate(np.asarray(rig.triangles).tolist())}
         markers = []
         for lab, v, b, s in zip(self.labels, self.vertices, self.barycentric, self.stable, strict=True):
@@ -136,11 +140,11 @@ class MarkerLayout:
                 entry["triangle"] = tri_index[tuple(int(i) for i in v)]
                 entry["barycentric"] = [float(x) for x in b]
             else:
-                raise LayoutError(f"{path}: marker {lab} is bound inside a triangle; saving it needs the rig")
+                raise LayoutError(f"{where}: marker {lab} is bound inside a triangle; saving it needs the rig")
             entry["stable"] = bool(s)
             entry.update((extra or {}).get(lab, {}))
             markers.append(entry)
-        Path(path).write_text(json.dumps({"units": self.units, "markers": markers}, indent=1))
+        return json.dumps({"units": self.units, "markers": markers}, indent=1)
 
     def check(self, rig: Rig, where: str = "layout") -> None:
         if self.vertices.max() >= rig.n_vertices or self.vertices.min() < 0:

@@ -123,3 +123,24 @@ def pose_request(body: object, session: ReviewSession) -> tuple[int, list[Pin], 
     if not isinstance(commit, bool):
         raise BadRequest(f"commit: must be true or false, not {_short(commit)}")
     return k, out, commit, a, b
+
+
+def marker_request(body: object, session: ReviewSession) -> tuple[int, str, list[int], np.ndarray]:
+    """``{frame, label, triangle: [v0, v1, v2], point: [x, y, z]}``: drop marker ``label`` on that rig triangle
+    at ``point`` (mm, the face as drawn at ``frame``)."""
+    body = _object(body)
+    k, _, _ = _frame_and_range(body, session)
+    label = body.get("label")
+    if not isinstance(label, str) or label not in session.layout.labels:
+        raise BadRequest(f"label: not a marker of the layout: {_short(label)}")
+    tri = body.get("triangle")
+    if not isinstance(tri, list) or len(tri) != 3:
+        raise BadRequest(f"triangle: must be [v0, v1, v2] vertex indices, not {_short(tri)}")
+    corners = [_int(v, f"triangle[{i}]") for i, v in enumerate(tri)]
+    point = body.get("point")
+    if not isinstance(point, list) or len(point) != 3:
+        raise BadRequest(f"point: must be [x, y, z] in mm, not {_short(point)}")
+    p = np.array([_number(x, "point") for x in point])
+    if np.max(np.abs(p)) > MAX_GOAL_MM:
+        raise BadRequest(f"point: {p.tolist()} is further than {MAX_GOAL_MM:g} mm from the rig")
+    return k, label, corners, p

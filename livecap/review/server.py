@@ -14,7 +14,7 @@ from pathlib import Path
 from aiohttp import WSMsgType, web
 
 from livecap.review.guard import guard
-from livecap.review.requests import BadRequest, edit_request, parse, pose_request
+from livecap.review.requests import BadRequest, edit_request, marker_request, parse, pose_request
 from livecap.review.session import EditConflict, ReviewSession
 
 STATIC = Path(__file__).parent / "static"
@@ -136,6 +136,18 @@ def make_app(session: ReviewSession, rig_glb: bytes, token: str, hosts: set[str]
             return _json(pose(await body(request), _client(request)))
         except ValueError as exc:
             return bad(exc)
+
+    @routes.post("/api/markers")
+    async def markers(request):
+        try:
+            k, label, corners, point = marker_request(await body(request), session)
+            return _json({**session.move_marker(k, label, corners, point), "moved": sorted(session.moved_markers)})
+        except ValueError as exc:
+            return bad(exc)
+
+    @routes.get("/export/markers.json")
+    async def markers_json(request):
+        return attachment("markers.json", "application/json", text=session.layout.to_json(session.rig))
 
     @routes.get("/ws")
     async def ws(request):

@@ -99,6 +99,7 @@ class ReviewSession:
     redo_stacks: dict[str, list[Change]] = field(default_factory=dict)
     journal: object | None = None  # an EditJournal (livecap.review.journal) once attached
     version: int = 0  # bumped by every change: what cached results are keyed on
+    moved_markers: set[str] = field(default_factory=set)  # labels rebound on the page (save markers.json)
     _pins: dict = field(default_factory=dict)
     _keys_cache: dict = field(default_factory=dict)
 
@@ -128,6 +129,15 @@ class ReviewSession:
         err = np.sum((pred - self.targets) ** 2, axis=2)
         n = np.maximum(self.valid.sum(1), 1)
         return np.sqrt(np.sum(np.where(self.valid, err, 0.0), axis=1) / n)
+
+    def move_marker(self, frame: int, label: str, corners: list[int], point: np.ndarray) -> dict:
+        """Rebind a marker where the user dropped it (livecap.review.markers); the drawn sites follow."""
+        from livecap.review.markers import move_marker
+
+        out = move_marker(self.layout, self.rig, label, corners, point, self.rig_weights(self.weights[frame]))
+        self.marker_rig = self.layout.marker_rig(self.rig)
+        self.moved_markers.add(label)
+        return out
 
     def frame(self, i: int) -> dict:
         """What the page draws at frame i: weights, head pose, observed markers and fitted sites."""

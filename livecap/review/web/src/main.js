@@ -265,8 +265,54 @@ function nearestVertex(mesh, worldPoint, face3) {
   return best;
 }
 
+// a marker's site, picked on screen, dropped on the face: the binding the next calibration uses
+state.screenOf = (q) => { // a head-frame point (mm) in the page's client pixels
+  const r = canvas.getBoundingClientRect();
+  const s = head.localToWorld(new THREE.Vector3(q[0] * MM, q[1] * MM, q[2] * MM)).project(camera);
+  return [(s.x + 1) / 2 * r.width + r.left, (1 - s.y) / 2 * r.height + r.top];
+};
+
+function nearestSite(ev) {
+  let best = -1, bd = 15 * 15; // pixels
+  (state.current ? state.current.sites : []).forEach((q, i) => {
+    const [x, y] = state.screenOf(q), d = (x - ev.clientX) ** 2 + (y - ev.clientY) ** 2;
+    if (d < bd) { bd = d; best = i; }
+  });
+  return best;
+}
+
+function moveMarker(ev) {
+  const i = nearestSite(ev);
+  if (i < 0) { status('no marker site under the pointer'); return; }
+  const label = state.meta.labels[i], sites = state.current.sites.map((q) => q.slice());
+  let drop = null;
+  const move = (e) => {
+    const hit = pick(e).intersectObject(face, false)[0];
+    if (!hit) return;
+    const p = face.worldToLocal(hit.point.clone());
+    drop = { triangle: [hit.face.a, hit.face.b, hit.face.c], point: [p.x / MM, p.y / MM, p.z / MM] };
+    sites[i] = drop.point;
+    setPoints(sitesPts, sites); render();
+  };
+  const up = async (e) => {
+    window.removeEventListener('mousemove', move); window.removeEventListener('mouseup', up);
+    move(e);
+    if (!drop) { status('drop the marker on the face'); return; }
+    try {
+      const r = await api('/api/markers', { frame: state.frame, label, ...drop });
+      state.lastMarker = r;
+      $('moved-markers').textContent = `moved: ${r.moved.join(', ')} (save, then recalibrate)`;
+      status(`marker ${label} bound to triangle ${r.triangle.join(',')}`);
+    } catch (err) { status('marker: ' + err.message); }
+    await showFrame(state.frame);
+  };
+  window.addEventListener('mousemove', move);
+  window.addEventListener('mouseup', up);
+}
+
 canvas.addEventListener('mousedown', (ev) => {
   if (!face) return;
+  if ($('move-markers').checked) { moveMarker(ev); return; }
   const hit = pick(ev).intersectObject(face, false)[0];
   if (!hit) return;
   const v = nearestVertex(face, hit.point, hit.face);
