@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import VENDORS
-from tests.hostile_files import mangle_c3d
+from tests.hostile_files import mangle_c3d, mangle_text
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT), "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
@@ -46,12 +46,12 @@ def _read(files: list[Path], limit_kb: int | None = None, timeout: float = 120) 
     return results, peak, r.stderr
 
 
-def _limit(valid: list[Path]) -> int:
+def _limit(valid: list[Path], need: int = 5) -> int:
     """Address-space cap: the reader's VmPeak on the valid files plus that much again above its
-    baseline (baseline + 2x the valid need)."""
+    baseline (baseline + 2x the valid need); at least ``need`` of them must read."""
     base = _read([])[1]
     results, peak, _ = _read(valid)
-    assert sum(line.startswith("ok") for line in results.values()) >= 5, results  # Vicon, Qualisys, BTS, FP_*
+    assert sum(line.startswith("ok") for line in results.values()) >= need, results
     return peak + (peak - base)
 
 
@@ -116,3 +116,42 @@ def test_mangled_c3d_through_the_cli_is_one_line(c3d_corpus, tmp_path):
             assert "Traceback" not in r.stderr and r.returncode in (0, 1), (path, r.returncode, r.stderr[-2000:])
             if r.returncode == 1:
                 assert len(lines) == 1 and path.name in lines[0], (path, r.stderr)
+
+
+@pytest.fixture(scope="module")
+def text_corpus(tmp_path_factory) -> tuple[list[Path], list[Path]]:
+    """A 240-frame, 20-marker piece of the demo take as TRC and CSV, and their mangled copies
+    (three seeds: flips to bytes and to number-like characters, cuts mid-row, a NumFrames of 1e9,
+    a 50 MB field)."""
+    from livecap.core.take import Take
+    from transport.takefile import read_take, write_take
+
+    out = tmp_path_factory.mktemp("mangled-text")
+    t = read_take(ROOT / "recordings" / "demo_take.c3d")
+    t = Take(t.labels[:20], t.positions[:240, :20], t.valid[:240, :20], t.rate, t.first_frame)
+    valid = [out / "take.trc", out / "take.csv"]
+    for p in valid:
+        write_take(t, p)
+    return valid, [m for p in valid for seed in range(3) for m in mangle_text(p, out, seed)]
+
+
+def test_mangled_trc_and_csv_are_refused_in_one_line(text_corpus):
+    """Before: a truncated TRC and one claiming NumFrames=1e9 were read as shorter takes without a
+    word, and a CSV with a 50 MB field raised ``_csv.Error`` (a traceback)."""
+    valid, corpus = text_corpus
+    results, peak, err = _read(corpus, _limit(valid, need=2))
+    _check(results, err, corpus)
+    line = {name.split(".", 2)[2]: text for name, text in results.items() if ".s0." in name}
+    assert "NumFrames is 1000000000 but the file holds 240" in line["lie_frames.trc"]
+    for case in ("cut30.trc", "cut77.trc", "cut30.csv", "cut77.csv"):
+        assert line[case].startswith("error") and "truncated" in line[case], line[case]
+    for case in ("hugefield.trc", "hugefield.csv"):
+        assert line[case].startswith("error") and len(line[case]) < 300, line[case][:300]
+
+
+def test_lying_trc_through_the_cli_is_one_line(text_corpus):
+    valid, corpus = text_corpus
+    for path in [p for p in corpus if ".s0.lie_frames." in p.name or ".s0.hugefield.csv" in p.name]:
+        r, _ = _cli(["info", str(path)])
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 1 and len(lines) == 1 and path.name in lines[0], r.stderr[-2000:]
