@@ -88,10 +88,14 @@ def check_c3d(path: Path) -> C3DLayout:
     for name in ("USED", "SCALE", "RATE") if n_points else ():
         if ("POINT", name) not in params:
             raise TakeFileError(f"{path}: the header says {n_points} points but there is no POINT:{name} parameter")
+        if params[("POINT", name)].type not in (1, 2, 4) or _count(params[("POINT", name)]) < 1:
+            raise TakeFileError(f"{path}: POINT:{name} holds no number")
     used = _int(params, "POINT", "USED", end)
     if used is not None and used != n_points:
         raise TakeFileError(f"{path}: POINT:USED is {used} but the header says {n_points} points")
     a_used = _int(params, "ANALOG", "USED", end) or 0
+    if a_used < 0:
+        raise TakeFileError(f"{path}: ANALOG:USED is {a_used}")
     if a_used and n_analog % a_used:
         raise TakeFileError(f"{path}: header's {n_analog} analog samples per frame are not a multiple of "
                             f"ANALOG:USED {a_used}")
