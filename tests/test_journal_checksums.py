@@ -113,6 +113,8 @@ def test_stale_temporaries_removed_only_when_their_process_is_dead(tmp_path):
         p.write_bytes(b"PK half an archive")
     assert remove_stale_temporaries(tmp_path / "m.npz") == [dead]
     assert not dead.exists() and mine.exists() and other.exists()
+    MarkerRecorder(tmp_path / "n.npz", LABELS, 120.0).fh.close()  # a new recording of n.npz cleans n's
+    assert not other.exists() and mine.exists()
 
 
 RECORDER = """
