@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.conftest import VENDORS
@@ -86,6 +87,22 @@ def test_mangled_vendor_c3ds_never_crash_or_overallocate(c3d_corpus):
     errors = [line for line in results.values() if line.startswith("error")]
     assert len(errors) > len(corpus) / 2  # most mangled files are refused, with a reason
     assert any("truncated C3D" in e for e in errors) and any("parameter" in e for e in errors)
+
+
+def test_the_issues_fp_type1_flips(c3d_corpus, tmp_path):
+    """The issue's reproduction: 16 bytes of FP_Type1.c3d inverted (XOR 0xFF) in its first 2 KB, 20
+    seeds. Before: 7 segfaults and one ``std::bad_alloc`` after a 4.2 GB allocation."""
+    valid, _ = c3d_corpus
+    src = (VENDORS / "FP_Type1.c3d").read_bytes()
+    files = []
+    for seed in range(20):
+        b = bytearray(src)
+        for i in np.random.default_rng(seed).choice(2048, 16, replace=False):
+            b[i] ^= 0xFF
+        files.append(tmp_path / f"fp1_{seed}.c3d")
+        files[-1].write_bytes(bytes(b))
+    results, _, err = _read(files, _limit(valid))
+    _check(results, err, files)
 
 
 def _cli(args: list[str], limit_kb: int | None = None) -> tuple[subprocess.CompletedProcess, int]:

@@ -139,23 +139,24 @@ def _parameters(path: Path, sec: bytes, offset: int, end: str) -> dict[tuple[str
         at = offset + pos
         p = pos + 2
         name = sec[p:p + abs(nchar)].decode("latin-1").strip().upper()
+        shown = name if len(name) <= 32 else name[:32] + "..."  # a damaged record may "name" 127 bytes
         p += abs(nchar)
         if p + 2 > len(sec):
-            raise TakeFileError(f"{path}: parameter record {name!r} at byte {at} runs past the section")
+            raise TakeFileError(f"{path}: parameter record {shown!r} at byte {at} runs past the section")
         nxt = struct.unpack(end + "H", sec[p:p + 2])[0]
         p += 2
         if gid < 0:
             groups[-gid] = name
         else:
             if p + 2 > len(sec):
-                raise TakeFileError(f"{path}: parameter {name!r} at byte {at} runs past the section")
+                raise TakeFileError(f"{path}: parameter {shown!r} at byte {at} runs past the section")
             ptype, ndim = struct.unpack("bb", sec[p:p + 2])
             p += 2
             if ptype not in TYPE_SIZE:
-                raise TakeFileError(f"{path}: parameter {name!r} at byte {at} has data type {ptype} "
+                raise TakeFileError(f"{path}: parameter {shown!r} at byte {at} has data type {ptype} "
                                     f"(expected -1, 1, 2 or 4)")
             if not 0 <= ndim <= 7:
-                raise TakeFileError(f"{path}: parameter {name!r} at byte {at} has {ndim} dimensions (at most 7)")
+                raise TakeFileError(f"{path}: parameter {shown!r} at byte {at} has {ndim} dimensions (at most 7)")
             dims = tuple(sec[p:p + ndim])
             p += ndim
             n = TYPE_SIZE[ptype] * math.prod(dims)
@@ -163,34 +164,34 @@ def _parameters(path: Path, sec: bytes, offset: int, end: str) -> dict[tuple[str
             # costs 4e9 steps
             walk = math.prod(d for d in dims if d)
             if walk > MAX_WALK:
-                raise TakeFileError(f"{path}: parameter {name!r} at byte {at} declares dimensions {list(dims)}")
+                raise TakeFileError(f"{path}: parameter {shown!r} at byte {at} declares dimensions {list(dims)}")
             if len(dims) != ndim or p + n + 1 > len(sec):
-                raise TakeFileError(f"{path}: parameter {name!r} at byte {at} declares dimensions {list(dims)} "
+                raise TakeFileError(f"{path}: parameter {shown!r} at byte {at} declares dimensions {list(dims)} "
                                     f"({n} bytes), more than the parameter section holds")
             pending.append((gid, name, Param(ptype, dims, sec[p:p + n])))
             p += n
         if p + 1 > len(sec):
-            raise TakeFileError(f"{path}: parameter record {name!r} at byte {at} runs past the section")
+            raise TakeFileError(f"{path}: parameter record {shown!r} at byte {at} runs past the section")
         desc = struct.unpack("b", sec[p:p + 1])[0]
         if desc < 0:  # a signed byte (ezc3d reads a negative length as a huge one)
-            raise TakeFileError(f"{path}: parameter record {name!r} at byte {at} has description length {desc}")
+            raise TakeFileError(f"{path}: parameter record {shown!r} at byte {at} has description length {desc}")
         p += 1 + desc
         if p > len(sec):
-            raise TakeFileError(f"{path}: parameter record {name!r} at byte {at} runs past the section")
+            raise TakeFileError(f"{path}: parameter record {shown!r} at byte {at} runs past the section")
         if nxt == 0:
             break
         new = pos + 2 + abs(nchar) + nxt
         if new > len(sec):
-            raise TakeFileError(f"{path}: parameter record {name!r} at byte {at} points to byte {offset + new}, "
+            raise TakeFileError(f"{path}: parameter record {shown!r} at byte {at} points to byte {offset + new}, "
                                 f"outside the parameter section")
         if new < p:  # ezc3d loops for ever on a record that overruns its successor
-            raise TakeFileError(f"{path}: parameter record {name!r} at byte {at} is {p - pos} bytes long but points "
+            raise TakeFileError(f"{path}: parameter record {shown!r} at byte {at} is {p - pos} bytes long but points "
                                 f"to the next record {new - pos} bytes on")
         pos = new
     out: dict[tuple[str, str], Param] = {}
     for gid, name, prm in pending:
         if gid not in groups:
-            raise TakeFileError(f"{path}: parameter {name!r} belongs to group {gid}, which the file never defines")
+            raise TakeFileError(f"{path}: parameter {name[:32]!r} belongs to group {gid}, which the file never defines")
         out[(groups[gid], name)] = prm
     return out
 
