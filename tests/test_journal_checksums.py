@@ -178,3 +178,35 @@ def test_any_damaged_byte_is_dropped_never_recovered_wrong(tmp_path_factory, dat
     valid = np.stack([f.valid for f in kept])
     np.testing.assert_array_equal(rec.take.valid, valid)
     np.testing.assert_array_equal(rec.take.positions[valid], np.stack([f.positions for f in kept])[valid])
+
+
+def test_npz_recording_claiming_a_huge_array_is_refused_before_allocating(tmp_path):
+    """A 1 kB .npz whose positions header claims (100000, 10000, 3) float64: numpy allocated 22 GiB
+    before reading (a MemoryError traceback under an address-space cap)."""
+    import io
+    import resource
+    import zipfile
+
+    from numpy.lib import format as npy
+
+    np.savez_compressed(tmp_path / "r.npz", labels=np.array(["a", "b"]), frames=np.arange(3),
+                        timestamps=np.zeros(3), positions=np.zeros((3, 2, 3)), valid=np.ones((3, 2), bool),
+                        rate=np.array(120.0))
+    with zipfile.ZipFile(tmp_path / "r.npz") as z:
+        members = {n: z.read(n) for n in z.namelist()}
+    head = io.BytesIO()
+    npy.write_array_header_1_0(head, {"descr": "<f8", "fortran_order": False, "shape": (10**5, 10**4, 3)})
+    members["positions.npy"] = head.getvalue() + bytes(64)
+    with zipfile.ZipFile(tmp_path / "bomb.npz", "w", zipfile.ZIP_DEFLATED) as z:
+        for name, blob in members.items():
+            z.writestr(name, blob)
+
+    def cap() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))
+
+    code = f"from transport.recorders import read_marker_recording as r; print(r({str(tmp_path)!r} + '/r.npz')" \
+           f".take.n_frames); r({str(tmp_path)!r} + '/bomb.npz')"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=60,
+                         preexec_fn=cap)
+    assert out.stdout.strip() == "3"
+    assert "positions.npy declares (100000, 10000, 3)" in out.stderr and "MemoryError" not in out.stderr, out.stderr

@@ -445,6 +445,7 @@ def read_marker_recording(path: str | Path) -> MarkerRecording:
     if path.name.endswith(".partial"):
         return read_marker_journal(path)
     try:
+        _check_npz_sizes(path)
         z = np.load(path, allow_pickle=False)
         labels = [str(s) for s in z["labels"]]
         take = Take(labels, z["positions"].astype(np.float64), z["valid"], float(z["rate"]),
@@ -452,3 +453,26 @@ def read_marker_recording(path: str | Path) -> MarkerRecording:
         return MarkerRecording(take, z["frames"], z["timestamps"])
     except (OSError, KeyError, ValueError, IndexError, EOFError, zipfile.BadZipFile) as exc:
         raise ValueError(f"{path}: not a livecap marker recording ({exc})") from None
+
+
+DEFLATE_MAX_RATIO = 1032  # deflate cannot expand a byte to more than ~1032 (zlib's technical notes)
+
+
+def _check_npz_sizes(path: Path) -> None:
+    """numpy allocates what an array's header declares before reading its data: a 1 kB archive
+    claiming a (100000, 10000, 3) array cost 22 GiB. Every member's declared size must fit the size
+    the archive records for it (which zipfile holds the data to)."""
+    from numpy.lib import format as npy
+
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            with zf.open(info) as fh:
+                version = npy.read_magic(fh)
+                read = {(1, 0): npy.read_array_header_1_0, (2, 0): npy.read_array_header_2_0}.get(version)
+                if read is None:
+                    raise ValueError(f"{info.filename} is .npy version {version}")
+                shape, _, dtype = read(fh)
+                need = math.prod(shape) * dtype.itemsize
+                if need > info.file_size or need > DEFLATE_MAX_RATIO * info.compress_size + 4096:
+                    raise ValueError(f"{info.filename} declares {shape} {dtype} ({need} bytes), the archive holds "
+                                     f"{info.file_size} ({info.compress_size} compressed)")
