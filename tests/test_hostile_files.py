@@ -77,7 +77,7 @@ def c3d_corpus(tmp_path_factory) -> tuple[list[Path], list[Path]]:
 
 
 def test_mangled_vendor_c3ds_never_crash_or_overallocate(c3d_corpus):
-    """Before: 7 of 20 flips of FP_Type1 killed ``livecap info`` with a segfault, others allocated
+    """Before: 8 of 20 flips of FP_Type1 killed ``livecap info`` with a segfault, others allocated
     4.2 GB (``std::bad_alloc``) or hung in ezc3d."""
     valid, corpus = c3d_corpus
     limit = _limit(valid)
@@ -91,7 +91,7 @@ def test_mangled_vendor_c3ds_never_crash_or_overallocate(c3d_corpus):
 
 def test_the_issues_fp_type1_flips(c3d_corpus, tmp_path):
     """The issue's reproduction: 16 bytes of FP_Type1.c3d inverted (XOR 0xFF) in its first 2 KB, 20
-    seeds. Before: 7 segfaults and one ``std::bad_alloc`` after a 4.2 GB allocation."""
+    seeds. Before (under a 1 GiB cap): 8 segfaults and one ``std::bad_alloc``."""
     valid, _ = c3d_corpus
     src = (VENDORS / "FP_Type1.c3d").read_bytes()
     files = []
