@@ -16,17 +16,21 @@ ignore a torn last line.
 * Markers: ``.npz`` (labels, frames, timestamps, positions, valid, rate) or ``.c3d``. Both are
   whole-file formats, so frames go first to an append-only journal ``<path>.partial`` (a JSON
   header line, then fixed-size binary records) that becomes the final file on close;
-  :func:`read_marker_journal` recovers a session that was killed.
+  :func:`read_marker_journal` recovers a session that was killed. Journal version 2 ends the
+  header and every record with a CRC32 (zlib), so a damaged record is dropped and counted, never
+  recovered as markers metres off; version 1 journals (no checksums) are still read, unverified.
 """
 
 from __future__ import annotations
 
 import csv
+import glob
 import json
 import math
 import os
 import struct
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
@@ -252,17 +256,18 @@ class MarkerRecorder(_Appending):
         self.rate = float(rate)
         self.fsync = fsync
         self.journal = journal_path(self.path)
+        remove_stale_temporaries(self.path)
         n = len(self.labels)
         self._fmt = f"<qd{3 * n}d{n}B"  # float64: a replay reproduces the session bit for bit
         self.fh = open(self.journal, "wb", buffering=1 << 16)
-        head = json.dumps({"magic": _JOURNAL_MAGIC, "version": 1, "labels": self.labels, "rate": self.rate,
-                           "record": self._fmt}) + "\n"
-        self.fh.write(head.encode())
+        head = {"magic": _JOURNAL_MAGIC, "version": 2, "labels": self.labels, "rate": self.rate, "record": self._fmt}
+        self.fh.write((json.dumps({**head, "crc32": _crc(head)}) + "\n").encode())
 
     def record(self, frame: MarkerFrame) -> None:
-        self.fh.write(struct.pack(self._fmt, int(frame.frame), float(frame.timestamp),
-                                  *np.asarray(frame.positions, dtype=np.float64).ravel(),
-                                  *np.asarray(frame.valid, dtype=np.uint8)))
+        rec = struct.pack(self._fmt, int(frame.frame), float(frame.timestamp),
+                          *np.asarray(frame.positions, dtype=np.float64).ravel(),
+                          *np.asarray(frame.valid, dtype=np.uint8))
+        self.fh.write(rec + struct.pack("<I", zlib.crc32(rec)))
         self.written += 1
 
     def close(self) -> None:
@@ -284,37 +289,69 @@ def journal_path(path: str | Path) -> Path:
     return p.with_name(p.name + ".partial")
 
 
+def _crc(head: dict) -> int:
+    return zlib.crc32(json.dumps(head).encode())
+
+
 @dataclass
 class MarkerRecording:
     take: Take  # positions in mm, session label order
     frames: np.ndarray  # T frame numbers as received
     timestamps: np.ndarray  # T seconds as received
+    dropped: list[int] | None = None  # journal records (0-based) whose checksum failed; None: not verified
+    torn: int = 0  # bytes of a last record cut short (a kill mid-write)
+
+    def journal_report(self) -> str:
+        """What recovery kept and left out, for ``livecap recover`` to say."""
+        if self.dropped is None:
+            note = "version 1 journal: no checksums, records not verified"
+        elif self.dropped:
+            shown = ", ".join(map(str, self.dropped[:10])) + (" ..." if len(self.dropped) > 10 else "")
+            note = f"dropped {len(self.dropped)} damaged records (CRC32 mismatch; records {shown})"
+        else:
+            note = "every record's checksum verified"
+        return note + (f"; ignored a torn last record ({self.torn} bytes)" if self.torn else "")
 
 
 def read_marker_journal(path: str | Path) -> MarkerRecording:
-    """Recover the frames of a journal (complete records only)."""
+    """Recover the frames of a journal: complete records whose checksum holds (version 2), or every
+    complete record (version 1, which has none)."""
     path = Path(path)
     with open(path, "rb") as fh:
-        head_line = fh.readline()
+        head_line = fh.readline(1 << 24)
         body = fh.read()
     try:
         head = json.loads(head_line)
         if not isinstance(head, dict) or head.get("magic") != _JOURNAL_MAGIC:
             raise ValueError("wrong magic")
+        version = head.get("version")
+        if version not in (1, 2):
+            raise ValueError(f"version {version!r}")
+        if version == 2 and head.pop("crc32", None) != _crc(head):
+            raise ValueError("its header fails its checksum")
         fmt = head["record"]
         labels, rate = [str(s) for s in head["labels"]], float(head["rate"])
         size = struct.calcsize(fmt)
     except (ValueError, KeyError, TypeError, struct.error) as exc:
         raise ValueError(f"{path}: not a livecap marker journal ({exc})") from None
     n = len(labels)
-    count = len(body) // size
-    rec = np.dtype([("frame", "<i8"), ("t", "<f8"), ("pos", "<f8", (n, 3)), ("valid", "u1", (n,))])
-    if rec.itemsize != size:
+    fields = [("frame", "<i8"), ("t", "<f8"), ("pos", "<f8", (n, 3)), ("valid", "u1", (n,))]
+    if np.dtype(fields).itemsize != size:
         raise ValueError(f"{path}: record format {fmt!r} is not one this build writes")
-    arr = np.frombuffer(body[: count * size], dtype=rec)
+    if version == 2:
+        fields.append(("crc", "<u4"))
+    rec = np.dtype(fields)
+    count = len(body) // rec.itemsize
+    arr = np.frombuffer(body[: count * rec.itemsize], dtype=rec)
+    dropped = None
+    if version == 2:
+        raw = np.frombuffer(body[: count * rec.itemsize], np.uint8).reshape(count, rec.itemsize)
+        good = np.array([zlib.crc32(r[:size]) == c for r, c in zip(raw, arr["crc"], strict=True)], dtype=bool)
+        dropped = np.flatnonzero(~good).tolist()
+        arr = arr[good]
     take = Take(labels, arr["pos"].astype(np.float64), arr["valid"].astype(bool), rate,
-                int(arr["frame"][0]) if count else 0)
-    return MarkerRecording(take, arr["frame"].copy(), arr["t"].copy())
+                int(arr["frame"][0]) if len(arr) else 0)
+    return MarkerRecording(take, arr["frame"].copy(), arr["t"].copy(), dropped, len(body) - count * rec.itemsize)
 
 
 def write_marker_recording(rec: MarkerRecording, path: str | Path) -> None:
@@ -353,9 +390,39 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+def remove_stale_temporaries(path: str | Path) -> list[Path]:
+    """Remove the ``.NAME.PID.tmp.EXT`` files :func:`write_marker_recording` leaves when killed
+    mid-write, for this target only and only when that PID is no longer running."""
+    path = Path(path)
+    removed = []
+    for tmp in path.parent.glob(f".{glob.escape(path.stem)}.*.tmp{glob.escape(path.suffix)}"):
+        pid = tmp.name[len(path.stem) + 2: -len(".tmp" + path.suffix)]
+        if pid.isdigit() and not _running(int(pid)):
+            tmp.unlink(missing_ok=True)
+            removed.append(tmp)
+    return removed
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True  # someone else's process (or a number no process has): leave its file
+    return True
+
+
 def recover_marker_journal(journal: str | Path, out: str | Path | None = None) -> tuple[Path, int]:
     """Turn the journal a killed session left into its final recording; returns (path, frames).
     The journal stays until the final file is safely in place."""
+    path, rec = recover_marker_journal_report(journal, out)
+    return path, rec.take.n_frames
+
+
+def recover_marker_journal_report(journal: str | Path, out: str | Path | None = None
+                                  ) -> tuple[Path, MarkerRecording]:
+    """:func:`recover_marker_journal` with the recording, whose ``journal_report()`` says what was dropped."""
     journal = Path(journal)
     if not journal.name.endswith(".partial"):
         raise ValueError(f"{journal}: not a journal (expected a name ending in .partial)")
@@ -366,9 +433,10 @@ def recover_marker_journal(journal: str | Path, out: str | Path | None = None) -
         raise ValueError(f"{out}: raw marker recordings are .npz or .c3d")
     rec = read_marker_journal(journal)
     if rec.take.n_frames == 0:
-        raise ValueError(f"{journal}: holds no complete frame")
+        raise ValueError(f"{journal}: holds no complete frame ({rec.journal_report()})")
+    remove_stale_temporaries(out)
     write_marker_recording(rec, out)
-    return out, rec.take.n_frames
+    return out, rec
 
 
 def read_marker_recording(path: str | Path) -> MarkerRecording:
@@ -377,6 +445,7 @@ def read_marker_recording(path: str | Path) -> MarkerRecording:
     if path.name.endswith(".partial"):
         return read_marker_journal(path)
     try:
+        _check_npz_sizes(path)
         z = np.load(path, allow_pickle=False)
         labels = [str(s) for s in z["labels"]]
         take = Take(labels, z["positions"].astype(np.float64), z["valid"], float(z["rate"]),
@@ -384,3 +453,26 @@ def read_marker_recording(path: str | Path) -> MarkerRecording:
         return MarkerRecording(take, z["frames"], z["timestamps"])
     except (OSError, KeyError, ValueError, IndexError, EOFError, zipfile.BadZipFile) as exc:
         raise ValueError(f"{path}: not a livecap marker recording ({exc})") from None
+
+
+DEFLATE_MAX_RATIO = 1032  # deflate cannot expand a byte to more than ~1032 (zlib's technical notes)
+
+
+def _check_npz_sizes(path: Path) -> None:
+    """numpy allocates what an array's header declares before reading its data: a 1 kB archive
+    claiming a (100000, 10000, 3) array cost 22 GiB. Every member's declared size must fit the size
+    the archive records for it (which zipfile holds the data to)."""
+    from numpy.lib import format as npy
+
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            with zf.open(info) as fh:
+                version = npy.read_magic(fh)
+                read = {(1, 0): npy.read_array_header_1_0, (2, 0): npy.read_array_header_2_0}.get(version)
+                if read is None:
+                    raise ValueError(f"{info.filename} is .npy version {version}")
+                shape, _, dtype = read(fh)
+                need = math.prod(shape) * dtype.itemsize
+                if need > info.file_size or need > DEFLATE_MAX_RATIO * info.compress_size + 4096:
+                    raise ValueError(f"{info.filename} declares {shape} {dtype} ({need} bytes), the archive holds "
+                                     f"{info.file_size} ({info.compress_size} compressed)")

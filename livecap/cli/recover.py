@@ -14,8 +14,8 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from transport.recorders import recover_marker_journal
+    from transport.recorders import recover_marker_journal_report
 
-    out, n = recover_marker_journal(args.journal, args.out)
-    print(f"recovered {n} frames from {args.journal} to {out}")
+    out, rec = recover_marker_journal_report(args.journal, args.out)
+    print(f"recovered {rec.take.n_frames} frames from {args.journal} to {out}: {rec.journal_report()}")
     return 0
