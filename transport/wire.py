@@ -74,11 +74,26 @@ class Oversize(WireError):
 
 class LayoutTable(OrderedDict):
     """Layout id -> labels, least recently used first, at most ``size`` entries: a sender
-    announcing a new layout per packet cannot grow the receiver's memory."""
+    announcing a new layout per packet cannot grow the receiver's memory.
 
-    def __init__(self, size: int = LAYOUT_TABLE_SIZE) -> None:
+    ``pin`` the session's own layout: pinned layouts are never evicted, so a burst of fresh
+    layouts cannot make the honest stream's id-only packets unknown. With ``allowed`` (the
+    session's labels), a layout naming any other label is refused before it is learned; its id
+    is remembered (bounded) so the sender's id-only packets count as ``unknown_label`` too, which
+    is what tells a wrong --profile from a lost announcement."""
+
+    def __init__(self, size: int = LAYOUT_TABLE_SIZE, allowed: Sequence[str] | None = None) -> None:
         super().__init__()
         self.size = size
+        self.allowed = None if allowed is None else frozenset(allowed)
+        self.pinned: set[str] = set()
+        self.refused: OrderedDict[str, list[str]] = OrderedDict()  # id -> a few of its foreign labels
+
+    def pin(self, labels: Sequence[str]) -> str:
+        lid = layout_id(labels)
+        self.pinned.add(lid)
+        self.learn(lid, list(labels))
+        return lid
 
     def get_labels(self, lid: str) -> list[str] | None:
         labels = self.get(lid)
@@ -86,11 +101,24 @@ class LayoutTable(OrderedDict):
             self.move_to_end(lid)
         return labels
 
+    def foreign(self, labels: list[str]) -> list[str]:
+        """The labels (at most 5) the session does not have; empty when every label is allowed."""
+        if self.allowed is None:
+            return []
+        return [s for s in labels if s not in self.allowed][:5]
+
+    def refuse(self, lid: str, foreign: list[str]) -> None:
+        self.refused[lid] = foreign
+        self.refused.move_to_end(lid)
+        if len(self.refused) > self.size:
+            self.refused.popitem(last=False)
+
     def learn(self, lid: str, labels: list[str]) -> None:
         self[lid] = labels
         self.move_to_end(lid)
-        while len(self) > self.size:
-            self.popitem(last=False)
+        if len(self) > self.size:
+            for old in [k for k in self if k not in self.pinned][:len(self) - self.size]:
+                del self[old]
 
 
 def layout_id(labels: Sequence[str]) -> str:
@@ -189,6 +217,8 @@ def decode_markers(payload: bytes, layouts: dict[str, list[str]] | None = None) 
         if layouts is not None:
             known = layouts.get_labels(lid) if isinstance(layouts, LayoutTable) else layouts.get(lid)
         if known is None:
+            if isinstance(layouts, LayoutTable) and lid in layouts.refused:
+                raise UnknownLabel(f"layout {lid!r} was refused: unknown labels {layouts.refused[lid]}")
             raise UnknownLayout(f"layout id {lid!r} was never announced with its labels")
         labels = known
     else:
@@ -207,6 +237,11 @@ def decode_markers(payload: bytes, layouts: dict[str, list[str]] | None = None) 
                 raise LayoutMismatch(f"layout id {lid!r} is not the id of the labels sent with it "
                                      f"({layout_id(labels)!r})")
             if isinstance(layouts, LayoutTable):
+                if lid not in layouts:
+                    foreign = layouts.foreign(labels)
+                    if foreign:  # refused before it is learned: it can neither evict nor be used
+                        layouts.refuse(lid, foreign)
+                        raise UnknownLabel(f"layout {lid!r} names markers the session lacks: unknown labels {foreign}")
                 layouts.learn(lid, layouts.get(lid) or list(labels))
             elif layouts is not None:
                 layouts[lid] = list(labels)

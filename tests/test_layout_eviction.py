@@ -1,0 +1,93 @@
+"""Layout eviction (issue 36.1): bursts of fresh-layout packets beside an honest ``livecap send``
+must not make the honest stream's id-only packets unknown. Real processes on loopback, and the
+layout table's logic alone."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from transport.wire import LAYOUT_TABLE_SIZE, LayoutTable, UnknownLabel, decode_markers, encode_markers, layout_id
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+SESSION = [f"m{i}" for i in range(6)]
+
+
+def spawn(*args) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=ENV)
+
+
+def packet(frame: int, labels: list[str] | None, lid: str) -> bytes:
+    n = len(labels) if labels else len(SESSION)
+    return encode_markers(frame, frame / 120, np.zeros((n, 3)), np.ones(n, bool), labels, lid)
+
+
+def test_session_layout_survives_any_burst_and_foreign_layouts_are_refused_unlearned():
+    table = LayoutTable(allowed=SESSION)
+    lid = table.pin(SESSION)
+    for k in range(5 * LAYOUT_TABLE_SIZE):
+        labels = [f"x{k}_{j}" for j in range(6)]
+        with pytest.raises(UnknownLabel):
+            decode_markers(packet(0, labels, layout_id(labels)), table)
+    assert list(table) == [lid]
+    with pytest.raises(UnknownLabel):  # a refused layout's id-only packets: a wrong --profile, not a lost announcement
+        decode_markers(packet(1, None, layout_id(labels)), table)
+    for k in range(5 * LAYOUT_TABLE_SIZE):  # the session's own labels in other orders are learned, bounded
+        labels = SESSION[k % 6:] + SESSION[:k % 6] if k < 6 else list(np.random.default_rng(k).permutation(SESSION))
+        decode_markers(packet(0, labels, layout_id(labels)), table)
+    assert len(table) == LAYOUT_TABLE_SIZE and lid in table
+    assert decode_markers(packet(1, None, lid), table).labels == SESSION
+
+
+@pytest.fixture(scope="module")
+def d(tmp_path_factory) -> Path:
+    from livecap.calibration.profile import calibrate, estimate_neutral
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
+    from transport.takefile import read_take
+
+    out = tmp_path_factory.mktemp("evict")
+    r = subprocess.run([sys.executable, "-m", "livecap", "generate", "--seconds", "3", "--seed", "0", "--out",
+                        str(out)], capture_output=True, text=True, env=ENV, timeout=300)
+    assert r.returncode == 0, r.stderr
+    rig = Rig.load(out / "demo_rig.npz")
+    layout = MarkerLayout.load(out / "demo_rig.markers.json", rig)
+    take = read_take(out / "demo_take.c3d").select(layout.labels)
+    calibrate(rig, layout, estimate_neutral(take, layout.stable, 120)).save(out / "profile.npz")
+    return out
+
+
+def test_layout_burst_beside_an_honest_sender_does_not_starve_it(d, tmp_path):
+    """``livecap run`` binds; an honest ``livecap send`` (labels once a second, the layout id in
+    between) and the attacker (20 fresh layouts at once, every second) connect. Before the fix
+    each burst evicted the honest layout and ~90 % of its frames were counted unknown_layout."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    addr = f"tcp://127.0.0.1:{port}"
+    run = spawn("-m", "livecap", "run", "--zmq-in", addr, "--zmq-in-bind", "--profile", d / "profile.npz",
+                "--idle-timeout", 2, "--no-skip-stale", "--stats-file", tmp_path / "s.json")
+    assert run.stdout.readline().startswith("ready")
+    attacker = spawn("-m", "benchmarks.layout_burst", addr, "--seconds", 6)
+    assert attacker.stdout.readline().strip() == "ready"
+    send = spawn("-m", "livecap", "send", d / "demo_take.c3d", "--zmq", addr, "--connect", "--loop", "--frames", 480)
+    out, err = send.communicate(timeout=120)
+    assert send.returncode == 0, err
+    burst = json.loads(attacker.communicate(timeout=60)[0].strip().splitlines()[-1])
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 0, err
+    st = json.loads((tmp_path / "s.json").read_text())
+    assert burst["packets"] >= 60
+    assert st["bad_input"].get("unknown_layout", 0) == 0, st
+    assert st["bad_input"].get("unknown_label", 0) >= burst["packets"] - 40, st  # a burst may precede the connection
+    assert st["frames_in"] >= 0.99 * 480, st
