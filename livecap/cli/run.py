@@ -233,7 +233,7 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         host, port = udp_address(args.osc_in, 0, args.interface)
         source = OscSource(host, port, labels, idle_timeout=args.idle_timeout,
                            first_frame_timeout=_first_frame_timeout(args))
-        described.append(f"osc-in {host}:{source.port}")
+        described.append(f"osc-in {host}:{source.port} (receive buffer {source.rcvbuf >> 10} KiB)")
     if args.unlabelled:
         from livecap.live.unlabelled import LabelledSource
 

@@ -1,13 +1,16 @@
-"""Layout eviction (issue 36.1): bursts of fresh-layout packets beside an honest ``livecap send``
-must not make the honest stream's id-only packets unknown. Real processes on loopback, and the
+"""The live paths under attack (issue 36): layout eviction (bursts of fresh-layout packets beside an
+honest ``livecap send`` must not make the honest stream's id-only packets unknown), lost OSC
+datagrams counted, JSONL rows, LSL and the loopback rule. Real processes on loopback, and the
 layout table's logic alone."""
 
 from __future__ import annotations
 
 import json
 import os
+import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +26,12 @@ SESSION = [f"m{i}" for i in range(6)]
 def spawn(*args) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=ENV)
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def packet(frame: int, labels: list[str] | None, lid: str) -> bytes:
@@ -69,12 +78,7 @@ def test_layout_burst_beside_an_honest_sender_does_not_starve_it(d, tmp_path):
     """``livecap run`` binds; an honest ``livecap send`` (labels once a second, the layout id in
     between) and the attacker (20 fresh layouts at once, every second) connect. Before the fix
     each burst evicted the honest layout and ~90 % of its frames were counted unknown_layout."""
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    addr = f"tcp://127.0.0.1:{port}"
+    addr = f"tcp://127.0.0.1:{free_port()}"
     run = spawn("-m", "livecap", "run", "--zmq-in", addr, "--zmq-in-bind", "--profile", d / "profile.npz",
                 "--idle-timeout", 2, "--no-skip-stale", "--stats-file", tmp_path / "s.json")
     assert run.stdout.readline().startswith("ready")
@@ -91,3 +95,31 @@ def test_layout_burst_beside_an_honest_sender_does_not_starve_it(d, tmp_path):
     assert st["bad_input"].get("unknown_layout", 0) == 0, st
     assert st["bad_input"].get("unknown_label", 0) >= burst["packets"] - 40, st  # a burst may precede the connection
     assert st["frames_in"] >= 0.99 * 480, st
+
+
+def test_osc_frames_that_never_arrive_are_counted_and_the_buffer_reported(d, tmp_path):
+    """UDP drops datagrams silently (issue 36.9): the frame numbers the session never saw are
+    counted as ``missing``; a sender restart is not a gap. The ready line says what receive
+    buffer the kernel gave."""
+    from transport.osc_source import encode_osc_frame
+    from transport.takefile import read_take
+
+    take = read_take(d / "demo_take.c3d")
+    port = free_port(socket.SOCK_DGRAM)
+    run = spawn("-m", "livecap", "run", "--osc-in", f"127.0.0.1:{port}", "--profile", d / "profile.npz",
+                "--idle-timeout", 1, "--no-skip-stale", "--stats-file", tmp_path / "s.json")
+    ready = run.stdout.readline()
+    assert "receive buffer" in ready and "KiB" in ready, ready
+    lost = {10, 11, 12, 50}
+    frames = [f for f in range(120) if f not in lost] + list(range(5))  # then the sender restarts
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+        for f in frames:
+            j = f % take.n_frames
+            tx.sendto(encode_osc_frame(f, f / 120, take.labels, take.positions[j], take.valid[j]),
+                      ("127.0.0.1", port))
+            time.sleep(1 / 240)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 0, err
+    st = json.loads((tmp_path / "s.json").read_text())
+    assert st["frames_in"] == len(frames), st
+    assert st["bad_input"] == {"missing": 4, "stream_restart": 1}, st
