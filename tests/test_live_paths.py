@@ -123,3 +123,30 @@ def test_osc_frames_that_never_arrive_are_counted_and_the_buffer_reported(d, tmp
     st = json.loads((tmp_path / "s.json").read_text())
     assert st["frames_in"] == len(frames), st
     assert st["bad_input"] == {"missing": 4, "stream_restart": 1}, st
+
+
+def test_jsonl_rows_carry_the_keys_of_the_zeromq_weights_message(tmp_path):
+    """docs/protocol.md §6 (issue 36.13): a JSONL row has the ZeroMQ weights message's keys."""
+    import msgpack
+
+    from livecap.core.result import SolveResult
+    from transport.recorders import JsonlRecorder, read_jsonl_recording
+    from transport.wire import decode_payload, encode_weights
+
+    names = ["jawOpen", "eyeBlinkLeft", "mouthSmileLeft"]
+    res = SolveResult(7, 0.25, names, np.array([0.5, 1.0, 0.0]), np.array([0.0, 0.0, 0.0, 1.0]),
+                      np.array([1.0, 2.0, 3.0]), 0.4, 0.001, valid=np.array([True, False, True, True]),
+                      at_bound=np.array([0, 1, -1], dtype=np.int8))
+    rec = JsonlRecorder(tmp_path / "w.jsonl")
+    rec.publish(res)
+    rec.close()
+    got_names, rows = read_jsonl_recording(tmp_path / "w.jsonl")
+    header = json.loads((tmp_path / "w.jsonl").read_text().splitlines()[0])
+    row = rows[0]
+    wire = msgpack.unpackb(encode_weights(res, layout_id(names)))
+    assert set(row) == set(wire), set(wire) ^ set(row)
+    pkt = decode_payload(encode_weights(res, layout_id(names)))
+    assert got_names == names and row["v"] == 1 and row["names_id"] == header["names_id"] == pkt.names_id
+    assert (row["valid"], row["markers"]) == (pkt.valid, pkt.markers) == (3, 4)
+    assert row["at_bound"] == pkt.at_bound.tolist() == [0, 1, -1]
+    assert row["weights"] == pkt.weights.tolist()
