@@ -150,3 +150,48 @@ def test_jsonl_rows_carry_the_keys_of_the_zeromq_weights_message(tmp_path):
     assert (row["valid"], row["markers"]) == (pkt.valid, pkt.markers) == (3, 4)
     assert row["at_bound"] == pkt.at_bound.tolist() == [0, 1, -1]
     assert row["weights"] == pkt.weights.tolist()
+
+
+def _udp_binds(pid: int) -> set[tuple[str, int]]:
+    """(address, port) of every UDP socket process ``pid`` holds, from /proc (IPv4 and IPv6)."""
+    inodes = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            link = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:
+            continue
+        if link.startswith("socket:["):
+            inodes.add(link[8:-1])
+    out = set()
+    for table, family in (("udp", socket.AF_INET), ("udp6", socket.AF_INET6)):
+        for line in Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]:
+            cols = line.split()
+            if cols[9] in inodes:
+                host, port = cols[1].split(":")
+                raw = bytes.fromhex(host)
+                raw = raw[::-1] if family == socket.AF_INET else b"".join(raw[i:i + 4][::-1] for i in range(0, 16, 4))
+                out.add((socket.inet_ntop(family, raw), int(port, 16)))
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/self/net/udp").exists(), reason="needs Linux /proc")
+def test_lsl_out_answers_discovery_on_loopback_only(d, tmp_path):
+    """Item 8 of issue 36: without --interface, ``livecap run --lsl-out`` answers LSL discovery on
+    127.0.0.1 only (before: on every interface, IPv4 and IPv6), and a local inlet still finds it."""
+    pytest.importorskip("pylsl")
+    import uuid
+
+    name = f"livecap-test-{uuid.uuid4().hex[:8]}"
+    run = spawn("-m", "livecap", "run", "--replay", d / "demo_take.c3d", "--loop", "--profile", d / "profile.npz",
+                "--lsl-out", name)
+    try:
+        assert "lsl-out" in run.stdout.readline()
+        time.sleep(0.5)
+        binds = _udp_binds(run.pid)
+        discovery = {b for b in binds if b[1] == 16571}
+        assert discovery == {("127.0.0.1", 16571)}, binds
+        probe = spawn("-c", f"import pylsl; print(len(pylsl.resolve_byprop('name', {name!r}, 1, 10)))")
+        assert probe.communicate(timeout=60)[0].strip() == "1"
+    finally:
+        run.terminate()
+        run.communicate(timeout=60)
