@@ -13,8 +13,10 @@ subscriber alone.
 
 Eviction (issue 36.1): an honest ``livecap send --connect`` beside benchmarks/layout_burst.py, both
 connected to ``livecap run --zmq-in-bind``; rows alternate no attack / attack in the same run.
+Garbage (issue 36.10): ZeroMQ rows with and without the malformed flood, ``--skip-stale`` on,
+alternating, with the driver's CPU time.
 
-    python -m benchmarks.hostile [--quick] [--parts floods,subscribers,eviction]
+    python -m benchmarks.hostile [--quick] [--parts floods,subscribers,eviction,garbage]
 """
 
 from __future__ import annotations
@@ -228,7 +230,10 @@ def run(quick: bool = False, parts: tuple[str, ...] = ("floods", "subscribers", 
         subs = [subscribers(work, policy, valid, others) for policy in ("fair", "count") for others in (False, True)
                 if "subscribers" in parts]
         evictions = [eviction(work, valid, burst) for burst in (0, 20, 0, 20)] if "eviction" in parts else []
+        # issue 36.10: does decoding garbage on the frame thread put the solver behind? alternating rows, same run
+        garbage = [flood(work, "zmq", valid, g) for g in (0, per_frame, 0, per_frame) if "garbage" in parts]
     out = {"rate_hz": RATE, "valid_frames": valid, "floods": floods, "subscribers": subs, "eviction": evictions,
+           "garbage": garbage,
            "machine": f"{os.cpu_count()} CPUs (shared VM), load average {load:.2f} at start, "
                       f"{os.getloadavg()[0]:.2f} at the end",
            "data": "livecap generate seed 0: 60 markers, 43 shapes, 10 s take looped, --profile, mode lsq"}
@@ -237,6 +242,8 @@ def run(quick: bool = False, parts: tuple[str, ...] = ("floods", "subscribers", 
                          "rss_start_mb", "rss_end_mb", "rss_peak_mb"], f"flood at {RATE:g} Hz ({out['machine']})"))
     print(table(subs, ["policy", "beside", "published", "healthy_received", "healthy_pct", "p50_ms", "p99_ms",
                        "sink_drops"], "healthy subscriber beside a dead (SIGSTOP) and a slow (20 msg/s) one"))
+    print(table(garbage, ["attack", "valid_sent", "solved", "solved_pct", "stale", "driver_cpu_s", "receive_p99_ms",
+                          "solve_p50_ms"], "ZeroMQ garbage flood, --skip-stale, alternating rows"))
     print(table(evictions, ["attack", "attack_packets", "attack_kB_s", "honest_sent", "published", "published_pct",
                             "unknown_layout", "unknown_label"], "honest livecap send beside a layout-eviction burst"))
     return out

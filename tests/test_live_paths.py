@@ -195,3 +195,26 @@ def test_lsl_out_answers_discovery_on_loopback_only(d, tmp_path):
     finally:
         run.terminate()
         run.communicate(timeout=60)
+
+
+def test_garbage_that_is_not_a_msgpack_map_is_refused_before_unpacking(monkeypatch):
+    """Issue 36.10: the frame thread decodes every queued ZeroMQ message; one byte tells most
+    garbage from a marker map, so msgpack never runs on it (and it counts as malformed, not short)."""
+    import msgpack
+
+    from transport import wire
+
+    calls, unpackb = [], msgpack.unpackb
+
+    def counted(*args, **kw):
+        calls.append(1)
+        return unpackb(*args, **kw)
+
+    monkeypatch.setattr(wire.msgpack, "unpackb", counted)
+    for junk in (b"\x00garbage", b"\xc4\x10abc", msgpack.packb([1, 2, 3]), b"#bundle\x00" + bytes(20)):
+        with pytest.raises(wire.MalformedPacket):
+            wire.decode_markers(junk)
+    assert calls == []
+    labels = ["a", "b"]
+    assert decode_markers(encode_markers(3, 0.0, np.zeros((2, 3)), np.ones(2, bool), labels), None).frame == 3
+    assert calls == [1]
