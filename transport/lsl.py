@@ -36,12 +36,15 @@ LOOPBACK_CONFIG = "[ports]\nIPv6 = disable\n[multicast]\nResolveScope = machine\
 
 
 def confine(interface: str | None) -> None:
-    """Keep LSL discovery on loopback unless ``--interface`` names an address to answer on (then
-    liblsl's default site scope). Call before the first stream object: liblsl reads its
-    configuration once per process, and this replaces any lsl_api.cfg."""
+    """Keep LSL discovery on loopback unless ``--interface`` is given; then liblsl's own
+    configuration applies (lsl_api.cfg, or its site-wide multicast default: a socket bound to one
+    unicast address would not hear multicast queries). Call before the first stream object:
+    liblsl reads its configuration once per process."""
+    if interface:
+        return
     import pylsl
 
-    pylsl.set_config_content(f"[multicast]\nListenAddress = {interface}\n" if interface else LOOPBACK_CONFIG)
+    pylsl.set_config_content(LOOPBACK_CONFIG)
 
 
 class LslError(OSError):
