@@ -218,3 +218,27 @@ def test_garbage_that_is_not_a_msgpack_map_is_refused_before_unpacking(monkeypat
     labels = ["a", "b"]
     assert decode_markers(encode_markers(3, 0.0, np.zeros((2, 3)), np.ones(2, bool), labels), None).frame == 3
     assert calls == [1]
+
+
+def test_the_honest_streams_layout_survives_a_burst_in_any_label_order():
+    """A sender whose label order is not the profile's (a vendor capture): its layout is the one
+    the last good frame used, so layouts in the session's labels but other orders cannot evict it."""
+    import zmq
+
+    from transport.wire import topic
+    from transport.zmq_source import ZmqSource
+
+    ctx = zmq.Context()
+    src = ZmqSource("inproc://honest-order", SESSION, bind=True, context=ctx)
+    tp = topic("markers", "actor")
+    honest = SESSION[::-1]
+    lid = layout_id(honest)
+    assert src.decode([tp, packet(10, honest, lid)]).frame == 10
+    rng = np.random.default_rng(1)
+    for _ in range(3 * LAYOUT_TABLE_SIZE):  # shuffled session labels, each a fresh layout (a stale frame number)
+        labels = list(rng.permutation(SESSION))
+        assert src.decode([tp, packet(10, labels, layout_id(labels))]) is None
+    assert src.decode([tp, packet(11, None, lid)]).frame == 11
+    assert src.bad.counts["unknown_layout"] == 0
+    src.close()
+    ctx.term()

@@ -79,8 +79,9 @@ class LayoutTable(OrderedDict):
     """Layout id -> labels, least recently used first, at most ``size`` entries: a sender
     announcing a new layout per packet cannot grow the receiver's memory.
 
-    ``pin`` the session's own layout: pinned layouts are never evicted, so a burst of fresh
-    layouts cannot make the honest stream's id-only packets unknown. With ``allowed`` (the
+    ``pin`` the session's own layout and mark the one the last good frame used ``active``: neither
+    is evicted, so a burst of fresh layouts cannot make the honest stream's id-only packets
+    unknown, whatever its label order. With ``allowed`` (the
     session's labels), a layout naming any other label is refused before it is learned; its id
     is remembered (bounded) so the sender's id-only packets count as ``unknown_label`` too, which
     is what tells a wrong --profile from a lost announcement."""
@@ -90,6 +91,7 @@ class LayoutTable(OrderedDict):
         self.size = size
         self.allowed = None if allowed is None else frozenset(allowed)
         self.pinned: set[str] = set()
+        self.active: str | None = None
         self.refused: OrderedDict[str, list[str]] = OrderedDict()  # id -> a few of its foreign labels
 
     def pin(self, labels: Sequence[str]) -> str:
@@ -120,7 +122,7 @@ class LayoutTable(OrderedDict):
         self[lid] = labels
         self.move_to_end(lid)
         if len(self) > self.size:
-            for old in [k for k in self if k not in self.pinned][:len(self) - self.size]:
+            for old in [k for k in self if k not in self.pinned and k != self.active][:len(self) - self.size]:
                 del self[old]
 
 
@@ -142,6 +144,7 @@ class MarkerPacket:
     labels: list[str]
     positions: np.ndarray  # n x 3 float64, mm; 0 where not valid
     valid: np.ndarray  # n bool
+    layout: str | None = None  # the layout id the packet named, if any
 
 
 def encode_markers(frame: int, timestamp: float, positions: np.ndarray, valid: np.ndarray,
@@ -276,7 +279,7 @@ def decode_markers(payload: bytes, layouts: dict[str, list[str]] | None = None) 
     # overflow (4096 x 3 x 3.4e38), so the sum is finite exactly when every coordinate left is
     if not math.isfinite(positions.sum()):
         raise NonFinite("a marker flagged valid has a NaN or infinite coordinate")
-    return MarkerPacket(frame, timestamp, list(labels), positions, valid)
+    return MarkerPacket(frame, timestamp, list(labels), positions, valid, lid)
 
 
 # ---------------------------------------------------------------------------------- weights

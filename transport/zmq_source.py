@@ -112,6 +112,8 @@ class ZmqSource:
             return None
         if not self.bad.in_order(self._order, frame.frame, frame.timestamp):
             return None
+        if pkt.layout is not None:
+            self._layouts.active = pkt.layout  # the honest stream's layout, in whatever label order it sends
         self._seen_good = True
         return frame
 
