@@ -11,7 +11,12 @@ subscriber that measures latency (receive time - send time) beside a dead one (S
 a slow one (one message per 50 ms), for each ``--zmq-policy``; the baseline is the healthy
 subscriber alone.
 
-    python -m benchmarks.hostile [--quick]
+Eviction (issue 36.1): an honest ``livecap send --connect`` beside benchmarks/layout_burst.py, both
+connected to ``livecap run --zmq-in-bind``; rows alternate no attack / attack in the same run.
+Garbage (issue 36.10): ZeroMQ rows with and without the malformed flood, ``--skip-stale`` on,
+alternating, with the driver's CPU time.
+
+    python -m benchmarks.hostile [--quick] [--parts floods,subscribers,eviction,garbage]
 """
 
 from __future__ import annotations
@@ -127,7 +132,36 @@ def flood(work: Path, kind: str, valid: int, garbage: int, layout_flood: int = 0
     return {"source": kind, "attack": attack, "skip_stale": "on" if skip_stale else "off",
             "valid_sent": sent["valid"], "received": st["frames_in"], "solved": st["frames_out"],
             "solved_pct": 100.0 * st["frames_out"] / sent["valid"], "stale": st["stale"],
-            "bad_counted": sum(v for k, v in bad.items() if k != "stream_restart"), **sampler.summary()}
+            "bad_counted": sum(v for k, v in bad.items() if k not in ("stream_restart", "missing")),
+            "driver_cpu_s": st["cpu_seconds"], "receive_p99_ms": st["timing"]["receive"]["p99_ms"],
+            "solve_p50_ms": st["timing"]["solve"]["p50_ms"], **sampler.summary()}
+
+
+def eviction(work: Path, valid: int, burst: int) -> dict:
+    """Issue 36.1: ``livecap run --zmq-in-bind`` fed by an honest ``livecap send --connect`` (labels
+    once a second, the layout id in between) beside benchmarks/layout_burst.py sending ``burst``
+    fresh layouts at once every second (0: no attacker, the baseline). ``--no-skip-stale``, so
+    ``published`` counts every honest frame the session accepted, whatever the machine's load."""
+    addr = f"tcp://127.0.0.1:{free_port()}"
+    stats = work / f"evict-{burst}.json"
+    run = spawn(["-m", "livecap", "run", "--zmq-in", addr, "--zmq-in-bind", "--profile", work / "profile.npz",
+                 "--idle-timeout", 2.0, "--no-skip-stale", "--stats-file", stats])
+    first_line(run)
+    attacker = None
+    if burst:
+        attacker = spawn(["-m", "benchmarks.layout_burst", addr, "--burst", burst, "--seconds", valid / RATE + 3])
+        first_line(attacker)
+    sender = spawn(["-m", "livecap", "send", work / "demo_take.c3d", "--zmq", addr, "--connect", "--loop",
+                    "--frames", valid])
+    sender.communicate(timeout=valid / RATE + 120)
+    sent = json.loads(attacker.communicate(timeout=60)[0].strip().splitlines()[-1]) if attacker else {}
+    run.communicate(timeout=120)
+    st = json.loads(stats.read_text())
+    bad = st["bad_input"]
+    return {"attack": f"{burst} fresh layouts/s" if burst else "none", "attack_packets": sent.get("packets", 0),
+            "attack_kB_s": sent.get("bytes", 0) / 1e3 / max(sent.get("seconds", 1.0), 1e-9), "honest_sent": valid,
+            "published": st["frames_out"], "published_pct": 100.0 * st["frames_out"] / valid,
+            "unknown_layout": bad.get("unknown_layout", 0), "unknown_label": bad.get("unknown_label", 0)}
 
 
 def subscribers(work: Path, policy: str, frames: int, others: bool) -> dict:
@@ -166,8 +200,8 @@ def subscribers(work: Path, policy: str, frames: int, others: bool) -> dict:
             "sink_drops": sum(s.get("drops", 0) for s in st["sinks"].values())}
 
 
-def run(quick: bool = False) -> dict:
-    """Measure; ``quick`` streams 5 s per row instead of 20 s."""
+def run(quick: bool = False, parts: tuple[str, ...] = ("floods", "subscribers", "eviction")) -> dict:
+    """Measure ``parts``; ``quick`` streams 5 s per row instead of 20 s."""
     from livecap.calibration.profile import calibrate, estimate_neutral
     from livecap.core.markers import MarkerLayout
     from livecap.core.rig import Rig
@@ -188,24 +222,34 @@ def run(quick: bool = False) -> dict:
         if DEMO_TAKE != "demo_take.c3d":
             (work / "demo_take.c3d").symlink_to(work / DEMO_TAKE)
         floods = []
-        for kind in ("zmq", "osc"):
+        for kind in ("zmq", "osc") if "floods" in parts else ():
             for garbage, skip in ((0, False), (per_frame, False), (0, True), (per_frame, True)):
                 floods.append(flood(work, kind, valid, garbage, skip_stale=skip))
-        floods.append(flood(work, "zmq", valid, 0, layout_flood=400, skip_stale=False))
-        subs = [subscribers(work, policy, valid, others) for policy in ("fair", "count") for others in (False, True)]
-    out = {"rate_hz": RATE, "valid_frames": valid, "floods": floods, "subscribers": subs,
+        if "floods" in parts:
+            floods.append(flood(work, "zmq", valid, 0, layout_flood=400, skip_stale=False))
+        subs = [subscribers(work, policy, valid, others) for policy in ("fair", "count") for others in (False, True)
+                if "subscribers" in parts]
+        evictions = [eviction(work, valid, burst) for burst in (0, 20, 0, 20)] if "eviction" in parts else []
+        # issue 36.10: does decoding garbage on the frame thread put the solver behind? alternating rows, same run
+        garbage = [flood(work, "zmq", valid, g) for g in (0, per_frame, 0, per_frame) if "garbage" in parts]
+    out = {"rate_hz": RATE, "valid_frames": valid, "floods": floods, "subscribers": subs, "eviction": evictions,
+           "garbage": garbage,
            "machine": f"{os.cpu_count()} CPUs (shared VM), load average {load:.2f} at start, "
                       f"{os.getloadavg()[0]:.2f} at the end",
            "data": "livecap generate seed 0: 60 markers, 43 shapes, 10 s take looped, --profile, mode lsq"}
     print(table(floods, ["source", "attack", "skip_stale", "valid_sent", "received", "solved", "solved_pct", "stale",
-                         "bad_counted",
+                         "bad_counted", "driver_cpu_s", "receive_p99_ms", "solve_p50_ms",
                          "rss_start_mb", "rss_end_mb", "rss_peak_mb"], f"flood at {RATE:g} Hz ({out['machine']})"))
     print(table(subs, ["policy", "beside", "published", "healthy_received", "healthy_pct", "p50_ms", "p99_ms",
                        "sink_drops"], "healthy subscriber beside a dead (SIGSTOP) and a slow (20 msg/s) one"))
+    print(table(garbage, ["attack", "valid_sent", "solved", "solved_pct", "stale", "driver_cpu_s", "receive_p99_ms",
+                          "solve_p50_ms"], "ZeroMQ garbage flood, --skip-stale, alternating rows"))
+    print(table(evictions, ["attack", "attack_packets", "attack_kB_s", "honest_sent", "published", "published_pct",
+                            "unknown_layout", "unknown_label"], "honest livecap send beside a layout-eviction burst"))
     return out
 
 
 if __name__ == "__main__":
     import sys
 
-    sys.exit(suite_main(run, __doc__))
+    sys.exit(suite_main(run, __doc__, parts="floods,subscribers,eviction"))

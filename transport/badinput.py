@@ -20,8 +20,9 @@ log = logging.getLogger("livecap.input")
 
 KINDS = ("short", "malformed", "version", "nonfinite", "unknown_label", "duplicate_label", "unknown_layout",
          "layout_mismatch", "oversize", "duplicate_frame", "out_of_order", "frame_outlier", "overrun")
-# Not skips but events, counted beside them: a sender that restarted (its frames are used).
-EVENTS = ("stream_restart",)
+# Not skips but events, counted beside them: a sender that restarted (its frames are used), and frame
+# numbers that never arrived (UDP sources: lost datagrams).
+EVENTS = ("stream_restart", "missing")
 
 
 MISMATCH_PACKETS = 120  # packets naming unknown markers, before any good frame, that end a session
@@ -59,9 +60,9 @@ class BadInput:
             raise LabelMismatch(f"{self.where}: the first {self.counts['unknown_label']} packets name markers the "
                                 f"profile/rig does not have ({detail}): wrong --profile or --rig for this stream?")
 
-    def event(self, kind: str, detail: str) -> None:
-        """Count and log (rate-limited) something that is not a skip, e.g. a sender restart."""
-        self.counts[kind] += 1
+    def event(self, kind: str, detail: str, n: int = 1) -> None:
+        """Count ``n`` and log (rate-limited) something that is not a skip, e.g. a sender restart."""
+        self.counts[kind] += n
         now = time.monotonic()
         if now - self._last_log.get(kind, -1e9) >= self.interval:
             log.warning("%s: %s: %s", self.where, kind, detail)

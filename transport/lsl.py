@@ -29,6 +29,24 @@ _AXIS = re.compile(r"^(.+?)[_.:\s-]?([xyzXYZ])$")
 POSE = ("head_qx", "head_qy", "head_qz", "head_qw", "head_tx", "head_ty", "head_tz")
 
 
+# liblsl's discovery kept on this machine (the loopback rule of transport/security.py): queries go to
+# 127.0.0.1 only and an outlet answers on 127.0.0.1:16571 only. liblsl 1.18 still binds an outlet's
+# data port (16572 up) on every interface; ListenAddress governs discovery alone (docs/live.md).
+LOOPBACK_CONFIG = "[ports]\nIPv6 = disable\n[multicast]\nResolveScope = machine\nListenAddress = 127.0.0.1\n"
+
+
+def confine(interface: str | None) -> None:
+    """Keep LSL discovery on loopback unless ``--interface`` is given; then liblsl's own
+    configuration applies (lsl_api.cfg, or its site-wide multicast default: a socket bound to one
+    unicast address would not hear multicast queries). Call before the first stream object:
+    liblsl reads its configuration once per process."""
+    if interface:
+        return
+    import pylsl
+
+    pylsl.set_config_content(LOOPBACK_CONFIG)
+
+
 class LslError(OSError):
     """No such stream, or a stream livecap cannot read as markers."""
 

@@ -13,6 +13,7 @@ old frame number are counted in :attr:`bad` and skipped.
 
 from __future__ import annotations
 
+import logging
 import queue
 import socket
 import threading
@@ -33,6 +34,11 @@ FRAME_ADDRESS = "/livecap/frame"
 MARKER_ADDRESS = "/livecap/marker"
 MAX_DATAGRAM = 65507  # the largest UDP payload over IPv4; a frame of 60 markers is ~3 KB
 DRAIN = 1000  # datagrams decoded per look before the loop checks stop and idle time
+# Kernel receive buffer asked for: 4 MiB holds ~1300 bundles of 60 markers (~11 s at 120 Hz) while the
+# reader thread is descheduled on a loaded machine; the kernel may give less (net.core.rmem_max).
+RCVBUF = 1 << 22
+
+log = logging.getLogger("livecap.input")
 
 
 def encode_osc_frame(frame: int, timestamp: float, labels: Sequence[str], positions: np.ndarray,
@@ -165,11 +171,17 @@ class OscSource:
         self._ahead: MarkerFrame | None = None
         self._seen_good = False
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF)
+        # Linux doubles the request for its bookkeeping and caps it at 2 x net.core.rmem_max
+        self.rcvbuf = self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
         self.sock.bind((host, port))
         self.sock.settimeout(poll_s)
         self.address = self.sock.getsockname()
         self.bad = BadInput(f"osc {host}:{self.address[1]}")
+        if self.rcvbuf < RCVBUF:
+            log.warning("osc %s:%d: asked the kernel for a %d KiB receive buffer, got %d KiB (datagrams beyond it "
+                        "are lost and counted as missing frames); raise it with sysctl -w net.core.rmem_max=%d",
+                        host, self.address[1], RCVBUF >> 10, self.rcvbuf >> 10, RCVBUF)
         self.poll_s = poll_s
         self._queue: queue.Queue[bytes] = queue.Queue(queue_size)
         self._reader = threading.Thread(target=self._read, name="osc-reader", daemon=True)
@@ -236,8 +248,12 @@ class OscSource:
             if exc.kind == "unknown_label":
                 self.bad.check_labels_match(self._seen_good, str(exc))
             return None
+        last, restarts = self._order.last, self._order.restarts
         if not self.bad.in_order(self._order, frame, ts):
             return None
+        if last is not None and self._order.restarts == restarts and frame - last > 1:
+            # UDP loses datagrams silently (a full kernel buffer, the network): say how many
+            self.bad.event("missing", f"frames {last + 1}..{frame - 1} never arrived", frame - last - 1)
         self._seen_good = True
         return MarkerFrame(frame, ts, pos, val)
 

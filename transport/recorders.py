@@ -41,6 +41,7 @@ from livecap.core.headpose import NeutralWindow
 from livecap.core.take import MarkerFrame, Take
 from livecap.core.timecode import TimecodeClock, format_timecode
 from transport.arkit import ARKIT_NAMES, POSE_NAMES, arkit_eye_angles, arkit_matrix, head_angles, is_arkit
+from transport.wire import WIRE_VERSION, layout_id
 
 # Column order of the Live Link Face app's CSV (it lists jaw and mouth Right before Left).
 LLF_CSV_SHAPES = [n[0].upper() + n[1:] for n in ARKIT_NAMES]
@@ -211,16 +212,24 @@ class JsonlRecorder(_Lines):
         self._names = None
 
     def publish(self, result) -> None:
+        """One row with the keys of the ZeroMQ weights message (docs/protocol.md §3), as JSON."""
         if result.names is not self._names:
             self._names = result.names
-            self.fh.write(json.dumps({"type": "header", "version": 1, "names": list(result.names)}) + "\n")
-        self.fh.write(json.dumps({
-            "type": "weights", "frame": int(result.frame), "timestamp": float(result.timestamp),
-            "weights": np.asarray(result.weights, dtype=float).tolist(),
+            self._names_id = layout_id(result.names)
+            self.fh.write(json.dumps({"type": "header", "version": WIRE_VERSION, "names": list(result.names),
+                                      "names_id": self._names_id}) + "\n")
+        row = {
+            "v": WIRE_VERSION, "type": "weights", "frame": int(result.frame), "timestamp": float(result.timestamp),
+            "names_id": self._names_id, "weights": np.asarray(result.weights, dtype=float).tolist(),
             "head_rotation": np.asarray(result.head_rotation, dtype=float).tolist(),
             "head_translation": np.asarray(result.head_translation, dtype=float).tolist(),
             "residual": float(result.residual), "solve_time": float(result.solve_time),
-        }) + "\n")
+        }
+        if result.valid is not None:
+            row["markers"], row["valid"] = int(len(result.valid)), int(np.count_nonzero(result.valid))
+        if result.at_bound is not None:
+            row["at_bound"] = np.asarray(result.at_bound, dtype=int).tolist()
+        self.fh.write(json.dumps(row) + "\n")
         self.written += 1
 
 

@@ -28,6 +28,9 @@ MAX_MARKERS = 4096  # a sanity bound: anything bigger is a malformed packet, not
 MAX_MESSAGE_BYTES = 1 << 20
 LAYOUT_TABLE_SIZE = 16  # layouts remembered per source (LRU); at most 16 x 4096 x 128 characters
 MAX_LABEL_CHARS = 128
+# Every payload is a msgpack map (msgpack spec: fixmap 0x80-0x8f, map16 0xde, map32 0xdf): the first
+# byte rejects ~85 % of random garbage before msgpack runs, on the thread that solves frames.
+_MAP_FIRST_BYTES = frozenset([*range(0x80, 0x90), 0xDE, 0xDF])
 
 
 class WireError(ValueError):
@@ -74,11 +77,28 @@ class Oversize(WireError):
 
 class LayoutTable(OrderedDict):
     """Layout id -> labels, least recently used first, at most ``size`` entries: a sender
-    announcing a new layout per packet cannot grow the receiver's memory."""
+    announcing a new layout per packet cannot grow the receiver's memory.
 
-    def __init__(self, size: int = LAYOUT_TABLE_SIZE) -> None:
+    ``pin`` the session's own layout and mark the one the last good frame used ``active``: neither
+    is evicted, so a burst of fresh layouts cannot make the honest stream's id-only packets
+    unknown, whatever its label order. With ``allowed`` (the
+    session's labels), a layout naming any other label is refused before it is learned; its id
+    is remembered (bounded) so the sender's id-only packets count as ``unknown_label`` too, which
+    is what tells a wrong --profile from a lost announcement."""
+
+    def __init__(self, size: int = LAYOUT_TABLE_SIZE, allowed: Sequence[str] | None = None) -> None:
         super().__init__()
         self.size = size
+        self.allowed = None if allowed is None else frozenset(allowed)
+        self.pinned: set[str] = set()
+        self.active: str | None = None
+        self.refused: OrderedDict[str, list[str]] = OrderedDict()  # id -> a few of its foreign labels
+
+    def pin(self, labels: Sequence[str]) -> str:
+        lid = layout_id(labels)
+        self.pinned.add(lid)
+        self.learn(lid, list(labels))
+        return lid
 
     def get_labels(self, lid: str) -> list[str] | None:
         labels = self.get(lid)
@@ -86,11 +106,24 @@ class LayoutTable(OrderedDict):
             self.move_to_end(lid)
         return labels
 
+    def foreign(self, labels: list[str]) -> list[str]:
+        """The labels (at most 5) the session does not have; empty when every label is allowed."""
+        if self.allowed is None:
+            return []
+        return [s for s in labels if s not in self.allowed][:5]
+
+    def refuse(self, lid: str, foreign: list[str]) -> None:
+        self.refused[lid] = foreign
+        self.refused.move_to_end(lid)
+        if len(self.refused) > self.size:
+            self.refused.popitem(last=False)
+
     def learn(self, lid: str, labels: list[str]) -> None:
         self[lid] = labels
         self.move_to_end(lid)
-        while len(self) > self.size:
-            self.popitem(last=False)
+        if len(self) > self.size:
+            for old in [k for k in self if k not in self.pinned and k != self.active][:len(self) - self.size]:
+                del self[old]
 
 
 def layout_id(labels: Sequence[str]) -> str:
@@ -111,6 +144,7 @@ class MarkerPacket:
     labels: list[str]
     positions: np.ndarray  # n x 3 float64, mm; 0 where not valid
     valid: np.ndarray  # n bool
+    layout: str | None = None  # the layout id the packet named, if any
 
 
 def encode_markers(frame: int, timestamp: float, positions: np.ndarray, valid: np.ndarray,
@@ -137,6 +171,8 @@ def _unpack_map(payload: bytes, expected_type: str) -> dict:
         raise ShortPacket("empty payload")
     if len(payload) > MAX_MESSAGE_BYTES:
         raise Oversize(f"{len(payload)}-byte payload, more than {MAX_MESSAGE_BYTES}")
+    if payload[0] not in _MAP_FIRST_BYTES:  # most garbage, refused at a fraction of an unpack's cost
+        raise MalformedPacket(f"payload starts with byte 0x{payload[0]:02x}, not a msgpack map")
     try:
         msg = msgpack.unpackb(payload, raw=False, strict_map_key=False, max_bin_len=1 << 24, max_str_len=1 << 16,
                               max_array_len=1 << 16, max_map_len=64)
@@ -189,6 +225,8 @@ def decode_markers(payload: bytes, layouts: dict[str, list[str]] | None = None) 
         if layouts is not None:
             known = layouts.get_labels(lid) if isinstance(layouts, LayoutTable) else layouts.get(lid)
         if known is None:
+            if isinstance(layouts, LayoutTable) and lid in layouts.refused:
+                raise UnknownLabel(f"layout {lid!r} was refused: unknown labels {layouts.refused[lid]}")
             raise UnknownLayout(f"layout id {lid!r} was never announced with its labels")
         labels = known
     else:
@@ -207,6 +245,11 @@ def decode_markers(payload: bytes, layouts: dict[str, list[str]] | None = None) 
                 raise LayoutMismatch(f"layout id {lid!r} is not the id of the labels sent with it "
                                      f"({layout_id(labels)!r})")
             if isinstance(layouts, LayoutTable):
+                if lid not in layouts:
+                    foreign = layouts.foreign(labels)
+                    if foreign:  # refused before it is learned: it can neither evict nor be used
+                        layouts.refuse(lid, foreign)
+                        raise UnknownLabel(f"layout {lid!r} names markers the session lacks: unknown labels {foreign}")
                 layouts.learn(lid, layouts.get(lid) or list(labels))
             elif layouts is not None:
                 layouts[lid] = list(labels)
@@ -236,7 +279,7 @@ def decode_markers(payload: bytes, layouts: dict[str, list[str]] | None = None) 
     # overflow (4096 x 3 x 3.4e38), so the sum is finite exactly when every coordinate left is
     if not math.isfinite(positions.sum()):
         raise NonFinite("a marker flagged valid has a NaN or infinite coordinate")
-    return MarkerPacket(frame, timestamp, list(labels), positions, valid)
+    return MarkerPacket(frame, timestamp, list(labels), positions, valid, lid)
 
 
 # ---------------------------------------------------------------------------------- weights

@@ -16,7 +16,7 @@ import zmq
 from livecap.core.take import MarkerFrame
 from transport.badinput import BadInput, FrameOrder, LabelMap
 from transport.security import Curve
-from transport.wire import MAX_MESSAGE_BYTES, LayoutTable, WireError, decode_markers, layout_id, topic
+from transport.wire import MAX_MESSAGE_BYTES, LayoutTable, WireError, decode_markers, topic
 
 DRAIN = 1000  # messages decoded per look before the loop checks stop and idle time
 
@@ -38,8 +38,8 @@ class ZmqSource:
         self.received = 0
         self._map = LabelMap(self.labels)
         self._order = FrameOrder()
-        self._layouts = LayoutTable()
-        self._layouts.learn(layout_id(self.labels), self.labels)
+        self._layouts = LayoutTable(allowed=self.labels)
+        self._layouts.pin(self.labels)
         self._running = True
         self._ahead: MarkerFrame | None = None
         self._seen_good = False
@@ -103,6 +103,8 @@ class ZmqSource:
                 frame = self._map.frame(pkt.frame, pkt.timestamp, pkt.labels, pkt.positions, pkt.valid)
         except WireError as exc:
             self.bad.skip(exc.kind, str(exc))
+            if exc.kind == "unknown_label":
+                self.bad.check_labels_match(self._seen_good, str(exc))
             return None
         except KeyError as exc:
             self.bad.skip("unknown_label", str(exc.args[0]))
@@ -110,6 +112,8 @@ class ZmqSource:
             return None
         if not self.bad.in_order(self._order, frame.frame, frame.timestamp):
             return None
+        if pkt.layout is not None:
+            self._layouts.active = pkt.layout  # the honest stream's layout, in whatever label order it sends
         self._seen_good = True
         return frame
 

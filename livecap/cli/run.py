@@ -206,8 +206,9 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
                            idle_timeout=args.idle_timeout, first_frame_timeout=_first_frame_timeout(args))
         described.append(f"zmq-in {addr}")
     elif args.lsl_in:
-        from transport.lsl import LslMarkerSource
+        from transport.lsl import LslMarkerSource, confine
 
+        confine(args.interface)
         source = LslMarkerSource(args.lsl_in, None if args.unlabelled else labels, idle_timeout=args.idle_timeout)
         if source.labels is None and not args.unlabelled:
             raise ValueError(f"LSL stream {args.lsl_in!r} has no marker labels: give --unlabelled and --profile")
@@ -233,7 +234,7 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         host, port = udp_address(args.osc_in, 0, args.interface)
         source = OscSource(host, port, labels, idle_timeout=args.idle_timeout,
                            first_frame_timeout=_first_frame_timeout(args))
-        described.append(f"osc-in {host}:{source.port}")
+        described.append(f"osc-in {host}:{source.port} (receive buffer {source.rcvbuf >> 10} KiB)")
     if args.unlabelled:
         from livecap.live.unlabelled import LabelledSource
 
@@ -260,8 +261,9 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         sinks.append(sink)
         described.append(f"zmq-out {sink.address}")
     if args.lsl_out:
-        from transport.lsl import LslWeightSink
+        from transport.lsl import LslWeightSink, confine
 
+        confine(args.interface)
         sinks.append(LslWeightSink(args.lsl_out, profile.names if profile else rig.names if rig else source.names,
                                    rate))
         described.append(f"lsl-out {args.lsl_out}")

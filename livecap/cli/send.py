@@ -133,8 +133,9 @@ def _osc_sender(args, labels):
 
 
 def _lsl_sender(args, labels, rate):
-    from transport.lsl import LslMarkerSender
+    from transport.lsl import LslMarkerSender, confine
 
+    confine(args.interface)
     out = LslMarkerSender(args.lsl, labels, rate, strip=args.strip_labels)
     print(f"ready: lsl {args.lsl}", flush=True)
     if args.wait_subscriber > 0:
