@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -108,3 +109,134 @@ def test_no_server_is_one_clear_error():
         port = s.getsockname()[1]
     with pytest.raises(NatNetSourceError, match="no answer"):
         NatNetSource("127.0.0.1", port, timeout=0.5)
+
+
+# ------------------------------------------------------------------ issue 36 item 3: hostile packets
+from tests.capture_servers import natnet_frame, natnet_hostile  # noqa: E402
+
+SERVERS = str(Path(__file__).with_name("capture_servers.py"))
+
+
+def _peak_bytes(fn) -> int:
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        fn()
+    except Exception:
+        pass
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak
+
+
+def test_no_hostile_frame_allocates_more_than_twice_an_honest_one():
+    """Every count is bounded by the bytes left before anything is allocated. A hostile frame is an
+    honest 60-point frame with one count bombed (up to 2^32-1 in 4 bytes): receiving and parsing it
+    (the datagram's copy, the parse, the error) peaks at most at twice what the honest frame needs
+    (the natnet package's reader built a 4 GB format string for the first)."""
+    from transport.natnet_frame import NatNetPacketError, parse_frame
+
+    honest = natnet_frame(1, 60)
+    parse_frame(memoryview(honest), (4, 0))  # warm: imports, numpy dtype caches
+    need = _peak_bytes(lambda: parse_frame(memoryview(honest), (4, 0)))
+    checked = 0
+    for _, body in natnet_hostile(1, 60)[:6]:  # the five bombs and a cut frame
+        with pytest.raises(NatNetPacketError):
+            parse_frame(body, (4, 0))
+        assert _peak_bytes(lambda body=body: parse_frame(memoryview(body), (4, 0))) <= 2 * need, body[:40]
+        checked += 1
+    assert checked == 6
+
+
+def test_parse_frame_reads_what_the_natnet_package_reads():
+    """Our bounded reader and the package's agree on an honest frame (positions, ids, params, time)."""
+    from natnet import DataFrame, Version
+    from natnet.packet_buffer import PacketBuffer
+
+    from transport.natnet_frame import parse_frame
+
+    body = natnet_frame(2)
+    ours, theirs = parse_frame(body, (4, 0)), DataFrame.read_from_buffer(PacketBuffer(body), Version(4, 0))
+    assert ours.number == theirs.prefix.frame_number and ours.timestamp == theirs.suffix.timestamp
+    np.testing.assert_array_equal(ours.marker_sets["Face"], theirs.marker_sets[0].marker_pos_list)
+    np.testing.assert_array_equal(ours.labelled["pos"], [m.pos for m in theirs.labeled_markers])
+    assert ours.labelled["param"].tolist() == [m.param for m in theirs.labeled_markers]
+    assert ours.labelled["id"].tolist() == [m.id_num for m in theirs.labeled_markers]
+
+
+@pytest.mark.parametrize("unlabelled", [False, True])
+def test_hostile_natnet_server_every_packet_counted_no_frame_lost(unlabelled):
+    """A fake Motive in another process sends, after every fifth honest frame, the bombs above, a
+    cut frame, NaN and inf timestamps, an unknown message id and bombed descriptions: every honest
+    frame arrives, every hostile packet is counted, and the receiving process stays small."""
+    import json
+    import tracemalloc
+
+    proc = subprocess.Popen([sys.executable, SERVERS, "natnet", "30", "--hostile"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        port = int(proc.stdout.readline())
+        tracemalloc.start()
+        src = NatNetSource("127.0.0.1", port, labels=["C", "A", "B"], unlabelled=unlabelled, idle_timeout=1.0)
+        frames = list(src)
+        src.close()
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        sent = json.loads(proc.communicate(timeout=10)[0].strip().splitlines()[-1])
+    finally:
+        proc.kill()
+        proc.wait()
+    rounds = sent["hostile"] // len(natnet_hostile(0))
+    assert [f.frame for f in frames] == list(range(30))
+    assert src.bad.as_dict() == {"malformed": 7 * rounds, "nonfinite": 2 * rounds, "unknown_message": rounds}
+    assert all(np.isfinite(f.timestamp) for f in frames)
+    assert peak < 8e6, peak  # a single bomb of the old reader was 4.1 GB
+
+
+def test_host_port_parses_ipv6_and_the_loopback_rule_holds():
+    from transport.capture import capture_source, host_port
+
+    assert host_port("::1", 1510) == ("::1", 1510)
+    assert host_port("[::1]:3883", 1510) == ("::1", 3883)
+    assert host_port("[fe80::1]", 22223) == ("fe80::1", 22223)
+    assert host_port("10.1.2.3:99", 1510) == ("10.1.2.3", 99)
+    assert host_port("motive", 1510) == ("motive", 1510)
+    for bad in ("[::1", "[::1]x", "host:port", "host:0", "host:70000"):
+        with pytest.raises(ValueError):
+            host_port(bad, 1510)
+    with pytest.raises(ValueError, match="--interface 10.1.2.3"):  # refused before any packet is sent
+        capture_source(None, "10.1.2.3", ["A"], False, None)
+    with pytest.raises(ValueError, match="--interface 10.1.2.3"):
+        capture_source("10.1.2.3:22223", None, ["A"], False, None)
+
+
+def test_natnet_binds_the_interface_that_reaches_the_server():
+    """Not 127.0.0.1 for a server elsewhere: the kernel's route to it (no packet is sent)."""
+    from transport.natnet import local_address_for
+
+    assert local_address_for("127.0.0.1", 1510) == "127.0.0.1"
+    assert local_address_for("::1", 1510) == "::1"
+    try:
+        away = local_address_for("192.0.2.1", 1510)  # TEST-NET-1: routed by a default route if any
+    except OSError:
+        pytest.skip("no route off this machine")
+    assert away != "127.0.0.1"
+
+
+def test_natnet_over_ipv6_loopback(tmp_path):
+    """An IPv6 server address works end to end (the socket family follows the server)."""
+    script = tmp_path / "v6.py"
+    script.write_text(textwrap.dedent(SERVER).replace("socket.AF_INET,", "socket.AF_INET6,")
+                      .replace('("127.0.0.1", 0)', '("::1", 0)'))
+    proc = subprocess.Popen([sys.executable, str(script), "4", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        port = int(proc.stdout.readline())
+        src = NatNetSource("::1", port, unlabelled=True, idle_timeout=1.0)
+        frames = list(src)
+        src.close()
+    finally:
+        proc.kill()
+        proc.wait()
+    assert [f.frame for f in frames] == [0, 1, 2, 3]

@@ -17,7 +17,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from livecap.core.take import MarkerFrame
-from transport.capture import QueuedCaptureSource
+from transport.capture_queue import QueuedCaptureSource
 
 DEFAULT_PORT = 22223  # QTM's little-endian RT port
 
