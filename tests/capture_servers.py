@@ -120,13 +120,17 @@ def qtm_data(frame: int, body3d: bytes, ctype: int = 1, components: bytes | None
     return struct.pack("<II", 8 + len(body), 3) + body
 
 
-def qtm_3d(frame: int, unlabelled: bool) -> bytes:
-    pts = [(10.0 * i + frame, 20.0 * i, 30.0 + frame) for i in range(3)]
+def qtm_3d(frame: int, unlabelled: bool, positions=None) -> bytes:
+    if positions is None:
+        pts = [(10.0 * i + frame, 20.0 * i, 30.0 + frame) for i in range(3)]
+    else:  # a face at rest, breathing 0.1 mm
+        pts = [(x, y + 0.1 * math.sin(frame / 20), z) for x, y, z in positions]
     if frame == 2:
         pts[1] = (math.nan,) * 3
     if unlabelled:
-        return struct.pack("<Ihh", 3, 0, 0) + b"".join(struct.pack("<3fi", *p, 100 + i) for i, p in enumerate(pts))
-    return struct.pack("<Ihh", 3, 0, 0) + b"".join(struct.pack("<3f", *p) for p in pts)
+        return struct.pack("<Ihh", len(pts), 0, 0) + b"".join(struct.pack("<3fi", *p, 100 + i)
+                                                              for i, p in enumerate(pts))
+    return struct.pack("<Ihh", len(pts), 0, 0) + b"".join(struct.pack("<3f", *p) for p in pts)
 
 
 def qtm_hostile(frame: int, unlabelled: bool, which: str) -> bytes:
@@ -143,7 +147,7 @@ def qtm_hostile(frame: int, unlabelled: bool, which: str) -> bytes:
     }[which]
 
 
-def serve_qtm(frames: int, hostile: bool, rate: float) -> dict:
+def serve_qtm(frames: int, hostile: bool, rate: float, labels: list[str] = NAMES, positions=None) -> dict:
     """One client at a time; a hostile packet that breaks the framing is followed by closing the
     connection (as a real stream would be unreadable after it); the next connection goes on."""
     import threading
@@ -175,7 +179,7 @@ def serve_qtm(frames: int, hostile: bool, rate: float) -> dict:
                 while state["f"] < frames:
                     f = state["f"]
                     time.sleep(max(0.0, t0 + f / rate - time.monotonic()))
-                    out = qtm_data(f, qtm_3d(f, unlabelled), 2 if unlabelled else 1)
+                    out = qtm_data(f, qtm_3d(f, unlabelled, positions), 2 if unlabelled else 1)
                     bad = kinds.pop(0) if kinds and f % 5 == 1 else None
                     with lock:
                         conn.sendall(out)
@@ -213,7 +217,7 @@ def serve_qtm(frames: int, hostile: bool, rate: float) -> dict:
                 if text.startswith("version"):
                     packet(1, ("Version set to " + text.split()[1]).encode() + b"\0")
                 elif text == "getparameters 3d":
-                    names = "".join(f"<Label><Name>{n}</Name></Label>" for n in NAMES)
+                    names = "".join(f"<Label><Name>{n}</Name></Label>" for n in labels)
                     packet(2, f"<QTM_Parameters_Ver_1.25><The_3D>{names}</The_3D></QTM_Parameters_Ver_1.25>\0"
                            .encode())
                 elif text.startswith("streamframes stop"):
@@ -221,7 +225,6 @@ def serve_qtm(frames: int, hostile: bool, rate: float) -> dict:
                 elif text.startswith("streamframes"):
                     threading.Thread(target=stream, args=("3dnolabels" in text,), daemon=True).start()
         conn.close()
-    time.sleep(0.3)
     srv.close()  # the capture system is gone: a client's reconnects fail from here on
     return sent
 
@@ -233,9 +236,13 @@ def main() -> None:
     p.add_argument("--hostile", action="store_true")
     p.add_argument("--points", type=int, default=0, help="natnet: unlabelled points per frame (0: 3 + 1)")
     p.add_argument("--rate", type=float, default=200.0)
+    p.add_argument("--face", help="qtm: a JSON file {label: [x, y, z] mm} streamed instead of A, B, C")
     a = p.parse_args()
     if a.system == "natnet":
         sent = serve_natnet(a.frames, a.hostile, a.points, a.rate)
+    elif a.face:
+        face = json.loads(open(a.face).read())
+        sent = serve_qtm(a.frames, a.hostile, a.rate, list(face), list(face.values()))
     else:
         sent = serve_qtm(a.frames, a.hostile, a.rate)
     print(json.dumps(sent), flush=True)
