@@ -1,8 +1,8 @@
 """Fake capture-system servers on loopback, honest frames with hostile packets among them (issue 36
 items 3 and 4), for tests/test_natnet.py, tests/test_qtm.py and benchmarks/hostile.py.
 
-    python tests/capture_servers.py natnet FRAMES [--hostile] [--points N] [--rate HZ]
-    python tests/capture_servers.py qtm FRAMES [--hostile] [--rate HZ]
+    python tests/capture_servers.py natnet FRAMES [--hostile] [--points N] [--rate HZ] [--face FACE.json]
+    python tests/capture_servers.py qtm FRAMES [--hostile] [--rate HZ] [--face FACE.json]
 
 Prints the port, serves one client, streams FRAMES honest frames (numbered 0..FRAMES-1), then
 prints one JSON line: what was sent. Written from the published layouts (NatNet 4.0 unicast frames
@@ -20,31 +20,49 @@ import struct
 import sys
 import time
 
+import numpy as np
+
 NAMES = ["A", "B", "C"]
 BOMB = 2**32 - 1  # the largest count a uint32 can claim
 
 
 # ---------------------------------------------------------------------------------------- NatNet
-def natnet_frame(f: int, points: int = 0, *, timestamp: float | None = None, force: bytes = b"\0\0\0\0",
-                 devices: bytes = b"\0\0\0\0", set_count: int | None = None,
+LABELLED = np.dtype([("id", "<u4"), ("pos", "<f4", (3,)), ("size", "<f4"), ("param", "<u2"), ("residual", "<f4")])
+
+
+def natnet_frame(f: int, points: int = 0, *, face=None, timestamp: float | None = None,
+                 force: bytes = b"\0\0\0\0", devices: bytes = b"\0\0\0\0", set_count: int | None = None,
                  labelled_count: int | None = None) -> bytes:
-    """A NatNet 4.0 frame-of-data body: marker set "Face" (A, B, C; B occluded at frame 2), the
-    labelled-marker list (A, B, C and one unlabelled point, or ``points`` unlabelled points), force
-    plates and devices as given (raw bytes after their count's place), the suffix."""
-    pts = [(0.01 * i + 0.001 * f, 0.02 * i, 0.03) for i in range(3)]
-    if f == 2:
-        pts[1] = (0.0, 0.0, 0.0)
+    """A NatNet 4.0 frame-of-data body: marker set "Face" (``face``, metres, breathing 0.1 mm; by
+    default A, B, C with B occluded at frame 2), the labelled-marker list (the face's markers and
+    one unlabelled point; or, with ``points``, that many unlabelled points: the face's, then ghosts
+    uniform in a 2 m cube about it), force plates and devices as given (raw bytes after their
+    count's place), the suffix."""
+    if face is None:
+        pts = np.array([(0.01 * i + 0.001 * f, 0.02 * i, 0.03) for i in range(3)])
+        if f == 2:
+            pts[1] = 0.0
+    else:
+        pts = np.asarray(face, dtype=np.float64) + [0.0, 1e-4 * math.sin(f / 20), 0.0]
     body = struct.pack("<I", f)
-    body += struct.pack("<I", 1) + b"Face\0" + struct.pack("<I", 3 if set_count is None else set_count)
-    body += b"".join(struct.pack("<3f", *p) for p in pts)
+    body += struct.pack("<I", 1) + b"Face\0" + struct.pack("<I", len(pts) if set_count is None else set_count)
+    body += pts.astype("<f4").tobytes()
     body += struct.pack("<III", 0, 0, 0)  # legacy unlabelled, rigid bodies, skeletons
     if points:
-        labelled = [(i, (0.1 + 0.001 * (i % 50), 0.1 + 0.001 * (i // 50), 0.5), 0x10) for i in range(points)]
+        lab = np.zeros(points, LABELLED)
+        k = min(points, len(pts))
+        lab["pos"][:k] = pts[:k]
+        lab["pos"][k:] = pts.mean(0) + np.random.default_rng(f).uniform(-1.0, 1.0, (points - k, 3))
+        lab["id"], lab["param"] = np.arange(points), 0x10
     else:
-        labelled = [(0x10000 | (i + 1), p, 0x01 if (f == 2 and i == 1) else 0) for i, p in enumerate(pts)]
-        labelled.append((7, (0.5, 0.5, 0.5), 0x10))
-    body += struct.pack("<I", len(labelled) if labelled_count is None else labelled_count)
-    body += b"".join(struct.pack("<I3ffHf", i, *p, 0.01, param, 0.0) for i, p, param in labelled)
+        lab = np.zeros(len(pts) + 1, LABELLED)
+        lab["id"][:-1] = 0x10000 | np.arange(1, len(pts) + 1)
+        lab["pos"][:-1], lab["pos"][-1] = pts, 0.5
+        lab["param"][-1] = 0x10
+        if f == 2 and face is None:
+            lab["param"][1] = 0x01
+    lab["size"] = 0.01
+    body += struct.pack("<I", len(lab) if labelled_count is None else labelled_count) + lab.tobytes()
     body += force + devices
     body += struct.pack("<IIdQQQH", 0, 0, f / 120.0 if timestamp is None else timestamp, 0, 0, 0, 0)
     return body
@@ -67,7 +85,8 @@ def natnet_hostile(f: int, points: int = 0) -> list[tuple[int, bytes]]:
     ]
 
 
-def serve_natnet(frames: int, hostile: bool, points: int, rate: float) -> dict:
+def serve_natnet(frames: int, hostile: bool, points: int, rate: float, labels: list[str] = NAMES,
+                 face=None) -> dict:
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
@@ -78,10 +97,11 @@ def serve_natnet(frames: int, hostile: bool, points: int, rate: float) -> dict:
         sock.sendto(struct.pack("<HH", kind, len(body) & 0xFFFF) + body, to)
 
     client = None
-    sock.settimeout(0.05)
     f = 0
     t0 = None
     while f < frames:
+        due = 0.05 if t0 is None else t0 + f / rate - time.monotonic()
+        sock.settimeout(min(max(due, 1e-4), 0.05))  # wake for the next frame: paced, not in bursts
         try:
             data, addr = sock.recvfrom(65536)
             kind = struct.unpack_from("<H", data)[0]
@@ -89,8 +109,8 @@ def serve_natnet(frames: int, hostile: bool, points: int, rate: float) -> dict:
                 send(1, b"Motive".ljust(256, b"\0") + bytes([3, 0, 0, 0]) + bytes([4, 0, 0, 0]), addr)
                 client = addr
             elif kind == 4:  # model definitions
-                body = struct.pack("<I", 1) + struct.pack("<I", 0) + b"Face\0" + struct.pack("<I", 3)
-                send(5, body + b"".join(n.encode() + b"\0" for n in NAMES), addr)
+                body = struct.pack("<I", 1) + struct.pack("<I", 0) + b"Face\0" + struct.pack("<I", len(labels))
+                send(5, body + b"".join(n.encode() + b"\0" for n in labels), addr)
         except TimeoutError:
             pass
         if client is None:
@@ -98,7 +118,7 @@ def serve_natnet(frames: int, hostile: bool, points: int, rate: float) -> dict:
         if t0 is None:
             t0 = time.monotonic() + 0.3  # the client asks for the descriptions and gets ready to read
         while f < frames and time.monotonic() - t0 >= f / rate:
-            send(7, natnet_frame(f, points), client)
+            send(7, natnet_frame(f, points, face=face), client)
             sent["frames"] += 1
             if hostile and f % 5 == 1:
                 for kind, body in natnet_hostile(f, points):
@@ -236,12 +256,14 @@ def main() -> None:
     p.add_argument("--hostile", action="store_true")
     p.add_argument("--points", type=int, default=0, help="natnet: unlabelled points per frame (0: 3 + 1)")
     p.add_argument("--rate", type=float, default=200.0)
-    p.add_argument("--face", help="qtm: a JSON file {label: [x, y, z] mm} streamed instead of A, B, C")
+    p.add_argument("--face", help="a JSON file {label: [x, y, z] mm} streamed instead of A, B, C")
     a = p.parse_args()
-    if a.system == "natnet":
+    face = json.loads(open(a.face).read()) if a.face else None
+    if a.system == "natnet" and face:  # Motive streams metres
+        sent = serve_natnet(a.frames, a.hostile, a.points, a.rate, list(face), np.array(list(face.values())) / 1000)
+    elif a.system == "natnet":
         sent = serve_natnet(a.frames, a.hostile, a.points, a.rate)
-    elif a.face:
-        face = json.loads(open(a.face).read())
+    elif face:
         sent = serve_qtm(a.frames, a.hostile, a.rate, list(face), list(face.values()))
     else:
         sent = serve_qtm(a.frames, a.hostile, a.rate)
