@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 pytest.importorskip("natnet")
 from transport.natnet import NatNetSource, NatNetSourceError  # noqa: E402
@@ -240,3 +242,27 @@ def test_natnet_over_ipv6_loopback(tmp_path):
         proc.kill()
         proc.wait()
     assert [f.frame for f in frames] == [0, 1, 2, 3]
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from([(2, 5), (2, 9), (2, 11), (3, 0), (4, 0), (4, 1)]), st.integers(0, 2**31 - 1),
+       st.integers(0, 12))
+def test_any_mangled_frame_is_read_or_refused_never_crashes(version, seed, flips):
+    """An honest frame with bytes flipped, cut or grown, read as any NatNet version: a frame or a
+    NatNetPacketError, nothing else, and never more than the packet's size in points."""
+    from transport.natnet_frame import NatNetPacketError, parse_frame
+
+    rng = np.random.default_rng(seed)
+    body = bytearray(natnet_frame(int(rng.integers(0, 9)), int(rng.integers(0, 80))))
+    for _ in range(flips):
+        body[int(rng.integers(0, len(body)))] = int(rng.integers(0, 256))
+    if rng.random() < 0.3:
+        body = body[: int(rng.integers(0, len(body)))]
+    elif rng.random() < 0.2:
+        body += rng.bytes(int(rng.integers(1, 64)))
+    try:
+        frame = parse_frame(bytes(body), version)
+    except NatNetPacketError:
+        return
+    points = sum(len(p) for p in frame.marker_sets.values()) + len(frame.unlabelled) + len(frame.labelled)
+    assert points * 12 <= len(body)

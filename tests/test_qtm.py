@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 pytest.importorskip("qtm_rt")
 from transport.qtm import QtmError, QtmSource, labels_from_parameters  # noqa: E402
@@ -207,3 +209,24 @@ def test_run_qtm_in_survives_hostile_packets_and_exits_1_when_qtm_is_gone(tmp_pa
     assert "source lost: QTM at 127.0.0.1" in run.stderr
     assert st["frames_in"] == 240 and st["frames_out"] >= 230, st
     assert st["bad_input"].get("malformed") == 7
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=200), st.integers(0, 2**31 - 1))
+def test_data_problem_never_raises_and_what_it_passes_qtm_rt_can_read(noise, seed):
+    """Any bytes as a data packet's body: a reason, or a packet whose 3D components qtm_rt and our
+    numpy read agree on (both within the packet)."""
+    from qtm_rt.packet import QRTPacket
+
+    from tests.capture_servers import qtm_3d, qtm_data
+    from transport.qtm import data_problem
+
+    rng = np.random.default_rng(seed)
+    body = bytearray(qtm_data(int(rng.integers(0, 9)), qtm_3d(3, bool(seed % 2)), 2 if seed % 2 else 1)[8:])
+    for _ in range(int(rng.integers(0, 6))):
+        body[int(rng.integers(0, len(body)))] = int(rng.integers(0, 256))
+    for data in (bytes(body), noise):
+        if data_problem(data) is None:
+            packet = QRTPacket(data)
+            got = packet.get_3d_markers() or packet.get_3d_markers_no_label()
+            assert got is None or len(got[1]) == got[0].marker_count
