@@ -266,3 +266,31 @@ def test_any_mangled_frame_is_read_or_refused_never_crashes(version, seed, flips
         return
     points = sum(len(p) for p in frame.marker_sets.values()) + len(frame.unlabelled) + len(frame.labelled)
     assert points * 12 <= len(body)
+
+
+def test_run_natnet_in_publishes_every_frame_beside_hostile_packets(tmp_path, demo_profile_path):
+    """``livecap run --natnet-in`` against the hostile fake Motive (the demo actor's markers): the
+    frames after every bad packet are published, the bad ones counted, exit 0."""
+    import json
+
+    from livecap.calibration.profile import Profile
+
+    profile = Profile.load(demo_profile_path)
+    face = tmp_path / "face.json"
+    face.write_text(json.dumps({lab: [float(v) for v in p]
+                                for lab, p in zip(profile.labels, profile.source_neutral, strict=True)}))
+    proc = subprocess.Popen([sys.executable, SERVERS, "natnet", "120", "--hostile", "--face", str(face), "--rate",
+                             "120"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    stats = tmp_path / "stats.json"
+    try:
+        port = int(proc.stdout.readline())
+        run = subprocess.run([sys.executable, "-m", "livecap", "run", "--natnet-in", f"127.0.0.1:{port}", "--profile",
+                              str(demo_profile_path), "--stats-file", str(stats), "--mode", "lsq", "--no-skip-stale",
+                              "--idle-timeout", "1"], capture_output=True, text=True, timeout=120)
+    finally:
+        proc.kill()
+        proc.wait()
+    st = json.loads(stats.read_text())
+    assert run.returncode == 0, run.stderr
+    assert st["frames_in"] == st["frames_out"] == 120, st
+    assert st["bad_input"] == {"malformed": 7 * 24, "nonfinite": 2 * 24, "unknown_message": 24}
