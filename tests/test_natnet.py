@@ -294,3 +294,28 @@ def test_run_natnet_in_publishes_every_frame_beside_hostile_packets(tmp_path, de
     assert run.returncode == 0, run.stderr
     assert st["frames_in"] == st["frames_out"] == 120, st
     assert st["bad_input"] == {"malformed": 7 * 24, "nonfinite": 2 * 24, "unknown_message": 24}
+
+
+def test_frames_from_another_host_are_counted_not_used():
+    """Only the server's datagrams are read: a frame sent to our socket from 127.0.0.2 is counted."""
+    import json
+    import struct
+
+    proc = subprocess.Popen([sys.executable, SERVERS, "natnet", "40"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        port = int(proc.stdout.readline())
+        src = NatNetSource("127.0.0.1", port, unlabelled=True, idle_timeout=1.0)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rogue:
+            rogue.bind(("127.0.0.2", 0))
+            for f in (1000, 1001, 1002):
+                body = natnet_frame(f)
+                rogue.sendto(struct.pack("<HH", 7, len(body)) + body, src._socket.getsockname())
+        frames = list(src)
+        src.close()
+        json.loads(proc.communicate(timeout=10)[0].strip().splitlines()[-1])
+    finally:
+        proc.kill()
+        proc.wait()
+    assert [f.frame for f in frames] == list(range(40))
+    assert src.bad.as_dict() == {"malformed": 3}
