@@ -187,16 +187,23 @@ class QtmSource(QueuedCaptureSource):
             return False
         conn = QRTConnection(protocol, timeout=timeout)
         self._stop_future = self._loop.create_future()
-        await asyncio.wait_for(protocol.set_version(version), timeout)
-        if not self.unlabelled:
-            self.stream_labels = labels_from_parameters(await conn.get_parameters(parameters=["3d"]))
-            where = {lab: i for i, lab in enumerate(self.stream_labels)}
-            self._map = np.array([where.get(lab, -1) for lab in self.labels])
-            if (self._map < 0).all():
-                self._error = f"none of the session's labels among QTM's ({', '.join(self.stream_labels[:5])}...)"
+        try:
+            await asyncio.wait_for(protocol.set_version(version), timeout)
+            if not self.unlabelled:
+                self.stream_labels = labels_from_parameters(await conn.get_parameters(parameters=["3d"]))
+                where = {lab: i for i, lab in enumerate(self.stream_labels)}
+                self._map = np.array([where.get(lab, -1) for lab in self.labels])
+                if (self._map < 0).all():
+                    self._error = (f"none of the session's labels among QTM's "
+                                   f"({', '.join(self.stream_labels[:5])}...)")
+                    conn.disconnect()
+                    return False
+            await conn.stream_frames(components=["3dnolabels" if self.unlabelled else "3d"],
+                                     on_packet=self._hand_over)
+        except BaseException:  # a half-open session: close it before the next try
+            if conn.has_transport():
                 conn.disconnect()
-                return False
-        await conn.stream_frames(components=["3dnolabels" if self.unlabelled else "3d"], on_packet=self._hand_over)
+            raise
         if self.lost:
             self.reconnects += 1
             log.warning("qtm %s:%s: reconnected (%d)", self.host, self.port, self.reconnects)
