@@ -204,6 +204,9 @@ def test_host_port_parses_ipv6_and_the_loopback_rule_holds():
     assert host_port("[fe80::1]", 22223) == ("fe80::1", 22223)
     assert host_port("10.1.2.3:99", 1510) == ("10.1.2.3", 99)
     assert host_port("motive", 1510) == ("motive", 1510)
+    from transport.capture_queue import endpoint
+
+    assert endpoint("::1", 3883) == "[::1]:3883" and endpoint("10.1.2.3", 99) == "10.1.2.3:99"
     for bad in ("[::1", "[::1]x", "host:port", "host:0", "host:70000"):
         with pytest.raises(ValueError):
             host_port(bad, 1510)

@@ -6,6 +6,7 @@ This module only chooses and builds; the sources import what they share from
 
 from __future__ import annotations
 
+from transport.capture_queue import endpoint
 from transport.security import check_host
 
 
@@ -39,10 +40,10 @@ def capture_source(qtm: str | None, natnet: str | None, labels: list[str], unlab
         host, port = host_port(qtm, DEFAULT_PORT)
         check_host(host, interface)
         return (QtmSource(host, port, labels, unlabelled=unlabelled, idle_timeout=idle_timeout),
-                f"qtm-in {host}:{port}")
+                f"qtm-in {endpoint(host, port)}")
     from transport.natnet import DEFAULT_PORT, NatNetSource
 
     host, port = host_port(natnet, DEFAULT_PORT)
     check_host(host, interface)
     return (NatNetSource(host, port, labels, unlabelled=unlabelled, idle_timeout=idle_timeout),
-            f"natnet-in {host}:{port}")
+            f"natnet-in {endpoint(host, port)}")

@@ -12,6 +12,11 @@ from livecap.core.take import MarkerFrame
 from transport.badinput import BadInput, FrameOrder
 
 
+def endpoint(host: str, port: int) -> str:
+    """``host:port``, or ``[host]:port`` for an IPv6 address (as ``--qtm-in``/``--natnet-in`` take it)."""
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
 def offer(frames: queue.Queue, frame: MarkerFrame, bad) -> None:
     """Hand a decoded frame from the client library's thread to the consumer; a full queue is a counted
     ``overrun`` (the consumer is behind), never a blocked network thread."""

@@ -26,7 +26,7 @@ import numpy as np
 
 from livecap.core.take import MarkerFrame
 from livecap.core.units import MM_PER_UNIT
-from transport.capture_queue import QueuedCaptureSource
+from transport.capture_queue import QueuedCaptureSource, endpoint
 from transport.natnet_frame import NatNetPacketError, Version, parse_frame
 
 DEFAULT_PORT = 1510  # Motive's command port
@@ -78,7 +78,7 @@ class NatNetSource(QueuedCaptureSource):
         self.unlabelled = unlabelled or labels is None
         self.labels = None if self.unlabelled else list(labels)
         self.marker_set = marker_set
-        self._start_queue(f"natnet {server}:{port}", idle_timeout)
+        self._start_queue(f"natnet {endpoint(server, port)}", idle_timeout)
         self.version: Version | None = None
         self.server_name = ""
         self._descriptions = None
@@ -89,7 +89,7 @@ class NatNetSource(QueuedCaptureSource):
             self._socket = socket.socket(info[0], socket.SOCK_DGRAM)
             self._socket.bind((local or local_address_for(self._server[0], port), 0))
         except OSError as exc:
-            raise NatNetSourceError(f"NatNet server {server}:{port}: {exc}") from None
+            raise NatNetSourceError(f"NatNet server {endpoint(server, port)}: {exc}") from None
         self._socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER)
         self._socket.setblocking(False)
         self._last_keepalive = 0.0
@@ -111,7 +111,7 @@ class NatNetSource(QueuedCaptureSource):
         asked = 0.0
         while self.version is None:
             if time.monotonic() > deadline:
-                raise NatNetSourceError(f"NatNet server {server}:{port}: no answer (TimeoutError)")
+                raise NatNetSourceError(f"NatNet server {endpoint(server, port)}: no answer (TimeoutError)")
             if time.monotonic() - asked > 1.0:
                 self._send(CONNECT, b"Ping\0")
                 asked = time.monotonic()
@@ -122,13 +122,13 @@ class NatNetSource(QueuedCaptureSource):
         while self._descriptions is None and time.monotonic() < deadline:
             self._pump(0.1)
         if self._descriptions is None:
-            raise NatNetSourceError(f"NatNet server {server}:{port}: no data descriptions")
+            raise NatNetSourceError(f"NatNet server {endpoint(server, port)}: no data descriptions")
         for ms in self._descriptions.marker_sets:
             if (self.marker_set is None and set(ms.marker_names) & set(self.labels)) or ms.name == self.marker_set:
                 self.marker_set, self._names = ms.name, list(ms.marker_names)
                 break
         else:
-            raise NatNetSourceError(f"NatNet server {server}:{port}: no marker set "
+            raise NatNetSourceError(f"NatNet server {endpoint(server, port)}: no marker set "
                                     f"{self.marker_set or 'holding the session labels'}")
         where = {lab: i for i, lab in enumerate(self._names)}
         self._map = np.array([where.get(lab, -1) for lab in self.labels])

@@ -25,7 +25,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from livecap.core.take import MarkerFrame
-from transport.capture_queue import QueuedCaptureSource
+from transport.capture_queue import QueuedCaptureSource, endpoint
 
 DEFAULT_PORT = 22223  # QTM's little-endian RT port
 MAX_PACKET = 16 << 20  # far above a 3D frame (16 bytes a marker); a size beyond it is a broken stream
@@ -128,7 +128,7 @@ class QtmSource(QueuedCaptureSource):
         self.labels = None if self.unlabelled else list(labels)
         self.reconnect_for = reconnect_for
         self.reconnects = 0
-        self._start_queue(f"qtm {host}:{port}", idle_timeout)
+        self._start_queue(f"qtm {endpoint(host, port)}", idle_timeout)
         self.stream_labels: list[str] = []
         self._ready = threading.Event()
         self._error: str | None = None
@@ -138,7 +138,7 @@ class QtmSource(QueuedCaptureSource):
         self._thread.start()
         if not self._ready.wait(timeout + 1.0) or self._error:
             self.close()
-            raise QtmError(f"QTM at {host}:{port}: {self._error or 'no answer'}")
+            raise QtmError(f"QTM at {endpoint(host, port)}: {self._error or 'no answer'}")
 
     # ------------------------------------------------------------------ client thread
     def _run(self, version: str, timeout: float) -> None:
@@ -157,7 +157,7 @@ class QtmSource(QueuedCaptureSource):
             return
         delay, lost_at = 0.1, time.monotonic()
         while self._running:
-            self.lost = f"QTM at {self.host}:{self.port}: connection lost"
+            self.lost = f"QTM at {endpoint(self.host, self.port)}: connection lost"
             if time.monotonic() - lost_at > self.reconnect_for:
                 self.lost += f", no answer for {self.reconnect_for:g} s"
                 return
@@ -168,7 +168,8 @@ class QtmSource(QueuedCaptureSource):
             try:
                 streamed = await self._session(version, timeout)
             except Exception as exc:  # refused, reset, timed out: try again after the backoff
-                log.warning("qtm %s:%s: reconnect failed (%s: %s)", self.host, self.port, type(exc).__name__, exc)
+                log.warning("qtm %s: reconnect failed (%s: %s)", endpoint(self.host, self.port), type(exc).__name__,
+                            exc)
                 continue
             if streamed:  # it streamed again, then was lost again: a fresh backoff
                 delay, lost_at = 0.1, time.monotonic()
@@ -206,7 +207,7 @@ class QtmSource(QueuedCaptureSource):
             raise
         if self.lost:
             self.reconnects += 1
-            log.warning("qtm %s:%s: reconnected (%d)", self.host, self.port, self.reconnects)
+            log.warning("qtm %s: reconnected (%d)", endpoint(self.host, self.port), self.reconnects)
             self.lost = None
         self._ready.set()
         await self._stop_future
