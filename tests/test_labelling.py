@@ -295,6 +295,10 @@ def test_two_faces_in_the_first_cloud_are_named_not_silently_chosen(demo_setup, 
     list(LabelledSource(_cloud_frames(cloud), profile))
     lines = [r.getMessage() for r in caplog.records if "two faces" in r.getMessage()]
     assert len(lines) == 1 and lines[0].count("labels within the gate") == 2, lines
+    caplog.clear()
+    label_take(Take([f"*{i}" for i in range(len(cloud))], np.stack([cloud] * 3), np.ones((3, len(cloud)), bool),
+                    120.0), profile)
+    assert sum("frame 0: two faces" in r.getMessage() for r in caplog.records) == 1
 
 
 def _cloud_frames(cloud):
