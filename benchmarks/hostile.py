@@ -249,7 +249,98 @@ def run(quick: bool = False, parts: tuple[str, ...] = ("floods", "subscribers", 
     return out
 
 
+def capture_session(work: Path, system: str, frames: int, hostile: bool, points: int = 0,
+                    tree: Path | None = None) -> dict:
+    """One ``livecap run --natnet-in/--qtm-in`` (from ``tree``, default this one) against the fake
+    server of tests/capture_servers.py streaming the demo actor's neutral at 120 Hz."""
+    import subprocess
+    import sys
+
+    servers = Path(__file__).resolve().parents[1] / "tests" / "capture_servers.py"
+    server = spawn([servers, system, frames, "--face", work / "face.json", "--rate", RATE, "--points", points,
+                    *(["--hostile"] if hostile else [])])
+    port = int(first_line(server))
+    stats = work / f"capture-{system}-{hostile}-{points}-{tree is not None}.json"
+    args = ["-m", "livecap", "run", f"--{system}-in", f"127.0.0.1:{port}", "--profile", work / "profile.npz",
+            "--mode", "lsq", "--idle-timeout", 2.0, "--stats-file", stats, *(["--unlabelled"] if points else [])]
+    if tree is None:
+        run = spawn(args)
+    else:
+        run = subprocess.Popen([sys.executable, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, env={**os.environ, "PYTHONPATH": str(tree)}, cwd=tree)
+    try:
+        first_line(run)
+    except RuntimeError:
+        server.kill()
+        raise
+    sampler = RssSampler(run.pid)
+    sampler.start()
+    out, _ = server.communicate(timeout=frames / RATE + 120)
+    sent = json.loads(out.strip().splitlines()[-1])
+    _, err = run.communicate(timeout=120)
+    sampler.done.set()
+    sampler.join()
+    st = json.loads(stats.read_text()) if stats.exists() else {"frames_in": 0, "frames_out": 0, "stale": 0,
+                                                                  "bad_input": {}, "timing": {}}
+    recv = st["timing"].get("receive", {})
+    return {"source": system + (f" unlabelled {points} pts" if points else ""),
+            "code": "main" if tree else "this", "attack": f"{sent['hostile']} hostile" if hostile else "none",
+            "sent": sent["frames"], "received": st["frames_in"], "published": st["frames_out"],
+            "published_pct": 100.0 * st["frames_out"] / max(sent["frames"], 1), "stale": st["stale"],
+            "bad_counted": sum(v for k, v in st["bad_input"].items() if k != "stream_restart"),
+            "exit": run.returncode, "receive_p99_ms": recv.get("p99_ms", float("nan")),
+            "receive_max_ms": recv.get("max_ms", float("nan")), **sampler.summary()}
+
+
+def capture_floods(quick: bool = False, against: str | None = None) -> dict:
+    """Issue 36: NatNet and QTM clients fed honest frames, then the same with hostile packets among
+    them (every fifth frame), and NatNet unlabelled clouds of the face alone against the face among
+    2340 ghosts (720 frames, the issue's case). ``against``: a checkout (e.g. /work/main) whose
+    driver runs the honest and cloud rows too, in the same run (not the hostile NatNet row: its
+    reader allocates up to 4.1 GB per packet there)."""
+    from livecap.calibration.profile import calibrate, estimate_neutral
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
+    from transport.takefile import read_take
+
+    root = Path(__file__).resolve().parents[1] / "recordings"
+    frames = 240 if quick else 1200
+    load = os.getloadavg()[0]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        rig = Rig.load(root / "demo_rig.npz")
+        layout = MarkerLayout.load(root / "demo_rig.markers.json", rig)
+        take = read_take(root / "demo_neutral.c3d").select(layout.labels)
+        profile = calibrate(rig, layout, estimate_neutral(take, layout.stable, 120))
+        profile.save(work / "profile.npz")
+        (work / "face.json").write_text(json.dumps({lab: [float(v) for v in p] for lab, p in
+                                                    zip(profile.labels, profile.source_neutral, strict=True)}))
+        trees = [None] + ([Path(against)] if against else [])
+        for tree in trees:
+            for system in ("natnet", "qtm"):
+                for hostile in (False, True):
+                    if hostile and system == "natnet" and tree is not None:
+                        continue
+                    rows.append(capture_session(work, system, frames, hostile, tree=tree))
+            for points in (60, 2400):
+                rows.append(capture_session(work, "natnet", 240 if quick else 720, False, points, tree))
+    out = {"rate_hz": RATE, "rows": rows,
+           "machine": f"{os.cpu_count()} CPUs (shared VM), load average {load:.2f} at start, "
+                      f"{os.getloadavg()[0]:.2f} at the end",
+           "data": "recordings/demo_neutral.c3d calibrated on the demo rig; its neutral streamed (breathing 0.1 mm) "
+                   "by tests/capture_servers.py; mode lsq"}
+    print(table(rows, ["source", "code", "attack", "sent", "received", "published", "published_pct", "stale",
+                       "bad_counted", "exit", "receive_p99_ms", "receive_max_ms", "rss_start_mb", "rss_end_mb",
+                       "rss_peak_mb"], f"capture clients at {RATE:g} Hz ({out['machine']})"))
+    return out
+
+
 if __name__ == "__main__":
     import sys
 
+    if sys.argv[1:2] == ["capture"]:  # python -m benchmarks.hostile capture [--quick] [--against DIR] [--json F]
+        sys.argv.pop(1)
+        sys.exit(suite_main(lambda quick, against=("",): capture_floods(quick, against[0] or None),
+                            capture_floods.__doc__, against=""))
     sys.exit(suite_main(run, __doc__, parts="floods,subscribers,eviction"))

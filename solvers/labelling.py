@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from solvers.rigid import kabsch
@@ -67,6 +68,15 @@ class LabelFrame:
     late_index: np.ndarray | None = None  # ... that point's index in the previous frame
 
 
+@dataclass(frozen=True)
+class Fit:
+    """A rigid fit of the neutral constellation to a cloud: labels within the gate, gated cost, centre."""
+
+    labelled: int
+    cost: float  # sum over labels of min(d^2, gate^2), mm^2
+    centre: np.ndarray
+
+
 def _axis_rotations() -> np.ndarray:
     """The 24 proper rotations that permute and flip coordinate axes."""
     out = []
@@ -83,6 +93,8 @@ _AXIS_ROTATIONS = _axis_rotations()
 CLOSE_AXES = 1.5  # principal spreads closer than this ratio leave their axes' turn in their plane uncertain
 _EMPTY = np.zeros(0, dtype=np.int64)
 _ROWS = np.arange(1024)
+TREE_POINTS = 256  # a cloud larger than this is searched through a KD-tree while initialising
+NEAR_MARGIN_MM = 60.0  # beyond the tracked face's radius plus this, no gate or second opinion reaches
 
 
 def _rigid(src: np.ndarray, dst: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
@@ -203,16 +215,26 @@ def _assign(d: np.ndarray, g2: np.ndarray) -> tuple[np.ndarray, float]:
     return index, float(d[got, index[got]].max(initial=0.0))
 
 
-def gated_assignment(pred: np.ndarray, points: np.ndarray, gate: float | np.ndarray) -> tuple[np.ndarray, float]:
+def gated_assignment(pred: np.ndarray, points: np.ndarray, gate: float | np.ndarray,
+                     tree: cKDTree | None = None) -> tuple[np.ndarray, float]:
     """Label -> point index (-1: missing) minimising the sum of min(d^2, gate^2), and that sum.
 
     ``gate`` may be one per label: the one-to-one assignment in which a label may stay missing at
-    the gate's cost and a point unused (a ghost).
+    the gate's cost and a point unused (a ghost). ``tree`` (a KD-tree of ``points``): only the
+    points within some label's gate are looked at (the same assignment: every other point costs
+    the gate for every label), so a large cloud costs its neighbourhood, not its size.
     """
     n = len(pred)
     g2 = np.full(n, float(gate) ** 2) if np.isscalar(gate) else np.asarray(gate, dtype=np.float64) ** 2
     if len(points) == 0:
         return np.full(n, -1, dtype=np.int64), float(g2.sum())
+    if tree is not None:
+        balls = tree.query_ball_point(pred, math.sqrt(float(g2.max())))
+        cols = np.unique(np.fromiter(itertools.chain.from_iterable(balls), dtype=np.int64))
+        if len(cols) == 0:
+            return np.full(n, -1, dtype=np.int64), float(g2.sum())
+        index, cost = gated_assignment(pred, points[cols], np.sqrt(g2))
+        return np.where(index >= 0, cols[np.maximum(index, 0)], -1), cost
     d = _sqdist(pred, points)
     index, _ = _assign(d, g2)
     cost = np.where(index >= 0, d[np.arange(n), np.maximum(index, 0)], g2)
@@ -260,6 +282,9 @@ class MarkerLabeller:
         self._pair_rest = self.neutral[a] - self.neutral[b]
         self._pair_basis = (rows[a] - rows[b]).reshape(-1, m)  # the pairs' separations through the basis
         self._stable_idx = np.flatnonzero(self.stable)
+        centred = self.neutral - self.neutral.mean(0)
+        self._reach = (self.settings.scale_range[1] * math.sqrt(float(np.maximum.reduce(np.vecdot(centred, centred))))
+                       + self.settings.gate_mm)  # a face's radius, at the largest scale, plus a gate
         self._zero_w = np.clip(np.zeros(m), lower, upper)
         self._g2 = np.full(self.n, self.settings.gate_mm ** 2)
         # one product gives the model and the watched pairs' separations
@@ -298,6 +323,7 @@ class MarkerLabeller:
         self._late = self._late_index = _EMPTY
         self._returning = self._returning_index = _EMPTY
         self.tentative = 0
+        self.rival: tuple[Fit, Fit] | None = None  # set by an initialisation that saw a second face
 
     # ------------------------------------------------------------------ model
     def model(self, w: np.ndarray) -> np.ndarray:
@@ -341,6 +367,19 @@ class MarkerLabeller:
     def _local(self, points: np.ndarray) -> np.ndarray:
         return ((points - self.t) @ self.R) * (1.0 / self.scale)
 
+    def near(self, points: np.ndarray, margin: float = NEAR_MARGIN_MM) -> np.ndarray | None:
+        """Which points the next ``step`` can give a label while tracking (None: every point, no
+        track): within the predicted face's radius plus ``margin`` of its centre. Cropping a large
+        cloud (a body capture around the face) to these leaves the labelling as it is, since no gate
+        in use (at most 2 x ``gate_mm``) reaches further, and makes each frame cost the face."""
+        if not self.tracking:
+            return None
+        world = self._pred[:, :3]
+        centre = world.mean(0)
+        radius = math.sqrt(float(np.maximum.reduce(np.vecdot(world - centre, world - centre)))) + margin
+        d = points - centre
+        return np.vecdot(d, d) <= radius * radius
+
     def _fit_shape(self, local: np.ndarray, lab: np.ndarray, complete: bool) -> np.ndarray:
         """Weights from the labelled markers' head-frame positions (missing ones held at their
         prediction: written into the model, which is recomputed from the fit): ridge least squares
@@ -366,13 +405,13 @@ class MarkerLabeller:
         np.clip(w, self.lower, self.upper, out=w)
         return w
 
-    def _refine(self, points: np.ndarray, iterations: int, gate: float) -> np.ndarray:
+    def _refine(self, points: np.ndarray, iterations: int, gate: float, tree: cKDTree | None = None) -> np.ndarray:
         """Alternate assignment (wide gate), head pose and shape from the current state: recovers a
         group of labels whose prediction fell behind (a fast jaw) or a fresh start's expression."""
         index = np.full(self.n, -1, dtype=np.int64)
         for _ in range(iterations):
             local = self.model(self.w)
-            index, _ = gated_assignment(self._world(local), points, gate)
+            index, _ = gated_assignment(self._world(local), points, gate, tree)
             if not self._fit_pose(points, index, local):
                 break
             self.w = self._fit_shape_subset(points, index)
@@ -589,29 +628,21 @@ class MarkerLabeller:
         index = np.full(self.n, -1, dtype=np.int64)
         if len(points) < max(3, int(s.min_labelled * self.n)):
             return index
-        lo, hi = s.scale_range
-        axes_n, sd_n = _principal_axes(self.neutral)
-        axes_q, sd_q = _principal_axes(points)
-        spread = math.sqrt((sd_q @ sd_q) / (sd_n @ sd_n))  # ratio of RMS radii about the centroids
-        scale0 = min(max(spread, lo), hi)
-        starts = [(scale0, R) for R in start_rotations(axes_q, sd_q, axes_n)]
-        if self.initialisations > 0:  # a lost track: its last pose is a candidate too
-            starts.append((self.scale, self.R))
-        gates = np.geomspace(s.init_gate_mm, s.gate_mm, s.init_iterations)
-        head, tail = gates[:s.init_screen], gates[s.init_screen:]
-        centre, mean_n = points.mean(0), self.neutral.mean(0)
-        screened = sorted((self._icp(points, self.neutral, sc, R, centre - sc * R @ mean_n, head)
-                           for sc, R in starts), key=lambda fit: fit[0])[:s.init_keep]
-        best = min((self._icp(points, self.neutral, *state, tail) for _, state in screened), key=lambda fit: fit[0])
-        _, (self.scale, self.R, self.t) = best
+        keep = self._densest(points) if len(points) > 1.5 * self.n else None
+        cloud = points if keep is None else points[keep]
+        tree = cKDTree(cloud) if len(cloud) > TREE_POINTS else None
+        _, (self.scale, self.R, self.t) = self._rigid_search(cloud, tree, self.initialisations > 0)
         # expression: alternate assignment, pose and shape from the best rigid start
         self.w = self._zero_w.copy()
-        self._refine(points, 5, 2 * s.gate_mm)
+        self._refine(cloud, 5, 2 * s.gate_mm, tree)
         self._set_shape(self.w)
-        index, _ = gated_assignment(self._world(self._model), points, s.gate_mm)
+        index, _ = gated_assignment(self._world(self._model), cloud, s.gate_mm, tree)
+        if keep is not None:
+            index = np.where(index >= 0, keep[np.maximum(index, 0)], -1)
         lab = index >= 0
         self.tracking = lab.sum() >= s.min_labelled * self.n
         self.initialisations += int(self.tracking)
+        self.rival = self._rival(points, index, tree if keep is None else None) if self.tracking else None
         self._predict()
         self.poor = 0
         self.missing_for[:] = np.where(lab, 0.0, 1.0)
@@ -619,14 +650,68 @@ class MarkerLabeller:
         self._sep_min = 0.0
         return index
 
-    def _icp(self, points, local, scale, R, t, gates):
+    def _rigid_search(self, points: np.ndarray, tree: cKDTree | None, from_last: bool) -> tuple[float, tuple]:
+        """The neutral's best similarity pose on the cloud: gated cost, (scale, R, t)."""
+        s = self.settings
+        lo, hi = s.scale_range
+        axes_n, sd_n = _principal_axes(self.neutral)
+        axes_q, sd_q = _principal_axes(points)
+        spread = math.sqrt((sd_q @ sd_q) / (sd_n @ sd_n))  # ratio of RMS radii about the centroids
+        scale0 = min(max(spread, lo), hi)
+        starts = [(scale0, R) for R in start_rotations(axes_q, sd_q, axes_n)]
+        if from_last:  # a lost track: its last pose is a candidate too
+            starts.append((self.scale, self.R))
+        gates = np.geomspace(s.init_gate_mm, s.gate_mm, s.init_iterations)
+        head, tail = gates[:s.init_screen], gates[s.init_screen:]
+        centre, mean_n = points.mean(0), self.neutral.mean(0)
+        screened = sorted((self._icp(points, self.neutral, sc, R, centre - sc * R @ mean_n, head, tree)
+                           for sc, R in starts), key=lambda fit: fit[0])[:s.init_keep]
+        return min((self._icp(points, self.neutral, *state, tail, tree) for _, state in screened),
+                   key=lambda fit: fit[0])
+
+    def _fit_score(self, points: np.ndarray, state: tuple, tree: cKDTree | None) -> Fit:
+        scale, R, t = state
+        index, cost = gated_assignment(scale * self.neutral @ R.T + t, points, self.settings.gate_mm, tree)
+        return Fit(int(np.count_nonzero(index >= 0)), cost, scale * self.neutral.mean(0) @ R.T + t)
+
+    def _densest(self, points: np.ndarray) -> np.ndarray:
+        """The points about the one with the most others within a face's reach: where a face is in a
+        cloud of many more points than one face has (a body capture, a second actor). The search
+        starts from that neighbourhood's own centroid and axes, not the whole cloud's."""
+        counts = cKDTree(points).query_ball_point(points, self._reach, return_length=True)
+        d = points - points[counts.argmax()]
+        return np.flatnonzero(np.vecdot(d, d) <= self._reach ** 2)
+
+    def _rival(self, points: np.ndarray, index: np.ndarray, tree: cKDTree | None) -> tuple[Fit, Fit] | None:
+        """A second face among the points the new track left unused: (this track's rigid fit, the
+        other's), or None. Looked for only where enough unused points lie within a face's reach of
+        one another (a KD-tree count), and fitted there alone, so scattered ghosts cost little."""
+        s = self.settings
+        need = s.min_labelled * self.n
+        rest = np.setdiff1d(np.arange(len(points)), index[index >= 0])
+        if len(rest) < need:
+            return None
+        others = points[rest]
+        reach = self._reach
+        counts = cKDTree(others).query_ball_point(others, reach, return_length=True)
+        if counts.max() < need:
+            return None
+        d = others - others[counts.argmax()]
+        near = others[np.vecdot(d, d) <= reach * reach]
+        _, state = self._rigid_search(near, None, False)
+        second = self._fit_score(near, state, None)
+        if second.labelled < need:
+            return None
+        return self._fit_score(points, (self.scale, self.R, self.t), tree), second
+
+    def _icp(self, points, local, scale, R, t, gates, tree=None):
         """Similarity ICP through the shrinking ``gates``; its cost at the last gate."""
         lo, hi = self.settings.scale_range
         for gate in gates:
-            index, _ = gated_assignment(scale * local @ R.T + t, points, gate)
+            index, _ = gated_assignment(scale * local @ R.T + t, points, gate, tree)
             lab = index >= 0
             if lab.sum() < 3:
                 return np.inf, (scale, R, t)
             scale, R, t = _similarity(local[lab], points[index[lab]], lo, hi)
-        _, cost = gated_assignment(scale * local @ R.T + t, points, gates[-1])
+        _, cost = gated_assignment(scale * local @ R.T + t, points, gates[-1], tree)
         return cost, (scale, R, t)

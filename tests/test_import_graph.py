@@ -79,3 +79,17 @@ def test_calibration_sits_below_offline():
     """Calibration is what offline solving uses, so it imports nothing of livecap.offline (nor the demo)."""
     assert [f"{f}: {m}" for f, m in _imports("livecap/calibration")
             if m.startswith(("livecap.offline", "livecap.demo", "livecap.cli"))] == []
+
+
+def test_capture_sources_import_no_circle():
+    """transport/capture.py chooses a source and the sources import what they share from
+    transport/capture_queue.py (issue 38: capture.py and natnet.py/qtm.py imported each other)."""
+    capture = {"transport.capture", "transport.capture_queue", "transport.natnet", "transport.natnet_frame",
+               "transport.qtm"}
+    edges: dict[str, set[str]] = {}
+    for f, m in _imports("transport"):
+        if m in capture and f[:-3].replace("/", ".") in capture:
+            edges.setdefault(f[:-3].replace("/", "."), set()).add(m)
+    circles = sorted({tuple(sorted((a, b))) for a, targets in edges.items() for b in targets
+                      if a in edges.get(b, set())})
+    assert circles == []

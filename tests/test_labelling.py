@@ -228,3 +228,87 @@ def test_fast_assignment_agrees_with_the_full_one_on_separated_clouds(n, ghosts,
     assert all(source[j] == i for i, j in enumerate(index) if j >= 0)
     got = index >= 0
     assert e2 == (d[got, index[got]].max() if got.any() else 0.0)
+
+
+# ------------------------------------------------------------------ issue 36 item 11
+def _in_a_crowd(take, frames, ghosts, seed=0):
+    """Each frame's visible face markers shuffled among ``ghosts`` points uniform in a 2 m cube
+    about the face (a body capture around it)."""
+    rng = np.random.default_rng(seed)
+    centre = np.nanmean(take.positions[0], 0)
+    out = []
+    for f in range(frames):
+        face = take.positions[f][take.valid[f]]
+        cloud = np.vstack([face, centre + rng.uniform(-1000, 1000, (ghosts, 3))])
+        out.append(cloud[rng.permutation(len(cloud))])
+    return out
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(1, 60), st.integers(0, 400), st.floats(0.5, 30.0), st.integers(0, 2**31 - 1))
+def test_assignment_through_a_kd_tree_is_the_same(n, k, gate, seed):
+    """Looking only at the points within some label's gate (KD-tree) gives the same assignment."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    pred, pts = rng.uniform(0, 100, (n, 3)), rng.uniform(0, 100, (k, 3))
+    full = gated_assignment(pred, pts, gate)
+    fast = gated_assignment(pred, pts, gate, cKDTree(pts) if k else None)
+    np.testing.assert_array_equal(full[0], fast[0])
+    assert fast[1] == pytest.approx(full[1], rel=1e-12, abs=1e-9)
+
+
+def test_a_large_cloud_costs_the_face_not_its_size(demo_setup):
+    """2400-point clouds (the face among 2340 ghosts): labelled exactly as without the crop and
+    the tree, while each tracked frame's step sees only the face's neighbourhood."""
+    import solvers.labelling as labelling
+
+    _, _, profile, take, _ = demo_setup
+    clouds = _in_a_crowd(take, 40, 2340)
+    plain, fast = labeller_for(profile), labeller_for(profile)
+    seen = []
+    with patch.object(labelling, "TREE_POINTS", 10**9):  # the plain path: no tree
+        want = [plain.step(c) for c in clouds]
+    for c, w in zip(clouds, want, strict=True):
+        near = fast.near(c)
+        got = fast.step(c if near is None else c[near])
+        seen.append(len(c) if near is None else int(near.sum()))
+        np.testing.assert_array_equal(got.valid, w.valid)
+        np.testing.assert_array_equal(got.positions, w.positions)
+    assert fast.initialisations == 1 and max(seen[1:]) < 80, seen
+
+
+def test_two_faces_in_the_first_cloud_are_named_not_silently_chosen(demo_setup, caplog):
+    """Two actors (the same face 300 mm apart): the labeller tracks one and reports the other,
+    both fits' scores in one warning line (the live source's and the offline labelling's)."""
+    _, _, profile, take, _ = demo_setup
+    face = take.positions[0][take.valid[0]]
+    rng = np.random.default_rng(3)
+    cloud = np.vstack([face, face + [300.0, 0, 0]])[rng.permutation(2 * len(face))]
+    lab = labeller_for(profile)
+    out = lab.step(cloud)
+    assert out.initialised and lab.rival is not None
+    taken, other = lab.rival
+    assert taken.labelled >= 55 and other.labelled >= 55
+    assert abs(abs(taken.centre[0] - other.centre[0]) - 300) < 5
+    caplog.set_level("WARNING", logger="livecap.input")
+    list(LabelledSource(_cloud_frames(cloud), profile))
+    lines = [r.getMessage() for r in caplog.records if "two faces" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].count("labels within the gate") == 2, lines
+    caplog.clear()
+    label_take(Take([f"*{i}" for i in range(len(cloud))], np.stack([cloud] * 3), np.ones((3, len(cloud)), bool),
+                    120.0), profile)
+    assert sum("frame 0: two faces" in r.getMessage() for r in caplog.records) == 1
+
+
+def _cloud_frames(cloud):
+    from livecap.core.take import MarkerFrame
+
+    for f in range(3):
+        yield MarkerFrame(f, f / 120.0, cloud, np.ones(len(cloud), bool))
+
+
+def test_one_face_among_ghosts_is_not_a_rival(demo_setup):
+    _, _, profile, take, _ = demo_setup
+    lab = labeller_for(profile)
+    assert lab.step(_in_a_crowd(take, 1, 2340)[0]).initialised and lab.rival is None

@@ -1,96 +1,49 @@
-"""``livecap run --qtm-in`` / ``--natnet-in``: the capture-system source for HOST[:PORT]."""
+"""``livecap run --qtm-in`` / ``--natnet-in``: the capture-system source for HOST[:PORT].
+
+This module only chooses and builds; the sources import what they share from
+``transport.capture_queue``, never this module, so the arrows run one way.
+"""
 
 from __future__ import annotations
 
-import queue
-import time
-from collections.abc import Callable, Iterator
-
-from livecap.core.take import MarkerFrame
-from transport.badinput import BadInput, FrameOrder
+from transport.capture_queue import endpoint
+from transport.security import check_host
 
 
-def offer(frames: queue.Queue, frame: MarkerFrame, bad) -> None:
-    """Hand a decoded frame from the client library's thread to the consumer; a full queue is a counted
-    ``overrun`` (the consumer is behind), never a blocked network thread."""
+def host_port(text: str, default: int) -> tuple[str, int]:
+    """``(host, port)`` from ``HOST``, ``HOST:PORT``, an IPv6 address (``::1``) or ``[IPv6]:PORT``."""
+    text = text.strip()
+    host, port = text, ""
+    if text.startswith("["):
+        host, sep, rest = text[1:].partition("]")
+        if not sep or (rest and not rest.startswith(":")):
+            raise ValueError(f"{text!r}: expected [IPv6]:PORT")
+        port = rest[1:]
+    elif text.count(":") == 1:
+        host, port = text.split(":")
     try:
-        frames.put_nowait(frame)
-    except queue.Full:
-        bad.skip("overrun", f"frame {frame.frame}: consumer behind by {frames.qsize()} frames")
-
-
-def queued_frames(frames: queue.Queue, running: Callable[[], bool],
-                  idle_timeout: float | None) -> Iterator[MarkerFrame]:
-    """The frames a client library's reader thread puts on ``frames`` (None ends the stream), until the
-    source is stopped or nothing has arrived for ``idle_timeout`` seconds."""
-    last_good = time.monotonic()
-    while running():
-        try:
-            frame = frames.get(timeout=0.2)
-        except queue.Empty:
-            if idle_timeout and time.monotonic() - last_good > idle_timeout:
-                return
-            continue
-        if frame is None:
-            return
-        last_good = time.monotonic()
-        yield frame
-
-
-class QueuedCaptureSource:
-    """What the capture-system sources share: the vendor client's thread decodes each packet
-    (``decode``, per source) and hands the frame to the consumer through a bounded queue."""
-
-    def _start_queue(self, name: str, idle_timeout: float | None) -> None:
-        self.bad = BadInput(name)
-        self._order = FrameOrder()
-        self.idle_timeout = idle_timeout
-        self.received = 0
-        self.last_decode_seconds = 0.0
-        self._queue: queue.Queue = queue.Queue(maxsize=1000)
-        self._running = True
-
-    def decode(self, packet) -> MarkerFrame | None:
-        raise NotImplementedError
-
-    def _hand_over(self, packet) -> None:
-        """The client thread's callback: decode (timed, counted) and offer the frame."""
-        t0 = time.perf_counter()
-        self.received += 1
-        frame = self.decode(packet)
-        self.last_decode_seconds = time.perf_counter() - t0
-        if frame is not None:
-            offer(self._queue, frame, self.bad)
-
-    def pending(self) -> bool:
-        return not self._queue.empty()
-
-    def stop(self) -> None:
-        self._running = False
-
-    def __iter__(self) -> Iterator[MarkerFrame]:
-        return queued_frames(self._queue, lambda: self._running, self.idle_timeout)
-
-
-def _host_port(text: str, default: int) -> tuple[str, int]:
-    host, _, port = text.rpartition(":") if ":" in text else (text, "", "")
-    try:
-        return host or "127.0.0.1", int(port) if port else default
+        value = int(port) if port else default
     except ValueError:
-        raise ValueError(f"{text!r}: expected HOST[:PORT]") from None
+        raise ValueError(f"{text!r}: expected HOST[:PORT] (port {port!r} is not a number)") from None
+    if not 0 < value < 65536:
+        raise ValueError(f"{text!r}: port {value} is not in 1..65535")
+    return host or "127.0.0.1", value
 
 
 def capture_source(qtm: str | None, natnet: str | None, labels: list[str], unlabelled: bool,
-                   idle_timeout: float | None):
-    """The QTM RT or NatNet source and its description for the ``ready`` line."""
+                   idle_timeout: float | None, interface: str | None = None):
+    """The QTM RT or NatNet source and its description for the ``ready`` line. A server that is
+    not on this machine's loopback must be named by ``interface`` (transport/security.py's rule)."""
     if qtm:
         from transport.qtm import DEFAULT_PORT, QtmSource
 
-        host, port = _host_port(qtm, DEFAULT_PORT)
+        host, port = host_port(qtm, DEFAULT_PORT)
+        check_host(host, interface)
         return (QtmSource(host, port, labels, unlabelled=unlabelled, idle_timeout=idle_timeout),
-                f"qtm-in {host}:{port}")
+                f"qtm-in {endpoint(host, port)}")
     from transport.natnet import DEFAULT_PORT, NatNetSource
 
-    host, port = _host_port(natnet, DEFAULT_PORT)
+    host, port = host_port(natnet, DEFAULT_PORT)
+    check_host(host, interface)
     return (NatNetSource(host, port, labels, unlabelled=unlabelled, idle_timeout=idle_timeout),
-            f"natnet-in {host}:{port}")
+            f"natnet-in {endpoint(host, port)}")

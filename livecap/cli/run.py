@@ -217,7 +217,8 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     elif args.qtm_in or args.natnet_in:
         from transport.capture import capture_source
 
-        source, what = capture_source(args.qtm_in, args.natnet_in, labels, args.unlabelled, args.idle_timeout)
+        source, what = capture_source(args.qtm_in, args.natnet_in, labels, args.unlabelled, args.idle_timeout,
+                                      args.interface)
         described.append(what)
     elif args.livelink_in:
         from transport.livelink import DEFAULT_PORT
@@ -374,4 +375,8 @@ def run(args: argparse.Namespace) -> int:
     print(pipeline.report(), flush=True)
     if args.record_markers and not Path(args.record_markers).exists():
         print(f"livecap run: no frames recorded to {args.record_markers}", file=sys.stderr)
+    lost = getattr(pipeline.source, "lost", None)
+    if lost:  # the capture system went away and did not come back: not a finished session
+        print(f"livecap run: error: source lost: {lost}", file=sys.stderr)
+        return 1
     return 0

@@ -3,6 +3,7 @@ calibrated profile, as a source wrapper for live sessions and over whole takes o
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Iterable, Iterator
 
@@ -10,13 +11,26 @@ import numpy as np
 
 from livecap.calibration.profile import Profile
 from livecap.core.take import MarkerFrame, Take
-from solvers.labelling import LabellerSettings, MarkerLabeller
+from solvers.labelling import Fit, LabellerSettings, MarkerLabeller
+
+log = logging.getLogger("livecap.input")
 
 
 def labeller_for(profile: Profile, settings: LabellerSettings | None = None) -> MarkerLabeller:
     """A labeller on the profile's actor neutral, stable markers and marker basis."""
     return MarkerLabeller(profile.source_neutral, profile.stable, profile.basis, profile.lower, profile.upper,
                           settings)
+
+
+def rival_warning(rival: tuple[Fit, Fit], frame: int) -> str:
+    """One line naming the ambiguity: two faces in the cloud, both fits' scores, which one was taken."""
+    def score(fit: Fit) -> str:
+        x, y, z = fit.centre
+        return f"{fit.labelled} labels within the gate, cost {fit.cost:.0f} mm^2, at ({x:.0f}, {y:.0f}, {z:.0f}) mm"
+
+    taken, other = rival
+    return (f"frame {frame}: two faces in the cloud; labelling the one fitted first ({score(taken)}), not the "
+            f"other ({score(other)}): if that is the wrong actor, keep only one face in the stream")
 
 
 class LabelledSource:
@@ -43,7 +57,11 @@ class LabelledSource:
             t0 = time.perf_counter()
             pts = np.asarray(frame.positions, dtype=np.float64).reshape(-1, 3)
             valid = np.asarray(frame.valid, dtype=bool).reshape(-1)
-            out = self.labeller.step(pts[valid])
+            cloud = pts[valid]
+            near = self.labeller.near(cloud)  # a large cloud costs the tracked face's neighbourhood only
+            out = self.labeller.step(cloud if near is None else cloud[near])
+            if out.initialised and self.labeller.rival:
+                log.warning("%s", rival_warning(self.labeller.rival, frame.frame))
             self.label_seconds = time.perf_counter() - t0
             self.last_decode_seconds = getattr(self.source, "last_decode_seconds", 0.0) + self.label_seconds
             yield MarkerFrame(frame.frame, frame.timestamp, out.positions, out.valid)
@@ -68,7 +86,12 @@ def label_take(cloud: Take, profile: Profile, settings: LabellerSettings | None 
     prev_cols = np.zeros(0, dtype=np.int64)
     for f in range(cloud.n_frames):
         cols = np.flatnonzero(cloud.valid[f])
+        near = lab.near(cloud.positions[f, cols])
+        if near is not None:
+            cols = cols[near]
         out = lab.step(cloud.positions[f, cols])
+        if out.initialised and lab.rival:
+            log.warning("%s", rival_warning(lab.rival, cloud.first_frame + f))
         pos[f], valid[f] = out.positions, out.valid
         columns[f, out.valid] = cols[out.index[out.valid]]
         if f > 0 and out.late is not None and len(out.late):  # offline: a confirmed return starts a frame earlier
