@@ -50,6 +50,7 @@ def loop(profile: str, out: str, warm: str, takes: list[str]) -> dict:
     """Wall and CPU seconds of the plain in-process loop over ``takes`` (after one untimed warm-up solve),
     and of the batch's per-take function on the same takes, alternating take by take."""
     from livecap.batch.jobs import Job
+    from livecap.batch.spec import SolveSpec
     from livecap.batch.worker import SolverCache, solve_job
     from livecap.calibration.profile import Profile
     from livecap.cli.common import load_rig
@@ -72,7 +73,7 @@ def loop(profile: str, out: str, warm: str, takes: list[str]) -> dict:
     cache = SolverCache()
 
     def job(path: str) -> None:
-        row = solve_job(Job(path, str(RIG), str(Path(out) / "job"), MODE, "csv", profile=profile), cache)
+        row = solve_job(Job(path, SolveSpec(str(RIG), MODE, profile), str(Path(out) / "job")), cache)
         if row["status"] != "ok":
             raise RuntimeError(row["error"])
 
@@ -163,9 +164,10 @@ def _batch(workers: int, profile: str, out: Path, warm: Path, takes: list[Path],
            settings: str = "livecap") -> dict:
     from livecap.batch.jobs import Job
     from livecap.batch.runner import run_batch
+    from livecap.batch.spec import SolveSpec
 
     def jobs(paths, where):
-        return [Job(str(p), str(RIG), str(where), MODE, "csv", profile=profile) for p in paths]
+        return [Job(str(p), SolveSpec(str(RIG), MODE, profile), str(where)) for p in paths]
 
     t0 = time.perf_counter()
     load0 = _load()

@@ -6,8 +6,10 @@ import csv
 import glob
 import shlex
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+
+from livecap.batch.spec import SolveSpec
 
 TAKE_SUFFIXES = (".c3d", ".trc", ".csv")
 MANIFEST_COLUMNS = ("take", "actor", "profile", "calibrate_from", "mode", "options", "rig", "markers")
@@ -16,18 +18,14 @@ RECORDS = ".batch"  # per-take records (the summary row of each solved take) ins
 
 @dataclass(frozen=True)
 class Job:
-    """One take to solve; travels to a worker as paths only (the worker reads and writes the files)."""
+    """One take to solve and where its output goes; travels to a worker as paths and the typed spec (the
+    worker reads and writes the files)."""
 
     take: str
-    rig: str
+    spec: SolveSpec
     out_dir: str
-    mode: str
     fmt: str = "csv"
-    profile: str | None = None
-    markers: str | None = None
     actor: str = ""
-    neutral_seconds: float = 1.0
-    options: tuple[str, ...] = field(default=())
     error: str = ""  # set when the job failed before solving (e.g. its actor's neutral take did not calibrate)
 
     @property
@@ -42,26 +40,9 @@ class Job:
     def record(self) -> Path:
         return Path(self.out_dir) / RECORDS / f"{self.stem}.json"
 
-    def solve_argv(self) -> list[str]:
-        """The ``livecap solve`` arguments this job is equal to (``--out`` is the job's output)."""
-        argv = [self.take, "--rig", self.rig, "--out", str(self.output), "--mode", self.mode]
-        if self.markers:
-            argv += ["--markers", self.markers]
-        if self.profile:
-            argv += ["--profile", self.profile]
-        else:
-            argv += ["--neutral-seconds", repr(self.neutral_seconds)]
-        return argv + list(self.options)
-
     def inputs(self) -> list[Path]:
         """Files whose change makes the output stale."""
-        paths = [Path(self.take), Path(self.rig)]
-        if Path(self.rig).is_dir():
-            paths += [p for p in Path(self.rig).iterdir() if p.is_file()]
-        paths += [Path(p) for p in (self.profile, self.markers) if p]
-        if not self.markers and not Path(self.rig).is_dir():
-            paths.append(Path(self.rig).with_name(Path(self.rig).stem + ".markers.json"))
-        return paths
+        return [Path(self.take), *self.spec.inputs()]
 
     def up_to_date(self) -> bool:
         """The output and its record exist and are newer than every input that exists."""

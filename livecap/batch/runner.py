@@ -88,7 +88,7 @@ def run_batch(jobs: list[Job], out_dir: str | Path, client, force: bool = False,
         except Exception as exc:  # the worker died or the task could not run: the take failed
             from livecap.batch.worker import one_line
 
-            row = {"take": jobs[i].take, "stem": jobs[i].stem, "actor": jobs[i].actor, "mode": jobs[i].mode,
+            row = {"take": jobs[i].take, "stem": jobs[i].stem, "actor": jobs[i].actor, "mode": jobs[i].spec.mode,
                    "status": "failed", "error": f"worker: {one_line(exc)}", "output": str(jobs[i].output)}
         rows[i] = row
         if on_done:
