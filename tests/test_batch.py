@@ -278,3 +278,40 @@ def test_noise_and_settings_reach_the_worker_as_livecap_solve_gives_them(library
         assert (out / "take1.csv").read_bytes() == solo
         plain = _solve(take, tmp_path / "plain.csv", "--mode", "robust", *(["--profile", prof] if prof else []))
         assert plain != solo  # the flags change the solve
+
+
+def test_largest_takes_first_and_the_summary_grows_as_takes_finish(library, client, tmp_path):
+    """Uneven takes: the two long ones start before any short one though listed last (one per worker, the rest
+    queued by size), and summary.csv holds a row for every take finished so far while the batch runs."""
+    full = read_take(ROOT / "recordings" / "demo_take.c3d")
+    takes = tmp_path / "takes"
+    takes.mkdir()
+    for name, n in (("a0", 60), ("a1", 60), ("z0", 360), ("z1", 360)):
+        write_take(full.slice(100, 100 + n), takes / f"{name}.c3d")
+    out = tmp_path / "out"
+    jobs = plan_jobs([str(takes)], [], rig=RIG, out_dir=str(out), mode="robust", fmt="csv", profile=library["profile"])
+    assert [j.stem for j in jobs] == ["a0", "a1", "z0", "z1"]
+    lines = []
+    rows, _ = run_batch(jobs, out, client, on_done=lambda row: lines.append(
+        (out / "summary.csv").read_text().count("\n") - 1))
+    assert lines == [1, 2, 3, 4]
+    started = {r["stem"]: r["started"] for r in rows}
+    assert max(started["z0"], started["z1"]) < min(started["a0"], started["a1"]), started
+    assert {r["worker"] for r in rows if r["stem"].startswith("z")} == {r["worker"] for r in rows}  # both busy
+
+
+def test_kernels_are_compiled_once_on_the_client_and_loaded_by_every_worker(library, tmp_path):
+    """``livecap batch`` on a cold numba cache (its own NUMBA_CACHE_DIR): the client compiles the mode's kernels
+    into the cache while the cluster starts; no worker compiles one (each row counts its worker's compilations)."""
+    cache = tmp_path / "numba"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+    out = tmp_path / "out"
+    takes = [str(library["takes"] / f"take{i}.c3d") for i in range(3)]
+    done = subprocess.run([sys.executable, "-m", "livecap", "batch", *takes, "--rig", RIG, "--profile",
+                           library["profile"], "--mode", "lsq", "--workers", "2", "--out", str(out)],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    rows = json.loads((out / "summary.json").read_text())["takes"]
+    assert [r["status"] for r in rows] == ["ok"] * 3
+    assert [r["kernels_compiled"] for r in rows] == [0, 0, 0]
+    assert list(cache.rglob("*.nbi")), "the kernels were not cached where the workers look"

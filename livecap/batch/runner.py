@@ -6,11 +6,12 @@ import logging
 import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
 from livecap.batch.jobs import Job
-from livecap.batch.summary import write_summary
+from livecap.batch.summary import LiveSummary, write_summary
 from livecap.batch.worker import SolverCache, load_record, solve_job
 
 log = logging.getLogger(__name__)
@@ -21,7 +22,10 @@ MAX_EXIT_CODE = 100  # exit code = failed takes, capped below the shell's signal
 # thread every 10 ms; the 20 ms event-loop tick and the 100 ms memory monitor wake the event loop, which
 # then waits for the solving thread's GIL; MALLOC_TRIM_THRESHOLD_ (glibc returns freed memory at once)
 # turns every large numpy temporary into fresh zeroed pages. BLAS threads stay at one, as Dask sets them.
+# A worker holds one task at a time (Dask's 1.1 rounds up to two per one-thread worker): the rest wait in
+# the scheduler's queue, largest take first, and go to whichever worker frees first.
 LOCAL_CLUSTER_CONFIG = {
+    "distributed.scheduler.worker-saturation": 1.0,
     "distributed.worker.profile.enabled": False,
     "distributed.admin.tick.interval": "1s",
     "distributed.worker.memory.monitor-interval": "1s",
@@ -29,27 +33,69 @@ LOCAL_CLUSTER_CONFIG = {
 }
 
 
+# Worker processes forked from one forkserver that has imported distributed and livecap's worker side once
+# (Dask's default, spawn, starts a fresh interpreter per worker that imports them again); measured in
+# docs/batch.md "Start-up and the fixed costs".
+FORKSERVER_PRELOAD = ["distributed", "livecap.batch.worker"]
+WARM_FRAMES = 120  # the client solves this many frames of a take per spec before any worker does
+
+
 def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
+def warm_kernels(jobs: list[Job]) -> float:
+    """Solve the first frames of one take per spec here, on the client, so the numba kernels the workers need
+    are compiled once into the on-disk cache (numba's ``cache=True``: every process of this user and
+    install reads the same files) before any worker runs a take; a worker then loads them. Seconds taken."""
+    from livecap.batch.worker import SolverCache, solve_spec
+    from transport.takefile import read_take
+
+    start = time.perf_counter()
+    cache, seen = SolverCache(), set()
+    for job in jobs:
+        if job.error or job.spec in seen:
+            continue
+        seen.add(job.spec)
+        try:
+            take = read_take(job.take)
+            solve_spec(job.spec, take.slice(0, min(take.n_frames, WARM_FRAMES)), job.take, cache)
+        except Exception as exc:  # the take's own solve will report it; another take of the spec may warm
+            seen.discard(job.spec)
+            log.debug("warm-up on %s: %s", job.take, exc)
+    return time.perf_counter() - start
+
+
+def _start_cluster(workers: int | None):
+    import dask
+    from distributed import LocalCluster
+    from distributed.utils import get_mp_context
+
+    with dask.config.set({**LOCAL_CLUSTER_CONFIG, "distributed.worker.multiprocessing-method": "forkserver"}):
+        get_mp_context().set_forkserver_preload(FORKSERVER_PRELOAD)  # Dask's own list is set by the first call
+        return LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
+                            dashboard_address=None, silence_logs=logging.ERROR)
+
+
 @contextmanager
-def dask_client(workers: int | None = None, scheduler: str | None = None):
+def dask_client(workers: int | None = None, scheduler: str | None = None,
+                prepare: Callable[[], object] | None = None):
     """A client of the user's scheduler, or of a LocalCluster of worker processes (one thread each)
-    that is closed on exit; the solver cache is registered as a worker plugin either way."""
-    from distributed import Client, LocalCluster
+    that is closed on exit; the solver cache is registered as a worker plugin either way. ``prepare``
+    (e.g. warm_kernels) runs here while the cluster starts, and before any task is sent."""
+    from distributed import Client
 
     logging.getLogger("distributed").setLevel(logging.ERROR)  # its INFO lines would bury the progress bar
-    if scheduler:
-        client = Client(scheduler, timeout="30s")
-        cluster = None
-    else:
-        import dask
-
-        with dask.config.set(LOCAL_CLUSTER_CONFIG):
-            cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=logging.ERROR)
-        client = Client(cluster)
+    cluster = None
+    with ThreadPoolExecutor(1) as pool:
+        starting = None if scheduler else pool.submit(_start_cluster, workers)
+        if prepare:
+            prepare()
+        if scheduler:
+            client = Client(scheduler, timeout="30s")
+        else:
+            cluster = starting.result()
+            client = Client(cluster)
     try:
         client.register_plugin(SolverCache(), name=SolverCache.name)
         yield client
@@ -59,40 +105,57 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
             cluster.close()
 
 
+def _size(job: Job) -> int:
+    try:
+        return os.stat(job.take).st_size
+    except OSError:
+        return 0
+
+
 def run_batch(jobs: list[Job], out_dir: str | Path, client, force: bool = False,
               on_done: Callable[[dict], None] | None = None) -> tuple[list[dict], dict]:
-    """Solve every job not already up to date on ``client``'s workers; rows in job order, and meta."""
+    """Solve every job not already up to date on ``client``'s workers, largest take first (Dask hands the
+    queued tasks out by priority as workers free up, so long takes do not end the batch on one worker);
+    each row goes to DIR/summary.csv as it comes in; rows in job order, and meta."""
     from distributed import as_completed
 
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     rows: dict[int, dict] = {}
     pending = []
-    for i, job in enumerate(jobs):
-        if not force and not job.error and job.up_to_date():
+    live = LiveSummary(out_dir)
+    try:
+        for i, job in enumerate(jobs):
+            if not force and not job.error and job.up_to_date():
+                try:
+                    rows[i] = load_record(job)
+                    live.add(rows[i])
+                    if on_done:
+                        on_done(rows[i])
+                    continue
+                except (OSError, ValueError):
+                    pass  # an unreadable record: solve again
+            pending.append(i)
+        start, run_id = time.perf_counter(), time.time_ns()
+        sizes = {i: _size(jobs[i]) for i in pending}
+        futures = {}
+        for rank, i in enumerate(sorted(pending, key=lambda i: -sizes[i])):
+            futures[client.submit(solve_job, jobs[i], pure=False, priority=len(pending) - rank,
+                                  key=f"livecap-batch-{run_id}-{i}-{jobs[i].stem}")] = i
+        for fut in as_completed(list(futures)):
+            i = futures[fut]
             try:
-                rows[i] = load_record(job)
-                if on_done:
-                    on_done(rows[i])
-                continue
-            except (OSError, ValueError):
-                pass  # an unreadable record: solve again
-        pending.append(i)
-    start = time.perf_counter()
-    run_id = time.time_ns()
-    futures = {client.submit(solve_job, jobs[i], pure=False, key=f"livecap-batch-{run_id}-{i}-{jobs[i].stem}"): i
-               for i in pending}
-    for fut in as_completed(list(futures)):
-        i = futures[fut]
-        try:
-            row = fut.result()
-        except Exception as exc:  # the worker died or the task could not run: the take failed
-            from livecap.batch.worker import one_line
+                row = fut.result()
+            except Exception as exc:  # the worker died or the task could not run: the take failed
+                from livecap.batch.worker import one_line
 
-            row = {"take": jobs[i].take, "stem": jobs[i].stem, "actor": jobs[i].actor, "mode": jobs[i].spec.mode,
-                   "status": "failed", "error": f"worker: {one_line(exc)}", "output": str(jobs[i].output)}
-        rows[i] = row
-        if on_done:
-            on_done(row)
+                row = {"take": jobs[i].take, "stem": jobs[i].stem, "actor": jobs[i].actor, "mode": jobs[i].spec.mode,
+                       "status": "failed", "error": f"worker: {one_line(exc)}", "output": str(jobs[i].output)}
+            rows[i] = row
+            live.add(row)
+            if on_done:
+                on_done(row)
+    finally:
+        live.close()
     wall = time.perf_counter() - start
     ordered = [rows[i] for i in range(len(jobs))]
     meta = {"n_takes": len(jobs), "solved": len(pending), "skipped": len(jobs) - len(pending),

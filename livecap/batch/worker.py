@@ -135,14 +135,25 @@ def solve_spec(spec: SolveSpec, take: Take, take_path: str, cache: SolverCache):
     return solve_take(take, profile, solver), profile, rig
 
 
+def compiled_kernels() -> int:
+    """Numba kernels this process has compiled so far (cache misses; every kernel lives in solvers/): 0 in a
+    worker whose kernels all came from the on-disk cache the client warmed (runner.warm_kernels)."""
+    import sys
+
+    from numba.core.registry import CPUDispatcher
+
+    return sum(sum(obj.stats.cache_misses.values()) for name, mod in list(sys.modules.items())
+               if name.startswith("solvers") for obj in vars(mod).values() if isinstance(obj, CPUDispatcher))
+
+
 def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     """Solve one take exactly as ``livecap solve`` would and write its output and record; never raises:
     a failure comes back as a row with ``status`` "failed" and a one-line ``error``."""
     cache = cache or _cache()
-    start, cpu = time.perf_counter(), time.process_time()
+    start, cpu, compiled = time.perf_counter(), time.process_time(), compiled_kernels()
     row: dict = {"take": job.take, "stem": job.stem, "actor": job.actor, "mode": job.spec.mode,
                  "profile": job.spec.profile or "", "output": str(job.output), "status": "failed", "error": "",
-                 "worker": os.getpid()}
+                 "worker": os.getpid(), "started": time.time()}
     if job.error:
         row["error"] = job.error
         row["seconds"] = 0.0
@@ -164,6 +175,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
         logging.getLogger().removeHandler(handler)
     row["seconds"] = time.perf_counter() - start
     row["cpu_seconds"] = time.process_time() - cpu  # the worker process's CPU: load on a shared machine aside
+    row["kernels_compiled"] = compiled_kernels() - compiled
     if row["status"] == "ok":
         job.record.parent.mkdir(parents=True, exist_ok=True)
         tmp = job.record.with_name(job.record.name + ".partial")

@@ -113,14 +113,15 @@ def _table(rows: list[dict], meta: dict):
 
 def run(args: argparse.Namespace) -> int:
     from livecap.batch.plan import plan_jobs
-    from livecap.batch.runner import dask_client, exit_code, run_batch
+    from livecap.batch.runner import dask_client, exit_code, run_batch, warm_kernels
 
     jobs = plan_jobs(args.takes, args.manifest, rig=args.rig, out_dir=args.out, mode=args.mode, fmt=args.format,
                      profile=args.profile, calibrate_from=args.calibrate_from, markers=args.markers,
                      neutral_seconds=args.neutral_seconds,
                      settings=settings_from_flags(shlex.split(args.solve_options)), parse_flags=settings_from_flags)
     prog, done = _progress(len(jobs))
-    with dask_client(args.workers, args.scheduler) as client, prog:
+    todo = jobs if args.force else [j for j in jobs if not j.up_to_date()]
+    with dask_client(args.workers, args.scheduler, prepare=lambda: warm_kernels(todo)) as client, prog:
         rows, meta = run_batch(jobs, args.out, client, force=args.force, on_done=done)
     prog.console.print(_table(rows, meta))
     for r in rows:
