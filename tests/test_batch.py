@@ -300,9 +300,10 @@ def test_largest_takes_first_and_the_summary_grows_as_takes_finish(library, clie
     assert {r["worker"] for r in rows if r["stem"].startswith("z")} == {r["worker"] for r in rows}  # both busy
 
 
-def test_kernels_are_compiled_once_on_the_client_and_loaded_by_every_worker(library, tmp_path):
-    """``livecap batch`` on a cold numba cache (its own NUMBA_CACHE_DIR): the client compiles the mode's kernels
-    into the cache while the cluster starts; no worker compiles one (each row counts its worker's compilations)."""
+def test_kernels_are_compiled_once_and_loaded_by_every_worker(library, tmp_path):
+    """``livecap batch`` on a cold numba cache (its own NUMBA_CACHE_DIR): the mode's kernels are compiled once,
+    into the cache, by the forkserver the workers are forked from; no worker compiles one (each row counts its
+    worker's compilations during the take)."""
     cache = tmp_path / "numba"
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
     out = tmp_path / "out"

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import logging
 import os
+import pickle
+import tempfile
 import time
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -33,69 +34,87 @@ LOCAL_CLUSTER_CONFIG = {
 }
 
 
-# Worker processes forked from one forkserver that has imported distributed and livecap's worker side once
-# (Dask's default, spawn, starts a fresh interpreter per worker that imports them again); measured in
-# docs/batch.md "Start-up and the fixed costs".
-FORKSERVER_PRELOAD = ["distributed", "livecap.batch.worker"]
-WARM_FRAMES = 120  # the client solves this many frames of a take per spec before any worker does
+# Worker processes forked from one forkserver that has imported distributed and livecap's worker side, set up
+# numba and loaded the batch's kernels once (livecap/batch/forkserver.py): Dask's default, spawn, starts a fresh
+# interpreter per worker that imports and loads them again (docs/batch.md "Start-up and fixed costs").
+FORKSERVER_PRELOAD = ["distributed", "livecap.batch.forkserver"]
+WARM_ENV = "LIVECAP_BATCH_WARM"  # a pickle of the jobs whose kernels the forkserver loads
+START_METHOD = "forkserver"  # "spawn" is Dask's default (benchmarks.batch compares the two)
+WARM_FRAMES = 120  # frames of a take solved per spec to load (or, on a cold cache, compile) its kernels
+_forkserver: dict = {}  # the forkserver outlives a cluster: it is started, and loads kernels, once a process
 
 
 def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
-def warm_kernels(jobs: list[Job]) -> float:
-    """Solve the first frames of one take per spec here, on the client, so the numba kernels the workers need
-    are compiled once into the on-disk cache (numba's ``cache=True``: every process of this user and
-    install reads the same files) before any worker runs a take; a worker then loads them. Seconds taken."""
+def one_per_spec(jobs: Sequence[Job]) -> list[Job]:
+    seen: dict = {}
+    for job in jobs:
+        if not job.error:
+            seen.setdefault(job.spec, job)
+    return list(seen.values())
+
+
+def warm_kernels(jobs: Sequence[Job]) -> float:
+    """Solve the first frames of one take per spec in this process, which loads the numba kernels they need,
+    compiling them into the on-disk cache (numba's ``cache=True``, shared by every process of this user and
+    install) only if they are not there yet. Seconds taken."""
     from livecap.batch.worker import SolverCache, solve_spec
     from transport.takefile import read_take
 
     start = time.perf_counter()
-    cache, seen = SolverCache(), set()
+    cache, done = SolverCache(), set()
     for job in jobs:
-        if job.error or job.spec in seen:
+        if job.error or job.spec in done:
             continue
-        seen.add(job.spec)
         try:
             take = read_take(job.take)
             solve_spec(job.spec, take.slice(0, min(take.n_frames, WARM_FRAMES)), job.take, cache)
+            done.add(job.spec)
         except Exception as exc:  # the take's own solve will report it; another take of the spec may warm
-            seen.discard(job.spec)
             log.debug("warm-up on %s: %s", job.take, exc)
     return time.perf_counter() - start
 
 
-def _start_cluster(workers: int | None):
+def _start_cluster(workers: int | None, warm: Sequence[Job]):
     import dask
     from distributed import LocalCluster
     from distributed.utils import get_mp_context
 
-    with dask.config.set({**LOCAL_CLUSTER_CONFIG, "distributed.worker.multiprocessing-method": "forkserver"}):
-        get_mp_context().set_forkserver_preload(FORKSERVER_PRELOAD)  # Dask's own list is set by the first call
-        return LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
-                            dashboard_address=None, silence_logs=logging.ERROR)
+    config = {**LOCAL_CLUSTER_CONFIG, "distributed.worker.multiprocessing-method": START_METHOD}
+    forked = START_METHOD == "forkserver"
+    if not forked or _forkserver:  # workers that start bare, or a forkserver that loaded other kernels
+        warm_kernels(warm)  # ... find them in the cache, compiled once
+    with tempfile.TemporaryDirectory(prefix="livecap-batch-") as tmp, dask.config.set(config):
+        if forked and not _forkserver:
+            get_mp_context().set_forkserver_preload(FORKSERVER_PRELOAD)  # Dask's own list is set by the first call
+            path = Path(tmp) / "warm.pickle"
+            path.write_bytes(pickle.dumps(one_per_spec(warm)))
+            os.environ[WARM_ENV] = str(path)  # the forkserver, started by the first worker, inherits it
+        try:
+            return LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
+                                dashboard_address=None, silence_logs=logging.ERROR)
+        finally:
+            if os.environ.pop(WARM_ENV, None):
+                _forkserver["started"] = True
 
 
 @contextmanager
-def dask_client(workers: int | None = None, scheduler: str | None = None,
-                prepare: Callable[[], object] | None = None):
+def dask_client(workers: int | None = None, scheduler: str | None = None, warm: Sequence[Job] = ()):
     """A client of the user's scheduler, or of a LocalCluster of worker processes (one thread each)
-    that is closed on exit; the solver cache is registered as a worker plugin either way. ``prepare``
-    (e.g. warm_kernels) runs here while the cluster starts, and before any task is sent."""
+    that is closed on exit; the solver cache is registered as a worker plugin either way. The kernels of
+    ``warm``'s specs are loaded once before any task runs: in the forkserver every local worker is forked
+    from, or here, on the client, so that a user's workers that share this cache find them compiled."""
     from distributed import Client
 
     logging.getLogger("distributed").setLevel(logging.ERROR)  # its INFO lines would bury the progress bar
-    cluster = None
-    with ThreadPoolExecutor(1) as pool:
-        starting = None if scheduler else pool.submit(_start_cluster, workers)
-        if prepare:
-            prepare()
-        if scheduler:
-            client = Client(scheduler, timeout="30s")
-        else:
-            cluster = starting.result()
-            client = Client(cluster)
+    if scheduler:
+        warm_kernels(warm)
+        client, cluster = Client(scheduler, timeout="30s"), None
+    else:
+        cluster = _start_cluster(workers, warm)
+        client = Client(cluster)
     try:
         client.register_plugin(SolverCache(), name=SolverCache.name)
         yield client

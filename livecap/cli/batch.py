@@ -113,7 +113,7 @@ def _table(rows: list[dict], meta: dict):
 
 def run(args: argparse.Namespace) -> int:
     from livecap.batch.plan import plan_jobs
-    from livecap.batch.runner import dask_client, exit_code, run_batch, warm_kernels
+    from livecap.batch.runner import dask_client, exit_code, run_batch
 
     jobs = plan_jobs(args.takes, args.manifest, rig=args.rig, out_dir=args.out, mode=args.mode, fmt=args.format,
                      profile=args.profile, calibrate_from=args.calibrate_from, markers=args.markers,
@@ -121,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
                      settings=settings_from_flags(shlex.split(args.solve_options)), parse_flags=settings_from_flags)
     prog, done = _progress(len(jobs))
     todo = jobs if args.force else [j for j in jobs if not j.up_to_date()]
-    with dask_client(args.workers, args.scheduler, prepare=lambda: warm_kernels(todo)) as client, prog:
+    with dask_client(args.workers, args.scheduler, warm=todo) as client, prog:
         rows, meta = run_batch(jobs, args.out, client, force=args.force, on_done=done)
     prog.console.print(_table(rows, meta))
     for r in rows:
