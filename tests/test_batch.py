@@ -111,9 +111,9 @@ def test_resume_skips_finished_takes_and_force_redoes_them(library, client, tmp_
     for name in ("broken.c3d", "wrong_labels.c3d", "take0.c3d"):
         (takes / name).unlink()
 
-    def batch(force: bool = False) -> dict:
+    def batch(force: bool = False, settings: SolveSettings | None = None) -> dict:
         jobs = plan_jobs([str(takes / "*.c3d")], [], rig=RIG, out_dir=str(out), mode="qp", fmt="csv",
-                         profile=library["profile"])
+                         profile=library["profile"], settings=settings)
         rows, _ = run_batch(jobs, out, client, force=force)
         return {r["stem"]: r["status"] for r in rows}
 
@@ -121,6 +121,10 @@ def test_resume_skips_finished_takes_and_force_redoes_them(library, client, tmp_
     first = (out / "take1.csv").read_bytes()
     assert batch() == {"take1": "skipped", "take2": "skipped"}
     assert (out / "summary.csv").read_text().count(",skipped,") == 2  # skipped takes keep their figures
+    assert batch(settings=SolveSettings(ridge=0.5)) == {"take1": "ok", "take2": "ok"}  # other settings: solved again
+    assert (out / "take1.csv").read_bytes() != first
+    assert batch(settings=SolveSettings(ridge=0.5)) == {"take1": "skipped", "take2": "skipped"}
+    assert batch() == {"take1": "ok", "take2": "ok"}
     later = time.time() + 5
     os.utime(takes / "take1.c3d", (later, later))  # an input newer than its output
     assert batch() == {"take1": "ok", "take2": "skipped"}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import glob
+import json
 import shlex
 import tomllib
 from dataclasses import dataclass
@@ -45,11 +46,17 @@ class Job:
         return [Path(self.take), *self.spec.inputs()]
 
     def up_to_date(self) -> bool:
-        """The output and its record exist and are newer than every input that exists."""
+        """The output and its record exist, are newer than every input that exists, and the record was solved
+        with this spec (other settings or mode: solved again)."""
         if not (self.output.is_file() and self.record.is_file()):
             return False
         made = min(self.output.stat().st_mtime_ns, self.record.stat().st_mtime_ns)
-        return all(made > p.stat().st_mtime_ns for p in self.inputs() if p.exists())
+        if not all(made > p.stat().st_mtime_ns for p in self.inputs() if p.exists()):
+            return False
+        try:
+            return json.loads(self.record.read_text()).get("spec") == repr(self.spec)
+        except (OSError, ValueError):
+            return False
 
 
 def expand_takes(items: list[str]) -> list[Path]:

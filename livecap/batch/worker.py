@@ -153,7 +153,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     start, cpu, compiled = time.perf_counter(), time.process_time(), compiled_kernels()
     row: dict = {"take": job.take, "stem": job.stem, "actor": job.actor, "mode": job.spec.mode,
                  "profile": job.spec.profile or "", "output": str(job.output), "status": "failed", "error": "",
-                 "worker": os.getpid(), "started": time.time()}
+                 "worker": os.getpid(), "started": time.time(), "spec": repr(job.spec)}
     if job.error:
         row["error"] = job.error
         row["seconds"] = 0.0
