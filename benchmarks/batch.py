@@ -46,9 +46,10 @@ def _load() -> float:
         return float(fh.read().split()[0])
 
 
-def loop(profile: str, out: str, warm: str, takes: list[str]) -> dict:
+def loop(profile: str, out: str, warm: str, takes: list[str], start_at: float | None = None) -> dict:
     """Wall and CPU seconds of the plain in-process loop over ``takes`` (after one untimed warm-up solve),
-    and of the batch's per-take function on the same takes, alternating take by take."""
+    and of the batch's per-take function on the same takes, alternating take by take. With ``start_at``
+    (a ``time.time()``), only the loop, started then, and the time it ended: loops in parallel processes."""
     from livecap.batch.jobs import Job
     from livecap.batch.spec import SolveSpec
     from livecap.batch.worker import SolverCache, solve_job
@@ -80,6 +81,12 @@ def loop(profile: str, out: str, warm: str, takes: list[str]) -> dict:
     times = {"loop": [0.0, 0.0], "job": [0.0, 0.0]}
     for fn in (one, job):
         fn(warm)
+    if start_at is not None:
+        time.sleep(max(0.0, start_at - time.time()))
+        cpu = time.process_time()
+        for t in takes:
+            one(t)
+        return {"ended": time.time(), "cpu": time.process_time() - cpu}
     for t in takes:
         for name, fn in (("loop", one), ("job", job)):
             start, cpu = time.perf_counter(), time.process_time()
@@ -120,6 +127,23 @@ def _loop_in_process(profile: str, out: Path, warm: Path, takes: list[Path]) -> 
 
 def loop_main(profile: str, out: str, warm: str, *takes: str) -> dict:
     return loop(profile, out, warm, list(takes))
+
+
+def parallel_loop_main(start_at: str, profile: str, out: str, warm: str, *takes: str) -> dict:
+    return loop(profile, out, warm, list(takes), float(start_at))
+
+
+def _parallel_loops(k: int, profile: str, out: Path, warm: Path, takes: list[Path]) -> dict:
+    """``k`` warm in-process loops at once, each in its own process on every k-th take, all starting at one
+    instant: the baseline with the batch's parallelism (two processes on a 2-core VM slow each other)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    out.mkdir(parents=True, exist_ok=True)
+    start_at = time.time() + 10.0  # after every process has imported, loaded and warmed up
+    with ThreadPoolExecutor(k) as pool:
+        parts = list(pool.map(lambda i: _in_child("parallel_loop_main", repr(start_at), profile, str(out), str(warm),
+                                                   *map(str, takes[i::k])), range(k)))
+    return {"wall": max(p["ended"] for p in parts) - start_at, "cpu": sum(p["cpu"] for p in parts)}
 
 
 def nested(dotted: dict) -> dict:
@@ -307,14 +331,18 @@ def scale(ns: list[int], profile: str, work: Path, demo: Path, warm: Path, start
         before = _loop_in_process(profile, work / f"loop{n}", warm, takes)
         e2e = _in_child("end_to_end_main", "2", profile, str(work / f"batch{n}"), *map(str, takes))
         after = _loop_in_process(profile, work / f"loop{n}", warm, takes)
+        two = _parallel_loops(2, profile, work / f"loop2-{n}", warm, takes)
         base = {"takes": n, "per_take_s": (before["wall"] + after["wall"]) / (2 * n),
                 "cpu_per_take_s": (before["cpu"] + after["cpu"]) / (2 * n),
                 "per_take_before_after_s": [before["wall"] / n, after["wall"] / n],
                 "cpu_per_take_before_after_s": [before["cpu"] / n, after["cpu"] / n],
                 "job_cpu_per_take_s": (before["job_cpu"] + after["job_cpu"]) / (2 * n),
+                "two_loops_per_take_s": two["wall"] * 2 / n, "two_loops_cpu_per_take_s": two["cpu"] / n,
                 "load_start": load0, "load_end": _load()}
         e2e["overhead"] = e2e["per_take_s"] / base["per_take_s"] - 1.0
         e2e["cpu_overhead"] = e2e["cpu_per_take_s"] / base["cpu_per_take_s"] - 1.0
+        e2e["overhead_vs_two_loops"] = e2e["per_take_s"] / base["two_loops_per_take_s"] - 1.0
+        e2e["cpu_overhead_vs_two_loops"] = e2e["cpu_per_take_s"] / base["two_loops_cpu_per_take_s"] - 1.0
         out["runs"].append({"loop": base, "batch": e2e})
         shutil.rmtree(takes[0].parent, ignore_errors=True)
     return out
@@ -336,6 +364,13 @@ def _print_scale(res: dict) -> None:
               f"{b['cpu_per_take_s']:>8.3f} {b['job_cpu_per_take_s']:>8.3f} {e['cpu_per_take_s']:>10.3f} "
               f"{e['cpu_overhead']:>+12.1%} {e['start_s']:>8.2f} {e['summary_s']:>9.2f} {e['close_s']:>8.2f} "
               f"{e['total_s']:>8.1f} {e['busy_max_over_mean']:>13.2f} {b['load_start']:>4.1f}-{b['load_end']:<4.1f}")
+    print("against two warm loops in parallel processes (the batch's parallelism, same takes):")
+    for run in res["runs"]:
+        b, e = run["loop"], run["batch"]
+        print(f"{b['takes']:>5} takes: two loops {b['two_loops_per_take_s']:.3f} s/take "
+              f"(CPU {b['two_loops_cpu_per_take_s']:.3f}), batch {e['per_take_s']:.3f} "
+              f"(CPU {e['cpu_per_take_s']:.3f}): overhead wall {e['overhead_vs_two_loops']:+.1%}, "
+              f"CPU {e['cpu_overhead_vs_two_loops']:+.1%} (goal <= 10%)")
 
 
 def _real_takes(work: Path, n: int) -> tuple[Path, list[Path]]:
