@@ -7,6 +7,7 @@ import os
 import pickle
 import tempfile
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -23,10 +24,7 @@ MAX_EXIT_CODE = 100  # exit code = failed takes, capped below the shell's signal
 # thread every 10 ms; the 20 ms event-loop tick and the 100 ms memory monitor wake the event loop, which
 # then waits for the solving thread's GIL; MALLOC_TRIM_THRESHOLD_ (glibc returns freed memory at once)
 # turns every large numpy temporary into fresh zeroed pages. BLAS threads stay at one, as Dask sets them.
-# A worker holds one task at a time (Dask's 1.1 rounds up to two per one-thread worker): the rest wait in
-# the scheduler's queue, largest take first, and go to whichever worker frees first.
 LOCAL_CLUSTER_CONFIG = {
-    "distributed.scheduler.worker-saturation": 1.0,
     "distributed.worker.profile.enabled": False,
     "distributed.admin.tick.interval": "1s",
     "distributed.worker.memory.monitor-interval": "1s",
@@ -36,11 +34,12 @@ LOCAL_CLUSTER_CONFIG = {
 
 # Worker processes forked from one forkserver that has imported distributed and livecap's worker side, set up
 # numba and loaded the batch's kernels once (livecap/batch/forkserver.py): Dask's default, spawn, starts a fresh
-# interpreter per worker that imports and loads them again (docs/batch.md "Start-up and fixed costs").
+# interpreter per worker that imports and loads them again (docs/batch.md "Start-up, fixed costs and scale").
 FORKSERVER_PRELOAD = ["distributed", "livecap.batch.forkserver"]
 WARM_ENV = "LIVECAP_BATCH_WARM"  # a pickle of the jobs whose kernels the forkserver loads
 START_METHOD = "forkserver"  # "spawn" is Dask's default (benchmarks.batch compares the two)
 WARM_FRAMES = 120  # frames of a take solved per spec to load (or, on a cold cache, compile) its kernels
+WARM_TRIES = 3  # takes of a spec tried before its kernels are left to the workers (its takes may all be bad)
 _forkserver: dict = {}  # the forkserver outlives a cluster: it is started, and loads kernels, once a process
 
 
@@ -48,12 +47,10 @@ def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
-def one_per_spec(jobs: Sequence[Job]) -> list[Job]:
-    seen: dict = {}
-    for job in jobs:
-        if not job.error:
-            seen.setdefault(job.spec, job)
-    return list(seen.values())
+def _few_per_spec(jobs: Sequence[Job]) -> list[Job]:
+    """What warm_kernels may try: WARM_TRIES takes of each spec (the forkserver gets them pickled)."""
+    count: Counter = Counter()
+    return [j for j in jobs if not j.error and (count.update([j.spec]) or count[j.spec] <= WARM_TRIES)]
 
 
 def warm_kernels(jobs: Sequence[Job]) -> float:
@@ -64,10 +61,11 @@ def warm_kernels(jobs: Sequence[Job]) -> float:
     from transport.takefile import read_take
 
     start = time.perf_counter()
-    cache, done = SolverCache(), set()
+    cache, done, tries = SolverCache(), set(), Counter()
     for job in jobs:
-        if job.error or job.spec in done:
+        if job.error or job.spec in done or tries[job.spec] >= WARM_TRIES:
             continue
+        tries[job.spec] += 1
         try:
             take = read_take(job.take)
             solve_spec(job.spec, take.slice(0, min(take.n_frames, WARM_FRAMES)), job.take, cache)
@@ -90,7 +88,7 @@ def _start_cluster(workers: int | None, warm: Sequence[Job]):
         if forked and not _forkserver:
             get_mp_context().set_forkserver_preload(FORKSERVER_PRELOAD)  # Dask's own list is set by the first call
             path = Path(tmp) / "warm.pickle"
-            path.write_bytes(pickle.dumps(one_per_spec(warm)))
+            path.write_bytes(pickle.dumps(_few_per_spec(warm)))
             os.environ[WARM_ENV] = str(path)  # the forkserver, started by the first worker, inherits it
         try:
             return LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
