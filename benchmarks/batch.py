@@ -4,7 +4,7 @@ does (read the take, build the solver, solve, write the CSV), on copies of the b
 (2400 frames, 60 markers, 43 shapes) with a profile calibrated from the demo neutral take.
 
     python -m benchmarks.batch [--quick] [--json FILE] [--settings livecap,dask] [--placement cluster,sessions]
-                               [--takes demo|real] [--scale 12,24,48]
+                               [--takes demo|real] [--scale 12,24,48] [--methods 16]
 
 ``--takes real``: instead of demo copies, 12 different 20 s takes on the ICT-FaceKit rig driven by the real
 Live Link Face performances of ../shared/realdata/performance (`livecap generate --curves`, one actor, 20 s
@@ -311,6 +311,32 @@ def end_to_end_main(workers: str, profile: str, out: str, *takes: str) -> dict:
     return _end_to_end(int(workers), profile, Path(out), [Path(t) for t in takes])
 
 
+def method_main(method: str, profile: str, out: str, *takes: str) -> dict:
+    from livecap.batch import runner
+
+    runner.START_METHOD = method
+    return {"method": method, **_end_to_end(2, profile, Path(out), [Path(t) for t in takes])}
+
+
+def methods(n: int, profile: str, work: Path, demo: Path, reps: int = 3) -> list[dict]:
+    """Per take, spawned (Dask's default) against forked workers: ``livecap batch`` end to end at 2 workers on
+    ``n`` takes, a fresh process each, the two alternating ``reps`` times."""
+    takes = []
+    for i in range(n):
+        takes.append(work / "methods" / f"take{i:03d}.c3d")
+        takes[-1].parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(demo, takes[-1])
+    out = []
+    for rep in range(reps):
+        for method in ("spawn", "forkserver"):
+            r = _in_child("method_main", method, profile, str(work / f"m-{method}-{rep}"), *map(str, takes))
+            out.append({**r, "rep": rep})
+            print(f"  {method:>10} rep {rep}: worker CPU {r['cpu_per_take_s']:.3f} s/take, solving "
+                  f"{r['solve_s']:.2f} s ({r['per_take_s']:.3f} s/take at 2 workers), start {r['start_s']:.2f} s, "
+                  f"close {r['close_s']:.2f} s, load {r['load_start']:.1f}-{r['load_end']:.1f}")
+    return out
+
+
 def scale(ns: list[int], profile: str, work: Path, demo: Path, warm: Path, start_reps: int = 3) -> dict:
     """Issue 39.3's acceptance: per take, ``livecap batch`` at 2 workers (a fresh process, as the command is)
     against the warm in-process loop on the same takes, run just before and just after it (the machine is
@@ -405,13 +431,14 @@ def _real_takes(work: Path, n: int) -> tuple[Path, list[Path]]:
     raise FileNotFoundError(f"only {len(takes)} real-performance takes of 20 s could be made")
 
 
-def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",),
-        settings: tuple[str, ...] = ("livecap",), takes: str = "demo", scale: tuple[str, ...] = ("",)) -> dict:
+def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",), settings: tuple[str, ...] = ("livecap",),
+        takes: str = "demo", scale: tuple[str, ...] = ("",), methods: tuple[str, ...] = ("",)) -> dict:
     """``placement``: "cluster" (livecap's LocalCluster) and/or "sessions" (dask scheduler and workers as
     separate processes, each in its own session); ``settings`` of the LocalCluster: "livecap" (what
     ``livecap batch`` starts) and/or "dask" (Dask's defaults, the profiler off: the code before them).
     ``scale`` (e.g. 12,24,48): instead, the start-up A/B and ``livecap batch`` end to end at 2 workers on that
-    many demo takes, each against the warm loop on the same takes."""
+    many demo takes, each against the warm loop on the same takes. ``methods`` (e.g. 16): instead, spawned
+    against forked workers end to end on that many takes."""
     from livecap.cli import main as livecap
     from transport.takefile import read_take, write_take
 
@@ -439,6 +466,10 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",),
                 sys.stdout = stdout
         warm = work / "warm.c3d"
         write_take(read_take(paths[0]).slice(0, 120), warm)
+        if methods[0]:
+            print("spawned (Dask's default) against forked (livecap's) workers, 2 workers, each a fresh process:")
+            return {"methods": globals()["methods"](2 if quick else int(methods[0]), profile, work, paths[0], 1
+                                                    if quick else 3)}
         ns = [int(x) for x in scale if x]
         if ns:
             res = globals()["scale"](ns if not quick else [2], profile, work, paths[0], warm, 1 if quick else 3)
@@ -499,4 +530,4 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",),
 
 
 if __name__ == "__main__":
-    sys.exit(suite_main(run, __doc__, placement="cluster", settings="livecap", takes="demo", scale=""))
+    sys.exit(suite_main(run, __doc__, placement="cluster", settings="livecap", takes="demo", scale="", methods=""))
