@@ -5,6 +5,7 @@ does (read the take, build the solver, solve, write the CSV), on copies of the b
 
     python -m benchmarks.batch [--quick] [--json FILE] [--settings livecap,dask] [--placement cluster,sessions]
                                [--takes demo|real] [--scale 12,24,48] [--methods 16]
+                               [--order uneven]
 
 ``--takes real``: instead of demo copies, 12 different 20 s takes on the ICT-FaceKit rig driven by the real
 Live Link Face performances of ../shared/realdata/performance (`livecap generate --curves`, one actor, 20 s
@@ -32,6 +33,8 @@ import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
+
+import numpy as np
 
 from benchmarks.timing import suite_main
 
@@ -304,6 +307,7 @@ def _end_to_end(workers: int, profile: str, out: Path, takes: list[Path]) -> dic
             "cpu_per_take_s": sum(r["cpu_seconds"] for r in rows) / n, "client_cpu_per_take_s": client_cpu / n,
             "kernels_compiled": sum(r["kernels_compiled"] for r in rows),
             "busy_max_over_mean": max(busy.values()) / (sum(busy.values()) / len(busy)),
+            "busy_s": sorted(busy.values(), reverse=True) + [0.0] * (workers - len(busy)),
             "load_start": load0, "load_end": _load()}
 
 
@@ -316,6 +320,42 @@ def method_main(method: str, profile: str, out: str, *takes: str) -> dict:
 
     runner.START_METHOD = method
     return {"method": method, **_end_to_end(2, profile, Path(out), [Path(t) for t in takes])}
+
+
+def order_main(order: str, profile: str, out: str, *takes: str) -> dict:
+    from livecap.batch import runner
+
+    if order == "listed":  # every take the same size: the sort keeps the listed order, Dask's first-in first-out
+        runner._size = lambda job: 0
+    return {"order": order, **_end_to_end(2, profile, Path(out), [Path(t) for t in takes])}
+
+
+def uneven(profile: str, work: Path, demo: Path, reps: int = 3) -> list[dict]:
+    """A library of uneven takes, the long one listed last: 16 copies of the 20 s demo take, then one of 200 s
+    (the demo take ten times over), at 2 workers, largest first (livecap's) against the listed order (Dask's
+    first in, first out), alternating ``reps`` times. Listed, the long take starts when the short ones are
+    done and runs alone; largest first, the other worker solves the short ones meanwhile."""
+    from transport.takefile import read_take, write_take
+
+    full = read_take(demo)
+    long = type(full)(full.labels, np.concatenate([full.positions] * 10), np.concatenate([full.valid] * 10),
+                      full.rate, full.first_frame)
+    folder = work / "uneven"
+    folder.mkdir(parents=True, exist_ok=True)
+    takes = []
+    for i in range(16):
+        takes.append(folder / f"a{i:02d}.c3d")
+        shutil.copy(demo, takes[-1])
+    takes.append(folder / "z.c3d")
+    write_take(long, takes[-1])
+    out = []
+    for rep in range(reps):
+        for order in ("listed", "largest"):
+            r = _in_child("order_main", order, profile, str(work / f"u-{order}-{rep}"), *map(str, takes))
+            out.append({**r, "rep": rep})
+            print(f"  {order:>8} first, rep {rep}: solving {r['solve_s']:.2f} s, the two workers busy "
+                  f"{r['busy_s'][0]:.2f} / {r['busy_s'][1]:.2f} s, load {r['load_start']:.1f}-{r['load_end']:.1f}")
+    return out
 
 
 def methods(n: int, profile: str, work: Path, demo: Path, reps: int = 3) -> list[dict]:
@@ -432,13 +472,15 @@ def _real_takes(work: Path, n: int) -> tuple[Path, list[Path]]:
 
 
 def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",), settings: tuple[str, ...] = ("livecap",),
-        takes: str = "demo", scale: tuple[str, ...] = ("",), methods: tuple[str, ...] = ("",)) -> dict:
+        takes: str = "demo", scale: tuple[str, ...] = ("",), methods: tuple[str, ...] = ("",),
+        order: tuple[str, ...] = ("",)) -> dict:
     """``placement``: "cluster" (livecap's LocalCluster) and/or "sessions" (dask scheduler and workers as
     separate processes, each in its own session); ``settings`` of the LocalCluster: "livecap" (what
     ``livecap batch`` starts) and/or "dask" (Dask's defaults, the profiler off: the code before them).
     ``scale`` (e.g. 12,24,48): instead, the start-up A/B and ``livecap batch`` end to end at 2 workers on that
     many demo takes, each against the warm loop on the same takes. ``methods`` (e.g. 16): instead, spawned
-    against forked workers end to end on that many takes."""
+    against forked workers end to end on that many takes. ``order`` ("uneven"): instead, largest take first
+    against the listed order on a library of uneven takes."""
     from livecap.cli import main as livecap
     from transport.takefile import read_take, write_take
 
@@ -466,6 +508,9 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",), settings
                 sys.stdout = stdout
         warm = work / "warm.c3d"
         write_take(read_take(paths[0]).slice(0, 120), warm)
+        if order[0]:
+            print("uneven takes (16 x 20 s listed first, 1 x 200 s last), 2 workers, each a fresh process:")
+            return {"uneven": uneven(profile, work, paths[0], 1 if quick else 3)}
         if methods[0]:
             print("spawned (Dask's default) against forked (livecap's) workers, 2 workers, each a fresh process:")
             return {"methods": globals()["methods"](2 if quick else int(methods[0]), profile, work, paths[0], 1
@@ -530,4 +575,5 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",), settings
 
 
 if __name__ == "__main__":
-    sys.exit(suite_main(run, __doc__, placement="cluster", settings="livecap", takes="demo", scale="", methods=""))
+    sys.exit(suite_main(run, __doc__, placement="cluster", settings="livecap", takes="demo", scale="", methods="",
+                        order=""))
