@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 import pickle
 import tempfile
@@ -37,7 +38,8 @@ LOCAL_CLUSTER_CONFIG = {
 # interpreter per worker that imports and loads them again (docs/batch.md "Start-up, fixed costs and scale").
 FORKSERVER_PRELOAD = ["distributed", "livecap.batch.forkserver"]
 WARM_ENV = "LIVECAP_BATCH_WARM"  # a pickle of the jobs whose kernels the forkserver loads
-START_METHOD = "forkserver"  # "spawn" is Dask's default (benchmarks.batch compares the two)
+# "spawn" is Dask's default (benchmarks.batch compares the two); Windows has no forkserver
+START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
 WARM_FRAMES = 120  # frames of a take solved per spec to load (or, on a cold cache, compile) its kernels
 WARM_TRIES = 3  # takes of a spec tried before its kernels are left to the workers (its takes may all be bad)
 _forkserver: dict = {}  # the forkserver outlives a cluster: it is started, and loads kernels, once a process
