@@ -4,7 +4,8 @@ does (read the take, build the solver, solve, write the CSV), on copies of the b
 (2400 frames, 60 markers, 43 shapes) with a profile calibrated from the demo neutral take.
 
     python -m benchmarks.batch [--quick] [--json FILE] [--settings livecap,dask] [--placement cluster,sessions]
-                               [--takes demo|real]
+                               [--takes demo|real] [--scale 12,24,48] [--methods 16]
+                               [--order uneven]
 
 ``--takes real``: instead of demo copies, 12 different 20 s takes on the ICT-FaceKit rig driven by the real
 Live Link Face performances of ../shared/realdata/performance (`livecap generate --curves`, one actor, 20 s
@@ -33,6 +34,8 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
+
 from benchmarks.timing import suite_main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,10 +49,12 @@ def _load() -> float:
         return float(fh.read().split()[0])
 
 
-def loop(profile: str, out: str, warm: str, takes: list[str]) -> dict:
+def loop(profile: str, out: str, warm: str, takes: list[str], start_at: float | None = None) -> dict:
     """Wall and CPU seconds of the plain in-process loop over ``takes`` (after one untimed warm-up solve),
-    and of the batch's per-take function on the same takes, alternating take by take."""
+    and of the batch's per-take function on the same takes, alternating take by take. With ``start_at``
+    (a ``time.time()``), only the loop, started then, and the time it ended: loops in parallel processes."""
     from livecap.batch.jobs import Job
+    from livecap.batch.spec import SolveSpec
     from livecap.batch.worker import SolverCache, solve_job
     from livecap.calibration.profile import Profile
     from livecap.cli.common import load_rig
@@ -72,13 +77,19 @@ def loop(profile: str, out: str, warm: str, takes: list[str]) -> dict:
     cache = SolverCache()
 
     def job(path: str) -> None:
-        row = solve_job(Job(path, str(RIG), str(Path(out) / "job"), MODE, "csv", profile=profile), cache)
+        row = solve_job(Job(path, SolveSpec(str(RIG), MODE, profile), str(Path(out) / "job")), cache)
         if row["status"] != "ok":
             raise RuntimeError(row["error"])
 
     times = {"loop": [0.0, 0.0], "job": [0.0, 0.0]}
     for fn in (one, job):
         fn(warm)
+    if start_at is not None:
+        time.sleep(max(0.0, start_at - time.time()))
+        cpu = time.process_time()
+        for t in takes:
+            one(t)
+        return {"ended": time.time(), "cpu": time.process_time() - cpu}
     for t in takes:
         for name, fn in (("loop", one), ("job", job)):
             start, cpu = time.perf_counter(), time.process_time()
@@ -88,14 +99,54 @@ def loop(profile: str, out: str, warm: str, takes: list[str]) -> dict:
     return {"wall": times["loop"][0], "cpu": times["loop"][1], "job_wall": times["job"][0], "job_cpu": times["job"][1]}
 
 
+def child_env(extra: dict | None = None) -> dict:
+    """This environment for a child process that must import what this one imports, however it is installed:
+    the folders livecap and these benchmarks came from (unless the interpreter finds them anyway, as an installed
+    package's site-packages) before whatever PYTHONPATH already holds."""
+    import site
+
+    import livecap
+
+    own = {str(Path(p).resolve()) for p in [*site.getsitepackages(), site.getusersitepackages()]}
+    paths = [str(p) for p in (Path(livecap.__file__).resolve().parents[1], ROOT) if str(p) not in own]
+    paths += [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+    return {**os.environ, **(extra or {}), "PYTHONPATH": os.pathsep.join(dict.fromkeys(paths))}
+
+
+def _in_child(call: str, *args: str) -> dict:
+    """``benchmarks.batch.CALL(*args)`` in a fresh process with one BLAS thread, as a Dask worker has."""
+    code = f"import json, sys; from benchmarks.batch import {call}; print(json.dumps({call}(*sys.argv[1:])))"
+    done = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
+                          env=child_env(ONE_THREAD), cwd=ROOT)
+    if done.returncode:
+        raise RuntimeError(f"benchmarks.batch.{call} failed: {done.stderr.strip()[-2000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def _loop_in_process(profile: str, out: Path, warm: Path, takes: list[Path]) -> dict:
     out.mkdir(parents=True, exist_ok=True)
-    code = ("import json, sys; from benchmarks.batch import loop; "
-            "print(json.dumps(loop(sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4:])))")
-    done = subprocess.run([sys.executable, "-c", code, profile, str(out), str(warm), *map(str, takes)],
-                          capture_output=True, text=True, env={**os.environ, **ONE_THREAD, "PYTHONPATH": str(ROOT)},
-                          cwd=ROOT, check=True)
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return _in_child("loop_main", profile, str(out), str(warm), *map(str, takes))
+
+
+def loop_main(profile: str, out: str, warm: str, *takes: str) -> dict:
+    return loop(profile, out, warm, list(takes))
+
+
+def parallel_loop_main(start_at: str, profile: str, out: str, warm: str, *takes: str) -> dict:
+    return loop(profile, out, warm, list(takes), float(start_at))
+
+
+def _parallel_loops(k: int, profile: str, out: Path, warm: Path, takes: list[Path]) -> dict:
+    """``k`` warm in-process loops at once, each in its own process on every k-th take, all starting at one
+    instant: the baseline with the batch's parallelism (two processes on a 2-core VM slow each other)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    out.mkdir(parents=True, exist_ok=True)
+    start_at = time.time() + 10.0  # after every process has imported, loaded and warmed up
+    with ThreadPoolExecutor(k) as pool:
+        parts = list(pool.map(lambda i: _in_child("parallel_loop_main", repr(start_at), profile, str(out), str(warm),
+                                                   *map(str, takes[i::k])), range(k)))
+    return {"wall": max(p["ended"] for p in parts) - start_at, "cpu": sum(p["cpu"] for p in parts)}
 
 
 def nested(dotted: dict) -> dict:
@@ -121,7 +172,7 @@ def _session_workers(n: int):
     address = f"tcp://127.0.0.1:{free_port()}"
     config = Path(tempfile.mkdtemp(prefix="livecap-dask-config-")) / "livecap-batch.yaml"
     config.write_text(json.dumps(nested(LOCAL_CLUSTER_CONFIG)))  # JSON is YAML: the file docs/batch.md shows
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "DASK_CONFIG": str(config)}
+    env = child_env({"DASK_CONFIG": str(config)})
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "start_new_session": True, "env": env}
     procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1],
                                "--no-dashboard"], **quiet)]
@@ -163,9 +214,10 @@ def _batch(workers: int, profile: str, out: Path, warm: Path, takes: list[Path],
            settings: str = "livecap") -> dict:
     from livecap.batch.jobs import Job
     from livecap.batch.runner import run_batch
+    from livecap.batch.spec import SolveSpec
 
     def jobs(paths, where):
-        return [Job(str(p), str(RIG), str(where), MODE, "csv", profile=profile) for p in paths]
+        return [Job(str(p), SolveSpec(str(RIG), MODE, profile), str(where)) for p in paths]
 
     t0 = time.perf_counter()
     load0 = _load()
@@ -192,6 +244,199 @@ def _batch(workers: int, profile: str, out: Path, warm: Path, takes: list[Path],
             "cpu_per_take_s": sum(r["cpu_seconds"] for r in rows) / len(rows),
             "client_cpu_per_take_s": client_cpu / len(takes),  # this process: client and (LocalCluster) scheduler
             "load_start": load0, "load_end": _load()}
+
+
+def start_once(method: str, profile: str, warm: str, workers: str = "2") -> dict:
+    """One ``livecap batch`` start, in a fresh process as the command has: the cluster of ``method`` (spawn:
+    Dask's default, the client warming the kernels first; forkserver: livecap's, the forkserver loading them),
+    until every worker has solved a 1 s take (imports, rig, profile, kernels, solver loaded), then the close."""
+    t0 = time.perf_counter()
+    from livecap.batch import runner
+    from livecap.batch.jobs import Job
+    from livecap.batch.spec import SolveSpec
+    from livecap.batch.worker import solve_job
+
+    imported = time.perf_counter() - t0
+    runner.START_METHOD = method
+    n = int(workers)
+    spec = SolveSpec(str(RIG), MODE, profile)
+    out = Path(tempfile.mkdtemp(prefix="livecap-start-"))
+    copies = []
+    for i in range(n):
+        copies.append(out / f"w{i}.c3d")
+        shutil.copy(warm, copies[-1])
+    jobs = [Job(str(p), spec, str(out)) for p in copies]
+    t1 = time.perf_counter()
+    with runner.dask_client(n, warm=jobs[:1]) as client:
+        t2 = time.perf_counter()
+        rows = client.gather([client.submit(solve_job, j, pure=False, workers=[w], allow_other_workers=False)
+                              for j, w in zip(jobs, client.scheduler_info()["workers"], strict=True)])
+        t3 = time.perf_counter()
+    t4 = time.perf_counter()
+    shutil.rmtree(out, ignore_errors=True)
+    assert all(r["status"] == "ok" for r in rows), rows
+    return {"method": method, "import_s": imported, "start_s": t2 - t1, "first_take_s": t3 - t2, "close_s": t4 - t3,
+            "ready_s": t3 - t0, "total_s": t4 - t0, "first_take_cpu_s": max(r["cpu_seconds"] for r in rows),
+            "kernels_compiled": sum(r["kernels_compiled"] for r in rows)}
+
+
+def _end_to_end(workers: int, profile: str, out: Path, takes: list[Path]) -> dict:
+    """What ``livecap batch`` does, phase by phase (a fresh cluster): start (the forkserver loading the
+    kernels, the workers forked from it), solving (first task sent to last result in), summary, close."""
+    from livecap.batch import runner
+    from livecap.batch.jobs import Job
+    from livecap.batch.spec import SolveSpec
+
+    jobs = [Job(str(p), SolveSpec(str(RIG), MODE, profile), str(out)) for p in takes]
+    load0 = _load()
+    t0 = time.perf_counter()
+    with runner.dask_client(workers, warm=jobs) as client:
+        t1, c1 = time.perf_counter(), time.process_time()
+        rows, meta = runner.run_batch(jobs, out, client, force=True)
+        t2, client_cpu = time.perf_counter(), time.process_time() - c1
+    t3 = time.perf_counter()
+    failed = [r["error"] for r in rows if r["status"] != "ok"]
+    if failed:
+        raise RuntimeError(f"batch failed: {failed[0]}")
+    busy: dict = {}
+    for r in rows:
+        busy[r["worker"]] = busy.get(r["worker"], 0.0) + r["seconds"]
+    n, solve = len(takes), meta["wall_seconds"]
+    return {"workers": workers, "takes": n, "start_s": t1 - t0, "solve_s": solve,
+            "summary_s": t2 - t1 - solve, "close_s": t3 - t2, "total_s": t3 - t0, "per_take_s": solve * workers / n,
+            "cpu_per_take_s": sum(r["cpu_seconds"] for r in rows) / n, "client_cpu_per_take_s": client_cpu / n,
+            "kernels_compiled": sum(r["kernels_compiled"] for r in rows),
+            "busy_max_over_mean": max(busy.values()) / (sum(busy.values()) / len(busy)),
+            "busy_s": sorted(busy.values(), reverse=True) + [0.0] * (workers - len(busy)),
+            "load_start": load0, "load_end": _load()}
+
+
+def end_to_end_main(workers: str, profile: str, out: str, *takes: str) -> dict:
+    return _end_to_end(int(workers), profile, Path(out), [Path(t) for t in takes])
+
+
+def method_main(method: str, profile: str, out: str, *takes: str) -> dict:
+    from livecap.batch import runner
+
+    runner.START_METHOD = method
+    return {"method": method, **_end_to_end(2, profile, Path(out), [Path(t) for t in takes])}
+
+
+def order_main(order: str, profile: str, out: str, *takes: str) -> dict:
+    from livecap.batch import runner
+
+    if order == "listed":  # every take the same size: the sort keeps the listed order, Dask's first-in first-out
+        runner._size = lambda job: 0
+    return {"order": order, **_end_to_end(2, profile, Path(out), [Path(t) for t in takes])}
+
+
+def uneven(profile: str, work: Path, demo: Path, reps: int = 3) -> list[dict]:
+    """A library of uneven takes, the long one listed last: 16 copies of the 20 s demo take, then one of 200 s
+    (the demo take ten times over), at 2 workers, largest first (livecap's) against the listed order (Dask's
+    first in, first out), alternating ``reps`` times. Listed, the long take starts when the short ones are
+    done and runs alone; largest first, the other worker solves the short ones meanwhile."""
+    from transport.takefile import read_take, write_take
+
+    full = read_take(demo)
+    long = type(full)(full.labels, np.concatenate([full.positions] * 10), np.concatenate([full.valid] * 10),
+                      full.rate, full.first_frame)
+    folder = work / "uneven"
+    folder.mkdir(parents=True, exist_ok=True)
+    takes = []
+    for i in range(16):
+        takes.append(folder / f"a{i:02d}.c3d")
+        shutil.copy(demo, takes[-1])
+    takes.append(folder / "z.c3d")
+    write_take(long, takes[-1])
+    out = []
+    for rep in range(reps):
+        for order in ("listed", "largest"):
+            r = _in_child("order_main", order, profile, str(work / f"u-{order}-{rep}"), *map(str, takes))
+            out.append({**r, "rep": rep})
+            print(f"  {order:>8} first, rep {rep}: solving {r['solve_s']:.2f} s, the two workers busy "
+                  f"{r['busy_s'][0]:.2f} / {r['busy_s'][1]:.2f} s, load {r['load_start']:.1f}-{r['load_end']:.1f}")
+    return out
+
+
+def methods(n: int, profile: str, work: Path, demo: Path, reps: int = 3) -> list[dict]:
+    """Per take, spawned (Dask's default) against forked workers: ``livecap batch`` end to end at 2 workers on
+    ``n`` takes, a fresh process each, the two alternating ``reps`` times."""
+    takes = []
+    for i in range(n):
+        takes.append(work / "methods" / f"take{i:03d}.c3d")
+        takes[-1].parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(demo, takes[-1])
+    out = []
+    for rep in range(reps):
+        for method in ("spawn", "forkserver"):
+            r = _in_child("method_main", method, profile, str(work / f"m-{method}-{rep}"), *map(str, takes))
+            out.append({**r, "rep": rep})
+            print(f"  {method:>10} rep {rep}: worker CPU {r['cpu_per_take_s']:.3f} s/take, solving "
+                  f"{r['solve_s']:.2f} s ({r['per_take_s']:.3f} s/take at 2 workers), start {r['start_s']:.2f} s, "
+                  f"close {r['close_s']:.2f} s, load {r['load_start']:.1f}-{r['load_end']:.1f}")
+    return out
+
+
+def scale(ns: list[int], profile: str, work: Path, demo: Path, warm: Path, start_reps: int = 3) -> dict:
+    """Issue 39.3's acceptance: per take, ``livecap batch`` at 2 workers (a fresh process, as the command is)
+    against the warm in-process loop on the same takes, run just before and just after it (the machine is
+    shared: the mean of the two is the baseline), at 12, 24, 48 takes; the fixed costs beside."""
+    out: dict = {"start": [], "runs": []}
+    for rep in range(start_reps):  # start-up A/B, alternating, each in a fresh process
+        for method in ("spawn", "forkserver"):
+            r = _in_child("start_once", method, profile, str(warm))
+            r.update(rep=rep, load=_load())
+            out["start"].append(r)
+    for n in ns:
+        takes = []
+        for i in range(n):
+            takes.append(work / f"scale{n}" / f"take{i:03d}.c3d")
+            takes[-1].parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(demo, takes[-1])
+        load0 = _load()
+        before = _loop_in_process(profile, work / f"loop{n}", warm, takes)
+        e2e = _in_child("end_to_end_main", "2", profile, str(work / f"batch{n}"), *map(str, takes))
+        after = _loop_in_process(profile, work / f"loop{n}", warm, takes)
+        two = _parallel_loops(2, profile, work / f"loop2-{n}", warm, takes)
+        base = {"takes": n, "per_take_s": (before["wall"] + after["wall"]) / (2 * n),
+                "cpu_per_take_s": (before["cpu"] + after["cpu"]) / (2 * n),
+                "per_take_before_after_s": [before["wall"] / n, after["wall"] / n],
+                "cpu_per_take_before_after_s": [before["cpu"] / n, after["cpu"] / n],
+                "job_cpu_per_take_s": (before["job_cpu"] + after["job_cpu"]) / (2 * n),
+                "two_loops_per_take_s": two["wall"] * 2 / n, "two_loops_cpu_per_take_s": two["cpu"] / n,
+                "load_start": load0, "load_end": _load()}
+        e2e["overhead"] = e2e["per_take_s"] / base["per_take_s"] - 1.0
+        e2e["cpu_overhead"] = e2e["cpu_per_take_s"] / base["cpu_per_take_s"] - 1.0
+        e2e["overhead_vs_two_loops"] = e2e["per_take_s"] / base["two_loops_per_take_s"] - 1.0
+        e2e["cpu_overhead_vs_two_loops"] = e2e["cpu_per_take_s"] / base["two_loops_cpu_per_take_s"] - 1.0
+        out["runs"].append({"loop": base, "batch": e2e})
+        shutil.rmtree(takes[0].parent, ignore_errors=True)
+    return out
+
+
+def _print_scale(res: dict) -> None:
+    print("start-up, 2 workers, each a fresh process (s): import / cluster up (spawn: kernels warmed on the client "
+          "first; forkserver: loaded there) / every worker's first 1 s take / close")
+    for r in res["start"]:
+        print(f"  {r['method']:>10} rep {r['rep']}: import {r['import_s']:.2f}  start {r['start_s']:.2f}  first take "
+              f"{r['first_take_s']:.2f} (CPU {r['first_take_cpu_s']:.2f})  close {r['close_s']:.2f}  total "
+              f"{r['total_s']:.2f}  load {r['load']:.1f}")
+    print(f"{'takes':>5} {'loop s/take':>11} {'batch s/take':>12} {'overhead':>9} {'loop CPU':>8} {'job CPU':>8} "
+          f"{'worker CPU':>10} {'CPU overhead':>12} {'start s':>8} {'summary s':>9} {'close s':>8} {'total s':>8} "
+          f"{'busy max/mean':>13} {'load':>9}")
+    for run in res["runs"]:
+        b, e = run["loop"], run["batch"]
+        print(f"{b['takes']:>5} {b['per_take_s']:>11.3f} {e['per_take_s']:>12.3f} {e['overhead']:>+9.1%} "
+              f"{b['cpu_per_take_s']:>8.3f} {b['job_cpu_per_take_s']:>8.3f} {e['cpu_per_take_s']:>10.3f} "
+              f"{e['cpu_overhead']:>+12.1%} {e['start_s']:>8.2f} {e['summary_s']:>9.2f} {e['close_s']:>8.2f} "
+              f"{e['total_s']:>8.1f} {e['busy_max_over_mean']:>13.2f} {b['load_start']:>4.1f}-{b['load_end']:<4.1f}")
+    print("against two warm loops in parallel processes (the batch's parallelism, same takes):")
+    for run in res["runs"]:
+        b, e = run["loop"], run["batch"]
+        print(f"{b['takes']:>5} takes: two loops {b['two_loops_per_take_s']:.3f} s/take "
+              f"(CPU {b['two_loops_cpu_per_take_s']:.3f}), batch {e['per_take_s']:.3f} "
+              f"(CPU {e['cpu_per_take_s']:.3f}): overhead wall {e['overhead_vs_two_loops']:+.1%}, "
+              f"CPU {e['cpu_overhead_vs_two_loops']:+.1%} (goal <= 10%)")
 
 
 def _real_takes(work: Path, n: int) -> tuple[Path, list[Path]]:
@@ -226,11 +471,16 @@ def _real_takes(work: Path, n: int) -> tuple[Path, list[Path]]:
     raise FileNotFoundError(f"only {len(takes)} real-performance takes of 20 s could be made")
 
 
-def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",),
-        settings: tuple[str, ...] = ("livecap",), takes: str = "demo") -> dict:
+def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",), settings: tuple[str, ...] = ("livecap",),
+        takes: str = "demo", scale: tuple[str, ...] = ("",), methods: tuple[str, ...] = ("",),
+        order: tuple[str, ...] = ("",)) -> dict:
     """``placement``: "cluster" (livecap's LocalCluster) and/or "sessions" (dask scheduler and workers as
     separate processes, each in its own session); ``settings`` of the LocalCluster: "livecap" (what
-    ``livecap batch`` starts) and/or "dask" (Dask's defaults, the profiler off: the code before them)."""
+    ``livecap batch`` starts) and/or "dask" (Dask's defaults, the profiler off: the code before them).
+    ``scale`` (e.g. 12,24,48): instead, the start-up A/B and ``livecap batch`` end to end at 2 workers on that
+    many demo takes, each against the warm loop on the same takes. ``methods`` (e.g. 16): instead, spawned
+    against forked workers end to end on that many takes. ``order`` ("uneven"): instead, largest take first
+    against the listed order on a library of uneven takes."""
     from livecap.cli import main as livecap
     from transport.takefile import read_take, write_take
 
@@ -258,6 +508,18 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",),
                 sys.stdout = stdout
         warm = work / "warm.c3d"
         write_take(read_take(paths[0]).slice(0, 120), warm)
+        if order[0]:
+            print("uneven takes (16 x 20 s listed first, 1 x 200 s last), 2 workers, each a fresh process:")
+            return {"uneven": uneven(profile, work, paths[0], 1 if quick else 3)}
+        if methods[0]:
+            print("spawned (Dask's default) against forked (livecap's) workers, 2 workers, each a fresh process:")
+            return {"methods": globals()["methods"](2 if quick else int(methods[0]), profile, work, paths[0], 1
+                                                    if quick else 3)}
+        ns = [int(x) for x in scale if x]
+        if ns:
+            res = globals()["scale"](ns if not quick else [2], profile, work, paths[0], warm, 1 if quick else 3)
+            _print_scale(res)
+            return {"scale": res, "mode": MODE, "take_frames": read_take(paths[0]).n_frames}
         frames = read_take(paths[0]).n_frames
         duration = frames / 120.0
         takes = paths
@@ -313,4 +575,5 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",),
 
 
 if __name__ == "__main__":
-    sys.exit(suite_main(run, __doc__, placement="cluster", settings="livecap", takes="demo"))
+    sys.exit(suite_main(run, __doc__, placement="cluster", settings="livecap", takes="demo", scale="", methods="",
+                        order=""))

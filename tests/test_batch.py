@@ -19,8 +19,10 @@ import pytest
 from livecap.batch.jobs import Job
 from livecap.batch.plan import plan_jobs
 from livecap.batch.runner import dask_client, exit_code, run_batch
+from livecap.batch.spec import SolveSettings, SolveSpec
 from livecap.batch.worker import PLUGIN_NAME, SolverCache, solve_job
 from livecap.cli import main
+from livecap.cli.batch import settings_from_flags
 from transport.recorders import read_jsonl_recording
 from transport.takefile import read_take, write_take
 from transport.weights_csv import read_weights_csv
@@ -109,9 +111,9 @@ def test_resume_skips_finished_takes_and_force_redoes_them(library, client, tmp_
     for name in ("broken.c3d", "wrong_labels.c3d", "take0.c3d"):
         (takes / name).unlink()
 
-    def batch(force: bool = False) -> dict:
+    def batch(force: bool = False, settings: SolveSettings | None = None) -> dict:
         jobs = plan_jobs([str(takes / "*.c3d")], [], rig=RIG, out_dir=str(out), mode="qp", fmt="csv",
-                         profile=library["profile"])
+                         profile=library["profile"], settings=settings)
         rows, _ = run_batch(jobs, out, client, force=force)
         return {r["stem"]: r["status"] for r in rows}
 
@@ -119,6 +121,10 @@ def test_resume_skips_finished_takes_and_force_redoes_them(library, client, tmp_
     first = (out / "take1.csv").read_bytes()
     assert batch() == {"take1": "skipped", "take2": "skipped"}
     assert (out / "summary.csv").read_text().count(",skipped,") == 2  # skipped takes keep their figures
+    assert batch(settings=SolveSettings(ridge=0.5)) == {"take1": "ok", "take2": "ok"}  # other settings: solved again
+    assert (out / "take1.csv").read_bytes() != first
+    assert batch(settings=SolveSettings(ridge=0.5)) == {"take1": "skipped", "take2": "skipped"}
+    assert batch() == {"take1": "ok", "take2": "ok"}
     later = time.time() + 5
     os.utime(takes / "take1.c3d", (later, later))  # an input newer than its output
     assert batch() == {"take1": "ok", "take2": "skipped"}
@@ -148,13 +154,14 @@ mode = "qp"
 options = {{ ridge = 0.01 }}
 """)
     out = tmp_path / "out"
-    jobs = plan_jobs([], [str(manifest)], rig=None, out_dir=str(out), mode="robust", fmt="csv")
+    jobs = plan_jobs([], [str(manifest)], rig=None, out_dir=str(out), mode="robust", fmt="csv",
+                     parse_flags=settings_from_flags)
     rows, _ = run_batch(jobs, out, client)
     assert [(r["actor"], r["mode"], r["status"]) for r in rows] == [("anna", "robust", "ok"), ("ben", "qp", "ok")]
-    ben = _solve(takes / "take1.c3d", tmp_path / "ben.csv", "--profile", jobs[1].profile, "--mode", "qp",
+    ben = _solve(takes / "take1.c3d", tmp_path / "ben.csv", "--profile", jobs[1].spec.profile, "--mode", "qp",
                  "--ridge", "0.01")
     assert (out / "take1.csv").read_bytes() == ben
-    other = _solve(takes / "take1.c3d", tmp_path / "ben_robust.csv", "--profile", jobs[1].profile)
+    other = _solve(takes / "take1.c3d", tmp_path / "ben_robust.csv", "--profile", jobs[1].spec.profile)
     assert other != ben  # the manifest's mode and options did reach the solve
 
 
@@ -163,9 +170,9 @@ def test_manifest_errors_name_the_file(tmp_path):
     bad.write_text("take,actress\nx.c3d,anna\n")
     with pytest.raises(ValueError, match=r"m\.csv row 1: unknown column\(s\) \['actress'\]"):
         plan_jobs([], [str(bad)], rig=RIG, out_dir=str(tmp_path), mode="qp", fmt="csv")
-    with pytest.raises(ValueError, match="solve options"):
-        plan_jobs([str(tmp_path / "x.c3d")], [], rig=RIG, out_dir=str(tmp_path), mode="qp", fmt="csv",
-                  options=("--no-such-flag",))
+    bad.write_text("take,options\nx.c3d,--no-such-flag\n")
+    with pytest.raises(ValueError, match=r"x\.c3d: solve options: unrecognized arguments: --no-such-flag"):
+        plan_jobs([], [str(bad)], rig=RIG, out_dir=str(tmp_path), mode="qp", fmt="csv", parse_flags=settings_from_flags)
 
 
 def test_glb_and_jsonl_outputs_and_a_reused_solver(library, tmp_path):
@@ -174,7 +181,8 @@ def test_glb_and_jsonl_outputs_and_a_reused_solver(library, tmp_path):
     take = library["takes"] / "take2.c3d"
     cache = SolverCache()
     for stem, fmt in (("take2", "glb"), ("take0", "csv"), ("take2", "jsonl"), ("take2", "csv")):
-        job = Job(str(library["takes"] / f"{stem}.c3d"), RIG, str(tmp_path), "robust", fmt, profile=library["profile"])
+        spec = SolveSpec(RIG, "robust", library["profile"])
+        job = Job(str(library["takes"] / f"{stem}.c3d"), spec, str(tmp_path), fmt)
         row = solve_job(job, cache)
         assert row["status"] == "ok", row["error"]
     assert cache.built == 1
@@ -233,9 +241,10 @@ def test_csv_manifest_paths_and_options(tmp_path):
     (row,) = read_manifest(tmp_path / "m.csv")
     assert row["take"] == str(tmp_path / "day1" / "*.c3d") and row["profile"] == str(tmp_path / "anna.npz")
     assert row["options"] == ("--ridge", "0.01", "--temporal", "2") and row["actor"] == "anna"
-    jobs = plan_jobs([], [str(tmp_path / "m.csv")], rig=RIG, out_dir=str(tmp_path / "out"), mode="robust", fmt="csv")
-    assert [Path(j.take).name for j in jobs] == ["a.c3d", "b.c3d"] and {j.mode for j in jobs} == {"qp"}
-    assert jobs[0].solve_argv()[-4:] == ["--ridge", "0.01", "--temporal", "2"]
+    jobs = plan_jobs([], [str(tmp_path / "m.csv")], rig=RIG, out_dir=str(tmp_path / "out"), mode="robust", fmt="csv",
+                     parse_flags=settings_from_flags)
+    assert [Path(j.take).name for j in jobs] == ["a.c3d", "b.c3d"] and {j.spec.mode for j in jobs} == {"qp"}
+    assert jobs[0].spec.settings == SolveSettings(ridge=0.01, temporal=2.0)
 
 
 def test_docs_dask_config_is_what_the_local_cluster_sets():
@@ -257,3 +266,57 @@ def test_docs_dask_config_is_what_the_local_cluster_sets():
         return out
 
     assert flat(yaml.safe_load(block.group(1))) == LOCAL_CLUSTER_CONFIG
+
+
+def test_noise_and_settings_reach_the_worker_as_livecap_solve_gives_them(library, tmp_path):
+    """A job's typed settings (``--noise-mm`` included, which replaces the profile's calibrated noise) give
+    ``livecap solve``'s bytes with the same flags, with and without a saved profile."""
+    take = library["takes"] / "take1.c3d"
+    flags = ["--noise-mm", "2.5", "--trend", "3"]
+    for prof in (library["profile"], None):
+        spec = SolveSpec(RIG, "robust", prof, settings=settings_from_flags(flags))
+        out = tmp_path / ("with" if prof else "without")
+        row = solve_job(Job(str(take), spec, str(out)), SolverCache())
+        assert row["status"] == "ok", row["error"]
+        solo = _solve(take, tmp_path / "solo.csv", "--mode", "robust", *flags, *(["--profile", prof] if prof else []))
+        assert (out / "take1.csv").read_bytes() == solo
+        plain = _solve(take, tmp_path / "plain.csv", "--mode", "robust", *(["--profile", prof] if prof else []))
+        assert plain != solo  # the flags change the solve
+
+
+def test_largest_takes_first_and_the_summary_grows_as_takes_finish(library, client, tmp_path):
+    """Uneven takes: the two long ones start before any short one though listed last (one per worker, the rest
+    queued by size), and summary.csv holds a row for every take finished so far while the batch runs."""
+    full = read_take(ROOT / "recordings" / "demo_take.c3d")
+    takes = tmp_path / "takes"
+    takes.mkdir()
+    for name, n in (("a0", 60), ("a1", 60), ("z0", 360), ("z1", 360)):
+        write_take(full.slice(100, 100 + n), takes / f"{name}.c3d")
+    out = tmp_path / "out"
+    jobs = plan_jobs([str(takes)], [], rig=RIG, out_dir=str(out), mode="robust", fmt="csv", profile=library["profile"])
+    assert [j.stem for j in jobs] == ["a0", "a1", "z0", "z1"]
+    lines = []
+    rows, _ = run_batch(jobs, out, client, on_done=lambda row: lines.append(
+        (out / "summary.csv").read_text().count("\n") - 1))
+    assert lines == [1, 2, 3, 4]
+    started = {r["stem"]: r["started"] for r in rows}
+    assert max(started["z0"], started["z1"]) < min(started["a0"], started["a1"]), started
+    assert {r["worker"] for r in rows if r["stem"].startswith("z")} == {r["worker"] for r in rows}  # both busy
+
+
+def test_kernels_are_compiled_once_and_loaded_by_every_worker(library, tmp_path):
+    """``livecap batch`` on a cold numba cache (its own NUMBA_CACHE_DIR): the mode's kernels are compiled once,
+    into the cache, by the forkserver the workers are forked from; no worker compiles one (each row counts its
+    worker's compilations during the take)."""
+    cache = tmp_path / "numba"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+    out = tmp_path / "out"
+    takes = [str(library["takes"] / f"take{i}.c3d") for i in range(3)]
+    done = subprocess.run([sys.executable, "-m", "livecap", "batch", *takes, "--rig", RIG, "--profile",
+                           library["profile"], "--mode", "lsq", "--workers", "2", "--out", str(out)],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    rows = json.loads((out / "summary.json").read_text())["takes"]
+    assert [r["status"] for r in rows] == ["ok"] * 3
+    assert [r["kernels_compiled"] for r in rows] == [0, 0, 0]
+    assert list(cache.rglob("*.nbi")), "the kernels were not cached where the workers look"

@@ -52,9 +52,8 @@ def test_the_rule_catches_a_forbidden_import(tmp_path, monkeypatch):
     assert _violations("transport", lambda m: m.startswith(("transport", "livecap.core"))) != []
 
 
-# The arrows still to remove (issue 38): a batch manifest's options are ``livecap solve`` flags, parsed on the
-# client and the workers by the solve command's own parser. ``__main__`` is the command's entry point.
-CLI_IMPORTERS = {"livecap/__main__.py", "livecap/batch/worker.py"}
+# ``__main__`` is the command's entry point.
+CLI_IMPORTERS = {"livecap/__main__.py"}
 
 
 def _cli_or_argparse(m: str) -> bool:

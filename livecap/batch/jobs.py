@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import csv
 import glob
+import json
 import shlex
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+
+from livecap.batch.spec import SolveSpec
 
 TAKE_SUFFIXES = (".c3d", ".trc", ".csv")
 MANIFEST_COLUMNS = ("take", "actor", "profile", "calibrate_from", "mode", "options", "rig", "markers")
@@ -16,18 +19,14 @@ RECORDS = ".batch"  # per-take records (the summary row of each solved take) ins
 
 @dataclass(frozen=True)
 class Job:
-    """One take to solve; travels to a worker as paths only (the worker reads and writes the files)."""
+    """One take to solve and where its output goes; travels to a worker as paths and the typed spec (the
+    worker reads and writes the files)."""
 
     take: str
-    rig: str
+    spec: SolveSpec
     out_dir: str
-    mode: str
     fmt: str = "csv"
-    profile: str | None = None
-    markers: str | None = None
     actor: str = ""
-    neutral_seconds: float = 1.0
-    options: tuple[str, ...] = field(default=())
     error: str = ""  # set when the job failed before solving (e.g. its actor's neutral take did not calibrate)
 
     @property
@@ -42,33 +41,22 @@ class Job:
     def record(self) -> Path:
         return Path(self.out_dir) / RECORDS / f"{self.stem}.json"
 
-    def solve_argv(self) -> list[str]:
-        """The ``livecap solve`` arguments this job is equal to (``--out`` is the job's output)."""
-        argv = [self.take, "--rig", self.rig, "--out", str(self.output), "--mode", self.mode]
-        if self.markers:
-            argv += ["--markers", self.markers]
-        if self.profile:
-            argv += ["--profile", self.profile]
-        else:
-            argv += ["--neutral-seconds", repr(self.neutral_seconds)]
-        return argv + list(self.options)
-
     def inputs(self) -> list[Path]:
         """Files whose change makes the output stale."""
-        paths = [Path(self.take), Path(self.rig)]
-        if Path(self.rig).is_dir():
-            paths += [p for p in Path(self.rig).iterdir() if p.is_file()]
-        paths += [Path(p) for p in (self.profile, self.markers) if p]
-        if not self.markers and not Path(self.rig).is_dir():
-            paths.append(Path(self.rig).with_name(Path(self.rig).stem + ".markers.json"))
-        return paths
+        return [Path(self.take), *self.spec.inputs()]
 
     def up_to_date(self) -> bool:
-        """The output and its record exist and are newer than every input that exists."""
+        """The output and its record exist, are newer than every input that exists, and the record was solved
+        with this spec (other settings or mode: solved again)."""
         if not (self.output.is_file() and self.record.is_file()):
             return False
         made = min(self.output.stat().st_mtime_ns, self.record.stat().st_mtime_ns)
-        return all(made > p.stat().st_mtime_ns for p in self.inputs() if p.exists())
+        if not all(made > p.stat().st_mtime_ns for p in self.inputs() if p.exists()):
+            return False
+        try:
+            return json.loads(self.record.read_text()).get("spec") == repr(self.spec)
+        except (OSError, ValueError):
+            return False
 
 
 def expand_takes(items: list[str]) -> list[Path]:

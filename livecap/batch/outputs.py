@@ -41,7 +41,7 @@ def write_output(job: Job, solved: SolvedTake, residual: np.ndarray, rig=None) -
     elif job.fmt == "glb":
         from livecap.offline.glb import write_solved_glb
 
-        write_solved_glb(str(tmp), rig, solved, max(1, int(job.neutral_seconds * solved.rate)))
+        write_solved_glb(str(tmp), rig, solved, max(1, int(job.spec.neutral_seconds * solved.rate)))
     else:
         raise ValueError(f"--format {job.fmt}: choose from {', '.join(FORMATS)}")
     os.replace(tmp, job.output)

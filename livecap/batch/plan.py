@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import hashlib
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 from livecap.batch.jobs import RECORDS, Job, expand_takes, read_manifest
-from livecap.batch.worker import one_line, solve_parser
+from livecap.batch.spec import SolveSettings, SolveSpec
+from livecap.batch.worker import one_line
 
 log = logging.getLogger(__name__)
 
@@ -33,19 +35,28 @@ def calibrated_profile(neutral: str, rig: str, markers: str | None, out_dir: str
     return str(path)
 
 
+def _no_flags(flags: tuple[str, ...]) -> SolveSettings:
+    raise ValueError(f"solve options {' '.join(flags)!r}: flags need a parser (livecap batch gives its own); "
+                     "give typed settings instead")
+
+
 def plan_jobs(takes: list[str], manifests: list[str], *, rig: str | None, out_dir: str, mode: str, fmt: str,
               profile: str | None = None, calibrate_from: str | None = None, markers: str | None = None,
-              neutral_seconds: float = 1.0, options: tuple[str, ...] = ()) -> list[Job]:
+              neutral_seconds: float = 1.0, settings: SolveSettings | None = None,
+              parse_flags: Callable[[tuple[str, ...]], SolveSettings] = _no_flags) -> list[Job]:
     """Jobs for the takes given on the command line (command-line settings) and for every manifest row
     (its own actor, profile or neutral take, mode, options, rig; the command line's where it says nothing).
-    Raises ValueError for a bad manifest or solve option, or two takes that would write one output."""
+    A row's options are ``livecap solve`` flags, turned into settings by ``parse_flags`` (the command's
+    parser, given by livecap/cli/batch.py). Raises ValueError for a bad manifest or solve option, or two
+    takes that would write one output."""
     rows = [{"take": str(p)} for p in expand_takes(takes)]
     for m in manifests:
         rows += read_manifest(m)
     if not rows:
         raise ValueError("no takes: give take files, folders or globs, or --manifest")
     profiles: dict[tuple, tuple[str | None, str]] = {}
-    parser = solve_parser()
+    parsed: dict[tuple[str, ...], SolveSettings] = {}
+    settings = settings or SolveSettings()
     jobs: list[Job] = []
     for row in rows:
         row_rig = row.get("rig", rig)
@@ -65,18 +76,16 @@ def plan_jobs(takes: list[str], manifests: list[str], *, rig: str | None, out_di
                 except Exception as exc:  # this actor's takes fail; the others go on
                     profiles[key] = None, f"calibration from {neutral} failed: {one_line(exc)}"
             prof, error = profiles[key]
+        try:
+            flags = tuple(row.get("options", ()))
+            if flags and flags not in parsed:
+                parsed[flags] = parse_flags(flags)
+            spec = SolveSpec(row_rig, row.get("mode", mode), prof, row_markers, neutral_seconds,
+                             parsed[flags] if flags else settings)
+        except ValueError as exc:
+            raise ValueError(f"{row['take']}: {exc}") from None
         for take in expand_takes([row["take"]]):
-            job = Job(take=str(take), rig=row_rig, out_dir=out_dir, mode=row.get("mode", mode), fmt=fmt,
-                      profile=prof, markers=row_markers, actor=row.get("actor", ""), neutral_seconds=neutral_seconds,
-                      options=tuple(row.get("options", ())) or options, error=error)
-            if error:
-                jobs.append(job)
-                continue
-            try:
-                parser.parse_args(["solve", *job.solve_argv()])
-            except ValueError as exc:
-                raise ValueError(f"{take}: {exc}") from None
-            jobs.append(job)
+            jobs.append(Job(str(take), spec, out_dir, fmt, row.get("actor", ""), error))
     seen: dict[str, str] = {}
     for job in jobs:
         other = seen.setdefault(job.output.name, job.take)

@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
+import pickle
+import tempfile
 import time
-from collections.abc import Callable
+from collections import Counter
+from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
 from livecap.batch.jobs import Job
-from livecap.batch.summary import write_summary
+from livecap.batch.summary import LiveSummary, write_summary
 from livecap.batch.worker import SolverCache, load_record, solve_job
 
 log = logging.getLogger(__name__)
@@ -29,26 +33,87 @@ LOCAL_CLUSTER_CONFIG = {
 }
 
 
+# Worker processes forked from one forkserver that has imported distributed and livecap's worker side, set up
+# numba and loaded the batch's kernels once (livecap/batch/forkserver.py): Dask's default, spawn, starts a fresh
+# interpreter per worker that imports and loads them again (docs/batch.md "Start-up, fixed costs and scale").
+FORKSERVER_PRELOAD = ["distributed", "livecap.batch.forkserver"]
+WARM_ENV = "LIVECAP_BATCH_WARM"  # a pickle of the jobs whose kernels the forkserver loads
+# "spawn" is Dask's default (benchmarks.batch compares the two); Windows has no forkserver
+START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+WARM_FRAMES = 120  # frames of a take solved per spec to load (or, on a cold cache, compile) its kernels
+WARM_TRIES = 3  # takes of a spec tried before its kernels are left to the workers (its takes may all be bad)
+_forkserver: dict = {}  # the forkserver outlives a cluster: it is started, and loads kernels, once a process
+
+
 def default_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
+def _few_per_spec(jobs: Sequence[Job]) -> list[Job]:
+    """What warm_kernels may try: WARM_TRIES takes of each spec (the forkserver gets them pickled)."""
+    count: Counter = Counter()
+    return [j for j in jobs if not j.error and (count.update([j.spec]) or count[j.spec] <= WARM_TRIES)]
+
+
+def warm_kernels(jobs: Sequence[Job]) -> float:
+    """Solve the first frames of one take per spec in this process, which loads the numba kernels they need,
+    compiling them into the on-disk cache (numba's ``cache=True``, shared by every process of this user and
+    install) only if they are not there yet. Seconds taken."""
+    from livecap.batch.worker import SolverCache, solve_spec
+    from transport.takefile import read_take
+
+    start = time.perf_counter()
+    cache, done, tries = SolverCache(), set(), Counter()
+    for job in jobs:
+        if job.error or job.spec in done or tries[job.spec] >= WARM_TRIES:
+            continue
+        tries[job.spec] += 1
+        try:
+            take = read_take(job.take)
+            solve_spec(job.spec, take.slice(0, min(take.n_frames, WARM_FRAMES)), job.take, cache)
+            done.add(job.spec)
+        except Exception as exc:  # the take's own solve will report it; another take of the spec may warm
+            log.debug("warm-up on %s: %s", job.take, exc)
+    return time.perf_counter() - start
+
+
+def _start_cluster(workers: int | None, warm: Sequence[Job]):
+    import dask
+    from distributed import LocalCluster
+    from distributed.utils import get_mp_context
+
+    config = {**LOCAL_CLUSTER_CONFIG, "distributed.worker.multiprocessing-method": START_METHOD}
+    forked = START_METHOD == "forkserver"
+    if not forked or _forkserver:  # workers that start bare, or a forkserver that loaded other kernels
+        warm_kernels(warm)  # ... find them in the cache, compiled once
+    with tempfile.TemporaryDirectory(prefix="livecap-batch-") as tmp, dask.config.set(config):
+        if forked and not _forkserver:
+            get_mp_context().set_forkserver_preload(FORKSERVER_PRELOAD)  # Dask's own list is set by the first call
+            path = Path(tmp) / "warm.pickle"
+            path.write_bytes(pickle.dumps(_few_per_spec(warm)))
+            os.environ[WARM_ENV] = str(path)  # the forkserver, started by the first worker, inherits it
+        try:
+            return LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
+                                dashboard_address=None, silence_logs=logging.ERROR)
+        finally:
+            if os.environ.pop(WARM_ENV, None):
+                _forkserver["started"] = True
+
+
 @contextmanager
-def dask_client(workers: int | None = None, scheduler: str | None = None):
+def dask_client(workers: int | None = None, scheduler: str | None = None, warm: Sequence[Job] = ()):
     """A client of the user's scheduler, or of a LocalCluster of worker processes (one thread each)
-    that is closed on exit; the solver cache is registered as a worker plugin either way."""
-    from distributed import Client, LocalCluster
+    that is closed on exit; the solver cache is registered as a worker plugin either way. The kernels of
+    ``warm``'s specs are loaded once before any task runs: in the forkserver every local worker is forked
+    from, or here, on the client, so that a user's workers that share this cache find them compiled."""
+    from distributed import Client
 
     logging.getLogger("distributed").setLevel(logging.ERROR)  # its INFO lines would bury the progress bar
     if scheduler:
-        client = Client(scheduler, timeout="30s")
-        cluster = None
+        warm_kernels(warm)
+        client, cluster = Client(scheduler, timeout="30s"), None
     else:
-        import dask
-
-        with dask.config.set(LOCAL_CLUSTER_CONFIG):
-            cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=logging.ERROR)
+        cluster = _start_cluster(workers, warm)
         client = Client(cluster)
     try:
         client.register_plugin(SolverCache(), name=SolverCache.name)
@@ -59,40 +124,57 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
             cluster.close()
 
 
+def _size(job: Job) -> int:
+    try:
+        return os.stat(job.take).st_size
+    except OSError:
+        return 0
+
+
 def run_batch(jobs: list[Job], out_dir: str | Path, client, force: bool = False,
               on_done: Callable[[dict], None] | None = None) -> tuple[list[dict], dict]:
-    """Solve every job not already up to date on ``client``'s workers; rows in job order, and meta."""
+    """Solve every job not already up to date on ``client``'s workers, largest take first (Dask hands the
+    queued tasks out by priority as workers free up, so long takes do not end the batch on one worker);
+    each row goes to DIR/summary.csv as it comes in; rows in job order, and meta."""
     from distributed import as_completed
 
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     rows: dict[int, dict] = {}
     pending = []
-    for i, job in enumerate(jobs):
-        if not force and not job.error and job.up_to_date():
+    live = LiveSummary(out_dir)
+    try:
+        for i, job in enumerate(jobs):
+            if not force and not job.error and job.up_to_date():
+                try:
+                    rows[i] = load_record(job)
+                    live.add(rows[i])
+                    if on_done:
+                        on_done(rows[i])
+                    continue
+                except (OSError, ValueError):
+                    pass  # an unreadable record: solve again
+            pending.append(i)
+        start, run_id = time.perf_counter(), time.time_ns()
+        sizes = {i: _size(jobs[i]) for i in pending}
+        futures = {}
+        for rank, i in enumerate(sorted(pending, key=lambda i: -sizes[i])):
+            futures[client.submit(solve_job, jobs[i], pure=False, priority=len(pending) - rank,
+                                  key=f"livecap-batch-{run_id}-{i}-{jobs[i].stem}")] = i
+        for fut in as_completed(list(futures)):
+            i = futures[fut]
             try:
-                rows[i] = load_record(job)
-                if on_done:
-                    on_done(rows[i])
-                continue
-            except (OSError, ValueError):
-                pass  # an unreadable record: solve again
-        pending.append(i)
-    start = time.perf_counter()
-    run_id = time.time_ns()
-    futures = {client.submit(solve_job, jobs[i], pure=False, key=f"livecap-batch-{run_id}-{i}-{jobs[i].stem}"): i
-               for i in pending}
-    for fut in as_completed(list(futures)):
-        i = futures[fut]
-        try:
-            row = fut.result()
-        except Exception as exc:  # the worker died or the task could not run: the take failed
-            from livecap.batch.worker import one_line
+                row = fut.result()
+            except Exception as exc:  # the worker died or the task could not run: the take failed
+                from livecap.batch.worker import one_line
 
-            row = {"take": jobs[i].take, "stem": jobs[i].stem, "actor": jobs[i].actor, "mode": jobs[i].mode,
-                   "status": "failed", "error": f"worker: {one_line(exc)}", "output": str(jobs[i].output)}
-        rows[i] = row
-        if on_done:
-            on_done(row)
+                row = {"take": jobs[i].take, "stem": jobs[i].stem, "actor": jobs[i].actor, "mode": jobs[i].spec.mode,
+                       "status": "failed", "error": f"worker: {one_line(exc)}", "output": str(jobs[i].output)}
+            rows[i] = row
+            live.add(row)
+            if on_done:
+                on_done(row)
+    finally:
+        live.close()
     wall = time.perf_counter() - start
     ordered = [rows[i] for i in range(len(jobs))]
     meta = {"n_takes": len(jobs), "solved": len(pending), "skipped": len(jobs) - len(pending),

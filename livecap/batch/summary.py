@@ -25,6 +25,24 @@ def _cell(row: dict, key: str):
     return v
 
 
+class LiveSummary:
+    """``summary.csv`` written as takes finish, one flushed row each (a killed batch leaves the rows of what
+    it solved); ``write_summary`` rewrites it in the jobs' order at the end."""
+
+    def __init__(self, out_dir: str | Path) -> None:
+        self._fh = open(Path(out_dir) / "summary.csv", "w", newline="")
+        self._csv = csv.writer(self._fh)
+        self._csv.writerow(COLUMNS)
+        self._fh.flush()
+
+    def add(self, row: dict) -> None:
+        self._csv.writerow([_cell(row, k) for k in COLUMNS])
+        self._fh.flush()
+
+    def close(self) -> None:
+        self._fh.close()
+
+
 def write_summary(rows: list[dict], out_dir: str | Path, meta: dict) -> list[Path]:
     out = Path(out_dir)
     clean = [{k: v for k, v in r.items()} for r in rows]

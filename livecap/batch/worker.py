@@ -3,7 +3,6 @@ plugin), and the solve of one take, written by the worker to the output folder."
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import os
@@ -15,7 +14,9 @@ from distributed.diagnostics.plugin import WorkerPlugin
 
 from livecap.batch.jobs import Job
 from livecap.batch.outputs import write_output
+from livecap.batch.spec import SolveSpec
 from livecap.batch.stats import take_stats
+from livecap.core.take import Take
 from livecap.modes.registry import build_solver
 from livecap.offline.setup import check_labels, load_rig_layout, profile_from_take
 from livecap.offline.solve import solve_take
@@ -23,27 +24,6 @@ from transport.takefile import read_take
 
 PLUGIN_NAME = "livecap-batch-cache"
 MAX_ERROR_CHARS = 300
-
-
-class _Raising(argparse.ArgumentParser):
-    def error(self, message: str):
-        raise ValueError(f"solve options: {message}")
-
-
-def cli_parser(*commands: str) -> argparse.ArgumentParser:
-    """The ``livecap`` parser of these subcommands, raising ValueError instead of exiting: a batch job's
-    options mean what they mean to ``livecap solve`` (and ``livecap calibrate``)."""
-    import importlib
-
-    parser = _Raising(prog="livecap")
-    sub = parser.add_subparsers(dest="command")
-    for name in commands:
-        importlib.import_module(f"livecap.cli.{name}").register(sub)
-    return parser
-
-
-def solve_parser() -> argparse.ArgumentParser:
-    return cli_parser("solve")
 
 
 class SolverCache(WorkerPlugin):
@@ -72,33 +52,31 @@ class SolverCache(WorkerPlugin):
     def __setstate__(self, state: dict) -> None:
         self.__init__()
 
-    def args(self, job: Job) -> argparse.Namespace:
-        with self._lock:
-            if self.parser is None:
-                self.parser = solve_parser()
-            return self.parser.parse_args(["solve", *job.solve_argv()])
-
-    def rig(self, args: argparse.Namespace):
-        key = (args.rig, args.markers)
+    def rig(self, spec: SolveSpec):
+        key = (spec.rig, spec.markers)
         with self._lock:
             if key not in self.rigs:
-                self.rigs[key] = load_rig_layout(args.rig, args.markers)
+                self.rigs[key] = load_rig_layout(spec.rig, spec.markers)
             return self.rigs[key]
 
-    def profile(self, path: str):
+    def profile(self, path: str, noise_mm: float | None = None):
         from livecap.calibration.profile import Profile
+        from livecap.modes.robust import override_noise
 
-        key = (path, os.stat(path).st_mtime_ns)
+        key = (path, os.stat(path).st_mtime_ns, noise_mm)
         with self._lock:
             if key not in self.profiles:
-                self.profiles[key] = Profile.load(path)
+                profile = Profile.load(path)
+                if noise_mm is not None:
+                    override_noise(profile, noise_mm)
+                self.profiles[key] = profile
             return key, self.profiles[key]
 
-    def solver(self, job: Job, profile_key, profile, options: dict):
-        key = (profile_key, job.mode, job.options, threading.get_ident())
+    def solver(self, spec: SolveSpec, profile_key, profile, options: dict):
+        key = (profile_key, spec.mode, spec.settings, threading.get_ident())
         solver = self.solvers.get(key)
         if solver is None or not hasattr(solver, "reset"):
-            solver = build_solver(job.mode, profile, options)
+            solver = build_solver(spec.mode, profile, options)
             self.built += 1
             self.solvers[key] = solver
         else:
@@ -142,14 +120,40 @@ def _check_labels(path: str, take_labels, profile_labels) -> list[str]:
     return [f"labels absent from the take: {', '.join(lacking[:8])}"] if lacking else []
 
 
+def solve_spec(spec: SolveSpec, take: Take, take_path: str, cache: SolverCache):
+    """The take solved as ``livecap solve`` would with the spec's settings: (solved, profile, rig)."""
+    rig, layout = cache.rig(spec)
+    settings = spec.settings
+    options = settings.options()
+    if spec.profile:
+        profile_key, profile = cache.profile(spec.profile, settings.noise_mm)
+        solver = cache.solver(spec, profile_key, profile, options)
+    else:
+        check_labels(take, layout.labels, take_path, spec.rig)
+        profile = profile_from_take(rig, layout, take, spec.neutral_seconds, settings.noise_mm)
+        solver = build_solver(spec.mode, profile, options)
+    return solve_take(take, profile, solver), profile, rig
+
+
+def compiled_kernels() -> int:
+    """Numba kernels this process has compiled so far (cache misses; every kernel lives in solvers/): 0 in a
+    worker whose kernels all came from the on-disk cache the client warmed (runner.warm_kernels)."""
+    import sys
+
+    from numba.core.registry import CPUDispatcher
+
+    return sum(sum(obj.stats.cache_misses.values()) for name, mod in list(sys.modules.items())
+               if name.startswith("solvers") for obj in vars(mod).values() if isinstance(obj, CPUDispatcher))
+
+
 def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     """Solve one take exactly as ``livecap solve`` would and write its output and record; never raises:
     a failure comes back as a row with ``status`` "failed" and a one-line ``error``."""
     cache = cache or _cache()
-    start, cpu = time.perf_counter(), time.process_time()
-    row: dict = {"take": job.take, "stem": job.stem, "actor": job.actor, "mode": job.mode,
-                 "profile": job.profile or "", "output": str(job.output), "status": "failed", "error": "",
-                 "worker": os.getpid()}
+    start, cpu, compiled = time.perf_counter(), time.process_time(), compiled_kernels()
+    row: dict = {"take": job.take, "stem": job.stem, "actor": job.actor, "mode": job.spec.mode,
+                 "profile": job.spec.profile or "", "output": str(job.output), "status": "failed", "error": "",
+                 "worker": os.getpid(), "started": time.time(), "spec": repr(job.spec)}
     if job.error:
         row["error"] = job.error
         row["seconds"] = 0.0
@@ -157,21 +161,9 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     handler = _Warnings()
     logging.getLogger().addHandler(handler)
     try:
-        from livecap.cli.solve import solve_options
-
-        args = cache.args(job)
-        rig, layout = cache.rig(args)
         take = read_take(job.take)
-        notes = _check_labels(job.take, take.labels, layout.labels)
-        options = solve_options(args)
-        if args.profile:
-            profile_key, profile = cache.profile(args.profile)
-            solver = cache.solver(job, profile_key, profile, options)
-        else:
-            check_labels(take, layout.labels, args.take, args.rig)
-            profile = profile_from_take(rig, layout, take, args.neutral_seconds)
-            solver = build_solver(args.mode, profile, options)
-        solved = solve_take(take, profile, solver)
+        notes = _check_labels(job.take, take.labels, cache.rig(job.spec)[1].labels)
+        solved, profile, rig = solve_spec(job.spec, take, job.take, cache)
         stats = take_stats(take, solved, profile)
         write_output(job, solved, stats.pop("frame_residual_mm"), rig)
         row["warnings"] = notes + stats.pop("flags") + handler.lines
@@ -183,6 +175,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
         logging.getLogger().removeHandler(handler)
     row["seconds"] = time.perf_counter() - start
     row["cpu_seconds"] = time.process_time() - cpu  # the worker process's CPU: load on a shared machine aside
+    row["kernels_compiled"] = compiled_kernels() - compiled
     if row["status"] == "ok":
         job.record.parent.mkdir(parents=True, exist_ok=True)
         tmp = job.record.with_name(job.record.name + ".partial")

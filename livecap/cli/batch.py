@@ -5,8 +5,17 @@ from __future__ import annotations
 import argparse
 import shlex
 import time
+from collections.abc import Sequence
+from dataclasses import fields
 
+from livecap.batch.spec import SolveSettings, marker_weights
 from livecap.modes.registry import DEFAULT_MODE, MODE_HELP, MODES_AND_AUTO
+
+# ``livecap solve`` flags that are a job's own (batch flags or manifest columns), not solver settings
+JOB_FLAGS = {"--rig": "--rig / rig", "--markers": "--markers / markers", "--profile": "--profile / profile",
+             "--mode": "--mode / mode", "--neutral-seconds": "--neutral-seconds", "--out": "--out",
+             "--unlabelled": "no batch form: label the takes first with 'livecap label'",
+             "--help": "livecap solve --help", "-h": "livecap solve --help"}
 
 
 def register(sub) -> None:
@@ -35,6 +44,33 @@ def register(sub) -> None:
     p.add_argument("--scheduler", metavar="ADDR", help="connect to this Dask scheduler (tcp://HOST:8786) instead")
     p.add_argument("--force", action="store_true", help="solve every take again, even those up to date")
     p.set_defaults(func=run)
+
+
+class _Raising(argparse.ArgumentParser):
+    def error(self, message: str):
+        raise ValueError(f"solve options: {message}")
+
+
+def _solve_parser() -> argparse.ArgumentParser:
+    from livecap.cli import solve
+
+    sub = _Raising(prog="livecap").add_subparsers(parser_class=_Raising)
+    solve.register(sub)
+    parser = sub.choices["solve"]
+    parser.allow_abbrev = False  # a job's flag is spelt in full: no '--neutral' standing for another flag
+    return parser
+
+
+def settings_from_flags(flags: Sequence[str]) -> SolveSettings:
+    """``livecap solve`` flags as the typed settings a batch job carries, parsed by the solve command's own
+    parser on the client (workers never see flags); ValueError "solve options: ..." naming the flag."""
+    for token in flags:
+        name = token.partition("=")[0]
+        if name in JOB_FLAGS:
+            raise ValueError(f"solve options: {name} is not a solver setting (use {JOB_FLAGS[name]})")
+    args = _solve_parser().parse_args(["take", "--rig", "rig", "--out", "out", *flags])
+    given = {f.name: getattr(args, f.name) for f in fields(SolveSettings) if f.name != "marker_weights"}
+    return SolveSettings(**given, marker_weights=marker_weights(args.marker_weight))
 
 
 def _progress(total: int):
@@ -81,9 +117,11 @@ def run(args: argparse.Namespace) -> int:
 
     jobs = plan_jobs(args.takes, args.manifest, rig=args.rig, out_dir=args.out, mode=args.mode, fmt=args.format,
                      profile=args.profile, calibrate_from=args.calibrate_from, markers=args.markers,
-                     neutral_seconds=args.neutral_seconds, options=tuple(shlex.split(args.solve_options)))
+                     neutral_seconds=args.neutral_seconds,
+                     settings=settings_from_flags(shlex.split(args.solve_options)), parse_flags=settings_from_flags)
     prog, done = _progress(len(jobs))
-    with dask_client(args.workers, args.scheduler) as client, prog:
+    todo = jobs if args.force else [j for j in jobs if not j.up_to_date()]
+    with dask_client(args.workers, args.scheduler, warm=todo) as client, prog:
         rows, meta = run_batch(jobs, args.out, client, force=args.force, on_done=done)
     prog.console.print(_table(rows, meta))
     for r in rows:

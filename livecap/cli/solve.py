@@ -40,7 +40,7 @@ def register(sub) -> None:
 
 
 def solve_options(args: argparse.Namespace) -> dict:
-    """The solver options ``livecap solve``'s flags give (``livecap batch`` builds its solvers from them too)."""
+    """The solver options ``livecap solve``'s flags give (a batch job's SolveSettings.options() equals it)."""
     return {**solver_options(args), "temporal": args.temporal, "keys": args.keys, "basis": args.basis,
             **movement_options(args)}
 
