@@ -81,3 +81,28 @@ def bank_take(z, seen, r, q, p11_start, ll, cum, xs, ps, xp, pp):
         for i in range(n):
             if seen[t, i]:
                 started[i] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def rts(xs, ps, xp, pp, out):
+    """Rauch-Tung-Striebel backward pass into ``out`` (T, 3n) over filtered (``xs`` (T, 2, 3n), ``ps`` (T, 3, n))
+    and predicted (``xp``, ``pp``) states, a marker's covariances shared by its three coordinates: the arithmetic
+    of ``solvers.marker_kalman._rts`` (its numpy reference) element by element, without its ~20 array calls a
+    frame and the covariances repeated per coordinate (docs/performance.md, "`kalman` against `robust`")."""
+    T, _, C = xs.shape
+    x, v = xs[T - 1, 0].copy(), xs[T - 1, 1].copy()
+    out[T - 1] = x
+    for t in range(T - 2, -1, -1):
+        for c in range(C):
+            i = c // 3
+            f00, f01, f11 = ps[t, 0, i], ps[t, 1, i], ps[t, 2, i]
+            a00, a01, a11 = pp[t + 1, 0, i], pp[t + 1, 1, i], pp[t + 1, 2, i]
+            det = a00 * a11 - a01 * a01
+            i00, i01, i11 = a11 / det, -a01 / det, a00 / det
+            b00, b01, b10, b11 = f00 + f01, f01, f01 + f11, f11
+            j00, j01 = b00 * i00 + b01 * i01, b00 * i01 + b01 * i11
+            j10, j11 = b10 * i00 + b11 * i01, b10 * i01 + b11 * i11
+            dx, dv = x[c] - xp[t + 1, 0, c], v[c] - xp[t + 1, 1, c]
+            x[c] = xs[t, 0, c] + j00 * dx + j01 * dv
+            v[c] = xs[t, 1, c] + j10 * dx + j11 * dv
+            out[t, c] = x[c]
