@@ -6,6 +6,8 @@
   off (not a mode: the floor the rest of its step sets);
 * 72x1000: the synthetic rig of ``benchmarks.synthetic`` (every marker seen, a ridge), kalman and robust;
 * offline: ``solve_take`` of the first 30 s of each performance (with the prior), x real time (wall);
+* marker-space primitives at 72x1000 (:func:`marker_space`): why a factorisation that survives visibility changes
+  belongs in the 216-dim marker space;
 * numba cold / warm: a fresh process compiling kalman's and robust's kernels into an empty ``NUMBA_CACHE_DIR``,
   then a second process loading them (seconds to build both solvers, step 5 frames and solve 120 offline).
 
@@ -34,26 +36,29 @@ if str(ROOT) not in sys.path:  # run as a file: this tree's packages, whatever t
 from benchmarks.kalman_step import REAL, WARMUP, _build, _stats, real_case, synthetic_case  # noqa: E402
 
 
-def _stream(solver, targets, valid) -> tuple[np.ndarray, np.ndarray]:
+def _stream(solver, targets, valid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weights, thread CPU and wall (µs) of every ``step``."""
     W = []
-    cpu = np.empty(len(targets))
-    thread = time.thread_time_ns
+    cpu, wall = np.empty(len(targets)), np.empty(len(targets))
+    thread, clock = time.thread_time_ns, time.perf_counter_ns
     for i in range(len(targets)):
-        c0 = thread()
+        c0, t0 = thread(), clock()
         W.append(solver.step(targets[i], valid[i]))
-        cpu[i] = (thread() - c0) / 1e3
-    return np.array(W), cpu
+        t1, c1 = clock(), thread()
+        cpu[i], wall[i] = (c1 - c0) / 1e3, (t1 - t0) / 1e3
+    return np.array(W), cpu, wall
 
 
 def streamed(profile, targets, valid, options, floor: bool = True) -> tuple[dict, np.ndarray]:
-    """robust, kalman (and kalman without its strength trial) over the same frames; kalman's weights."""
+    """robust, kalman (and kalman without its strength trial) over the same frames, thread CPU (µs; wall beside)
+    and the ratios to robust; kalman's weights."""
     out, weights = {}, None
     for label in ("robust", "kalman", "kalman, no strength trial") if floor else ("robust", "kalman"):
         solver = _build(profile, options, label.split(",")[0])
         if label.endswith("trial"):
             solver.selector.observe = lambda *a, **k: None
-        W, cpu = _stream(solver, targets, valid)
-        out[label] = _stats(cpu[WARMUP:])
+        W, cpu, wall = _stream(solver, targets, valid)
+        out[label] = {**_stats(cpu[WARMUP:]), "wall": _stats(wall[WARMUP:])}
         if label == "kalman":
             weights = W
     for label in list(out):
@@ -121,10 +126,51 @@ def numba_cold_warm() -> dict:
     return {"cold": runs[0], "warm": runs[1], "cached_kernels": files}
 
 
+def marker_space(free: int = 530, rows: int = 216, m: int = 1006, reps: int = 20) -> dict:
+    """Median µs of the dense primitives a 72x1000 frame could be built from, at kalman's measured ~530 free
+    weights: the free block's Cholesky in weight space (what a new pattern or free set costs the box QP today),
+    a fresh marker-space factor (J_F J_F' + a I, 216 x 216: Woodbury), one solve with a kept marker-space factor
+    (two triangular solves and J_F products), and the gradient of every weight (J' J x)."""
+    import scipy.linalg as sl
+
+    rng = np.random.default_rng(0)
+    J = rng.normal(0, 1, (rows, m))
+    JF = np.ascontiguousarray(J[:, :free])
+    HF = JF.T @ JF + 0.1 * np.eye(free)
+    S = JF @ JF.T + 0.1 * np.eye(rows)
+    Ls = np.linalg.cholesky(S)
+    r, x = rng.normal(0, 1, free), rng.normal(0, 1, m)
+
+    def weight_chol():
+        np.linalg.cholesky(HF)
+
+    def marker_factor():
+        np.linalg.cholesky(JF @ JF.T + 0.1 * np.eye(rows))
+
+    def marker_solve():
+        u = sl.solve_triangular(Ls, JF @ r, lower=True, check_finite=False)
+        return (r - JF.T @ sl.solve_triangular(Ls.T, u, lower=False, check_finite=False)) / 0.1
+
+    def gradient():
+        return J.T @ (J @ x)
+
+    out = {}
+    for name, fn in (("weight-space Cholesky of H_FF", weight_chol), ("marker-space factor, fresh", marker_factor),
+                     ("marker-space solve, kept factor", marker_solve), ("gradient J'Jx, all weights", gradient)):
+        t = []
+        for _ in range(reps):
+            c0 = time.perf_counter_ns()  # wall: BLAS may use both cores
+            fn()
+            t.append((time.perf_counter_ns() - c0) / 1e3)
+        out[name] = float(np.median(t))
+    return {"free": free, "rows": rows, "shapes": m, "median_us": out}
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="20 s of each real take, 60 frames at 72x1000")
-    p.add_argument("--skip", nargs="*", default=[], choices=["streamed", "72x1000", "offline", "numba"])
+    p.add_argument("--skip", nargs="*", default=[], choices=["streamed", "72x1000", "offline", "numba",
+                                                                   "marker-space"])
     p.add_argument("--weights", help="save kalman's streamed weights per case (.npz)")
     p.add_argument("--compare", help="weights saved by another tree: report the largest difference")
     p.add_argument("--json", help="write the result as JSON")
@@ -141,6 +187,8 @@ def main() -> int:
             *synthetic_case(72, 1000, 60 + WARMUP if a.quick else 400), floor=False)
     if "offline" not in a.skip:
         res["offline 30 s"] = {name: offline(name, 30.0) for name in REAL}
+    if "marker-space" not in a.skip:
+        res["marker-space primitives"] = marker_space()
     if "numba" not in a.skip:
         res["numba"] = numba_cold_warm()
     if a.weights:
