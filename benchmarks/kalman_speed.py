@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run as a file: this tree's packages, whatever the install layout
-    sys.path.insert(1, str(ROOT))
+if str(ROOT) not in sys.path:  # run as a file: PYTHONPATH's packages first (an A/B runs another tree), then ours
+    sys.path.append(str(ROOT))
 
 from benchmarks.kalman_step import REAL, WARMUP, _build, _stats, real_case, synthetic_case  # noqa: E402
 
