@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import ast
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,3 +60,39 @@ def test_a_fresh_process_loads_the_kernels_another_compiled(tmp_path):
     assert runs[0] == ["0", "3"], runs  # compiled into the empty cache
     assert runs[1] == ["3", "0"], runs  # loaded from it
     assert any(tmp_path.rglob("marker_kalman_kernels.step-*.nbi"))
+
+
+def test_a_cache_place_is_chosen_only_where_numba_has_none():
+    from solvers import numba_cache_dir
+
+    def only(*ok):
+        return lambda path: any(path.startswith(p) for p in ok)
+
+    assert numba_cache_dir({"NUMBA_CACHE_DIR": "/x"}, "/pkg", only()) is None
+    assert numba_cache_dir({}, "/pkg", only("/pkg")) is None
+    assert numba_cache_dir({"XDG_CACHE_HOME": "/c"}, "/pkg", only("/c/numba")) is None
+    assert numba_cache_dir({"HOME": "/h"}, "/pkg", only("/h/.cache/numba")) is None
+    assert numba_cache_dir({"HOME": "/h"}, "/pkg", only()).startswith(tempfile.gettempdir())
+
+
+def test_kernels_import_and_cache_where_neither_the_package_nor_home_is_writable(tmp_path):
+    """numba alone raises 'no locator available' on importing a cache=True kernel there; solvers points it at the
+    temp dir. Simulated as root can: the package's __pycache__ and the cache home are files, not folders."""
+    pkg = tmp_path / "site" / "solvers"
+    pkg.mkdir(parents=True)
+    for name in ("__init__.py", "qp_kernels.py"):
+        shutil.copy(ROOT / "solvers" / name, pkg / name)
+    (pkg / "__pycache__").write_text("not a folder")
+    blocked = tmp_path / "blocked"
+    blocked.write_text("not a folder")
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "PYTHONPATH")}
+    env.update(HOME=str(blocked), XDG_CACHE_HOME=str(blocked / "cache"), TMPDIR=str(temp),
+               PYTHONPATH=str(pkg.parent), PYTHONDONTWRITEBYTECODE="1")
+    code = ("import numpy as np\nfrom solvers.qp_kernels import smallest_eigenvalue as f\n"
+            "print(round(f(np.eye(2)), 6))\n")
+    r = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0 and r.stdout.split() == ["1.0"], r.stderr[-800:]
+    assert any(temp.rglob("qp_kernels.smallest_eigenvalue-*.nbi"))
