@@ -22,6 +22,8 @@ import os
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+import solvers  # noqa: E402, F401 -- before any kernel loads: a writable place for numba's cache (solvers/__init__.py)
+
 _API = ("ApiError", "MarkerFrame", "MarkerLayout", "Profile", "Rig", "Session", "Sink", "SolveResult", "Solver", "Take",
         "Weights", "calibrate", "load_layout", "load_profile", "load_rig", "load_take", "settings_names", "solve")
 __all__ = list(_API)

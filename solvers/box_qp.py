@@ -115,3 +115,15 @@ class BoxQP:
         if passes >= 0:
             self.iterations = passes
         return x if ok else None
+
+    def solve_frame(self, BtD: np.ndarray, s: np.ndarray, rows: np.ndarray, linear: np.ndarray,
+                    prior_f: np.ndarray, coef: float, prev: np.ndarray, restart: bool,
+                    f: np.ndarray) -> np.ndarray | None:
+        """:meth:`solve` for f = linear - BtD[:, rows] s[rows] - prior_f - coef prev (written into ``f``), after
+        :meth:`warm` (``prev``) when ``restart``: a streamed frame of solvers.qp.FrameQP in one compiled call."""
+        x = np.empty(self.m)
+        ok, passes, self._L = self._k.solve_frame(self.H, self._V, self._I, self._meta, self._L, BtD, s, rows, linear,
+                                                  prior_f, coef, prev, restart, f, x, self.tol, self.max_iter)
+        if passes >= 0:
+            self.iterations = passes
+        return x if ok else None

@@ -404,3 +404,26 @@ def _primal(H, V, I, meta, L, f, x, tol, max_iter, k, start):
         return True, it, L
     meta[0], meta[1] = k, valid
     return False, max_iter, L
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def solve_frame(H: np.ndarray, V: np.ndarray, I: np.ndarray, meta: np.ndarray, L: np.ndarray, BtD: np.ndarray,
+                s: np.ndarray, rows: np.ndarray, linear: np.ndarray, prior_f: np.ndarray, coef: float,
+                prev: np.ndarray, restart: bool, f: np.ndarray, x: np.ndarray, tol: float,
+                max_iter: int) -> tuple[bool, int, np.ndarray]:
+    """A streamed frame of ``solvers.qp.FrameQP`` in one call: its linear term f = linear - B'M^2 s (the seen
+    ``rows`` of s only) - prior_f - coef prev into ``f``, a warm start from ``prev`` when the pattern changed
+    (``restart``), then :func:`solve`. As numpy calls around the solve this was ~15 calls of per-call overhead a
+    frame (docs/performance.md, "`kalman` against `robust`")."""
+    m, R = BtD.shape
+    for j in range(m):
+        row = BtD[j]
+        acc = 0.0
+        for r in range(R):
+            if rows[r]:
+                acc += row[r] * s[r]
+        f[j] = ((linear[j] - acc) - prior_f[j]) - coef * prev[j]
+    if restart:
+        meta[0] = warm(H, V, I, prev)
+        meta[1] = 0
+    return solve(H, V, I, meta, L, f, x, tol, max_iter)

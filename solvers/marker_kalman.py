@@ -59,7 +59,7 @@ def smooth_take(targets: np.ndarray, valid: np.ndarray, settings: KalmanSettings
     the fixed-``q`` filters' innovations over ``settings.local_frames`` either side (a local model
     choice, as an IMM's mode probabilities; Bar-Shalom et al. 2001 §11.6.6); then one filter with
     that time-varying ``q`` and the RTS pass."""
-    from solvers.marker_smoother_kernels import bank_take  # here: importing this module must not import numba
+    from solvers.marker_smoother_kernels import bank_take, rts  # here: importing this module must not import numba
 
     s = settings or KalmanSettings()
     T, n, _ = targets.shape
@@ -82,14 +82,15 @@ def smooth_take(targets: np.ndarray, valid: np.ndarray, settings: KalmanSettings
     xs, xp = np.zeros((T, 2, 3 * n)), np.zeros((T, 2, 3 * n))
     ps, pp = np.zeros((T, 3, n)), np.zeros((T, 3, n))
     bank_take(z, seen, np.full((1, n), r0), np.ascontiguousarray(qt[:, None, :]), 1e2, none, none, xs, ps, xp, pp)
-    per_coordinate = [np.repeat(a, 3, axis=2) for a in (ps, pp)]
-    out = _rts(xs, per_coordinate[0], xp, per_coordinate[1])
+    out = np.empty((T, 3 * n))
+    rts(xs, ps, xp, pp, out)
     return out.reshape(T, n, 3), bridged(valid, s.max_gap_frames), {
         "noise_mm": float(np.sqrt(r0)), "q_per_marker": np.median(qt, axis=0)}
 
 
 def _rts(xs: np.ndarray, ps: np.ndarray, xp: np.ndarray, pp: np.ndarray) -> np.ndarray:
-    """Rauch-Tung-Striebel backward pass over filtered (xs, ps) and predicted (xp, pp) 2-states."""
+    """Rauch-Tung-Striebel backward pass over filtered (xs, ps) and predicted (xp, pp) 2-states (the numpy
+    reference of the compiled ``solvers.marker_smoother_kernels.rts``)."""
     T = len(xs)
     x, v = xs[-1, 0].copy(), xs[-1, 1].copy()
     out = np.empty((T, xs.shape[2]))
@@ -112,17 +113,12 @@ def _rts(xs: np.ndarray, ps: np.ndarray, xp: np.ndarray, pp: np.ndarray) -> np.n
 
 def bridged(valid: np.ndarray, max_gap: int) -> np.ndarray:
     """Valid, plus interior gaps of at most ``max_gap`` frames (the smoother bridges them)."""
-    v = np.asarray(valid, bool).copy()
+    v = np.asarray(valid, bool)
     T = len(v)
-    for j in range(v.shape[1]):
-        idx = np.flatnonzero(v[:, j])
-        if len(idx) < 2:
-            continue
-        gaps = np.diff(idx)
-        for a, g in zip(idx[:-1], gaps, strict=True):
-            if 1 < g <= max_gap + 1:
-                v[a + 1:a + g, j] = True
-    return v[:T]
+    frame = np.arange(T)[:, None]
+    last = np.maximum.accumulate(np.where(v, frame, -1), axis=0)  # the last frame seen at or before
+    following = np.minimum.accumulate(np.where(v, frame, T)[::-1], axis=0)[::-1]  # the next at or after
+    return v | ((last >= 0) & (following < T) & (following - last - 1 <= max_gap))
 
 
 R_SETTLE_FRAMES, R_EVERY = 60, 8  # streaming: the shared r re-chosen every frame at first, then every 8th

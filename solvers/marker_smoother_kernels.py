@@ -37,7 +37,41 @@ def bank_take(z, seen, r, q, p11_start, ll, cum, xs, ps, xp, pp):
             cum[t + 1] = cum[t]
         for k in range(K):
             last_s, last_log = np.nan, 0.0  # markers seen alike have equal covariances: one log for them
+            ca = cb = cd = cw = cr = np.nan  # the last predict-and-correct's inputs: equal ones reuse its numbers
+            P00 = P01 = P11 = s = k0 = k1 = n00 = n01 = n11 = 0.0
             for i in range(n):
+                if t and seen[t, i] and started[i]:  # the common case, its covariance arithmetic shared
+                    a, b, d, w, rr = p00[k, i], p01[k, i], p11[k, i], qt[k, i], r[k, i]
+                    if not (a == ca and b == cb and d == cd and w == cw and rr == cr):
+                        ca, cb, cd, cw, cr = a, b, d, w, rr
+                        P00, P01, P11 = a + 2 * b + d + w / 3, b + d + w / 2, d + w
+                        s = P00 + rr
+                        k0, k1 = P00 / s, P01 / s
+                        if s != last_s:
+                            last_s, last_log = s, math.log(s)
+                        n00, n01, n11 = P00 - k0 * P00, P01 - k0 * P01, P11 - k1 * P01
+                    frame = 0.0
+                    for c in range(3):
+                        xc = x[k, i, c] + v[k, i, c]
+                        if record:
+                            xp[t, 0, 3 * i + c], xp[t, 1, 3 * i + c] = xc, v[k, i, c]
+                        e = z[t, i, c] - xc
+                        x[k, i, c] = xc + k0 * e
+                        v[k, i, c] = v[k, i, c] + k1 * e
+                        like = -0.5 * (last_log + e * e / s)
+                        if want_ll:
+                            ll[k, i, c] += like
+                        frame += like
+                    if want_cum:
+                        cum[t + 1, k, i] = cum[t, k, i] + frame
+                    if record:
+                        pp[t, 0, i], pp[t, 1, i], pp[t, 2, i] = P00, P01, P11
+                    p00[k, i], p01[k, i], p11[k, i] = n00, n01, n11
+                    if record:
+                        for c in range(3):
+                            xs[t, 0, 3 * i + c], xs[t, 1, 3 * i + c] = x[k, i, c], v[k, i, c]
+                        ps[t, 0, i], ps[t, 1, i], ps[t, 2, i] = n00, n01, n11
+                    continue
                 if t:
                     for c in range(3):
                         x[k, i, c] = x[k, i, c] + v[k, i, c]
@@ -49,31 +83,10 @@ def bank_take(z, seen, r, q, p11_start, ll, cum, xs, ps, xp, pp):
                     for c in range(3):
                         xp[t, 0, 3 * i + c], xp[t, 1, 3 * i + c] = x[k, i, c], v[k, i, c]
                     pp[t, 0, i], pp[t, 1, i], pp[t, 2, i] = p00[k, i], p01[k, i], p11[k, i]
-                if seen[t, i] and not started[i]:
+                if seen[t, i]:  # a first sighting (a seen, started marker took the path above)
                     for c in range(3):
                         x[k, i, c], v[k, i, c] = z[t, i, c], 0.0
                     p00[k, i], p01[k, i], p11[k, i] = r[k, i], 0.0, p11_start
-                elif seen[t, i]:
-                    s = p00[k, i] + r[k, i]
-                    k0, k1 = p00[k, i] / s, p01[k, i] / s
-                    if s != last_s:
-                        last_s, last_log = s, math.log(s)
-                    log_s = last_log
-                    frame = 0.0
-                    for c in range(3):
-                        e = z[t, i, c] - x[k, i, c]
-                        x[k, i, c] = x[k, i, c] + k0 * e
-                        v[k, i, c] = v[k, i, c] + k1 * e
-                        like = -0.5 * (log_s + e * e / s)
-                        if want_ll:
-                            ll[k, i, c] += like
-                        frame += like
-                    if want_cum:
-                        cum[t + 1, k, i] = cum[t, k, i] + frame
-                    b = p01[k, i]
-                    p00[k, i] = p00[k, i] - k0 * p00[k, i]
-                    p01[k, i] = b - k0 * b
-                    p11[k, i] = p11[k, i] - k1 * b
                 if record:
                     for c in range(3):
                         xs[t, 0, 3 * i + c], xs[t, 1, 3 * i + c] = x[k, i, c], v[k, i, c]
@@ -81,3 +94,28 @@ def bank_take(z, seen, r, q, p11_start, ll, cum, xs, ps, xp, pp):
         for i in range(n):
             if seen[t, i]:
                 started[i] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def rts(xs, ps, xp, pp, out):
+    """Rauch-Tung-Striebel backward pass into ``out`` (T, 3n) over filtered (``xs`` (T, 2, 3n), ``ps`` (T, 3, n))
+    and predicted (``xp``, ``pp``) states, a marker's covariances shared by its three coordinates: the arithmetic
+    of ``solvers.marker_kalman._rts`` (its numpy reference) element by element, without its ~20 array calls a
+    frame and the covariances repeated per coordinate (docs/performance.md, "`kalman` against `robust`")."""
+    T, _, C = xs.shape
+    x, v = xs[T - 1, 0].copy(), xs[T - 1, 1].copy()
+    out[T - 1] = x
+    for t in range(T - 2, -1, -1):
+        for c in range(C):
+            i = c // 3
+            f00, f01, f11 = ps[t, 0, i], ps[t, 1, i], ps[t, 2, i]
+            a00, a01, a11 = pp[t + 1, 0, i], pp[t + 1, 1, i], pp[t + 1, 2, i]
+            det = a00 * a11 - a01 * a01
+            i00, i01, i11 = a11 / det, -a01 / det, a00 / det
+            b00, b01, b10, b11 = f00 + f01, f01, f01 + f11, f11
+            j00, j01 = b00 * i00 + b01 * i01, b00 * i01 + b01 * i11
+            j10, j11 = b10 * i00 + b11 * i01, b10 * i01 + b11 * i11
+            dx, dv = x[c] - xp[t + 1, 0, c], v[c] - xp[t + 1, 1, c]
+            x[c] = xs[t, 0, c] + j00 * dx + j01 * dv
+            v[c] = xs[t, 1, c] + j10 * dx + j11 * dv
+            out[t, c] = x[c]

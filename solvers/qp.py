@@ -161,6 +161,8 @@ class FrameQP:
         self.cache_size = int(cache_size)
         self._models: OrderedDict[bytes, _Workspace] = OrderedDict()
         self._all_seen = np.ones(self.n, bool).tobytes()
+        self._all_rows = np.ones(3 * self.n, bool)
+        self._prior_term = np.zeros(self.m) if self._prior_f is None else self._prior_f
         self.failures = 0
         self.iterations = 0  # active-set passes (DAQP: iterations) of the last solve
         self.reset()
@@ -242,9 +244,7 @@ class FrameQP:
         ws = self._frame_workspace(key, seen)
         if ws is None:
             return self._prev.copy()
-        if ws.rows is not None:
-            s = np.where(ws.rows, s, 0.0)
-        return self._advance(key, ws, self._BtD @ s).copy()  # s is 0 on the rows of missing markers
+        return self._advance(key, ws, None, np.ascontiguousarray(s)).copy()
 
     def step_take(self, targets: np.ndarray, valid: np.ndarray, block: int = 1024) -> np.ndarray:
         """``step`` over every frame of a take in order (T x m weights): the data term B'M^2 s of a block of
@@ -279,14 +279,10 @@ class FrameQP:
             return None
         return self._workspace(key, seen)
 
-    def _advance(self, key: bytes, ws: _Workspace, data: np.ndarray) -> np.ndarray:
-        """Solve the frame whose data term is ``data`` = B'M^2 s (not kept) and make it the previous frame."""
-        f = np.subtract(self.linear, data)
-        if self._prior_f is not None:
-            f -= self._prior_f
-        if self.temporal + ws.floor > 0:
-            f -= (self.temporal + ws.floor) * self._prev
-        x = self._solve(key, ws, f)
+    def _advance(self, key: bytes, ws: _Workspace, data: np.ndarray | None, s: np.ndarray | None = None) -> np.ndarray:
+        """Solve the frame whose data term is ``data`` = B'M^2 s (not kept), or with ``data`` None the frame of
+        coordinates ``s`` (its data term formed in the box QP's compiled call), and make it the previous frame."""
+        x, f = self._solve(key, ws, None if data is None else self._linear_term(ws, data), s)
         if x is None:
             self.failures += 1
             x = self._fallback(ws, f)
@@ -302,19 +298,38 @@ class FrameQP:
     # (measured before it kept the factor rows a change leaves; 256 lies untested between 169 and 367).
     _CHURN_DAQP, _CHURN_BOX, _FREE_DAQP = 3.0, 2.0, 256
 
-    def _solve(self, key: bytes, ws: _Workspace, f: np.ndarray) -> np.ndarray | None:
+    def _linear_term(self, ws: _Workspace, data: np.ndarray) -> np.ndarray:
+        f = np.subtract(self.linear, data)
+        if self._prior_f is not None:
+            f -= self._prior_f
+        if self.temporal + ws.floor > 0:
+            f -= (self.temporal + ws.floor) * self._prev
+        return f
+
+    def _solve(self, key: bytes, ws: _Workspace, f: np.ndarray | None,
+               s: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray]:
+        """The frame's solution (None on failure) and its linear term (``f``, or formed from ``s``)."""
         x = None
         if self._daqp_key is not None:
             use_daqp = self.churn > self._CHURN_BOX
         else:
             use_daqp = self.churn > self._CHURN_DAQP and len(ws.box.F) >= self._FREE_DAQP
         if not use_daqp:
-            if key != self._last_key:  # another pattern's solver: start it from where we are
-                ws.box.warm(self._prev)
-            x = ws.box.solve(f)
+            restart = key != self._last_key  # another pattern's solver: start it from where we are
+            if f is None:
+                f = np.empty(self.m)
+                x = ws.box.solve_frame(self._BtD, s, self._all_rows if ws.rows is None else ws.rows,
+                                       np.asarray(self.linear, dtype=np.float64), self._prior_term,
+                                       self.temporal + ws.floor, self._prev, restart, f)
+            else:
+                if restart:
+                    ws.box.warm(self._prev)
+                x = ws.box.solve(f)
             self.iterations = ws.box.iterations
             self._last_key, self._daqp_key = (None if x is None else key), None
         if x is None:
+            if f is None:
+                f = self._linear_term(ws, self._BtD @ (s if ws.rows is None else np.where(ws.rows, s, 0.0)))
             sense = None
             if key != self._daqp_key:  # DAQP constraint states: active (1), at the lower bound (2)
                 sense = np.where(self._prev <= self.lower, 3, np.where(self._prev >= self.upper, 1, 0)).astype(np.int32)
@@ -327,7 +342,7 @@ class FrameQP:
         self.churn += 0.1 * (self.iterations - self.churn)
         if x is not None:
             self._last_ws = ws
-        return x
+        return x, f
 
     def _fallback(self, ws: _Workspace, f: np.ndarray) -> np.ndarray:
         x = np.linalg.lstsq(ws.H, -f, rcond=None)[0]

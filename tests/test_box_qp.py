@@ -265,3 +265,30 @@ def test_a_weight_leaving_beside_a_nearly_collinear_one_keeps_the_factor_exact()
     want = np.full(m, lo[p])
     want[keep] = np.linalg.solve(H[np.ix_(keep, keep)], -(f[keep] + H[keep, p] * lo[p]))
     np.testing.assert_allclose(x, want, rtol=0, atol=1e-12)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 12), m=st.integers(1, 30),
+       kind=st.sampled_from(["unit", "random", "mixed"]), coef=st.sampled_from([0.0, 0.3]))
+def test_a_frame_in_one_call_equals_its_linear_term_then_solve(seed, n, m, kind, coef):
+    """solve_frame (the linear term formed in the compiled call, unseen rows skipped even when not finite, a warm
+    restart on request) gives the numpy linear term and the solution of warm + solve, frame after frame."""
+    rng = np.random.default_rng(seed)
+    B, H, lo, hi = _problem(rng, n, m, 0.1, kind)
+    BtD, prior_f, linear = B.T.copy(), rng.normal(0, 1, m), rng.normal(0, 0.1, m)
+    a, b = BoxQP(H, lo, hi), BoxQP(H, lo, hi)
+    prev = np.clip(np.zeros(m), lo, hi)
+    for t in range(6):
+        s = rng.normal(0, 3, 3 * n)
+        rows = np.repeat(rng.random(n) > 0.3, 3) if t % 2 else np.ones(3 * n, bool)
+        s[~rows] = np.inf  # what a missing marker holds must not matter
+        restart = t in (0, 3)
+        f_ref = linear - B.T @ np.where(rows, s, 0.0) - prior_f - coef * prev
+        if restart:
+            a.warm(prev)
+        x_ref = a.solve(f_ref)
+        f = np.empty(m)
+        x = b.solve_frame(BtD, s, rows, linear, prior_f, coef, prev, restart, f)
+        assert np.abs(f - f_ref).max() <= 1e-9 * max(1.0, np.abs(f_ref).max())
+        assert x is not None and x_ref is not None and np.abs(x - x_ref).max() <= 1e-9
+        prev = x

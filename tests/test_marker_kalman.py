@@ -256,3 +256,29 @@ def test_the_compiled_offline_smoother_equals_the_numpy_passes(T, n, missing, no
     np.testing.assert_array_equal(info["q_per_marker"], info0["q_per_marker"])
     np.testing.assert_array_equal(ok, ok0)
     np.testing.assert_allclose(x, x0, rtol=0, atol=1e-9 * max(1.0, float(np.nanmax(np.abs(x0)))))
+
+
+@settings(max_examples=40, deadline=None)
+@given(T=st.integers(1, 80), n=st.integers(1, 4), missing=st.floats(0.0, 0.9), max_gap=st.integers(0, 20),
+       seed=st.integers(0, 2**31 - 1))
+def test_bridging_and_the_compiled_rts_pass_equal_their_loops(T, n, missing, max_gap, seed):
+    """bridged (whole-array) against the gap loop it replaced; the compiled RTS pass against ``_rts``, bit for bit."""
+    from solvers.marker_kalman import _rts
+    from solvers.marker_smoother_kernels import rts
+
+    rng = np.random.default_rng(seed)
+    v = rng.random((T, n)) >= missing
+    ref = v.copy()
+    for j in range(n):
+        idx = np.flatnonzero(v[:, j])
+        for a, g in zip(idx[:-1], np.diff(idx), strict=True):
+            if 1 < g <= max_gap + 1:
+                ref[a + 1:a + g, j] = True
+    np.testing.assert_array_equal(bridged(v, max_gap), ref)
+    xs, xp = rng.normal(0, 3, (T, 2, 3 * n)), rng.normal(0, 3, (T, 2, 3 * n))
+    ps, pp = rng.uniform(0.1, 1, (T, 3, n)), rng.uniform(1.5, 3, (T, 3, n))
+    ps[:, 1] *= 0.3
+    pp[:, 1] *= 0.3
+    out = np.empty((T, 3 * n))
+    rts(xs, ps, xp, pp, out)
+    np.testing.assert_array_equal(out, _rts(xs, np.repeat(ps, 3, axis=2), xp, np.repeat(pp, 3, axis=2)))

@@ -1,0 +1,211 @@
+"""Issue 39's ``kalman`` figures, each beside ``robust`` measured in the same process and run.
+
+* streamed: every frame of the ICT rig driven by the real performances S07-001 and apfel (as
+  ``benchmarks.kalman_step``: 0.5 mm, 5 % occlusion, the prior from the other files), thread CPU per ``step``
+  p50 / p99 / mean after 50 frames, for robust, kalman, and kalman with its held-out strength trial switched
+  off (not a mode: the floor the rest of its step sets);
+* 72x1000: the synthetic rig of ``benchmarks.synthetic`` (every marker seen, a ridge), kalman and robust;
+* offline: ``solve_take`` of the first 30 s of each performance (with the prior), x real time (wall);
+* marker-space primitives at 72x1000 (:func:`marker_space`): why a factorisation that survives visibility changes
+  belongs in the 216-dim marker space;
+* numba cold / warm: a fresh process compiling kalman's and robust's kernels into an empty ``NUMBA_CACHE_DIR``,
+  then a second process loading them (seconds to build both solvers, step 5 frames and solve 120 offline).
+
+``--weights OUT`` saves kalman's streamed weights per case; ``--compare IN`` reports the largest difference from
+weights saved so by another tree (the baseline: ``PYTHONPATH=<old tree> python <old tree>/benchmarks/kalman_step.py
+--weights`` saves the same cases under the same labels).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a file: PYTHONPATH's packages first (an A/B runs another tree), then ours
+    sys.path.append(str(ROOT))
+
+from benchmarks.kalman_step import REAL, WARMUP, _build, _stats, real_case, synthetic_case  # noqa: E402
+
+
+def _stream(solver, targets, valid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weights, thread CPU and wall (µs) of every ``step``."""
+    W = []
+    cpu, wall = np.empty(len(targets)), np.empty(len(targets))
+    thread, clock = time.thread_time_ns, time.perf_counter_ns
+    for i in range(len(targets)):
+        c0, t0 = thread(), clock()
+        W.append(solver.step(targets[i], valid[i]))
+        t1, c1 = clock(), thread()
+        cpu[i], wall[i] = (c1 - c0) / 1e3, (t1 - t0) / 1e3
+    return np.array(W), cpu, wall
+
+
+def streamed(profile, targets, valid, options, floor: bool = True) -> tuple[dict, np.ndarray]:
+    """robust, kalman (and kalman without its strength trial) over the same frames, thread CPU (µs; wall beside)
+    and the ratios to robust; kalman's weights."""
+    out, weights = {}, None
+    for label in ("robust", "kalman", "kalman, no strength trial") if floor else ("robust", "kalman"):
+        solver = _build(profile, options, label.split(",")[0])
+        if label.endswith("trial"):
+            solver.selector.observe = lambda *a, **k: None
+        W, cpu, wall = _stream(solver, targets, valid)
+        out[label] = {**_stats(cpu[WARMUP:]), "wall": _stats(wall[WARMUP:])}
+        if label == "kalman":
+            weights = W
+    for label in list(out):
+        if label != "robust":
+            out[f"{label} / robust"] = {k: out[label][k] / out["robust"][k] for k in ("p50", "p99", "mean")}
+    return out, weights
+
+
+def offline(name: str, seconds: float) -> dict:
+    """Wall and process CPU seconds (the machine is shared: CPU is the steadier) and x real time of ``solve_take``
+    over the first ``seconds`` of performance ``name``."""
+    from benchmarks.realperf import ict_performance
+    from livecap.calibration.animation_prior import build_prior
+    from livecap.cli.realeval import _realdata
+    from livecap.demo.curves_take import CurveTakeSettings
+    from livecap.modes.registry import build_solver
+    from livecap.offline.solve import solve_take
+
+    rig, _, ct, profile, _ = ict_performance(name, CurveTakeSettings(seconds=seconds, noise_mm=0.5, occlusion=0.05))
+    others = [p for p in sorted((_realdata() / "performance").glob("*.csv")) if p.stem != name]
+    profile.prior = build_prior(others, rig.names, rig.lower, rig.upper)
+    take = ct.take
+    res = {}
+    for mode in ("robust", "kalman"):
+        solver = build_solver(mode, profile, {"rate": take.rate})
+        solve_take(take, profile, solver)  # once for the workspaces and the kernels' first dispatch
+        solver = build_solver(mode, profile, {"rate": take.rate})
+        t0, c0 = time.perf_counter(), time.process_time()
+        solve_take(take, profile, solver)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        res[mode] = {"seconds": wall, "x_real_time": take.n_frames / take.rate / wall, "cpu_seconds": cpu,
+                     "x_real_time_cpu": take.n_frames / take.rate / cpu}
+    res["frames"], res["rate"] = take.n_frames, take.rate
+    return res
+
+
+COLD = """
+import time
+t0 = time.perf_counter()
+from benchmarks.synthetic import synthetic_profile, synthetic_stream
+from livecap.modes.registry import build_solver
+p = synthetic_profile(20, 12)
+S, V, _ = synthetic_stream(p, 120)
+t1 = time.perf_counter()
+for mode in ("robust", "kalman"):
+    s = build_solver(mode, p, {})
+    for i in range(5):
+        s.step(S[i], V[i])
+    s = build_solver(mode, p, {})
+    if hasattr(s, "solve"):
+        s.solve(S, V)
+print(time.perf_counter() - t1)
+"""
+
+
+def numba_cold_warm() -> dict:
+    """Seconds of the same work in a fresh process with an empty numba cache, then in another loading it."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache, "PYTHONPATH": os.pathsep.join(
+            [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+        runs = []
+        for _ in range(2):
+            t0 = time.perf_counter()
+            r = subprocess.run([sys.executable, "-c", COLD], env=env, capture_output=True, text=True, check=True)
+            runs.append({"solvers_s": float(r.stdout.split()[-1]), "process_s": time.perf_counter() - t0})
+        files = sorted(p.name.split("-")[0] for p in Path(cache).rglob("*.nbi"))
+    return {"cold": runs[0], "warm": runs[1], "cached_kernels": files}
+
+
+def marker_space(free: int = 530, rows: int = 216, m: int = 1006, reps: int = 20) -> dict:
+    """Median µs of the dense primitives a 72x1000 frame could be built from, at kalman's measured ~530 free
+    weights: the free block's Cholesky in weight space (what a new pattern or free set costs the box QP today),
+    a fresh marker-space factor (J_F J_F' + a I, 216 x 216: Woodbury), one solve with a kept marker-space factor
+    (two triangular solves and J_F products), and the gradient of every weight (J' J x)."""
+    import scipy.linalg as sl
+
+    rng = np.random.default_rng(0)
+    J = rng.normal(0, 1, (rows, m))
+    JF = np.ascontiguousarray(J[:, :free])
+    HF = JF.T @ JF + 0.1 * np.eye(free)
+    S = JF @ JF.T + 0.1 * np.eye(rows)
+    Ls = np.linalg.cholesky(S)
+    r, x = rng.normal(0, 1, free), rng.normal(0, 1, m)
+
+    def weight_chol():
+        np.linalg.cholesky(HF)
+
+    def marker_factor():
+        np.linalg.cholesky(JF @ JF.T + 0.1 * np.eye(rows))
+
+    def marker_solve():
+        u = sl.solve_triangular(Ls, JF @ r, lower=True, check_finite=False)
+        return (r - JF.T @ sl.solve_triangular(Ls.T, u, lower=False, check_finite=False)) / 0.1
+
+    def gradient():
+        return J.T @ (J @ x)
+
+    out = {}
+    for name, fn in (("weight-space Cholesky of H_FF", weight_chol), ("marker-space factor, fresh", marker_factor),
+                     ("marker-space solve, kept factor", marker_solve), ("gradient J'Jx, all weights", gradient)):
+        t = []
+        for _ in range(reps):
+            c0 = time.perf_counter_ns()  # wall: BLAS may use both cores
+            fn()
+            t.append((time.perf_counter_ns() - c0) / 1e3)
+        out[name] = float(np.median(t))
+    return {"free": free, "rows": rows, "shapes": m, "median_us": out}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="20 s of each real take, 60 frames at 72x1000")
+    p.add_argument("--skip", nargs="*", default=[], choices=["streamed", "72x1000", "offline", "numba",
+                                                                   "marker-space"])
+    p.add_argument("--weights", help="save kalman's streamed weights per case (.npz)")
+    p.add_argument("--compare", help="weights saved by another tree: report the largest difference")
+    p.add_argument("--json", help="write the result as JSON")
+    a = p.parse_args()
+    start = {"utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()), "load": os.getloadavg()}
+    res: dict = {}
+    saved = {}
+    if "streamed" not in a.skip:
+        for name in REAL:
+            label = f"ict {name}"
+            res[label], saved[label] = streamed(*real_case(name, 20.0 if a.quick else 0.0))
+    if "72x1000" not in a.skip:
+        res["synthetic 72x1000"], saved["synthetic 72x1000"] = streamed(
+            *synthetic_case(72, 1000, 60 + WARMUP if a.quick else 400), floor=False)
+    if "offline" not in a.skip:
+        res["offline 30 s"] = {name: offline(name, 30.0) for name in REAL}
+    if "marker-space" not in a.skip:
+        res["marker-space primitives"] = marker_space()
+    if "numba" not in a.skip:
+        res["numba"] = numba_cold_warm()
+    if a.weights:
+        np.savez(a.weights, **saved)
+    if a.compare:
+        old = np.load(a.compare)
+        res["max_abs_dw"] = {k: float(np.abs(old[k] - saved[k]).max()) for k in saved if k in old.files
+                             and old[k].shape == saved[k].shape}
+    out = {"start": start, "end": {"utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()),
+                                   "load": os.getloadavg()}, "result": res}
+    print(json.dumps(out, indent=1))
+    if a.json:
+        Path(a.json).write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
