@@ -33,6 +33,7 @@ solve a frame plus half a trial (docs/robustness.md, "`kalman` streamed cost", "
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -44,6 +45,7 @@ from livecap.modes.robust import robust_settings
 from solvers.marker_kalman import KalmanSettings, StreamingMarkerKalman, smooth_take
 from solvers.pose_refine import RigidColumns
 from solvers.prior_strength import HeldOutStrength
+from solvers.prior_support import Support, widen_prior
 from solvers.qp import FrameQP
 from solvers.tracking import IMMFilter, dwna_variance
 
@@ -51,6 +53,10 @@ STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it 
 STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
 STRENGTH_TRIAL_EVERY = 2  # streaming: frames per held-out strength trial (4: demo take RMSE +13 %, see docs)
 POSE_PASSES = 2  # offline: joint solves, the pose undone on the raw markers between (3: no better, issue 15)
+SUPPORT_SECONDS = 2.0  # streaming: the first seconds a prior is checked against (solvers.prior_support)
+SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -75,9 +81,13 @@ class MarkerKalmanSolver:
     latency_frames = 1
 
     def __init__(self, profile: Profile, mean: np.ndarray, precision: np.ndarray, settings: KalmanSettings,
-                 motion: WeightMotion) -> None:
+                 motion: WeightMotion, prior_cov: np.ndarray | None = None) -> None:
+        """``prior_cov``: an animation prior's covariance (``precision`` its inverse), checked against the take and
+        widened where the actor leaves it (solvers.prior_support); None for the ridge, which is not checked."""
         self.profile, self.mean, self.precision, self.settings = profile, mean, precision, settings
         self.motion = motion
+        self.prior_cov, self._precision0 = prior_cov, precision
+        self.support: Support | None = None
         self.norms = np.maximum(np.linalg.norm(profile.basis, axis=0), 1e-9)
         self.pose = RigidColumns(profile.source_neutral)
         self.m = len(profile.names)
@@ -96,7 +106,34 @@ class MarkerKalmanSolver:
             self._fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(STRENGTHS[k]))
         return self._fits[k]
 
+    def _check_support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> None:
+        """Widen the prior where the frames' marginal likelihood says the actor moves outside it, and say so."""
+        s = self.support = widen_prior(self.profile.basis, self.mean, self.prior_cov, targets, valid, self.lower,
+                                       self.upper, extra=self.pose.matrix, noise_var=noise_mm**2)
+        wide = s.widened
+        if not len(wide):
+            log.info("animation prior: the actor's activity lies inside it (%d frames)", len(targets))
+            return
+        top = np.argsort(-s.added_per_shape())[:3]
+        log.warning("animation prior widened along %d of %d directions, most in %s: the actor's activity lies "
+                    "outside it", len(wide), len(s.before), ", ".join(self.profile.names[i] for i in top))
+        self.precision = s.precision
+        self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
+        self._fits = {}
+        decay = self.selector.decay
+        self.selector = self._selector(decay)
+
+    def _prior_as_given(self) -> None:
+        """A new take: the prior as given, to be checked against this take."""
+        if self.support is not None and self.precision is not self._precision0:
+            self.precision = self._precision0
+            self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
+            self._fits = {}
+        self.support = None
+        self._seen: list[tuple[np.ndarray, np.ndarray]] = []
+
     def reset(self) -> None:
+        self._prior_as_given()
         self.filter.reset()
         self.head_correction = np.zeros(6)
         self.selector = self._selector(0.5 ** (STRENGTH_TRIAL_EVERY / STREAM_HALF_LIFE_FRAMES))
@@ -110,6 +147,13 @@ class MarkerKalmanSolver:
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         x, ok = self.filter.step(target, valid)
+        if self.prior_cov is not None and self.support is None:
+            self._seen.append((x.reshape(-1).copy(), ok.copy()))
+            if len(self._seen) >= SUPPORT_SECONDS * self.motion.rate:
+                pick = _spread(len(self._seen), SUPPORT_FRAMES)
+                self._check_support(np.stack([self._seen[i][0] for i in pick]),
+                                    np.stack([self._seen[i][1] for i in pick]), self.filter.noise_mm)
+                self._seen = []
         if self._frame % STRENGTH_TRIAL_EVERY == 0:
             self.selector.observe(x, ok, self._z)
         self._frame += 1
@@ -127,6 +171,7 @@ class MarkerKalmanSolver:
         every marker as a rigid jitter); last the IMM forwards and backwards, averaged."""
         valid = np.asarray(valid, bool)
         d = np.asarray(targets, float)
+        self._prior_as_given()
         for i in range(POSE_PASSES):
             Z = self._solve_once(d, valid)
             if i < POSE_PASSES - 1:
@@ -140,6 +185,9 @@ class MarkerKalmanSolver:
     def _solve_once(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """Weights and pose (T x (m + 6)) of the RTS-smoothed take."""
         smoothed, ok, self.chosen = smooth_take(targets, valid, self.settings)
+        if self.prior_cov is not None and self.support is None:
+            pick = _spread(len(targets), SUPPORT_FRAMES)
+            self._check_support(smoothed[pick].reshape(len(pick), -1), ok[pick], self.chosen["noise_mm"])
         sel = self._selector(1.0)
         for t in range(len(targets)):
             sel.observe(smoothed[t], ok[t])
@@ -147,6 +195,12 @@ class MarkerKalmanSolver:
         fit = self._fit(sel.best)
         fit.reset()
         return fit.step_take(smoothed, ok)
+
+
+def _spread(n: int, k: int) -> np.ndarray:
+    """At most ``k`` indices evenly spread over ``range(n)``."""
+    return np.unique(np.linspace(0, n - 1, min(n, k)).astype(int))
+
 
 def kalman_prior(profile: Profile, options: Mapping | None = None) -> AnimationPrior | None:
     """The animation prior ``kalman`` fits under: option ``prior`` -- an AnimationPrior or its .npz
@@ -177,4 +231,5 @@ def kalman_mode(profile: Profile, options: Mapping | None = None) -> MarkerKalma
         mean, precision = prior.mean, np.linalg.inv(prior.cov)
     r = robust_settings(profile, {"rate": options.get("rate")})
     motion = WeightMotion(float(r.rate), float(r.hold_accel), float(r.move_accel), float(r.sojourn))
-    return MarkerKalmanSolver(profile, mean, precision, KalmanSettings(), motion)
+    return MarkerKalmanSolver(profile, mean, precision, KalmanSettings(), motion,
+                              None if prior is None else np.asarray(prior.cov, float))
