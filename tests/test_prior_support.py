@@ -104,3 +104,19 @@ def test_kalman_widens_a_prior_the_actor_leaves_and_says_so(caplog):
     assert len(lines) == 2 and all("widened" in line and "s0" in line for line in lines)  # stream, offline
     given = run(False)
     assert checked[0] < 0.7 * given[0] and checked[1] < 0.7 * given[1], (checked, given)
+
+
+def test_streamed_weights_the_markers_tell_apart_badly_are_smoothed_more():
+    """Without a prior (a ridge), two shapes the markers barely tell apart jitter in opposite directions: the IMM's
+    noise per weight is the fit's own (inverse Hessian), not the shape's marker norm (issue 41.1, streamed jitter)."""
+    from livecap.modes.marker_kalman import kalman_mode
+
+    p, W, X = _tight_prior_take(T=360)
+    p.prior = None
+    solver = kalman_mode(p, {"rate": 60.0})
+    out = np.array([solver.step(X[t], np.ones(40, bool)) for t in range(len(X))])[60:]
+
+    def jitter(a):
+        return np.sqrt(np.mean(np.diff(a, 2, axis=0) ** 2))
+
+    assert jitter(out[:, :2]) < 10 * jitter(W[60:, :2])  # 7.8 x; 13.9 x with the marker norm (before)

@@ -56,6 +56,11 @@ POSE_PASSES = 2  # offline: joint solves, the pose undone on the raw markers bet
 SUPPORT_SECONDS = 2.0  # streaming: the first seconds a prior is checked against (solvers.prior_support)
 SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
 
+# streaming: the IMM's measurement variance per weight is the fit's (the inverse Hessian's diagonal x the marker
+# noise), at most this many times noise^2 / the shape's marker norm^2 (issue 41, ICT 0.5 mm, no prior, S07-001 /
+# apfel: jitter 9.3 / 4.2 x truth at 1 (before), 6.5 / 3.0 at 4, 5.4 / 2.4 at 10 but blinks kept 0.87)
+IMM_SPREAD_CAP = 4.0
+
 log = logging.getLogger(__name__)
 
 
@@ -106,6 +111,15 @@ class MarkerKalmanSolver:
             self._fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(STRENGTHS[k]))
         return self._fits[k]
 
+    def _spread_of(self, k: int) -> np.ndarray:
+        """Each weight's variance per unit marker variance in the fit at strength ``k``: the diagonal of the
+        inverse Hessian (the shapes the markers tell apart badly are noisier than their marker norm says)."""
+        if k not in self._spreads:
+            B, _, _, _, P = self.joint
+            spread = np.diag(np.linalg.inv(B.T @ B + STRENGTHS[k] * P))[:self.m]
+            self._spreads[k] = np.minimum(spread, IMM_SPREAD_CAP / self.norms**2)
+        return self._spreads[k]
+
     def _check_support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> None:
         """Widen the prior where the frames' marginal likelihood says the actor moves outside it, and say so."""
         s = self.support = widen_prior(self.profile.basis, self.mean, self.prior_cov, targets, valid, self.lower,
@@ -119,7 +133,7 @@ class MarkerKalmanSolver:
                     "outside it", len(wide), len(s.before), ", ".join(self.profile.names[i] for i in top))
         self.precision = s.precision
         self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
-        self._fits = {}
+        self._fits, self._spreads = {}, {}
         decay = self.selector.decay
         self.selector = self._selector(decay)
 
@@ -128,7 +142,7 @@ class MarkerKalmanSolver:
         if self.support is not None and self.precision is not self._precision0:
             self.precision = self._precision0
             self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
-            self._fits = {}
+            self._fits, self._spreads = {}, {}
         self.support = None
         self._seen: list[tuple[np.ndarray, np.ndarray]] = []
 
@@ -140,6 +154,7 @@ class MarkerKalmanSolver:
         self._frame = 0
         self._z: np.ndarray | None = None  # the last frame's weights and pose: where the next trial starts
         self._fits: dict[int, FrameQP] = {}
+        self._spreads: dict[int, np.ndarray] = {}
         self._imm: tuple[float, IMMFilter] | None = None
         for k in range(len(STRENGTHS)):  # build every workspace now, not on the first frames
             self._fit(k).step(np.zeros(3 * self.profile.n_markers), np.ones(self.profile.n_markers, bool))
@@ -162,6 +177,7 @@ class MarkerKalmanSolver:
         noise = self.filter.noise_mm
         if self._imm is None or self._imm[0] != noise:  # noise settles in the first frames; rarely changes after
             self._imm = (noise, self.motion.imm(noise, self.norms))
+        self._imm[1].set_noise(noise**2 * self._spread_of(self.selector.best))
         # the IMM's constant-velocity models overshoot a weight resting on its limit: back within the rig's limits
         return np.clip(self._imm[1].step(w), self.lower, self.upper)
 
