@@ -22,6 +22,11 @@ PERFORMERS = {"alex_rom_3": "anim", "alex_rom_4": "anim", "S07-001": "anim", "S8
               "apfel": "csv", "MySlate_3_Jason_Millers_iPhone": "jmtechart"}
 
 
+def _as_given(solver, support, frames) -> None:
+    """The check's result set aside: the prior as given (the code before issue 41.2's check)."""
+    solver.support = type(support)(support.axes, support.before, support.before, support.noise_var, 0)
+
+
 def main(argv: list[str] | None = None) -> int:
     from livecap.calibration.animation_prior import build_prior
     from livecap.cli.realeval import _realdata, _rig
@@ -39,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     rig, layout = _rig("ict")
     folder = _realdata() / "performance"
     out = []
-    check = marker_kalman.MarkerKalmanSolver._check_support
+    check = marker_kalman.MarkerKalmanSolver._use_support
     for noise in args.noise:
         for name in args.files:
             f = folder / f"{name}.csv"
@@ -50,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
             opts = {"kalman": {"rate": ct.take.rate}}
             for label, pr, widen in (("no prior", None, False), ("prior as given", prior, False),
                                      ("prior checked", prior, True)):
-                marker_kalman.MarkerKalmanSolver._check_support = check if widen else (lambda *a, **k: None)
+                marker_kalman.MarkerKalmanSolver._use_support = check if widen else _as_given
                 t0 = time.perf_counter()
                 rows = evaluate_curve_take(rig, layout, ct, ["kalman"], opts, pr)
                 oracle = rows[0]
@@ -62,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{noise:g} mm {name:32s} {label:15s} {r.mode:15s} RMSE {r.rmse:.4f} ({rec['rmse_x']:.2f}x) "
                           f"p95 {r.p95_mm:.2f} ({rec['p95_x']:.2f}x) jitter {r.jitter_x:.2f} blink {r.blink:.2f} "
                           f"[{time.perf_counter() - t0:.0f} s]", flush=True)
-    marker_kalman.MarkerKalmanSolver._check_support = check
+    marker_kalman.MarkerKalmanSolver._use_support = check
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": platform.node(), "date": time.strftime("%Y-%m-%d %H:%M"),
                                                "seconds": args.seconds, "rows": out}, indent=1))

@@ -34,6 +34,7 @@ solve a frame plus half a trial (docs/robustness.md, "`kalman` streamed cost", "
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -55,6 +56,7 @@ STRENGTH_TRIAL_EVERY = 2  # streaming: frames per held-out strength trial (4: de
 POSE_PASSES = 2  # offline: joint solves, the pose undone on the raw markers between (3: no better, issue 15)
 SUPPORT_SECONDS = 2.0  # streaming: the first seconds a prior is checked against (solvers.prior_support)
 SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
+SUPPORT_SWAP_SECONDS = 1.0  # streaming: the check runs in a thread meanwhile; its prior is used this much later
 
 # streaming: the IMM's measurement variance per weight is the fit's (the inverse Hessian's diagonal x the marker
 # noise), at most this many times noise^2 / the shape's marker norm^2 (issue 41, ICT 0.5 mm, no prior, S07-001 /
@@ -122,11 +124,17 @@ class MarkerKalmanSolver:
 
     def _check_support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> None:
         """Widen the prior where the frames' marginal likelihood says the actor moves outside it, and say so."""
-        s = self.support = widen_prior(self.profile.basis, self.mean, self.prior_cov, targets, valid, self.lower,
-                                       self.upper, extra=self.pose.matrix, noise_var=noise_mm**2)
+        self._use_support(self._support(targets, valid, noise_mm), len(targets))
+
+    def _support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> Support:
+        return widen_prior(self.profile.basis, self.mean, self.prior_cov, targets, valid, self.lower, self.upper,
+                           extra=self.pose.matrix, noise_var=noise_mm**2)
+
+    def _use_support(self, s: Support, frames: int) -> None:
+        self.support = s
         wide = s.widened
         if not len(wide):
-            log.info("animation prior: the actor's activity lies inside it (%d frames)", len(targets))
+            log.info("animation prior: the actor's activity lies inside it (%d frames)", frames)
             return
         top = np.argsort(-s.added_per_shape())[:3]
         log.warning("animation prior widened along %d of %d directions, most in %s: the actor's activity lies "
@@ -137,6 +145,40 @@ class MarkerKalmanSolver:
         decay = self.selector.decay
         self.selector = self._selector(decay)
 
+    def _stream_support(self, x: np.ndarray, ok: np.ndarray) -> None:
+        """Collect the first SUPPORT_SECONDS, check them in a thread (numpy's inverses release the GIL, so the
+        frames keep coming), and use the result SUPPORT_SWAP_SECONDS later: always at the same frame, so a
+        streamed solve is reproducible; it waits there only if the check has not finished."""
+        if self._checking is None:
+            self._seen.append((x.reshape(-1).copy(), ok.copy()))
+            if len(self._seen) >= SUPPORT_SECONDS * self.motion.rate:
+                pick = _spread(len(self._seen), SUPPORT_FRAMES)
+                args = (np.stack([self._seen[i][0] for i in pick]), np.stack([self._seen[i][1] for i in pick]),
+                        self.filter.noise_mm)
+                out: list = []
+
+                def check() -> None:
+                    try:
+                        out.append(self._support(*args))
+                    except (np.linalg.LinAlgError, ValueError) as e:
+                        out.append(e)
+
+                thread = threading.Thread(target=check, daemon=True)
+                thread.start()
+                self._checking = (thread, out, self._frame + max(1, int(SUPPORT_SWAP_SECONDS * self.motion.rate)),
+                                  len(pick))
+                self._seen = []
+        elif self._frame >= self._checking[2]:
+            thread, out, _, frames = self._checking
+            thread.join()
+            self._checking = None
+            if out and isinstance(out[0], Support):
+                self._use_support(out[0], frames)
+                return
+            log.warning("animation prior: its check against the actor failed (%s); used as given", out[:1])
+            lam, axes = np.linalg.eigh(self.prior_cov)
+            self.support = Support(axes, lam, lam, float("nan"), 0)  # checked no further
+
     def _prior_as_given(self) -> None:
         """A new take: the prior as given, to be checked against this take."""
         if self.support is not None and self.precision is not self._precision0:
@@ -145,6 +187,7 @@ class MarkerKalmanSolver:
             self._fits, self._spreads = {}, {}
         self.support = None
         self._seen: list[tuple[np.ndarray, np.ndarray]] = []
+        self._checking: tuple | None = None  # streaming: the check's thread, its result, the frame to use it, frames
 
     def reset(self) -> None:
         self._prior_as_given()
@@ -163,12 +206,7 @@ class MarkerKalmanSolver:
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         x, ok = self.filter.step(target, valid)
         if self.prior_cov is not None and self.support is None:
-            self._seen.append((x.reshape(-1).copy(), ok.copy()))
-            if len(self._seen) >= SUPPORT_SECONDS * self.motion.rate:
-                pick = _spread(len(self._seen), SUPPORT_FRAMES)
-                self._check_support(np.stack([self._seen[i][0] for i in pick]),
-                                    np.stack([self._seen[i][1] for i in pick]), self.filter.noise_mm)
-                self._seen = []
+            self._stream_support(x, ok)
         if self._frame % STRENGTH_TRIAL_EVERY == 0:
             self.selector.observe(x, ok, self._z)
         self._frame += 1
