@@ -54,9 +54,9 @@ STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it 
 STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
 STRENGTH_TRIAL_EVERY = 2  # streaming: frames per held-out strength trial (4: demo take RMSE +13 %, see docs)
 POSE_PASSES = 2  # offline: joint solves, the pose undone on the raw markers between (3: no better, issue 15)
-SUPPORT_SECONDS = 2.0  # streaming: the first seconds a prior is checked against (solvers.prior_support)
+SUPPORT_SECONDS = 1.0  # streaming: the first seconds a prior is checked against (solvers.prior_support)
 SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
-SUPPORT_SWAP_SECONDS = 1.0  # streaming: the check runs in a thread meanwhile; its prior is used this much later
+SUPPORT_SWAP_SECONDS = 0.5  # streaming: the check runs in a thread meanwhile; its prior is used this much later
 
 # streaming: the IMM's measurement variance per weight is the fit's (the inverse Hessian's diagonal x the marker
 # noise), at most this many times noise^2 / the shape's marker norm^2 (issue 41, ICT 0.5 mm, no prior, S07-001 /
