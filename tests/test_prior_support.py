@@ -120,3 +120,30 @@ def test_streamed_weights_the_markers_tell_apart_badly_are_smoothed_more():
         return np.sqrt(np.mean(np.diff(a, 2, axis=0) ** 2))
 
     assert jitter(out[:, :2]) < 10 * jitter(W[60:, :2])  # 7.8 x; 13.9 x with the marker norm (before)
+
+
+def test_streamed_check_is_used_at_a_fixed_frame_so_a_stream_is_reproducible():
+    """The check runs in a thread; its prior is used at the same frame however long it took."""
+    from livecap.modes.marker_kalman import kalman_mode
+
+    p, W, X = _tight_prior_take(T=200)
+    runs = []
+    for _ in range(2):
+        solver = kalman_mode(p, {"rate": 60.0})
+        runs.append(np.array([solver.step(X[t], np.ones(40, bool)) for t in range(len(X))]))
+        assert solver.support is not None and 0 in solver.support.widened
+    np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_imm_noise_changes_without_losing_the_track():
+    from solvers.tracking import IMMFilter
+
+    a, b = IMMFilter(1e-4, 1e-2, 0.01), IMMFilter(1e-4, 1e-2, 0.01)
+    y = np.sin(np.arange(100) * 0.05)[:, None] * np.ones(3)
+    for t in range(50):
+        a.step(y[t]), b.step(y[t])
+    b.set_noise(np.full(3, 0.01))  # the same noise: the same filter, state kept
+    np.testing.assert_array_equal([a.step(y[t]) for t in range(50, 100)], [b.step(y[t]) for t in range(50, 100)])
+    b.set_noise(np.array([0.01, 1.0, 1.0]))
+    out = b.step(y[0] + 1.0)
+    assert out[1] < out[0]  # a noisier channel trusts the jump less
