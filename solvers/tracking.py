@@ -165,6 +165,13 @@ class IMMFilter:
         self._all = np.ones(C, bool)
         return start.reshape(y.shape).copy()
 
+    def set_noise(self, r: float | np.ndarray) -> None:
+        """A new measurement variance from the next sample on, the models' state kept (a streaming fit whose
+        noise per channel changes with its regularisation)."""
+        self.r = np.asarray(r, dtype=np.float64)
+        if self._state is not None:
+            self._state[self._kernels.R] = np.broadcast_to(self.r, self._shape).reshape(-1)
+
     def step(self, y: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         y = np.asarray(y, dtype=np.float64)
         ok = None if valid is None else np.require(np.broadcast_to(valid, y.shape), bool, "CW").reshape(-1)

@@ -33,6 +33,8 @@ solve a frame plus half a trial (docs/robustness.md, "`kalman` streamed cost", "
 
 from __future__ import annotations
 
+import logging
+import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -44,6 +46,7 @@ from livecap.modes.robust import robust_settings
 from solvers.marker_kalman import KalmanSettings, StreamingMarkerKalman, smooth_take
 from solvers.pose_refine import RigidColumns
 from solvers.prior_strength import HeldOutStrength
+from solvers.prior_support import Support, widen_prior
 from solvers.qp import FrameQP
 from solvers.tracking import IMMFilter, dwna_variance
 
@@ -51,6 +54,16 @@ STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it 
 STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
 STRENGTH_TRIAL_EVERY = 2  # streaming: frames per held-out strength trial (4: demo take RMSE +13 %, see docs)
 POSE_PASSES = 2  # offline: joint solves, the pose undone on the raw markers between (3: no better, issue 15)
+SUPPORT_SECONDS = 1.0  # streaming: the first seconds a prior is checked against (solvers.prior_support)
+SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
+SUPPORT_SWAP_SECONDS = 0.5  # streaming: the check runs in a thread meanwhile; its prior is used this much later
+
+# streaming: the IMM's measurement variance per weight is the fit's (the inverse Hessian's diagonal x the marker
+# noise), at most this many times noise^2 / the shape's marker norm^2 (issue 41, ICT 0.5 mm, no prior, S07-001 /
+# apfel: jitter 9.3 / 4.2 x truth at 1 (before), 6.5 / 3.0 at 4, 5.4 / 2.4 at 10 but blinks kept 0.87)
+IMM_SPREAD_CAP = 4.0
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -75,9 +88,13 @@ class MarkerKalmanSolver:
     latency_frames = 1
 
     def __init__(self, profile: Profile, mean: np.ndarray, precision: np.ndarray, settings: KalmanSettings,
-                 motion: WeightMotion) -> None:
+                 motion: WeightMotion, prior_cov: np.ndarray | None = None) -> None:
+        """``prior_cov``: an animation prior's covariance (``precision`` its inverse), checked against the take and
+        widened where the actor leaves it (solvers.prior_support); None for the ridge, which is not checked."""
         self.profile, self.mean, self.precision, self.settings = profile, mean, precision, settings
         self.motion = motion
+        self.prior_cov, self._precision0 = prior_cov, precision
+        self.support: Support | None = None
         self.norms = np.maximum(np.linalg.norm(profile.basis, axis=0), 1e-9)
         self.pose = RigidColumns(profile.source_neutral)
         self.m = len(profile.names)
@@ -96,13 +113,91 @@ class MarkerKalmanSolver:
             self._fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(STRENGTHS[k]))
         return self._fits[k]
 
+    def _spread_of(self, k: int) -> np.ndarray:
+        """Each weight's variance per unit marker variance in the fit at strength ``k``: the diagonal of the
+        inverse Hessian (the shapes the markers tell apart badly are noisier than their marker norm says)."""
+        if k not in self._spreads:
+            B, _, _, _, P = self.joint
+            spread = np.diag(np.linalg.inv(B.T @ B + STRENGTHS[k] * P))[:self.m]
+            self._spreads[k] = np.minimum(spread, IMM_SPREAD_CAP / self.norms**2)
+        return self._spreads[k]
+
+    def _check_support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> None:
+        """Widen the prior where the frames' marginal likelihood says the actor moves outside it, and say so."""
+        self._use_support(self._support(targets, valid, noise_mm), len(targets))
+
+    def _support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> Support:
+        return widen_prior(self.profile.basis, self.mean, self.prior_cov, targets, valid, self.lower, self.upper,
+                           extra=self.pose.matrix, noise_var=noise_mm**2)
+
+    def _use_support(self, s: Support, frames: int) -> None:
+        self.support = s
+        wide = s.widened
+        if not len(wide):
+            log.info("animation prior: the actor's activity lies inside it (%d frames)", frames)
+            return
+        top = np.argsort(-s.added_per_shape())[:3]
+        log.warning("animation prior widened along %d of %d directions, most in %s: the actor's activity lies "
+                    "outside it", len(wide), len(s.before), ", ".join(self.profile.names[i] for i in top))
+        self.precision = s.precision
+        self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
+        self._fits, self._spreads = {}, {}
+        decay = self.selector.decay
+        self.selector = self._selector(decay)
+
+    def _stream_support(self, x: np.ndarray, ok: np.ndarray) -> None:
+        """Collect the first SUPPORT_SECONDS, check them in a thread (numpy's inverses release the GIL, so the
+        frames keep coming), and use the result SUPPORT_SWAP_SECONDS later: always at the same frame, so a
+        streamed solve is reproducible; it waits there only if the check has not finished."""
+        if self._checking is None:
+            self._seen.append((x.reshape(-1).copy(), ok.copy()))
+            if len(self._seen) >= SUPPORT_SECONDS * self.motion.rate:
+                pick = _spread(len(self._seen), SUPPORT_FRAMES)
+                args = (np.stack([self._seen[i][0] for i in pick]), np.stack([self._seen[i][1] for i in pick]),
+                        self.filter.noise_mm)
+                out: list = []
+
+                def check() -> None:
+                    try:
+                        out.append(self._support(*args))
+                    except (np.linalg.LinAlgError, ValueError) as e:
+                        out.append(e)
+
+                thread = threading.Thread(target=check, daemon=True)
+                thread.start()
+                self._checking = (thread, out, self._frame + max(1, int(SUPPORT_SWAP_SECONDS * self.motion.rate)),
+                                  len(pick))
+                self._seen = []
+        elif self._frame >= self._checking[2]:
+            thread, out, _, frames = self._checking
+            thread.join()
+            self._checking = None
+            if out and isinstance(out[0], Support):
+                self._use_support(out[0], frames)
+                return
+            log.warning("animation prior: its check against the actor failed (%s); used as given", out[:1])
+            lam, axes = np.linalg.eigh(self.prior_cov)
+            self.support = Support(axes, lam, lam, float("nan"), 0)  # checked no further
+
+    def _prior_as_given(self) -> None:
+        """A new take: the prior as given, to be checked against this take."""
+        if self.support is not None and self.precision is not self._precision0:
+            self.precision = self._precision0
+            self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
+            self._fits, self._spreads = {}, {}
+        self.support = None
+        self._seen: list[tuple[np.ndarray, np.ndarray]] = []
+        self._checking: tuple | None = None  # streaming: the check's thread, its result, the frame to use it, frames
+
     def reset(self) -> None:
+        self._prior_as_given()
         self.filter.reset()
         self.head_correction = np.zeros(6)
         self.selector = self._selector(0.5 ** (STRENGTH_TRIAL_EVERY / STREAM_HALF_LIFE_FRAMES))
         self._frame = 0
         self._z: np.ndarray | None = None  # the last frame's weights and pose: where the next trial starts
         self._fits: dict[int, FrameQP] = {}
+        self._spreads: dict[int, np.ndarray] = {}
         self._imm: tuple[float, IMMFilter] | None = None
         for k in range(len(STRENGTHS)):  # build every workspace now, not on the first frames
             self._fit(k).step(np.zeros(3 * self.profile.n_markers), np.ones(self.profile.n_markers, bool))
@@ -110,6 +205,8 @@ class MarkerKalmanSolver:
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         x, ok = self.filter.step(target, valid)
+        if self.prior_cov is not None and self.support is None:
+            self._stream_support(x, ok)
         if self._frame % STRENGTH_TRIAL_EVERY == 0:
             self.selector.observe(x, ok, self._z)
         self._frame += 1
@@ -118,6 +215,7 @@ class MarkerKalmanSolver:
         noise = self.filter.noise_mm
         if self._imm is None or self._imm[0] != noise:  # noise settles in the first frames; rarely changes after
             self._imm = (noise, self.motion.imm(noise, self.norms))
+        self._imm[1].set_noise(noise**2 * self._spread_of(self.selector.best))
         # the IMM's constant-velocity models overshoot a weight resting on its limit: back within the rig's limits
         return np.clip(self._imm[1].step(w), self.lower, self.upper)
 
@@ -127,6 +225,7 @@ class MarkerKalmanSolver:
         every marker as a rigid jitter); last the IMM forwards and backwards, averaged."""
         valid = np.asarray(valid, bool)
         d = np.asarray(targets, float)
+        self._prior_as_given()
         for i in range(POSE_PASSES):
             Z = self._solve_once(d, valid)
             if i < POSE_PASSES - 1:
@@ -140,6 +239,9 @@ class MarkerKalmanSolver:
     def _solve_once(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """Weights and pose (T x (m + 6)) of the RTS-smoothed take."""
         smoothed, ok, self.chosen = smooth_take(targets, valid, self.settings)
+        if self.prior_cov is not None and self.support is None:
+            pick = _spread(len(targets), SUPPORT_FRAMES)
+            self._check_support(smoothed[pick].reshape(len(pick), -1), ok[pick], self.chosen["noise_mm"])
         sel = self._selector(1.0)
         for t in range(len(targets)):
             sel.observe(smoothed[t], ok[t])
@@ -147,6 +249,12 @@ class MarkerKalmanSolver:
         fit = self._fit(sel.best)
         fit.reset()
         return fit.step_take(smoothed, ok)
+
+
+def _spread(n: int, k: int) -> np.ndarray:
+    """At most ``k`` indices evenly spread over ``range(n)``."""
+    return np.unique(np.linspace(0, n - 1, min(n, k)).astype(int))
+
 
 def kalman_prior(profile: Profile, options: Mapping | None = None) -> AnimationPrior | None:
     """The animation prior ``kalman`` fits under: option ``prior`` -- an AnimationPrior or its .npz
@@ -177,4 +285,5 @@ def kalman_mode(profile: Profile, options: Mapping | None = None) -> MarkerKalma
         mean, precision = prior.mean, np.linalg.inv(prior.cov)
     r = robust_settings(profile, {"rate": options.get("rate")})
     motion = WeightMotion(float(r.rate), float(r.hold_accel), float(r.move_accel), float(r.sojourn))
-    return MarkerKalmanSolver(profile, mean, precision, KalmanSettings(), motion)
+    return MarkerKalmanSolver(profile, mean, precision, KalmanSettings(), motion,
+                              None if prior is None else np.asarray(prior.cov, float))

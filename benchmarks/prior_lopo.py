@@ -1,0 +1,78 @@
+"""Leave one PERFORMER out: is a prior from other performers ever worse than no prior? (issue 41.2)
+
+For each real performance, an ICT take (livecap.demo.curves_take) is solved by ``kalman`` (the default mode with
+a prior) three ways, streamed through the live pipeline and offline: with no prior (a ridge), with a prior built
+from the files of *other performers only* as given, and the same prior checked against the take and widened where
+the actor leaves it (solvers.prior_support, today's code). Performers are the sources' folders
+(../shared/realdata/performance/README.md): alexdjulin's anim/ (alex_rom_3, alex_rom_4, S07-001, S88-001), his
+csv/ (apfel), JMTechArt (MySlate).
+
+    python -m benchmarks.prior_lopo [--noise 0.5] [--seconds 10] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+PERFORMERS = {"alex_rom_3": "anim", "alex_rom_4": "anim", "S07-001": "anim", "S88-001": "anim",
+              "apfel": "csv", "MySlate_3_Jason_Millers_iPhone": "jmtechart"}
+
+
+def _as_given(solver, support, frames) -> None:
+    """The check's result set aside: the prior as given (the code before issue 41.2's check)."""
+    solver.support = type(support)(support.axes, support.before, support.before, support.noise_var, 0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from livecap.calibration.animation_prior import build_prior
+    from livecap.cli.realeval import _realdata, _rig
+    from livecap.demo.curves_take import CurveTakeSettings, curves_take
+    from livecap.modes import marker_kalman
+    from livecap.offline.real_eval import evaluate_curve_take
+    from transport.llf_csv import read_llf_csv
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--noise", type=float, nargs="+", default=[0.5])
+    p.add_argument("--seconds", type=float, default=10.0)
+    p.add_argument("--files", nargs="+", default=list(PERFORMERS))
+    p.add_argument("--json")
+    args = p.parse_args(argv)
+    rig, layout = _rig("ict")
+    folder = _realdata() / "performance"
+    out = []
+    check = marker_kalman.MarkerKalmanSolver._use_support
+    for noise in args.noise:
+        for name in args.files:
+            f = folder / f"{name}.csv"
+            others = [folder / f"{o}.csv" for o, who in PERFORMERS.items() if who != PERFORMERS[name]]
+            start = max(0.0, min(10.0, read_llf_csv(f).times[-1] - args.seconds))
+            ct = curves_take(rig, layout, f, CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise))
+            prior = build_prior(others, rig.names, rig.lower, rig.upper)
+            opts = {"kalman": {"rate": ct.take.rate}}
+            for label, pr, widen in (("no prior", None, False), ("prior as given", prior, False),
+                                     ("prior checked", prior, True)):
+                marker_kalman.MarkerKalmanSolver._use_support = check if widen else _as_given
+                t0 = time.perf_counter()
+                rows = evaluate_curve_take(rig, layout, ct, ["kalman"], opts, pr)
+                oracle = rows[0]
+                for r in rows[1:]:
+                    rec = {"noise_mm": noise, "file": name, "prior": label, "mode": r.mode, "rmse": r.rmse,
+                           "rmse_x": r.rmse / oracle.rmse, "p95_mm": r.p95_mm, "p95_x": r.p95_mm / oracle.p95_mm,
+                           "jitter_x": r.jitter_x, "blink": r.blink}
+                    out.append(rec)
+                    print(f"{noise:g} mm {name:32s} {label:15s} {r.mode:15s} RMSE {r.rmse:.4f} ({rec['rmse_x']:.2f}x) "
+                          f"p95 {r.p95_mm:.2f} ({rec['p95_x']:.2f}x) jitter {r.jitter_x:.2f} blink {r.blink:.2f} "
+                          f"[{time.perf_counter() - t0:.0f} s]", flush=True)
+    marker_kalman.MarkerKalmanSolver._use_support = check
+    if args.json:
+        Path(args.json).write_text(json.dumps({"machine": platform.node(), "date": time.strftime("%Y-%m-%d %H:%M"),
+                                               "seconds": args.seconds, "rows": out}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

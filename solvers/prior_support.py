@@ -1,0 +1,106 @@
+"""Widening an animation prior where the actor's activity lies outside it (issue 41.2).
+
+A prior learned from other performers can hold a direction tight that this actor moves along
+(issue 41: the prior held eyeLookUp at 0, so eyeWide took its motion, +0.38). Held-out *markers*
+cannot catch it: the markers see that direction weakly (eyeWide / eyeLookUp, cosine 0.94). The
+*frames* can: over time the actor's markers vary along B u_k more than the prior's variance
+lambda_k of direction u_k allows. So each principal direction's variance v_k is chosen by the
+marginal likelihood of the frames (type-II maximum likelihood, the evidence: Bishop 2006 §3.5;
+MacKay 1992's fixed-point updates with the effective number of parameters gamma):
+
+    w_t ~ N(mu, U diag(v) U^T),  x_t = B w_t + P p_t + e_t,  e_t ~ N(0, s2 I)
+
+with ``P`` the unbounded head-pose columns (solvers.pose_refine, a broad fixed variance) and the
+noise ``s2`` estimated with the v_k. Each frame uses its own visible markers. v_k may only grow
+(v_k >= lambda_k): a prior from other performers is widened where the actor leaves it and kept where
+the data says nothing, so it can only move towards the data. Ignored: the weights' limits and the
+frames' correlation in time (each frame counts as an independent draw).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+OUTSIDE = 10.0  # a direction is widened only where the frames want more than this times the prior's variance
+POSE_VARIANCE = 1e2  # mm^2: the pose columns' prior, broad (the stabiliser's residual is ~1 mm)
+
+
+@dataclass(frozen=True)
+class Support:
+    axes: np.ndarray  # m x m, the prior's principal directions (columns)
+    before: np.ndarray  # m, the prior's variance per direction
+    after: np.ndarray  # m, the variance the frames' marginal likelihood chose where > OUTSIDE x before, else before
+    noise_var: float  # mm^2, the noise the fit estimated with them
+    iterations: int
+
+    @property
+    def cov(self) -> np.ndarray:
+        return (self.axes * self.after) @ self.axes.T
+
+    @property
+    def precision(self) -> np.ndarray:
+        return (self.axes / self.after) @ self.axes.T
+
+    @property
+    def widened(self) -> np.ndarray:
+        """Indices of the directions widened."""
+        return np.flatnonzero(self.after > self.before)
+
+    def added_per_shape(self) -> np.ndarray:
+        """Variance added to each shape's weight (the diagonal of the widening)."""
+        return ((self.axes**2) * (self.after - self.before)).sum(1)
+
+
+def widen_prior(basis: np.ndarray, mean: np.ndarray, cov: np.ndarray, targets: np.ndarray, valid: np.ndarray,
+                lower: np.ndarray, upper: np.ndarray, extra: np.ndarray | None = None, noise_var: float = 0.25,
+                iterations: int = 30, tol: float = 1e-2, outside: float = OUTSIDE) -> Support:
+    """The prior ``(mean, cov)`` over the m weights of ``basis`` (3n x m) widened per principal direction by the
+    marginal likelihood of ``targets`` (T x 3n marker displacements, ``valid`` T x n). ``extra``: unbounded columns
+    fitted beside the basis (the head pose), with a broad fixed prior. ``noise_var``: where the noise estimate
+    starts (mm^2). ``outside``: a direction keeps the prior's variance unless the frames' choice exceeds it this
+    many times (the actor is outside the prior's support there: beyond ~3 of its sds at 10), so that calibration
+    misfit and the frames' correlation in time, which the likelihood ignores, do not loosen a prior that fits.
+    A direction's variance is capped at what the weights' box allows. Iterates until no variance
+    moves by more than ``tol`` (relative): each iteration inverts one k x k matrix per frame."""
+    B = np.asarray(basis, float)
+    n3, m = B.shape
+    lam, U = np.linalg.eigh(np.asarray(cov, float))
+    lam = np.maximum(lam, 1e-12)
+    E = np.zeros((n3, 0)) if extra is None else np.asarray(extra, float)
+    D = np.hstack([B @ U, E])  # rotated design: direction coordinates, then the extra columns
+    k = D.shape[1]
+    ok = np.asarray(valid, bool)
+    X = np.asarray(targets, float).reshape(len(ok), n3) - B @ np.asarray(mean, float)
+    rows = np.repeat(ok, 3, axis=1)
+    X = np.where(rows, X, 0.0)
+    keep = ok.sum(1) >= 3
+    X, rows, ok = X[keep], rows[keep], ok[keep]
+    half = (np.abs(U).T @ (np.asarray(upper, float) - np.asarray(lower, float))) / 2
+    cap = np.maximum(half**2, lam)
+    if not len(X):
+        return Support(U, lam, lam.copy(), float(noise_var), 0)
+    Dm = D.reshape(n3 // 3, 3, k)
+    PtP = np.einsum("tn,nik,nil->tkl", ok.astype(float), Dm, Dm, optimize=True)  # T x k x k
+    b = X @ D  # T x k (invalid rows are 0)
+    c = (X**2).sum(1)
+    count = rows.sum(1).astype(float)
+    v = np.r_[lam, np.full(k - m, POSE_VARIANCE)]
+    s2 = float(noise_var)
+    done = 0
+    while done < iterations:
+        done += 1
+        A = PtP / s2 + np.diag(1.0 / v)[None]
+        C = np.linalg.inv(A)
+        y = np.einsum("tkl,tl->tk", C, b) / s2
+        gamma = 1.0 - np.einsum("tkk->tk", C) / v  # per frame and direction: how much the data determines it
+        g = np.maximum(gamma[:, :m].sum(0), 1e-12)
+        new = np.clip((y[:, :m] ** 2).sum(0) / g, lam, cap)
+        resid = c - 2 * (y * b).sum(1) + np.einsum("tk,tkl,tl->t", y, PtP, y)
+        s2 = float(max(resid.sum() / max((count - gamma.sum(1)).sum(), 1.0), 1e-8))
+        change = float(np.max(np.abs(np.log(new / v[:m]))))
+        v[:m] = new
+        if change < tol:
+            break
+    return Support(U, lam, np.where(v[:m] > outside * lam, v[:m], lam), s2, done)
