@@ -3,6 +3,7 @@ and no solve, the same loop, sinks, flushing, stats and signal handling as the m
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterable
 
 import numpy as np
@@ -17,20 +18,30 @@ def _never_calibrate(take):
 
 
 class WeightsPipeline(Pipeline):
-    """:class:`Pipeline` for a source of :class:`SolveResult`: each one is published as it comes.
+    """:class:`Pipeline` for a source of :class:`SolveResult`: each one is published as it comes, or,
+    with ``retarget`` (livecap.retarget: by name, mapping or expression transfer), as the target rig's weights.
 
     The source's head rotation is already relative to its neutral (the app zeroes it on the
     phone), so every sink sends it unchanged rather than relative to the stream's first frames."""
 
-    def __init__(self, source: Iterable[SolveResult], sinks: list, **kwargs) -> None:
+    def __init__(self, source: Iterable[SolveResult], sinks: list, retarget=None, **kwargs) -> None:
         super().__init__(source, sinks, calibrator=_never_calibrate, **kwargs)
         self._solver = self  # marks the session ready: run() publishes from the first frame
         self.solver_mode = "weights-in"
+        self.retarget = retarget
+        self._names = list(retarget.names) if retarget is not None else None
         for sink in self.sinks:
             neutral = getattr(sink, "neutral", None)
             if isinstance(neutral, NeutralWindow):
                 neutral.fix(NeutralPose(np.eye(3), np.zeros(3)))
 
     def solve_frame(self, frame: SolveResult) -> SolveResult:
-        self._step_time = 0.0
+        if self.retarget is None:
+            self._step_time = 0.0
+            return frame
+        t0 = time.perf_counter()
+        w = np.array(self.retarget.step(frame.weights), dtype=float)  # a copy: sinks may encode later
+        self._step_time = time.perf_counter() - t0
+        self.timing["step"].add(self._step_time)
+        frame.names, frame.weights = self._names, w  # the source made this result for this packet alone
         return frame
