@@ -18,6 +18,7 @@ device id, or frame numbers jumping back, is a sender that restarted: counted as
 
 from __future__ import annotations
 
+import math
 import socket
 import struct
 import time
@@ -99,9 +100,9 @@ def decode_livelink(dgram: bytes) -> LiveLinkPacket:
 def head_quaternion(yaw_pitch_roll: np.ndarray) -> np.ndarray:
     """The rotation (x, y, z, w) whose :func:`transport.arkit.head_angles` are these angles:
     intrinsic Y, X, Z, i.e. Ry(yaw) Rx(pitch) Rz(roll)."""
-    a, b, c = np.asarray(yaw_pitch_roll, dtype=float) / 2
-    return hamilton(hamilton([0.0, np.sin(a), 0.0, np.cos(a)], [np.sin(b), 0.0, 0.0, np.cos(b)]),
-                    [0.0, 0.0, np.sin(c), np.cos(c)])
+    a, b, c = (0.5 * float(v) for v in yaw_pitch_roll)
+    return hamilton(hamilton((0.0, math.sin(a), 0.0, math.cos(a)), (math.sin(b), 0.0, 0.0, math.cos(b))).tolist(),
+                    (0.0, 0.0, math.sin(c), math.cos(c)))
 
 
 class LiveLinkFaceSource:

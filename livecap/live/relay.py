@@ -3,6 +3,7 @@ and no solve, the same loop, sinks, flushing, stats and signal handling as the m
 
 from __future__ import annotations
 
+import gc
 import time
 from collections.abc import Iterable
 
@@ -34,6 +35,20 @@ class WeightsPipeline(Pipeline):
             neutral = getattr(sink, "neutral", None)
             if isinstance(neutral, NeutralWindow):
                 neutral.fix(NeutralPose(np.eye(3), np.zeros(3)))
+
+    def run(self) -> dict:
+        """The loop with BLAS on this thread alone and the start-up's objects out of the garbage collector's
+        way: a 52 x 52 product woke OpenBLAS's other threads per packet, and a full collection walked every
+        object numpy, scipy and zmq had made (both were p99 spikes of packet -> weights, docs/iphone.md)."""
+        from threadpoolctl import threadpool_limits
+
+        gc.collect()
+        gc.freeze()
+        try:
+            with threadpool_limits(limits=1, user_api="blas"):
+                return super().run()
+        finally:
+            gc.unfreeze()
 
     def solve_frame(self, frame: SolveResult) -> SolveResult:
         if self.retarget is None:
