@@ -291,3 +291,24 @@ def test_makehuman_gets_the_retargeted_weights_and_the_packet_head_on_zmq_and_vm
         assert list(vals) == names
         assert np.allclose(np.array(list(vals.values()), np.float32), w.astype(np.float32), rtol=0, atol=tol)
     assert np.abs(np.stack(want)).max() > 0.2  # the face moves
+
+
+def test_the_relay_loop_runs_with_one_blas_thread_and_a_frozen_heap():
+    """What the packet -> weights p99 needed (docs/iphone.md, Latency): no OpenBLAS thread wake-ups, no full
+    collection walking the start-up's objects; both undone when the session ends."""
+    import gc
+
+    from threadpoolctl import threadpool_info
+
+    from livecap.live.relay import WeightsPipeline
+
+    seen = {}
+
+    def source():
+        seen["blas"] = {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+        seen["frozen"] = gc.get_freeze_count()
+        yield from ()
+
+    WeightsPipeline(source(), []).run()
+    assert seen["blas"] == {1} and seen["frozen"] > 1000
+    assert gc.get_freeze_count() == 0
