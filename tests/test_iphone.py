@@ -312,3 +312,43 @@ def test_the_relay_loop_runs_with_one_blas_thread_and_a_frozen_heap():
     WeightsPipeline(source(), []).run()
     assert seen["blas"] == {1} and seen["frozen"] > 1000
     assert gc.get_freeze_count() == 0
+
+
+class _Keep:
+    def __init__(self):
+        self.got = []
+
+    def publish(self, result):
+        self.got.append((result.frame, result.weights.copy(), result.head_rotation.copy()))
+
+    def close(self):
+        pass
+
+
+def _ramp(n=40, noise=0.0):
+    rng = np.random.default_rng(2)
+    names = ["jawOpen", "eyeBlinkLeft"]
+    return [SolveResult(k, k / 60, names, np.array([0.01 * k, 0.5]) + rng.normal(0, noise, 2),
+                        head_quaternion([0.01 * k, 0.0, 0.0]), np.zeros(3)) for k in range(n)]
+
+
+def test_fixed_lag_smoothing_publishes_each_frame_lag_late_exact_on_a_ramp():
+    from livecap.live.relay import WeightsPipeline
+
+    sink = _Keep()
+    WeightsPipeline(iter(_ramp()), [sink], smooth="3", rate=60.0).run()
+    assert [f for f, _, _ in sink.got] == list(range(37))  # the last 3 are still in the window at the end
+    for f, w, q in sink.got[3:]:
+        assert np.allclose(w, [0.01 * f, 0.5]) and np.allclose(head_angles(q), [0.01 * f, 0, 0], atol=1e-4)
+
+
+def test_one_euro_smoothing_quietens_still_weights_without_delaying_frames():
+    from livecap.live.relay import WeightsPipeline
+
+    frames = _ramp(200, noise=0.02)
+    raw = np.array([r.weights[1] for r in frames])
+    sink = _Keep()
+    WeightsPipeline(iter(frames), [sink], smooth="1e", rate=60.0).run()
+    assert [f for f, _, _ in sink.got] == list(range(200))
+    out = np.array([w[1] for _, w, _ in sink.got])
+    assert np.std(out[50:]) < 0.7 * np.std(raw[50:])  # 0.53 x measured: beta 30 opens the cutoff on jitter

@@ -69,6 +69,8 @@ def register(sub) -> None:
     cal.add_argument("--neutral-seconds", type=float, default=1.0,
                      help="seconds at the start of the stream taken as the neutral face (default 1)")
     add_retarget_arguments(p)
+    p.add_argument("--smooth", default="none", help="--livelink-in: filter the weights and head as the marker path "
+                   "does: none (default, no lag), 1e (1€ filter, causal) or N (fixed lag of N frames; docs/iphone.md)")
     sol = p.add_argument_group("solver")
     sol.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES_AND_AUTO), help=MODE_HELP)
     sol.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
@@ -168,6 +170,8 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         raise ValueError("--window needs --rig: the window draws the rig's mesh (a profile holds none)")
     if (args.map or args.transfer is not None) and not (args.livelink_in and args.rig):
         raise ValueError("--map and --transfer retarget ARKit curves: they need --livelink-in and --rig")
+    if args.smooth != "none" and not args.livelink_in:
+        raise ValueError("--smooth filters an incoming weights stream (--livelink-in); a marker solve has --mode")
     retarget = None
     if args.livelink_in and args.rig:
         from livecap.cli.retarget_args import load_target, retargeter
@@ -332,7 +336,7 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     if args.livelink_in:
         from livecap.live.relay import WeightsPipeline
 
-        return WeightsPipeline(source, sinks, retarget, rate=rate, flush_every=args.flush_every,
+        return WeightsPipeline(source, sinks, retarget, args.smooth, rate=rate, flush_every=args.flush_every,
                                max_frames=args.max_frames,
                                stats_file=args.stats_file, stats_every=args.stats_every), described
     pipeline = Pipeline(source, sinks, profile=profile, calibrator=calibrator,
