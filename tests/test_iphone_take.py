@@ -130,3 +130,13 @@ def test_transfer_onto_ict_itself_gives_back_the_weights():
     move = ict.evaluate(truth) - ict.neutral
     err = ict.evaluate(W) - ict.evaluate(truth)
     assert np.sqrt(np.mean(err ** 2)) < 0.25 * np.sqrt(np.mean(move ** 2))
+
+
+def test_replay_renders_an_llf_csv_on_makehuman_by_its_timecode_frames(tmp_path):
+    _rigs()
+    path = _real("MySlate_3_Jason_Millers_iPhone.csv")
+    assert main(["replay", str(path), "--rig", str(MH), "--map", str(MAP), "--frames", str(tmp_path),
+                 "--every", "60", "--size", "64x48", "--msaa", "0"]) == 0
+    first = read_llf_csv(path).first_frame
+    pngs = sorted(tmp_path.glob("frame_*.png"))
+    assert [p.name for p in pngs[:2]] == [f"frame_{first}.png", f"frame_{first + 60}.png"]
