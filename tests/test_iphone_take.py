@@ -140,3 +140,35 @@ def test_replay_renders_an_llf_csv_on_makehuman_by_its_timecode_frames(tmp_path)
     first = read_llf_csv(path).first_frame
     pngs = sorted(tmp_path.glob("frame_*.png"))
     assert [p.name for p in pngs[:2]] == [f"frame_{first}.png", f"frame_{first + 60}.png"]
+
+
+def test_review_serves_an_llf_csv_on_makehuman_by_transfer_with_its_timecode(tmp_path):
+    """A real ``livecap review`` on the app's CSV: the curves' frames, the first timecode frame, every shape, and
+    virtual markers that the weights explain (residual ~0) for the edits to re-solve against."""
+    import json
+    import subprocess
+    import sys
+    import urllib.request
+
+    _rigs()
+    path = _real("MySlate_3_Jason_Millers_iPhone.csv")
+    cmd = [sys.executable, "-m", "livecap", "review", str(path), "--rig", str(MH), "--transfer", str(ICT),
+           "--port", "0", "--no-browser", "--journal", str(tmp_path / "j")]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert "http://" in line, proc.stderr.read() if proc.poll() is not None else line
+        base, _, token = line.split(" at ")[-1].strip().partition("?token=")
+
+        def get(p):
+            req = urllib.request.Request(base.rstrip("/") + p, headers={"X-Livecap-Token": token})
+            with urllib.request.urlopen(req, timeout=60) as r:
+                return json.loads(r.read())
+        meta, curves = get("/api/meta"), get("/api/curves")
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    c = read_llf_csv(path)
+    assert meta["first_frame"] == c.first_frame and meta["names"] == Rig.load(MH).names
+    assert meta["n_frames"] == int(c.times[-1] * 60 + 1e-6) + 1
+    assert max(curves["residual"]) < 1e-3 and np.abs(np.array(curves["weights"])).max() > 0.1
