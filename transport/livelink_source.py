@@ -92,7 +92,7 @@ def decode_livelink(dgram: bytes) -> LiveLinkPacket:
         raise LiveLinkDecodeError("malformed", f"frame {frame} at {fps}/{den} fps")
     values = np.zeros(61)
     values[:count] = np.frombuffer(dgram, ">f4", count, i)
-    if not (np.isfinite(values).all() and np.isfinite(sub)):
+    if not math.isfinite(float(values.sum()) + sub):  # NaN or inf anywhere survives the sum (no float32 overflows it)
         raise LiveLinkDecodeError("nonfinite", "a value is NaN or infinite")
     return LiveLinkPacket(texts[0], texts[1], frame, float(sub), fps, den, values)
 
