@@ -8,9 +8,10 @@ session, encode), and received back here; latency = receive time - send time of 
 Both paths run in the same invocation, alternately, ``--runs`` times; the tables hold the medians
 over runs of each p99 and of each run's p99 / that run's bare p99 (issue 40 asks <= 1.5). With
 ``--baseline DIR`` a third path runs ``livecap run`` from another checkout (e.g. /work/main) in the same
-runs, so a change is measured against what it replaces on the same load.
+runs, so a change is measured against what it replaces on the same load. ``--driver`` adds flags to
+livecap's command line (comma-separated), e.g. ``--driver=--rig,DIR,--transfer`` for a retargeted path.
 
-    python -m benchmarks.iphone_latency [--quick] [--runs 3] [--baseline /work/main]
+    python -m benchmarks.iphone_latency [--quick] [--runs 3] [--baseline /work/main] [--driver=FLAGS]
 """
 
 from __future__ import annotations
@@ -126,7 +127,8 @@ DRIVER = ["-m", "livecap", "run", "--livelink-in", "127.0.0.1:0", "--livelink", 
           "--idle-timeout", "2"]
 
 
-def run(quick: bool = False, runs: tuple = ("",), baseline: tuple = ("",), rate: float = 60.0) -> dict:
+def run(quick: bool = False, runs: tuple = ("",), baseline: tuple = ("",), driver: tuple = ("",),
+        rate: float = 60.0) -> dict:
     if not PACKETS.exists():
         print(f"{PACKETS} not present: nothing measured")
         return {}
@@ -138,7 +140,7 @@ def run(quick: bool = False, runs: tuple = ("",), baseline: tuple = ("",), rate:
         bare, _ = _measure(["-c", textwrap.dedent(RELAY), "{RX}"], r"relay [\d.]+:(\d+)", count, rate)
         row = {"bare_udp": bare}
         for path, tree in [("livecap", ""), ("baseline", baseline[0])] if baseline[0] else [("livecap", "")]:
-            drv, _ = _measure(DRIVER, r"livelink-in [\d.]+:(\d+)", count, rate, tree)
+            drv, _ = _measure(DRIVER + [a for a in driver if a], r"livelink-in [\d.]+:(\d+)", count, rate, tree)
             drv["p99_over_bare"] = drv.get("p99_ms", float("nan")) / bare.get("p99_ms", float("nan"))
             row[path] = drv
         per_run.append(row)
@@ -152,7 +154,7 @@ def run(quick: bool = False, runs: tuple = ("",), baseline: tuple = ("",), rate:
               for path in per_run[0] if path != "bare_udp"},
            "machine": f"{os.cpu_count()} CPUs, load average {load:.2f} at start, {os.getloadavg()[0]:.2f} at the end",
            "data": "dao.gesichter: 180 real Live Link Face packets (v6, 60 fps), looped, frame = index",
-           "baseline_tree": baseline[0]}
+           "baseline_tree": baseline[0], "driver_flags": [a for a in driver if a]}
     print(f"iPhone latency, Live Link Face packet sent -> Live Link packet received, {count} packets at "
           f"{rate:g} Hz, medians over {n_runs} run(s) ({out['machine']})")
     print(f"{'path':10s} {'recv/sent':>10s} {'p50 ms':>8s} {'p99 ms':>8s} {'max ms':>8s} {'p99/bare':>9s}")
@@ -164,4 +166,4 @@ def run(quick: bool = False, runs: tuple = ("",), baseline: tuple = ("",), rate:
 
 
 if __name__ == "__main__":
-    sys.exit(suite_main(run, __doc__, runs="", baseline=""))
+    sys.exit(suite_main(run, __doc__, runs="", baseline="", driver=""))
