@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from benchmarks.iphone_latency import PACKETS
 from benchmarks.iphone_latency import real_packets as llv_packets
-from livecap.core.eyes import EYE_PITCH, EYE_YAW
+from livecap.core.eyes import EYE_PITCH, EYE_YAW, eye_angles
 from livecap.core.headpose import NeutralPose
 from livecap.core.result import SolveResult
 from tests.conftest import ICT, ROOT, SHARED
@@ -250,6 +250,14 @@ def test_closed_form_rotations_agree_with_scipy(angles, q0):
         fast, _ = pose.relative(q, np.zeros(3))
         slow, _ = pose.relative(q[None], np.zeros((1, 3)))
         assert np.allclose(np.abs(fast @ slow[0]), 1.0, atol=1e-9)
+    still = NeutralPose(np.eye(3), np.zeros(3))  # the iPhone's: its floats-only path against scipy's
+    fast, shift = still.relative(3 * q, np.array(angles) * 100)
+    slow, shift_slow = still.relative(q[None], np.array(angles)[None] * 100)
+    assert np.allclose(np.abs(fast @ slow[0]), 1.0, atol=1e-9) and np.allclose(shift, shift_slow[0])
+    looks = np.abs(np.concatenate([q0, q0[::-1]])).reshape(2, 4)
+    by_numpy = np.stack([EYE_YAW * np.array([-1.0, 1.0]) * (looks[:, 0] - looks[:, 1]),
+                         EYE_PITCH * (looks[:, 2] - looks[:, 3])], axis=1)
+    assert np.allclose(eye_angles(looks), by_numpy)
 
 
 MH = SHARED / "realdata" / "makehuman-head"

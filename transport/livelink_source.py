@@ -27,7 +27,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from livecap.core.headpose import hamilton
 from livecap.core.result import SolveResult
 from transport.arkit import ARKIT_NAMES
 from transport.badinput import BadInput, FrameOrder
@@ -100,9 +99,10 @@ def decode_livelink(dgram: bytes) -> LiveLinkPacket:
 def head_quaternion(yaw_pitch_roll: np.ndarray) -> np.ndarray:
     """The rotation (x, y, z, w) whose :func:`transport.arkit.head_angles` are these angles:
     intrinsic Y, X, Z, i.e. Ry(yaw) Rx(pitch) Rz(roll)."""
-    a, b, c = (0.5 * float(v) for v in yaw_pitch_roll)
-    return hamilton(hamilton((0.0, math.sin(a), 0.0, math.cos(a)), (math.sin(b), 0.0, 0.0, math.cos(b))).tolist(),
-                    (0.0, 0.0, math.sin(c), math.cos(c)))
+    a, b, c = (0.5 * float(v) for v in yaw_pitch_roll)  # floats: per packet (docs/iphone.md, Latency)
+    sy, cy, sx, cx, sz, cz = math.sin(a), math.cos(a), math.sin(b), math.cos(b), math.sin(c), math.cos(c)
+    x, y, z, w = cy * sx, sy * cx, -sy * sx, cy * cx  # (0, sy, 0, cy) (sx, 0, 0, cx), Hamilton's product
+    return np.array([x * cz + y * sz, y * cz - x * sz, w * sz + z * cz, w * cz - z * sz])  # then (0, 0, sz, cz)
 
 
 class LiveLinkFaceSource:
