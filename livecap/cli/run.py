@@ -176,8 +176,6 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     if args.livelink_in and args.rig:
         from livecap.cli.retarget_args import load_target, retargeter
 
-        if want_window:
-            raise ValueError("--window with --livelink-in is not built yet (the window draws a marker solve)")
         rig, layout = load_target(args)
         retarget = retargeter(args, rig, layout)
         labels = []

@@ -93,7 +93,7 @@ class ExpressionTransfer:
         return d @ self._R.T
 
     def step(self, arkit: np.ndarray) -> np.ndarray:
-        return np.asarray(self.solver.step(self.virtual_markers(arkit), self._valid), dtype=float)
+        return np.array(self.solver.step(self.virtual_markers(arkit), self._valid), dtype=float)  # a solver may reuse
 
     def apply(self, arkit: np.ndarray) -> np.ndarray:
         """T x 52 -> T x m, frame by frame (the solver's state carries over, as live)."""
