@@ -82,6 +82,9 @@ class ExpressionTransfer:
         self.solver = build_solver(s.mode, self.profile, {"ridge": s.ridge})
         self._valid = np.ones(len(labels), bool)
         self.names = list(target.names)
+        if hasattr(self.solver, "reset"):  # its compiled kernels load here, not on the stream's first packets
+            self.step(np.zeros(52))
+            self.solver.reset()
 
     def virtual_markers(self, arkit: np.ndarray) -> np.ndarray:
         """n x 3 displacements of the virtual markers from their neutral, in the target rig's frame."""
