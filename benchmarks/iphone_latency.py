@@ -6,9 +6,12 @@ loopback UDP, through either a bare relay process (recv -> sendto, nothing decod
 ``livecap run --livelink-in ... --livelink ... --timecode take`` (decode, every step of a live
 session, encode), and received back here; latency = receive time - send time of the same frame.
 Both paths run in the same invocation, alternately, ``--runs`` times; the tables hold the medians
-over runs of each p99 and of each run's p99 / that run's bare p99 (issue 40 asks <= 1.5).
+over runs of each p99 and of each run's p99 / that run's bare p99 (issue 40 asks <= 1.5). With
+``--baseline DIR`` a third path runs ``livecap run`` from another checkout (e.g. /work/main) in the same
+runs, so a change is measured against what it replaces on the same load. ``--driver`` adds flags to
+livecap's command line (comma-separated), e.g. ``--driver=--rig,DIR,--transfer`` for a retargeted path.
 
-    python -m benchmarks.iphone_latency [--quick] [--runs 3]
+    python -m benchmarks.iphone_latency [--quick] [--runs 3] [--baseline /work/main] [--driver=FLAGS]
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import os
 import re
 import socket
 import struct
+import subprocess
 import sys
 import textwrap
 import threading
@@ -70,13 +74,17 @@ def _with_frame(pkt: bytes, frame: int) -> bytes:
     return pkt[:at] + struct.pack(">if", frame, 0.0) + pkt[at + 8:]
 
 
-def _measure(proc_args: list, address_pattern: str, count: int, rate: float) -> tuple[dict, str]:
-    """Start the path's process with our receive port, send ``count`` packets, time each one back."""
+def _measure(proc_args: list, address_pattern: str, count: int, rate: float, tree: str = "") -> tuple[dict, str]:
+    """Start the path's process (from checkout ``tree``, default this one) with our receive port, send ``count``
+    packets, time each one back."""
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
     rx.bind(("127.0.0.1", 0))
     rx.settimeout(2.0)
-    proc = spawn([a.replace("{RX}", str(rx.getsockname()[1])) for a in map(str, proc_args)])
+    args = [a.replace("{RX}", str(rx.getsockname()[1])) for a in map(str, proc_args)]
+    proc = spawn(args) if not tree else subprocess.Popen(
+        [sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tree,
+        env={**os.environ, "PYTHONPATH": tree})
     port = int(re.search(address_pattern, first_line(proc)).group(1))
     pkts = real_packets()
     sent_at = np.full(count, np.nan)
@@ -115,7 +123,12 @@ def _measure(proc_args: list, address_pattern: str, count: int, rate: float) -> 
     return stats, out
 
 
-def run(quick: bool = False, runs: tuple = ("",), rate: float = 60.0) -> dict:
+DRIVER = ["-m", "livecap", "run", "--livelink-in", "127.0.0.1:0", "--livelink", "127.0.0.1:{RX}", "--timecode", "take",
+          "--idle-timeout", "2"]
+
+
+def run(quick: bool = False, runs: tuple = ("",), baseline: tuple = ("",), driver: tuple = ("",),
+        rate: float = 60.0) -> dict:
     if not PACKETS.exists():
         print(f"{PACKETS} not present: nothing measured")
         return {}
@@ -125,24 +138,27 @@ def run(quick: bool = False, runs: tuple = ("",), rate: float = 60.0) -> dict:
     per_run = []
     for _ in range(n_runs):
         bare, _ = _measure(["-c", textwrap.dedent(RELAY), "{RX}"], r"relay [\d.]+:(\d+)", count, rate)
-        drv, report = _measure(["-m", "livecap", "run", "--livelink-in", "127.0.0.1:0", "--livelink",
-                                "127.0.0.1:{RX}", "--timecode", "take", "--idle-timeout", "2"],
-                               r"livelink-in [\d.]+:(\d+)", count, rate)
-        drv["p99_over_bare"] = drv.get("p99_ms", float("nan")) / bare.get("p99_ms", float("nan"))
-        per_run.append({"bare_udp": bare, "livecap": drv})
+        row = {"bare_udp": bare}
+        for path, tree in [("livecap", ""), ("baseline", baseline[0])] if baseline[0] else [("livecap", "")]:
+            drv, _ = _measure(DRIVER + [a for a in driver if a], r"livelink-in [\d.]+:(\d+)", count, rate, tree)
+            drv["p99_over_bare"] = drv.get("p99_ms", float("nan")) / bare.get("p99_ms", float("nan"))
+            row[path] = drv
+        per_run.append(row)
 
     def med(path: str, key: str) -> float:
         return float(np.median([r[path].get(key, np.nan) for r in per_run]))
 
     out = {"rate_hz": rate, "packets": count, "runs": n_runs, "per_run": per_run,
            "bare_udp": {k: med("bare_udp", k) for k in ("received", "p50_ms", "p99_ms", "max_ms")},
-           "livecap": {k: med("livecap", k) for k in ("received", "p50_ms", "p99_ms", "max_ms", "p99_over_bare")},
+           **{path: {k: med(path, k) for k in ("received", "p50_ms", "p99_ms", "max_ms", "p99_over_bare")}
+              for path in per_run[0] if path != "bare_udp"},
            "machine": f"{os.cpu_count()} CPUs, load average {load:.2f} at start, {os.getloadavg()[0]:.2f} at the end",
-           "data": "dao.gesichter: 180 real Live Link Face packets (v6, 60 fps), looped, frame = index"}
+           "data": "dao.gesichter: 180 real Live Link Face packets (v6, 60 fps), looped, frame = index",
+           "baseline_tree": baseline[0], "driver_flags": [a for a in driver if a]}
     print(f"iPhone latency, Live Link Face packet sent -> Live Link packet received, {count} packets at "
           f"{rate:g} Hz, medians over {n_runs} run(s) ({out['machine']})")
     print(f"{'path':10s} {'recv/sent':>10s} {'p50 ms':>8s} {'p99 ms':>8s} {'max ms':>8s} {'p99/bare':>9s}")
-    for path in ("bare_udp", "livecap"):
+    for path in per_run[0]:
         r = out[path]
         print(f"{path:10s} {r['received']:>5.0f}/{count:<4d} {r['p50_ms']:8.3f} {r['p99_ms']:8.3f} {r['max_ms']:8.3f} "
               f"{r.get('p99_over_bare', 1.0):9.2f}")
@@ -150,4 +166,4 @@ def run(quick: bool = False, runs: tuple = ("",), rate: float = 60.0) -> dict:
 
 
 if __name__ == "__main__":
-    sys.exit(suite_main(run, __doc__, runs=""))
+    sys.exit(suite_main(run, __doc__, runs="", baseline="", driver=""))

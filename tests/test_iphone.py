@@ -23,14 +23,17 @@ from scipy.spatial.transform import Rotation
 
 from benchmarks.iphone_latency import PACKETS
 from benchmarks.iphone_latency import real_packets as llv_packets
-from livecap.core.eyes import EYE_PITCH, EYE_YAW
+from livecap.core.eyes import EYE_PITCH, EYE_YAW, eye_angles
 from livecap.core.headpose import NeutralPose
 from livecap.core.result import SolveResult
+from tests.conftest import ICT, ROOT, SHARED
 from transport.arkit import POSE_NAMES, head_angles
 from transport.livelink import LiveLinkSink, encode_livelink
 from transport.livelink_source import LiveLinkFaceSource, decode_livelink, head_quaternion
 from transport.recorders import CsvRecorder
 from transport.vmc import PERFECT_SYNC_NAMES, VmcSink
+
+MAP = ROOT / "examples" / "makehuman_arkit.json"
 
 
 def real_packets() -> list[bytes]:
@@ -100,6 +103,12 @@ def test_bad_packets_are_counted_and_a_new_device_is_followed():
 @pytest.fixture(scope="module")
 def session():
     """The 180 real packets at 60 Hz into a real ``livecap run --livelink-in`` with VMC and ZeroMQ out."""
+    return run_session(["--vmc-perfect-sync"])
+
+
+def run_session(extra: list[str]):
+    """``livecap run --livelink-in`` with ``extra`` flags, fed the real packets at their rate: (packets,
+    ZeroMQ weight messages, VMC bundles, the report)."""
     import msgpack
     import zmq
 
@@ -109,7 +118,7 @@ def session():
     vmc.bind(("127.0.0.1", 0))
     vmc.settimeout(0.5)
     cmd = [sys.executable, "-m", "livecap", "run", "--livelink-in", "127.0.0.1:0", "--vmc",
-           f"127.0.0.1:{vmc.getsockname()[1]}", "--vmc-perfect-sync", "--zmq-out", "tcp://127.0.0.1:*",
+           f"127.0.0.1:{vmc.getsockname()[1]}", *extra, "--zmq-out", "tcp://127.0.0.1:*",
            "--idle-timeout", "1.5", "--first-frame-timeout", "30"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     ctx = zmq.Context()
@@ -241,3 +250,113 @@ def test_closed_form_rotations_agree_with_scipy(angles, q0):
         fast, _ = pose.relative(q, np.zeros(3))
         slow, _ = pose.relative(q[None], np.zeros((1, 3)))
         assert np.allclose(np.abs(fast @ slow[0]), 1.0, atol=1e-9)
+    still = NeutralPose(np.eye(3), np.zeros(3))  # the iPhone's: its floats-only path against scipy's
+    fast, shift = still.relative(3 * q, np.array(angles) * 100)
+    slow, shift_slow = still.relative(q[None], np.array(angles)[None] * 100)
+    assert np.allclose(np.abs(fast @ slow[0]), 1.0, atol=1e-9) and np.allclose(shift, shift_slow[0])
+    looks = np.abs(np.concatenate([q0, q0[::-1]])).reshape(2, 4)
+    by_numpy = np.stack([EYE_YAW * np.array([-1.0, 1.0]) * (looks[:, 0] - looks[:, 1]),
+                         EYE_PITCH * (looks[:, 2] - looks[:, 3])], axis=1)
+    assert np.allclose(eye_angles(looks), by_numpy)
+
+
+MH = SHARED / "realdata" / "makehuman-head"
+
+
+@pytest.fixture(scope="module", params=["map", "transfer"])
+def makehuman(request):
+    """The same packets retargeted onto the MakeHuman head (no ARKit names) by the mapping file and by
+    expression transfer through the ICT face; what each frame must carry, computed here in-process."""
+    from livecap.core.markers import MarkerLayout
+    from livecap.core.rig import Rig
+    from livecap.retarget import ByName, ExpressionTransfer
+    from transport.arkit import load_mapping
+
+    if not (MH / "neutral.obj").exists() or not (ICT / "neutral.obj").exists():
+        pytest.skip(f"MakeHuman head or ICT rig absent under {SHARED / 'realdata'}")
+    mh = Rig.load(MH)
+    how = ["--map", str(MAP)] if request.param == "map" else ["--transfer", str(ICT)]
+    if request.param == "map":
+        expected = ByName(mh, load_mapping(MAP))
+    else:
+        ict = Rig.load(ICT)
+        expected = ExpressionTransfer(ict, MarkerLayout.load(ICT / "markers.json", ict), mh)
+    pkts, frames, bundles, out = run_session(["--rig", str(MH), *how])
+    want = [np.array(expected.step(p.values[:52]), dtype=float) for p in pkts]
+    return request.param, mh.names, pkts, want, frames, bundles, out
+
+
+def test_makehuman_gets_the_retargeted_weights_and_the_packet_head_on_zmq_and_vmc(makehuman):
+    how, names, pkts, want, frames, bundles, out = makehuman
+    assert [m["frame"] for m in frames] == [p.frame for p in pkts], out
+    assert len(bundles) == len(pkts) and "bad input: none" in out
+    tol = 0 if how == "map" else 1e-5  # the map is one exact matrix; the transfer's QP agrees to float32
+    for m, dgram, p, w in zip(frames, bundles, pkts, want, strict=True):
+        assert np.allclose(np.frombuffer(m["weights"], "<f4"), w.astype(np.float32), rtol=0, atol=tol)
+        assert np.allclose(head_angles(np.array(m["head_rotation"])), p.values[52:55], atol=1e-6)
+        msgs = list(OscBundle(dgram))
+        vals = {x.params[0]: x.params[1] for x in msgs if x.address == "/VMC/Ext/Blend/Val"}
+        assert list(vals) == names
+        assert np.allclose(np.array(list(vals.values()), np.float32), w.astype(np.float32), rtol=0, atol=tol)
+    assert np.abs(np.stack(want)).max() > 0.2  # the face moves
+
+
+def test_the_relay_loop_runs_with_one_blas_thread_and_a_frozen_heap():
+    """What the packet -> weights p99 needed (docs/iphone.md, Latency): no OpenBLAS thread wake-ups, no full
+    collection walking the start-up's objects; both undone when the session ends."""
+    import gc
+
+    from threadpoolctl import threadpool_info
+
+    from livecap.live.relay import WeightsPipeline
+
+    seen = {}
+
+    def source():
+        seen["blas"] = {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+        seen["frozen"] = gc.get_freeze_count()
+        yield from ()
+
+    WeightsPipeline(source(), []).run()
+    assert seen["blas"] == {1} and seen["frozen"] > 1000
+    assert gc.get_freeze_count() == 0
+
+
+class _Keep:
+    def __init__(self):
+        self.got = []
+
+    def publish(self, result):
+        self.got.append((result.frame, result.weights.copy(), result.head_rotation.copy()))
+
+    def close(self):
+        pass
+
+
+def _ramp(n=40, noise=0.0):
+    rng = np.random.default_rng(2)
+    names = ["jawOpen", "eyeBlinkLeft"]
+    return [SolveResult(k, k / 60, names, np.array([0.01 * k, 0.5]) + rng.normal(0, noise, 2),
+                        head_quaternion([0.01 * k, 0.0, 0.0]), np.zeros(3)) for k in range(n)]
+
+
+def test_fixed_lag_smoothing_publishes_each_frame_lag_late_exact_on_a_ramp():
+    from livecap.live.relay import WeightsPipeline
+
+    sink = _Keep()
+    WeightsPipeline(iter(_ramp()), [sink], smooth="3", rate=60.0).run()
+    assert [f for f, _, _ in sink.got] == list(range(37))  # the last 3 are still in the window at the end
+    for f, w, q in sink.got[3:]:
+        assert np.allclose(w, [0.01 * f, 0.5]) and np.allclose(head_angles(q), [0.01 * f, 0, 0], atol=1e-4)
+
+
+def test_one_euro_smoothing_quietens_still_weights_without_delaying_frames():
+    from livecap.live.relay import WeightsPipeline
+
+    frames = _ramp(200, noise=0.02)
+    raw = np.array([r.weights[1] for r in frames])
+    sink = _Keep()
+    WeightsPipeline(iter(frames), [sink], smooth="1e", rate=60.0).run()
+    assert [f for f, _, _ in sink.got] == list(range(200))
+    out = np.array([w[1] for _, w, _ in sink.got])
+    assert np.std(out[50:]) < 0.7 * np.std(raw[50:])  # 0.53 x measured: beta 30 opens the cutoff on jitter

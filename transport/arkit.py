@@ -12,6 +12,7 @@ the mean of the sides. A JSON mapping file overrides or completes the automatic 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -52,11 +53,11 @@ def head_angles(quat_xyzw: np.ndarray) -> np.ndarray:
     Axes of livecap's head frame: +y up (yaw), +x towards the subject's left (pitch), +z out of
     the face (roll); intrinsic Y-X-Z order.
     """
-    q = np.asarray(quat_xyzw, dtype=float)
-    n = np.linalg.norm(q)
-    if not np.isfinite(q).all() or n < 1e-9:
+    x, y, z, w = np.asarray(quat_xyzw, dtype=float).tolist()  # floats: a per-packet path (docs/iphone.md)
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if not math.isfinite(n) or n < 1e-9:
         return np.zeros(3)
-    x, y, z, w = q / n  # the matrix entries of R = Ry(yaw) Rx(pitch) Rz(roll) that give the angles
-    return np.array([np.arctan2(2 * (x * z + w * y), 1 - 2 * (x * x + y * y)),
-                     np.arcsin(np.clip(-2 * (y * z - w * x), -1.0, 1.0)),
-                     np.arctan2(2 * (x * y + w * z), 1 - 2 * (x * x + z * z))])
+    x, y, z, w = x / n, y / n, z / n, w / n  # the matrix entries of R = Ry(yaw) Rx(pitch) Rz(roll) that give them
+    return np.array([math.atan2(2 * (x * z + w * y), 1 - 2 * (x * x + y * y)),
+                     math.asin(min(1.0, max(-1.0, -2 * (y * z - w * x)))),
+                     math.atan2(2 * (x * y + w * z), 1 - 2 * (x * x + z * z))])

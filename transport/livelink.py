@@ -83,6 +83,7 @@ class LiveLinkSink:
         self.drops = 0
         self._names: Sequence[str] | None = None
         self._M = np.zeros((len(ARKIT_NAMES), 0))
+        self._same = False
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setblocking(False)
 
@@ -90,8 +91,9 @@ class LiveLinkSink:
         if result.names is not self._names:
             self._M = arkit_matrix(result.names, self.mapping, self.where)
             self._names = result.names
+            self._same = self._M.shape == (52, 52) and np.array_equal(self._M, np.eye(52))  # ARKit in, in order
         out = np.zeros(N_VALUES)
-        out[:52] = self._M @ np.asarray(result.weights, dtype=float)
+        out[:52] = result.weights if self._same else self._M @ np.asarray(result.weights, dtype=float)
         rotation, _ = self.neutral.relative(result.head_rotation, result.head_translation)
         out[52:55] = head_angles(rotation)
         out[_EYE_ANGLES] = arkit_eye_angles(out[:52]).ravel()

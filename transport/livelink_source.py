@@ -18,6 +18,7 @@ device id, or frame numbers jumping back, is a sender that restarted: counted as
 
 from __future__ import annotations
 
+import math
 import socket
 import struct
 import time
@@ -26,7 +27,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from livecap.core.headpose import hamilton
 from livecap.core.result import SolveResult
 from transport.arkit import ARKIT_NAMES
 from transport.badinput import BadInput, FrameOrder
@@ -91,7 +91,7 @@ def decode_livelink(dgram: bytes) -> LiveLinkPacket:
         raise LiveLinkDecodeError("malformed", f"frame {frame} at {fps}/{den} fps")
     values = np.zeros(61)
     values[:count] = np.frombuffer(dgram, ">f4", count, i)
-    if not (np.isfinite(values).all() and np.isfinite(sub)):
+    if not math.isfinite(float(values.sum()) + sub):  # NaN or inf anywhere survives the sum (no float32 overflows it)
         raise LiveLinkDecodeError("nonfinite", "a value is NaN or infinite")
     return LiveLinkPacket(texts[0], texts[1], frame, float(sub), fps, den, values)
 
@@ -99,9 +99,10 @@ def decode_livelink(dgram: bytes) -> LiveLinkPacket:
 def head_quaternion(yaw_pitch_roll: np.ndarray) -> np.ndarray:
     """The rotation (x, y, z, w) whose :func:`transport.arkit.head_angles` are these angles:
     intrinsic Y, X, Z, i.e. Ry(yaw) Rx(pitch) Rz(roll)."""
-    a, b, c = np.asarray(yaw_pitch_roll, dtype=float) / 2
-    return hamilton(hamilton([0.0, np.sin(a), 0.0, np.cos(a)], [np.sin(b), 0.0, 0.0, np.cos(b)]),
-                    [0.0, 0.0, np.sin(c), np.cos(c)])
+    a, b, c = (0.5 * float(v) for v in yaw_pitch_roll)  # floats: per packet (docs/iphone.md, Latency)
+    sy, cy, sx, cx, sz, cz = math.sin(a), math.cos(a), math.sin(b), math.cos(b), math.sin(c), math.cos(c)
+    x, y, z, w = cy * sx, sy * cx, -sy * sx, cy * cx  # (0, sy, 0, cy) (sx, 0, 0, cx), Hamilton's product
+    return np.array([x * cz + y * sz, y * cz - x * sz, w * sz + z * cz, w * cz - z * sz])  # then (0, 0, sz, cz)
 
 
 class LiveLinkFaceSource:

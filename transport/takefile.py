@@ -10,6 +10,7 @@ from livecap.core.take import Take
 from transport.c3d import read_c3d, write_c3d
 from transport.csv_take import read_csv_take, write_csv_take
 from transport.errors import TakeFileError
+from transport.llf_csv import is_llf_csv
 from transport.trc import read_trc, write_trc
 
 READERS = {".c3d": read_c3d, ".trc": read_trc, ".csv": read_csv_take}
@@ -23,7 +24,15 @@ def read_take(path: str | Path) -> Take:
     reader = READERS.get(path.suffix.lower())
     if reader is None:
         raise TakeFileError(f"{path}: unknown take format (expected one of {sorted(READERS)})")
+    if is_weights_take(path):
+        raise TakeFileError(f"{path}: a Live Link Face CSV holds ARKit weights, not markers (livecap solve, "
+                            "replay and review read it with --rig; docs/iphone.md)")
     return reader(path)
+
+
+def is_weights_take(path: str | Path) -> bool:
+    """A take of weights rather than markers: the Live Link Face app's CSV (transport/llf_csv.py)."""
+    return Path(path).suffix.lower() == ".csv" and is_llf_csv(path)
 
 
 FACE_MM = (20.0, 600.0)  # a face's markers span ~100-300 mm; outside this range the units are suspect

@@ -21,10 +21,11 @@ from livecap.cli.common import (
     solver_options,
 )
 from livecap.cli.progress import stage
+from livecap.cli.retarget_args import add_retarget_arguments
 from livecap.demo import truth_path
 from livecap.modes.registry import build_solver
 from livecap.offline.solve import prepare_targets
-from transport.takefile import read_take
+from transport.takefile import is_weights_take, read_take
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -48,6 +49,7 @@ def register(sub) -> None:
     p.add_argument("--msaa", type=int, default=4, help="multisample anti-aliasing samples (0: off; default 4)")
     p.add_argument("--truth", help="ground truth .npz (default: <take>.truth.npz when present)")
     p.add_argument("--no-truth", action="store_true", help="draw the solve alone even when ground truth exists")
+    add_retarget_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -96,6 +98,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("nothing to write: give --preview out.mp4 and/or --frames DIR")
     if args.every < 1:
         raise ValueError("--every must be >= 1")
+    if is_weights_take(args.take):
+        return _weights_take(args)
     rig, layout = load_rig(args)
     take = read_take(args.take)
     profile = profile_for(args, rig, layout, take)
@@ -143,4 +147,31 @@ def run(args: argparse.Namespace) -> int:
     print(f"{where}: {writer.count} frames {out_size[0]}x{out_size[1]} at {take.rate / args.every:g} fps "
           f"({writer.count / max(elapsed, 1e-9):.1f} frames/s rendered)"
           + (", ground truth on the left" if truth is not None else ""))
+    return 0
+
+
+def _weights_take(args: argparse.Namespace) -> int:
+    """A Live Link Face CSV: the rig driven by its curves (by name, --map or --transfer) and its head angles."""
+    from livecap.cli.retarget_args import describe, load_target, retargeter
+    from livecap.retarget.take import retarget_curves
+    from transport.llf_csv import read_llf_csv
+    from viewer.compose import Caption
+    from viewer.offscreen import FrameWriter
+    from viewer.preview import Preview
+
+    rig, layout = load_target(args)
+    solved = retarget_curves(read_llf_csv(args.take), retargeter(args, rig, layout))
+    preview = Preview(rig, None, None, args.size, samples=args.msaa)
+    frames = range(0, len(solved.weights), args.every)
+    title = f"Live Link Face, {describe(args)}"
+    with FrameWriter(args.preview, args.frames, solved.rate / args.every, args.size) as writer, \
+            progress_bar(f"rendering {len(frames)} frames", len(frames)) as update:
+        for done, i in enumerate(frames, 1):
+            number = solved.first_frame + i
+            img = preview.draw(solved.weights[i], solved.head_rotation[i], np.zeros(3),
+                               caption=Caption(number, i / solved.rate, title=title))
+            writer.write(img, number)
+            update(done, len(frames))
+    where = " and ".join(str(p) for p in (args.preview, args.frames) if p)
+    print(f"{where}: {writer.count} frames {args.size[0]}x{args.size[1]} at {solved.rate / args.every:g} fps")
     return 0

@@ -10,6 +10,7 @@ import argparse
 import webbrowser
 
 from livecap.cli.common import add_calibration_arguments, add_rig_arguments
+from livecap.cli.retarget_args import add_retarget_arguments
 
 
 def register(sub) -> None:
@@ -26,6 +27,7 @@ def register(sub) -> None:
     p.add_argument("--pull", type=float, default=1.0, help="direct manipulation: pull towards the current weights")
     p.add_argument("--journal", help="edit journal (default <take>.review-edits beside the take; replayed on reopen)")
     p.add_argument("--no-browser", action="store_true", help="only print the URL")
+    add_retarget_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -40,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
     from livecap.review.load import open_session
     from livecap.review.server import make_app
     from transport.gltf import glb_bytes
+    from transport.takefile import is_weights_take
 
     sock = socket.socket(socket.AF_INET6 if ":" in args.interface else socket.AF_INET)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -47,8 +50,9 @@ def run(args: argparse.Namespace) -> int:
         sock.bind((args.interface, args.port))
     except OSError as exc:
         raise OSError(f"--port {args.port}: cannot listen on {args.interface} ({exc.strerror})") from None
-    session = open_session(args.take, args.rig, args.markers, args.profile, args.weights, args.truth, args.mode,
-                           args.neutral_seconds, args.pull)
+    session = _weights_session(args) if is_weights_take(args.take) else open_session(
+        args.take, args.rig, args.markers, args.profile, args.weights, args.truth, args.mode, args.neutral_seconds,
+        args.pull)
     _journal(session, args)
     rest = np.zeros((1, len(session.names)))
     host, port = sock.getsockname()[:2]
@@ -65,6 +69,23 @@ def run(args: argparse.Namespace) -> int:
             pass
     asyncio.run(_serve(app, sock))
     return 0
+
+
+def _weights_session(args: argparse.Namespace):
+    """A Live Link Face CSV onto the rig (by name, --map or --transfer); the markers the edits need are the
+    rig's own, or with --transfer the ICT face's sites on it."""
+    from livecap.cli.retarget_args import load_target, retargeter
+    from livecap.retarget.take import retarget_curves
+    from livecap.review.load import weights_session
+    from transport.llf_csv import read_llf_csv
+
+    rig, layout = load_target(args)
+    retarget = retargeter(args, rig, layout)
+    layout = getattr(retarget, "layout", layout)
+    if layout is None:
+        raise ValueError(f"{args.rig}: reviewing a Live Link Face CSV needs the rig's markers (for the edits): give "
+                         "--markers, or --transfer")
+    return weights_session(rig, layout, retarget_curves(read_llf_csv(args.take), retarget), args.pull)
 
 
 def _machine_names() -> tuple[str, ...]:

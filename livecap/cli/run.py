@@ -15,6 +15,7 @@ from pathlib import Path
 
 from livecap.calibration.profile import Profile, calibrate, estimate_neutral
 from livecap.cli.common import load_rig, tune_on_take
+from livecap.cli.retarget_args import add_retarget_arguments
 from livecap.live.checks import check_overlap, check_profile_rig
 from livecap.live.pipeline import Pipeline
 from livecap.live.session import load_session
@@ -67,6 +68,9 @@ def register(sub) -> None:
     cal.add_argument("--markers", help="markers.json (default: beside the rig)")
     cal.add_argument("--neutral-seconds", type=float, default=1.0,
                      help="seconds at the start of the stream taken as the neutral face (default 1)")
+    add_retarget_arguments(p)
+    p.add_argument("--smooth", default="none", help="--livelink-in: filter the weights and head as the marker path "
+                   "does: none (default, no lag), 1e (1€ filter, causal) or N (fixed lag of N frames; docs/iphone.md)")
     sol = p.add_argument_group("solver")
     sol.add_argument("--mode", default=DEFAULT_MODE, choices=sorted(MODES_AND_AUTO), help=MODE_HELP)
     sol.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
@@ -164,7 +168,18 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     want_window = args.window or args.window_optional
     if want_window and not args.rig:
         raise ValueError("--window needs --rig: the window draws the rig's mesh (a profile holds none)")
-    if args.profile:
+    if (args.map or args.transfer is not None) and not (args.livelink_in and args.rig):
+        raise ValueError("--map and --transfer retarget ARKit curves: they need --livelink-in and --rig")
+    if args.smooth != "none" and not args.livelink_in:
+        raise ValueError("--smooth filters an incoming weights stream (--livelink-in); a marker solve has --mode")
+    retarget = None
+    if args.livelink_in and args.rig:
+        from livecap.cli.retarget_args import load_target, retargeter
+
+        rig, layout = load_target(args)
+        retarget = retargeter(args, rig, layout)
+        labels = []
+    elif args.profile:
         profile = Profile.load(args.profile)
         labels = profile.labels
         if want_window or args.rig:
@@ -243,10 +258,10 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
         described[-1] += " (unlabelled)"
 
     mapping = None
-    if args.arkit_map:
+    if args.arkit_map or args.map:  # a rig reached by --map speaks ARKit to the sinks through the same file
         from transport.arkit import load_mapping
 
-        mapping = load_mapping(args.arkit_map)
+        mapping = load_mapping(args.arkit_map or args.map)
     sinks: list = []
     neutral_frames = max(1, int(round(args.neutral_seconds * rate)))
     if args.timecode not in ("clock", "take"):
@@ -322,7 +337,8 @@ def build(args: argparse.Namespace) -> tuple[Pipeline, list[str]]:
     if args.livelink_in:
         from livecap.live.relay import WeightsPipeline
 
-        return WeightsPipeline(source, sinks, rate=rate, flush_every=args.flush_every, max_frames=args.max_frames,
+        return WeightsPipeline(source, sinks, retarget, args.smooth, rate=rate, flush_every=args.flush_every,
+                               max_frames=args.max_frames,
                                stats_file=args.stats_file, stats_every=args.stats_every), described
     pipeline = Pipeline(source, sinks, profile=profile, calibrator=calibrator,
                         calibrate_frames=max(1, int(round(args.neutral_seconds * rate))), labels=labels, rate=rate,

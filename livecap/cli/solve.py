@@ -14,11 +14,12 @@ from livecap.cli.common import (
     solver_options,
 )
 from livecap.cli.movement_args import add_movement_arguments, movement_options
+from livecap.cli.retarget_args import add_retarget_arguments
 from livecap.modes.per_frame import QPSettings, check_keys
 from livecap.modes.registry import build_solver, resolve_mode
 from livecap.offline.glb import write_solved_glb
 from livecap.offline.solve import solve_take
-from transport.takefile import read_take
+from transport.takefile import is_weights_take, read_take
 from transport.weights_csv import write_weights_csv
 
 
@@ -36,6 +37,7 @@ def register(sub) -> None:
     p.add_argument("--unlabelled", action="store_true",
                    help="the take's points are unlabelled or wrongly named: label them against --profile first")
     add_movement_arguments(p)
+    add_retarget_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -48,6 +50,8 @@ def solve_options(args: argparse.Namespace) -> dict:
 def run(args: argparse.Namespace) -> int:
     check_keys(args.mode, {"keys": args.keys, "basis": args.basis})
     glb = Path(args.out).suffix.lower() == ".glb"
+    if is_weights_take(args.take):
+        return _weights_take(args, glb)
     if args.profile and not (glb or args.unlabelled):
         rig = None
         take = read_take(args.take)
@@ -73,3 +77,24 @@ def run(args: argparse.Namespace) -> int:
           f"({solved.solve_seconds * 1e3 / take.n_frames:.3f} ms/frame)")
     return 0
 
+
+
+def _weights_take(args: argparse.Namespace, glb: bool) -> int:
+    """A Live Link Face CSV: its ARKit curves onto the rig (by name, --map or --transfer), no marker solve."""
+    from livecap.cli.retarget_args import describe, load_target, retargeter
+    from livecap.core.timecode import format_timecode
+    from livecap.retarget.take import retarget_curves
+    from transport.llf_csv import read_llf_csv
+
+    curves = read_llf_csv(args.take)
+    rig, layout = load_target(args)
+    solved = retarget_curves(curves, retargeter(args, rig, layout))
+    if glb:
+        write_solved_glb(args.out, rig, solved, max(1, int(args.neutral_seconds * solved.rate)))
+    else:
+        write_weights_csv(args.out, solved.names, solved.weights, solved.rate, solved.first_frame)
+    bad = f", {curves.bad} unreadable (first {curves.first_bad})" if curves.bad else ""
+    print(f"{args.out}: {len(solved.weights)} frames x {len(solved.names)} shapes from a Live Link Face CSV "
+          f"({len(curves.times)} rows from timecode {format_timecode(curves.start)}, "
+          f"{curves.lost} tracking lost{bad}; {describe(args)})")
+    return 0

@@ -21,5 +21,7 @@ _OUTWARD = np.array([-1.0, 1.0])  # the left eye looks out towards the subject's
 def eye_angles(looks: np.ndarray, yaw: float = EYE_YAW, pitch: float = EYE_PITCH) -> np.ndarray:
     """2 x 2 (left, right) x (yaw, pitch) radians from ``looks``, 2 x 4 weights of eyeLook
     Out, In, Down, Up for the left and the right eye."""
-    w = np.asarray(looks, dtype=float).reshape(2, 4)
-    return np.stack([yaw * _OUTWARD * (w[:, 0] - w[:, 1]), pitch * (w[:, 2] - w[:, 3])], axis=1)
+    # Python floats: it runs per packet, where each small numpy operation costs more (docs/iphone.md, Latency)
+    (o0, i0, d0, u0), (o1, i1, d1, u1) = np.asarray(looks, dtype=float).reshape(2, 4).tolist()
+    s0, s1 = _OUTWARD.tolist()
+    return np.array([[yaw * s0 * (o0 - i0), pitch * (d0 - u0)], [yaw * s1 * (o1 - i1), pitch * (d1 - u1)]])

@@ -11,6 +11,7 @@ forward, so its pose is the mirror image in X.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -44,11 +45,21 @@ class NeutralPose:
         """Head rotation (x, y, z, w) and shift (metres) relative to this pose, in the rig's axes."""
         q = np.asarray(quaternions, dtype=np.float64)
         t = np.asarray(translations, dtype=np.float64)
-        shift = (t.reshape(-1, 3) - self.translation) @ self.rotation / 1000.0
         if q.shape == (4,):  # a live frame: scipy's per-call overhead (~0.1 ms) is most of a sink's time
-            return hamilton(self._inverse_quat, q / np.linalg.norm(q)), shift.reshape(t.shape)
+            x, y, z, w = q.tolist()
+            n = math.sqrt(x * x + y * y + z * z + w * w)
+            unit = (x / n, y / n, z / n, w / n)
+            if self._identity:  # a source already relative to its neutral (the iPhone's): nothing to undo
+                return np.array(unit), t / 1000.0
+            shift = (t.reshape(-1, 3) - self.translation) @ self.rotation / 1000.0
+            return hamilton(self._inverse_quat, unit), shift.reshape(t.shape)
+        shift = (t.reshape(-1, 3) - self.translation) @ self.rotation / 1000.0
         rel = self._inverse * Rotation.from_quat(q.reshape(-1, 4))
         return rel.as_quat().reshape(q.shape), shift.reshape(t.shape)
+
+    @cached_property
+    def _identity(self) -> bool:
+        return bool(np.array_equal(self.rotation, np.eye(3)) and not np.any(self.translation))
 
     @cached_property
     def _inverse_quat(self) -> np.ndarray:
@@ -57,8 +68,9 @@ class NeutralPose:
 
 def hamilton(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Quaternion product ``a b`` (x, y, z, w): the rotation b, then a."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
+    # Python floats: numpy scalar arithmetic costs ~10x more per operation on a per-packet path (docs/iphone.md)
+    ax, ay, az, aw = a.tolist() if isinstance(a, np.ndarray) and a.ndim == 1 else a
+    bx, by, bz, bw = b.tolist() if isinstance(b, np.ndarray) and b.ndim == 1 else b
     return np.array([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
                      aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz])
 
@@ -92,7 +104,8 @@ class NeutralWindow:
     def relative(self, quaternion: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         q = np.asarray(quaternion, dtype=np.float64)
         t = np.asarray(translation, dtype=np.float64)
-        if not (np.isfinite(q).all() and np.isfinite(t).all()) or np.linalg.norm(q) < 1e-9:
+        qs, ts = q.ravel().tolist(), t.ravel().tolist()  # floats: a per-frame path (docs/iphone.md, Latency)
+        if not all(map(math.isfinite, qs + ts)) or math.sqrt(sum(v * v for v in qs)) < 1e-9:
             return np.array([0.0, 0.0, 0.0, 1.0]), np.zeros(3)
         if len(self._q) < self.frames:
             self._q.append(q)

@@ -68,3 +68,20 @@ def _truth(path: str | None, take_path: str, names: list[str], n_frames: int) ->
         raise ValueError(f"{p}: ground truth lacks shapes {missing[:4]} or has {len(gt.weights)} frames, "
                          f"not {n_frames}")
     return np.asarray(gt.weights)[:, [gt.names.index(n) for n in names]]
+
+
+def weights_session(rig, layout, solved, pull: float = 1.0) -> ReviewSession:
+    """A take of weights (a Live Link Face CSV put onto ``rig``, livecap.retarget.take): the rig's own marker
+    sites driven by them stand for the markers, so edits re-solve against the curves as they came."""
+    from livecap.calibration.profile import calibrate
+    from livecap.core.take import Take
+
+    sites = layout.marker_rig(rig)
+    prof = calibrate(rig, layout, sites.neutral)
+    W = np.asarray(solved.weights, dtype=np.float64)[:, [list(solved.names).index(n) for n in prof.names]]
+    positions = sites.evaluate(W)
+    valid = np.ones(positions.shape[:2], bool)
+    take = Take(list(layout.labels), positions, valid, solved.rate, solved.first_frame)
+    editor = build_movement(prof, {"robust": False})
+    return ReviewSession(rig, layout, prof, take, W, positions - prof.source_neutral, valid, solved.head_rotation,
+                         solved.head_translation, editor, None, pull)
