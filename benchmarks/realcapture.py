@@ -45,7 +45,9 @@ MISMATCH_SIGNALS = [
 
 
 def metrics(profile, solved, signals, first: int) -> dict:
-    """The plausibility figures of one solve (``first``: frames of the near-neutral start)."""
+    """The plausibility figures of one solve (``first``: frames of the near-neutral start), with what says where
+    a phantom comes from: the per-marker residual and the shapes each phantom (mouthFrown, the strongest eye
+    gaze) moves with."""
     from livecap.offline import plausibility as pl
 
     W, names = solved.weights, list(profile.names)
@@ -53,7 +55,15 @@ def metrics(profile, solved, signals, first: int) -> dict:
     quiet = pl.quiet_activity(W, solved.targets, solved.valid, pl.shape_markers(profile.basis))
     worst = np.argsort(-np.nan_to_num(quiet))[:3]
     jumps, per_shape = pl.jump_share(W)
-    return {"sum_first_s": pl.weight_sum(W, slice(0, first)), "gaze_max": pl.max_weight(W, names),
+    resid = pl.marker_residual(W, profile.basis, solved.targets, solved.valid)
+    phantoms = [names[j] for j in frown]
+    gaze = [j for j, n in enumerate(names) if pl.GAZE.search(n)]
+    if gaze:
+        phantoms.append(names[gaze[int(np.argmax(W[:, gaze].max(axis=0)))]])
+    return {"resid_worst": [(profile.labels[i], float(resid[i])) for i in np.argsort(-resid)[:4]],
+            "resid_rms": float(np.sqrt(np.mean(resid**2))),
+            "partners": {p: pl.partners(W, names, p) for p in phantoms},
+            "sum_first_s": pl.weight_sum(W, slice(0, first)), "gaze_max": pl.max_weight(W, names),
             "frown_mean": float(W[:, frown].mean()), "quiet_worst": [(names[j], float(quiet[j])) for j in worst],
             "corr": pl.signal_correlations(signals, names, W, profile.labels, solved.targets, profile.source_neutral),
             "jumps": jumps, "jumpiest": names[int(np.argmax(per_shape))]}
@@ -141,6 +151,10 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['sum_first_s'][0]:.3f} max {r['sum_first_s'][1]:.3f}; eye gaze max {r['gaze_max']:.3f}; "
               f"mouthFrown mean {r['frown_mean']:.3f}; jumps > 0.1 on {r['jumps'] * 100:.1f} % of frames "
               f"(most: {r['jumpiest']}); {r['frames']} frames")
+        print(f"   residual {r['resid_rms']:.2f} mm RMS, worst: "
+              + ", ".join(f"{n} {v:.2f}" for n, v in r["resid_worst"]))
+        print("   moves with: " + "; ".join(f"{p} ~ " + ", ".join(f"{n} r={c:.2f}" for n, c in ps)
+                                          for p, ps in r["partners"].items()))
         print("   still-marker activity, worst: " + ", ".join(f"{n} {v:.3f}" for n, v in r["quiet_worst"]))
         print("   " + "; ".join(f"{k} r={v:.2f}" for k, v in r["corr"].items()))
     return 0
