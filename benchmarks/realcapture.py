@@ -89,6 +89,11 @@ def run_mismatch(curves: str, modes: list[str], seconds: float = 20.0) -> list[d
                        real / "performance" / f"{curves}.csv", mapping, MismatchSettings(seconds=seconds, start=10.0))
     profile = calibrate(ict, mt.layout, estimate_neutral(mt.neutral.select(mt.layout.labels), mt.layout.stable))
     tuned = tune_on_take(profile, mt.take)  # once: no solver changes the profile
+    # the binding against the true anatomy: the actor's markers sit at ICT's own sites (mismatch_take.actor_sites)
+    truth = MarkerLayout.load(real / "ict-face" / "markers.json", ict)
+    true_sites = dict(zip(truth.labels, truth.sampling_matrix(ict.n_vertices) @ ict.neutral, strict=True))
+    site_err = np.linalg.norm(mt.layout.sampling_matrix(ict.n_vertices) @ ict.neutral
+                              - np.array([true_sites[lab] for lab in mt.layout.labels]), axis=1)
     rows = []
     for mode in modes:
         solved = solve_take(mt.take, profile, build_solver(mode, profile, {}))
@@ -97,6 +102,7 @@ def run_mismatch(curves: str, modes: list[str], seconds: float = 20.0) -> list[d
                      "noise_mm": tuned["noise_mm"], "frames": mt.take.n_frames,
                      "rmse": float(np.sqrt(np.mean((solved.weights - mt.weights) ** 2))),
                      "phantom": float(solved.weights[rest].mean()),
+                     "site_error_mm": (float(np.median(site_err)), float(site_err.max())),
                      **metrics(profile, solved, MISMATCH_SIGNALS, int(round(mt.take.rate)))})
     return rows
 
@@ -146,7 +152,8 @@ def main(argv: list[str] | None = None) -> int:
         runs += [run_mismatch(c, modes) for c in args.mismatch.split(",")]
     for r in (row for rows in runs for row in rows):
         if "rmse" in r:
-            print(f"{r['take']} {r['mode']}: weight RMSE vs the curves {r['rmse']:.3f}, phantom {r['phantom']:.3f}")
+            print(f"{r['take']} {r['mode']}: weight RMSE vs the curves {r['rmse']:.3f}, phantom {r['phantom']:.3f}; "
+                  "bound sites from the true ones median {:.2f} max {:.2f} mm".format(*r["site_error_mm"]))
         print(f"{r['take']} {r['mode']}: noise {r['noise_mm']:.3f} mm; weight sum over the first second mean "
               f"{r['sum_first_s'][0]:.3f} max {r['sum_first_s'][1]:.3f}; eye gaze max {r['gaze_max']:.3f}; "
               f"mouthFrown mean {r['frown_mean']:.3f}; jumps > 0.1 on {r['jumps'] * 100:.1f} % of frames "
