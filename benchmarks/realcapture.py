@@ -45,7 +45,9 @@ MISMATCH_SIGNALS = [
 
 
 def metrics(profile, solved, signals, first: int) -> dict:
-    """The plausibility figures of one solve (``first``: frames of the near-neutral start)."""
+    """The plausibility figures of one solve (``first``: frames of the near-neutral start), with what says where
+    a phantom comes from: the per-marker residual and the shapes each phantom (mouthFrown, the strongest eye
+    gaze) moves with."""
     from livecap.offline import plausibility as pl
 
     W, names = solved.weights, list(profile.names)
@@ -53,7 +55,15 @@ def metrics(profile, solved, signals, first: int) -> dict:
     quiet = pl.quiet_activity(W, solved.targets, solved.valid, pl.shape_markers(profile.basis))
     worst = np.argsort(-np.nan_to_num(quiet))[:3]
     jumps, per_shape = pl.jump_share(W)
-    return {"sum_first_s": pl.weight_sum(W, slice(0, first)), "gaze_max": pl.max_weight(W, names),
+    resid = pl.marker_residual(W, profile.basis, solved.targets, solved.valid)
+    phantoms = [names[j] for j in frown]
+    gaze = [j for j, n in enumerate(names) if pl.GAZE.search(n)]
+    if gaze:
+        phantoms.append(names[gaze[int(np.argmax(W[:, gaze].max(axis=0)))]])
+    return {"resid_worst": [(profile.labels[i], float(resid[i])) for i in np.argsort(-resid)[:4]],
+            "resid_rms": float(np.sqrt(np.mean(resid**2))),
+            "partners": {p: pl.partners(W, names, p) for p in phantoms},
+            "sum_first_s": pl.weight_sum(W, slice(0, first)), "gaze_max": pl.max_weight(W, names),
             "frown_mean": float(W[:, frown].mean()), "quiet_worst": [(names[j], float(quiet[j])) for j in worst],
             "corr": pl.signal_correlations(signals, names, W, profile.labels, solved.targets, profile.source_neutral),
             "jumps": jumps, "jumpiest": names[int(np.argmax(per_shape))]}
@@ -79,6 +89,11 @@ def run_mismatch(curves: str, modes: list[str], seconds: float = 20.0) -> list[d
                        real / "performance" / f"{curves}.csv", mapping, MismatchSettings(seconds=seconds, start=10.0))
     profile = calibrate(ict, mt.layout, estimate_neutral(mt.neutral.select(mt.layout.labels), mt.layout.stable))
     tuned = tune_on_take(profile, mt.take)  # once: no solver changes the profile
+    # the binding against the true anatomy: the actor's markers sit at ICT's own sites (mismatch_take.actor_sites)
+    truth = MarkerLayout.load(real / "ict-face" / "markers.json", ict)
+    true_sites = dict(zip(truth.labels, truth.sampling_matrix(ict.n_vertices) @ ict.neutral, strict=True))
+    site_err = np.linalg.norm(mt.layout.sampling_matrix(ict.n_vertices) @ ict.neutral
+                              - np.array([true_sites[lab] for lab in mt.layout.labels]), axis=1)
     rows = []
     for mode in modes:
         solved = solve_take(mt.take, profile, build_solver(mode, profile, {}))
@@ -87,6 +102,7 @@ def run_mismatch(curves: str, modes: list[str], seconds: float = 20.0) -> list[d
                      "noise_mm": tuned["noise_mm"], "frames": mt.take.n_frames,
                      "rmse": float(np.sqrt(np.mean((solved.weights - mt.weights) ** 2))),
                      "phantom": float(solved.weights[rest].mean()),
+                     "site_error_mm": (float(np.median(site_err)), float(site_err.max())),
                      **metrics(profile, solved, MISMATCH_SIGNALS, int(round(mt.take.rate)))})
     return rows
 
@@ -136,11 +152,16 @@ def main(argv: list[str] | None = None) -> int:
         runs += [run_mismatch(c, modes) for c in args.mismatch.split(",")]
     for r in (row for rows in runs for row in rows):
         if "rmse" in r:
-            print(f"{r['take']} {r['mode']}: weight RMSE vs the curves {r['rmse']:.3f}, phantom {r['phantom']:.3f}")
+            print(f"{r['take']} {r['mode']}: weight RMSE vs the curves {r['rmse']:.3f}, phantom {r['phantom']:.3f}; "
+                  "bound sites from the true ones median {:.2f} max {:.2f} mm".format(*r["site_error_mm"]))
         print(f"{r['take']} {r['mode']}: noise {r['noise_mm']:.3f} mm; weight sum over the first second mean "
               f"{r['sum_first_s'][0]:.3f} max {r['sum_first_s'][1]:.3f}; eye gaze max {r['gaze_max']:.3f}; "
               f"mouthFrown mean {r['frown_mean']:.3f}; jumps > 0.1 on {r['jumps'] * 100:.1f} % of frames "
               f"(most: {r['jumpiest']}); {r['frames']} frames")
+        print(f"   residual {r['resid_rms']:.2f} mm RMS, worst: "
+              + ", ".join(f"{n} {v:.2f}" for n, v in r["resid_worst"]))
+        print("   moves with: " + "; ".join(f"{p} ~ " + ", ".join(f"{n} r={c:.2f}" for n, c in ps)
+                                          for p, ps in r["partners"].items()))
         print("   still-marker activity, worst: " + ", ".join(f"{n} {v:.3f}" for n, v in r["quiet_worst"]))
         print("   " + "; ".join(f"{k} r={v:.2f}" for k, v in r["corr"].items()))
     return 0

@@ -184,3 +184,46 @@ def test_a_range_of_motion_take_is_where_rigidity_is_measured(ict):
     assert [m.stable for m in res.markers] != [m.stable for m in bind_capture(jaw, rig, layout).markers]
     with pytest.raises(BindError, match="lacks markers"):
         bind_capture(jaw, rig, layout, rom=cheeks.select(cheeks.labels[:-1]))
+
+
+@pytest.mark.parametrize("suffix", ["glb", "usda"])
+def test_cli_binds_to_every_rig_format_load_rig_reads(tmp_path, ict, suffix):
+    """The ICT rig written as a GLB (a decoy body mesh, a turned and halved parent node) and as USD (Z-up,
+    centimetres) by third-party writers: ``markers bind --rig FILE`` reads it (the markers.json beside it as
+    ``<rig>.markers.json`` gives the landmarks) and binds the markers where the OBJ folder's rig puts them."""
+    from tests.rig_writers import read_obj_rig, write_gltf, write_usd
+
+    rig, layout = ict
+    src = read_obj_rig(ICT, ["jawOpen"], 0.01)
+    path = (write_gltf(tmp_path / "ict.glb", src) if suffix == "glb"
+            else write_usd(tmp_path / "ict.usda", src))
+    (tmp_path / "ict.markers.json").write_text((ICT / "markers.json").read_text())
+    out = tmp_path / "bound.json"
+    proc = subprocess.run([sys.executable, "-m", "livecap", "markers", "bind", str(ANIMFACE / "JawMoCap.c3d"),
+                           "--rig", str(path), "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "9 name hints" in proc.stdout
+    ref = bind_capture(_take("JawMoCap.c3d"), rig, layout)
+    got = MarkerLayout.load(out, rig)
+    assert got.labels == [m.label for m in ref.markers if m.bound]
+    assert np.linalg.norm(got.sampling_matrix(rig.n_vertices) @ rig.neutral - _points(ref, rig), axis=1).max() < 0.05
+
+
+@pytest.mark.skipif(not MAKEHUMAN.exists(), reason=f"MakeHuman head absent: {MAKEHUMAN}")
+def test_binding_against_the_true_anatomy_of_another_face(ict):
+    """Where truth exists: the MakeHuman head wears ICT's own 60 sites (±2 mm, 2-5 mm off the skin,
+    livecap.demo.mismatch_take), so the distance from each bound site to its true ICT site is the binding's
+    error on a face whose proportions are not the rig's. Measured 2026-12-04: median 4.3 mm, max 9.1 mm
+    (docs/robustness.md; the issue's 3 mm is not met): a guard against getting worse, not the goal."""
+    from livecap.demo.mismatch_take import MismatchSettings, mismatch_take
+    from tests.conftest import ROOT
+    from transport.arkit import load_mapping
+
+    rig, layout = ict
+    mt = mismatch_take(Rig.load(MAKEHUMAN), rig, layout, SHARED / "realdata" / "performance" / "S07-001.csv",
+                       load_mapping(ROOT / "examples" / "makehuman_arkit.json"), MismatchSettings(seconds=2.0))
+    true = dict(zip(layout.labels, layout.sampling_matrix(rig.n_vertices) @ rig.neutral, strict=True))
+    err = np.linalg.norm(mt.layout.sampling_matrix(rig.n_vertices) @ rig.neutral
+                         - np.array([true[lab] for lab in mt.layout.labels]), axis=1)
+    assert mt.layout.n_markers == 60
+    assert np.median(err) < 5.0 and err.max() < 10.0, (np.median(err), err.max())

@@ -43,3 +43,21 @@ def test_real_capture_baseline_runs_and_jaw_follows_the_chin():
     (row,) = run_take("JawMoCap", ["auto"])
     assert row["corr"]["jawOpen~distance(Chin,NoseHead)"] > 0.9
     assert 0 <= row["jumps"] <= 1 and np.isfinite(row["sum_first_s"][0])
+
+
+def test_partners_and_marker_residual_name_the_shape_a_phantom_follows_and_the_misfit_marker():
+    T = 200
+    t = np.linspace(0, 4 * np.pi, T)
+    jaw = 0.5 + 0.5 * np.sin(t)
+    W = np.stack([jaw, 0.3 * jaw + 0.01, 0.5 + 0.5 * np.cos(3 * t)], axis=1)  # "frown" follows "jaw"
+    names = ["jawOpen", "mouthFrown_L", "eyeBlink_L"]
+    assert [n for n, _ in pl.partners(W, names, "mouthFrown_L", top=1)] == ["jawOpen"]
+    assert pl.partners(W, names, "mouthFrown_L")[0][1] == pytest.approx(1.0)
+    basis = np.zeros((6, 3))
+    basis[1, 0], basis[4, 2] = 4.0, 2.0
+    targets = (W @ basis.T).reshape(T, 2, 3)
+    targets[:, 1, 2] += 3.0  # marker 1 moves out 3 mm that no shape explains
+    valid = np.ones((T, 2), bool)
+    valid[::2, 0] = False
+    res = pl.marker_residual(W, basis, targets, valid)
+    assert res == pytest.approx([0.0, 3.0])

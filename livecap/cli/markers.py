@@ -9,6 +9,7 @@ import argparse
 from pathlib import Path
 
 from livecap.cli.common import command_group, markers_path, parse_span
+from transport.rig_files import RIG_FILES_HELP
 
 
 def register(sub) -> None:
@@ -19,8 +20,11 @@ def register(sub) -> None:
                     "rig (skin offset allowed), choose the stable markers by rigidity over the take, and report per "
                     "marker its distance to the surface and stability; markers off the rig's face are left out.")
     b.add_argument("take", help="capture take (.c3d, .trc, .csv ...) holding a near-neutral span")
-    b.add_argument("--rig", required=True, help="rig: OBJ folder or .npz")
-    b.add_argument("--rig-markers", help="the rig's markers.json (landmarks for name hints; default: beside the rig)")
+    b.add_argument("--rig", required=True, help=f"rig: {RIG_FILES_HELP}")
+    b.add_argument("--mesh", help="the face mesh of a glTF/VRM/USD rig when the file holds several (as livecap rig "
+                   "import takes it)")
+    b.add_argument("--rig-markers", help="the rig's markers.json (landmarks for name hints; default: in the rig "
+                   "folder or <rig>.markers.json beside the file; without one, geometry only)")
     b.add_argument("--out", required=True, help="markers.json to write")
     b.add_argument("--span", metavar="START:END", help="near-neutral span in seconds (default: auto-detected)")
     b.add_argument("--rom", metavar="TAKE", help="range-of-motion take of the same markers: measure rigidity (the "
@@ -31,12 +35,12 @@ def register(sub) -> None:
 
 def run_bind(args: argparse.Namespace) -> int:
     from livecap.core.markers import MarkerLayout
-    from livecap.core.rig import Rig
     from livecap.transfer.bind import BindOptions, bind_capture
+    from transport.rig_files import load_rig
     from transport.takefile import read_take
 
     take = read_take(args.take)
-    rig = Rig.load(args.rig)
+    rig = load_rig(args.rig, args.mesh)
     mpath = Path(args.rig_markers) if args.rig_markers else markers_path(args.rig)
     layout = MarkerLayout.load(mpath, rig) if mpath.exists() else None
     span = parse_span(args.span, take.rate, take.n_frames) if args.span else None

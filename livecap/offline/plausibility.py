@@ -108,3 +108,23 @@ def max_weight(weights: np.ndarray, names: Sequence[str], pattern: re.Pattern = 
     """Largest weight of any shape whose name matches ``pattern`` (eye gaze by default) over the take."""
     cols = [j for j, n in enumerate(names) if pattern.search(n)]
     return float(np.asarray(weights)[:, cols].max()) if cols else float("nan")
+
+
+def partners(weights: np.ndarray, names: Sequence[str], shape: str, top: int = 2) -> list[tuple[str, float]]:
+    """The ``top`` shapes whose weight curves correlate most (by |r|) with ``shape``'s: a phantom that rises and
+    falls with another shape is making up for that shape's misfit on this actor (issue 35: mouthFrown with the
+    jaw shapes), not acting on its own."""
+    W = np.asarray(weights, float)
+    j = list(names).index(shape)
+    r = [(names[k], correlation(W[:, j], W[:, k])) for k in range(W.shape[1]) if k != j]
+    r = [(n, c) for n, c in r if np.isfinite(c)]
+    return sorted(r, key=lambda nc: -abs(nc[1]))[:top]
+
+
+def marker_residual(weights: np.ndarray, basis: np.ndarray, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Per marker: RMS (mm, over the frames it is seen) of what the solve leaves unexplained, the stabilised
+    displacement minus the basis times the weights: where the rig does not follow this actor's face."""
+    T, n = np.shape(valid)
+    r = np.asarray(targets, float).reshape(T, n, 3) - (np.asarray(weights) @ np.asarray(basis).T).reshape(T, n, 3)
+    sq = np.where(valid, np.sum(r**2, axis=2), 0.0)
+    return np.sqrt(sq.sum(axis=0) / np.maximum(np.count_nonzero(valid, axis=0), 1))
