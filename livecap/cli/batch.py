@@ -15,6 +15,8 @@ from livecap.modes.registry import DEFAULT_MODE, MODE_HELP, MODES_AND_AUTO
 JOB_FLAGS = {"--rig": "--rig / rig", "--markers": "--markers / markers", "--profile": "--profile / profile",
              "--mode": "--mode / mode", "--neutral-seconds": "--neutral-seconds", "--out": "--out",
              "--unlabelled": "no batch form: label the takes first with 'livecap label'",
+             "--map": "no batch form yet: retarget Live Link Face takes one by one with 'livecap solve'",
+             "--transfer": "no batch form yet: retarget Live Link Face takes one by one with 'livecap solve'",
              "--help": "livecap solve --help", "-h": "livecap solve --help"}
 
 
