@@ -19,6 +19,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -32,7 +33,8 @@ from livecap.transfer.labels import landmark_distances
 from livecap.transfer.landmarks import eye_width
 
 RIDGE = 10.0  # mm^2 per unit weight^2: enough to stop bounded lsq turning marker noise into weight bias
-ICT = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "ict-face"
+SHARED = Path(os.environ.get("LIVECAP_SHARED") or Path(__file__).resolve().parents[1].parent / "shared")
+ICT = SHARED / "realdata" / "ict-face"
 
 
 def _ict():
