@@ -22,4 +22,4 @@ class SolveResult:
     markers: np.ndarray | None = None  # n x 3 stabilised markers (head frame, mm), for previews
     valid: np.ndarray | None = None  # n bool
     at_bound: np.ndarray | None = None  # m int8: -1 at the lower limit, +1 at the upper, 0 inside
-    received: float | None = None  # local time of day (s) its frame reached livecap (timecode at capture)
+    received: float | None = None  # wall clock (time.time()) its frame reached livecap (timecode at capture)

@@ -18,7 +18,7 @@ class MarkerFrame:
     timestamp: float
     positions: np.ndarray  # n x 3, mm
     valid: np.ndarray  # n bool
-    received: float | None = None  # local time of day (s) livecap received it; the clock timecode's anchor
+    received: float | None = None  # wall clock (time.time()) when livecap received it: the clock timecode's anchor
 
 
 @dataclass

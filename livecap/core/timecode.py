@@ -55,9 +55,9 @@ def parse_timecode(text: str, rate: float) -> float:
     return h * 3600 + mi * 60 + s + f / nominal
 
 
-def now_of_day() -> float:
-    """The system clock's local time of day, seconds."""
-    now = _dt.datetime.now()
+def now_of_day(epoch: float | None = None) -> float:
+    """The system clock's local time of day, seconds (now, or at ``epoch``, seconds since 1970 as time.time())."""
+    now = _dt.datetime.now() if epoch is None else _dt.datetime.fromtimestamp(epoch)
     return now.hour * 3600 + now.minute * 60 + now.second + now.microsecond * 1e-6
 
 
@@ -76,12 +76,12 @@ class TimecodeClock:
 
     def seconds_of_day(self, timestamp: float, received: float | None = None) -> float:
         """Time of day of the frame at ``timestamp`` (stream seconds) that reached livecap at ``received``
-        (time of day; ``None``: now)."""
+        (wall clock, time.time(); ``None``: now)."""
         ts = float(timestamp)
         if self.start == "take":
             return ts % SECONDS_PER_DAY
         if self.start == "clock":
-            offset = (now_of_day() if received is None else received) - ts
+            offset = (now_of_day() if received is None else now_of_day(received)) - ts
             if self._offset is None:
                 self._offset = offset
             elif offset < self._offset and self._last is not None and ts > self._last:

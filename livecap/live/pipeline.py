@@ -43,7 +43,6 @@ from livecap.calibration.profile import CalibrationError, Profile
 from livecap.calibration.stabilise import to_quaternion
 from livecap.core.result import BOUND_TOL, SolveResult
 from livecap.core.take import MarkerFrame, Take
-from livecap.core.timecode import now_of_day
 from livecap.modes.registry import build_solver, resolve_mode
 
 log = logging.getLogger("livecap.live.pipeline")
@@ -310,7 +309,7 @@ class Pipeline:
         try:
             for frame in self.source:
                 if frame.received is None:
-                    frame.received = now_of_day()
+                    frame.received = time.time()  # a float: the time of day only where a timecode is written
                 self.timing["receive"].add(getattr(self.source, "last_decode_seconds", 0.0))
                 self.frames_in += 1
                 if self.marker_recorder is not None:
