@@ -86,9 +86,10 @@ def natnet_hostile(f: int, points: int = 0) -> list[tuple[int, bytes]]:
 
 
 def serve_natnet(frames: int, hostile: bool, points: int, rate: float, labels: list[str] = NAMES,
-                 face=None) -> dict:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind(("127.0.0.1", 0))
+                 face=None, bad_frame: int | None = None, host: str = "127.0.0.1") -> dict:
+    """``bad_frame``: that frame is sent cut short (malformed) instead of whole."""
+    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind((host, 0))
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
     print(sock.getsockname()[1], flush=True)
     sent = {"frames": 0, "hostile": 0}
@@ -118,7 +119,8 @@ def serve_natnet(frames: int, hostile: bool, points: int, rate: float, labels: l
         if t0 is None:
             t0 = time.monotonic() + 0.3  # the client asks for the descriptions and gets ready to read
         while f < frames and time.monotonic() - t0 >= f / rate:
-            send(7, natnet_frame(f, points, face=face), client)
+            body = natnet_frame(f, points, face=face)
+            send(7, body[:30] if f == bad_frame else body, client)
             sent["frames"] += 1
             if hostile and f % 5 == 1:
                 for kind, body in natnet_hostile(f, points):
@@ -167,9 +169,11 @@ def qtm_hostile(frame: int, unlabelled: bool, which: str) -> bytes:
     }[which]
 
 
-def serve_qtm(frames: int, hostile: bool, rate: float, labels: list[str] = NAMES, positions=None) -> dict:
+def serve_qtm(frames: int, hostile: bool, rate: float, labels: list[str] = NAMES, positions=None,
+              bad_frame: int | None = None) -> dict:
     """One client at a time; a hostile packet that breaks the framing is followed by closing the
-    connection (as a real stream would be unreadable after it); the next connection goes on."""
+    connection (as a real stream would be unreadable after it); the next connection goes on.
+    ``bad_frame``: that frame is sent claiming 50 markers (malformed) instead of whole."""
     import threading
 
     srv = socket.socket()
@@ -199,7 +203,8 @@ def serve_qtm(frames: int, hostile: bool, rate: float, labels: list[str] = NAMES
                 while state["f"] < frames:
                     f = state["f"]
                     time.sleep(max(0.0, t0 + f / rate - time.monotonic()))
-                    out = qtm_data(f, qtm_3d(f, unlabelled, positions), 2 if unlabelled else 1)
+                    out = (qtm_hostile(f, unlabelled, "50 markers claimed") if f == bad_frame else
+                           qtm_data(f, qtm_3d(f, unlabelled, positions), 2 if unlabelled else 1))
                     bad = kinds.pop(0) if kinds and f % 5 == 1 else None
                     with lock:
                         conn.sendall(out)
@@ -257,16 +262,19 @@ def main() -> None:
     p.add_argument("--points", type=int, default=0, help="natnet: unlabelled points per frame (0: 3 + 1)")
     p.add_argument("--rate", type=float, default=200.0)
     p.add_argument("--face", help="a JSON file {label: [x, y, z] mm} streamed instead of A, B, C")
+    p.add_argument("--bad", type=int, help="this frame malformed instead of whole (natnet: cut; qtm: 50 markers)")
+    p.add_argument("--host", default="127.0.0.1", help="natnet: the address to serve on (::1: IPv6)")
     a = p.parse_args()
     face = json.loads(open(a.face).read()) if a.face else None
     if a.system == "natnet" and face:  # Motive streams metres
-        sent = serve_natnet(a.frames, a.hostile, a.points, a.rate, list(face), np.array(list(face.values())) / 1000)
+        sent = serve_natnet(a.frames, a.hostile, a.points, a.rate, list(face), np.array(list(face.values())) / 1000,
+                            a.bad, a.host)
     elif a.system == "natnet":
-        sent = serve_natnet(a.frames, a.hostile, a.points, a.rate)
+        sent = serve_natnet(a.frames, a.hostile, a.points, a.rate, bad_frame=a.bad, host=a.host)
     elif face:
-        sent = serve_qtm(a.frames, a.hostile, a.rate, list(face), list(face.values()))
+        sent = serve_qtm(a.frames, a.hostile, a.rate, list(face), list(face.values()), a.bad)
     else:
-        sent = serve_qtm(a.frames, a.hostile, a.rate)
+        sent = serve_qtm(a.frames, a.hostile, a.rate, bad_frame=a.bad)
     print(json.dumps(sent), flush=True)
 
 

@@ -44,12 +44,7 @@ def mangle_c3d(src: Path, out: Path, seed: int, flips: int = 8) -> list[Path]:
     b = bytearray(data)
     b[0] = 0xFF  # parameter block past the end
     cases["lie_parblock"] = bytes(b)
-    paths = []
-    for name, blob in cases.items():
-        p = out / f"{src.stem}.s{seed}.{name}.c3d"
-        p.write_bytes(blob)
-        paths.append(p)
-    return paths
+    return _write_cases(cases, src, out, seed, ".c3d")
 
 
 def mangle_text(src: Path, out: Path, seed: int, flips: int = 4) -> list[Path]:
@@ -72,9 +67,14 @@ def mangle_text(src: Path, out: Path, seed: int, flips: int = 4) -> list[Path]:
     lines = text.split("\n")
     lines[-3] += "7" * (50 << 20)  # a data row's last cell
     cases["hugefield"] = "\n".join(lines).encode()
+    return _write_cases(cases, src, out, seed, src.suffix)
+
+
+def _write_cases(cases: dict[str, bytes], src: Path, out: Path, seed: int, suffix: str) -> list[Path]:
+    """Write each mangled copy as <stem>.s<seed>.<case><suffix> under `out`; return the paths."""
     paths = []
     for name, blob in cases.items():
-        p = out / f"{src.stem}.s{seed}.{name}{src.suffix}"
+        p = out / f"{src.stem}.s{seed}.{name}{suffix}"
         p.write_bytes(blob)
         paths.append(p)
     return paths

@@ -7,7 +7,6 @@ frame suffix). It was not tried against a real Motive."""
 import socket
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -18,72 +17,19 @@ from hypothesis import strategies as st
 pytest.importorskip("natnet")
 from transport.natnet import NatNetSource, NatNetSourceError  # noqa: E402
 
-SERVER = r"""
-import socket, struct, sys, time
-n_frames = int(sys.argv[1])
-NAMES = ["A", "B", "C"]
-sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-sock.bind(("127.0.0.1", 0))
-print(sock.getsockname()[1], flush=True)
-
-def send(kind, body, to):
-    sock.sendto(struct.pack("<HH", kind, len(body)) + body, to)
-
-def frame(f):
-    pts = [(0.01 * i + 0.001 * f, 0.02 * i, 0.03) for i in range(3)]  # metres
-    if f == 2:
-        pts[1] = (0.0, 0.0, 0.0)  # B occluded
-    body = struct.pack("<I", f)
-    body += struct.pack("<I", 1) + b"Face\0" + struct.pack("<I", 3) + b"".join(struct.pack("<3f", *p) for p in pts)
-    body += struct.pack("<I", 0)  # legacy unlabelled markers
-    body += struct.pack("<I", 0) + struct.pack("<I", 0)  # rigid bodies, skeletons
-    labelled = [(0x10000 | (i + 1), p, 0x01 if (f == 2 and i == 1) else 0) for i, p in enumerate(pts)]
-    labelled.append((7, (0.5, 0.5, 0.5), 0x10))  # an unlabelled point
-    body += struct.pack("<I", len(labelled)) + b"".join(
-        struct.pack("<I3ffHf", i, *p, 0.01, param, 0.0) for i, p, param in labelled)
-    body += struct.pack("<I", 0) + struct.pack("<I", 0)  # force plates, devices
-    body += struct.pack("<IIdQQQH", 0, 0, f / 120.0, 0, 0, 0, 0)
-    return body
-
-client, streaming = None, False
-sock.settimeout(0.05)
-f = 0
-while f < n_frames:
-    try:
-        data, addr = sock.recvfrom(65536)
-        kind = struct.unpack_from("<H", data)[0]
-        if kind == 0:  # connect: server info, NatNet 4.0
-            send(1, b"Motive".ljust(256, b"\0") + bytes([3, 0, 0, 0]) + bytes([4, 0, 0, 0]), addr)
-            client = addr
-        elif kind == 4:  # model definitions
-            body = struct.pack("<I", 1) + struct.pack("<I", 0) + b"Face\0" + struct.pack("<I", 3)
-            body += b"".join(n.encode() + b"\0" for n in NAMES)
-            send(5, body, addr)
-            streaming = True
-    except socket.timeout:
-        pass
-    if client is not None and (streaming or sys.argv[2] == "1"):
-        time.sleep(0.3) if f == 0 else time.sleep(0.005)
-        body = frame(f)
-        if f == 4:
-            body = body[:30]  # cut short: malformed
-        send(7, body, client)
-        f += 1
-time.sleep(0.5)
-"""
+SERVERS = str(Path(__file__).with_name("capture_servers.py"))
 
 
-def _server(tmp_path, n, unlabelled):
-    script = tmp_path / "natnet_server.py"
-    script.write_text(textwrap.dedent(SERVER))
-    proc = subprocess.Popen([sys.executable, str(script), str(n), "1" if unlabelled else "0"],
+def _server(n: int) -> tuple[subprocess.Popen, int]:
+    """The fake Motive of tests/capture_servers.py: ``n`` frames, frame 4 cut short."""
+    proc = subprocess.Popen([sys.executable, SERVERS, "natnet", str(n), "--bad", "4"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     return proc, int(proc.stdout.readline())
 
 
 @pytest.mark.parametrize("unlabelled", [False, True])
-def test_natnet_source_against_a_protocol_server(tmp_path, unlabelled):
-    proc, port = _server(tmp_path, 8, unlabelled)
+def test_natnet_source_against_a_protocol_server(unlabelled):
+    proc, port = _server(8)
     try:
         src = NatNetSource("127.0.0.1", port, labels=["C", "A", "B", "Z"], unlabelled=unlabelled, idle_timeout=1.0)
         frames = list(src)
@@ -115,8 +61,6 @@ def test_no_server_is_one_clear_error():
 
 # ------------------------------------------------------------------ issue 36 item 3: hostile packets
 from tests.capture_servers import natnet_frame, natnet_hostile  # noqa: E402
-
-SERVERS = str(Path(__file__).with_name("capture_servers.py"))
 
 
 def _peak_bytes(fn) -> int:
@@ -229,13 +173,10 @@ def test_natnet_binds_the_interface_that_reaches_the_server():
     assert away != "127.0.0.1"
 
 
-def test_natnet_over_ipv6_loopback(tmp_path):
+def test_natnet_over_ipv6_loopback():
     """An IPv6 server address works end to end (the socket family follows the server)."""
-    script = tmp_path / "v6.py"
-    script.write_text(textwrap.dedent(SERVER).replace("socket.AF_INET,", "socket.AF_INET6,")
-                      .replace('("127.0.0.1", 0)', '("::1", 0)'))
-    proc = subprocess.Popen([sys.executable, str(script), "4", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+    proc = subprocess.Popen([sys.executable, SERVERS, "natnet", "4", "--host", "::1"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
     try:
         port = int(proc.stdout.readline())
         src = NatNetSource("::1", port, unlabelled=True, idle_timeout=1.0)

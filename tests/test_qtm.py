@@ -6,7 +6,6 @@ adds an id per marker). It was not tried against a real QTM."""
 
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -17,72 +16,13 @@ from hypothesis import strategies as st
 pytest.importorskip("qtm_rt")
 from transport.qtm import QtmError, QtmSource, labels_from_parameters  # noqa: E402
 
-SERVER = r"""
-import math, socket, struct, sys, threading, time
-n_frames = int(sys.argv[1])
-LABELS = ["A", "B", "C"]
-srv = socket.socket()
-srv.bind(("127.0.0.1", 0))
-srv.listen(1)
-print(srv.getsockname()[1], flush=True)
-conn, _ = srv.accept()
-
-def packet(kind, body):
-    conn.sendall(struct.pack("<II", 8 + len(body), kind) + body)
-
-def command(text):
-    packet(1, text.encode() + b"\0")
-
-def data(frame, ctype, body):
-    comp = struct.pack("<II", 8 + len(body), ctype) + body
-    packet(3, struct.pack("<qII", frame * 8333, frame, 1) + comp)
-
-def stream(unlabelled):
-    for f in range(n_frames):
-        pts = [(10.0 * i + f, 20.0 * i, 30.0 + f) for i in range(3)]
-        if f == 2:
-            pts[1] = (math.nan,) * 3  # B lost
-        if unlabelled:
-            body = struct.pack("<Ihh", 3, 0, 0) + b"".join(struct.pack("<3fi", *p, 100 + i) for i, p in enumerate(pts))
-            ctype = 2
-        else:
-            body = struct.pack("<Ihh", 3, 0, 0) + b"".join(struct.pack("<3f", *p) for p in pts)
-            ctype = 1
-        if f == 4:
-            body = struct.pack("<Ihh", 50, 0, 0) + body[8:]  # claims 50 markers, holds 3: malformed
-        data(f, ctype, body)
-        time.sleep(0.005)
-
-command("QTM RT Interface connected")
-buf = b""
-while True:
-    chunk = conn.recv(4096)
-    if not chunk:
-        break
-    buf += chunk
-    while len(buf) >= 8:
-        size, kind = struct.unpack_from("<II", buf)
-        if len(buf) < size:
-            break
-        text, buf = buf[8:size].rstrip(b"\0").decode().lower(), buf[size:]
-        if text.startswith("version"):
-            command("Version set to " + text.split()[1])
-        elif text == "getparameters 3d":
-            names = "".join(f"<Label><Name>{n}</Name><RGBColor>255</RGBColor></Label>" for n in LABELS)
-            xml = "<QTM_Parameters_Ver_1.25><The_3D>" + names + "</The_3D></QTM_Parameters_Ver_1.25>"
-            packet(2, xml.encode() + b"\0")
-        elif text.startswith("streamframes stop"):
-            pass
-        elif text.startswith("streamframes"):
-            threading.Thread(target=stream, args=("3dnolabels" in text,), daemon=True).start()
-"""
+SERVERS = str(Path(__file__).with_name("capture_servers.py"))
 
 
-def _server(tmp_path, n):
-    script = tmp_path / "qtm_server.py"
-    script.write_text(textwrap.dedent(SERVER))
-    proc = subprocess.Popen([sys.executable, str(script), str(n)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+def _server(frames: int, *extra: str) -> tuple[subprocess.Popen, int]:
+    """The fake QTM of tests/capture_servers.py."""
+    proc = subprocess.Popen([sys.executable, SERVERS, "qtm", str(frames), *extra], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
     return proc, int(proc.stdout.readline())
 
 
@@ -93,8 +33,8 @@ def test_labels_from_parameters():
 
 
 @pytest.mark.parametrize("unlabelled", [False, True])
-def test_qtm_source_against_a_protocol_server(tmp_path, unlabelled):
-    proc, port = _server(tmp_path, 8)
+def test_qtm_source_against_a_protocol_server(unlabelled):
+    proc, port = _server(8, "--bad", "4")
     try:
         src = QtmSource("127.0.0.1", port, labels=["C", "A", "B", "Z"], unlabelled=unlabelled, idle_timeout=1.0)
         frames = list(src)
@@ -134,7 +74,7 @@ def test_run_qtm_in_names_a_label_mismatch(tmp_path, demo, capsys):
     rig, layout = demo
     take = perform(rig, layout, PerformanceSettings(seconds=1.0)).take
     calibrate(rig, layout, estimate_neutral(take, layout.stable, 60)).save(tmp_path / "p.npz")
-    proc, port = _server(tmp_path, 3)
+    proc, port = _server(3)
     try:
         assert main(["run", "--qtm-in", f"127.0.0.1:{port}", "--profile", str(tmp_path / "p.npz")]) == 1
     finally:
@@ -144,13 +84,8 @@ def test_run_qtm_in_names_a_label_mismatch(tmp_path, demo, capsys):
 
 
 # ------------------------------------------------------------------ issue 36 item 4: hostile packets
-SERVERS = str(Path(__file__).with_name("capture_servers.py"))
-
-
 def _hostile_server(frames: int, *extra: str) -> tuple[subprocess.Popen, int]:
-    proc = subprocess.Popen([sys.executable, SERVERS, "qtm", str(frames), "--hostile", *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    return proc, int(proc.stdout.readline())
+    return _server(frames, "--hostile", *extra)
 
 
 @pytest.mark.parametrize("unlabelled", [False, True])

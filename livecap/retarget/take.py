@@ -6,19 +6,14 @@ import time
 
 import numpy as np
 
-from livecap.core.headpose import hamilton
 from livecap.offline.solve import SolvedTake
+from transport.livelink_source import head_quaternion
 from transport.llf_csv import TIMECODE_RATE, ArkitCurves
 
 
 def head_quaternions(yaw_pitch_roll: np.ndarray) -> np.ndarray:
-    """T x 4 (x, y, z, w) rotations Ry(yaw) Rx(pitch) Rz(roll): the app's angles (transport.livelink_source)."""
-    a = np.asarray(yaw_pitch_roll, dtype=float) / 2
-    z = np.zeros(len(a))
-    qy = np.stack([z, np.sin(a[:, 0]), z, np.cos(a[:, 0])], 1)
-    qx = np.stack([np.sin(a[:, 1]), z, z, np.cos(a[:, 1])], 1)
-    qz = np.stack([z, z, np.sin(a[:, 2]), np.cos(a[:, 2])], 1)
-    return np.array([hamilton(hamilton(y, x), r) for y, x, r in zip(qy, qx, qz, strict=True)]).reshape(-1, 4)
+    """T x 4 (x, y, z, w) rotations Ry(yaw) Rx(pitch) Rz(roll): the app's angles, as the live source reads them."""
+    return np.array([head_quaternion(r) for r in np.asarray(yaw_pitch_roll, dtype=float)]).reshape(-1, 4)
 
 
 def retarget_curves(curves: ArkitCurves, retarget) -> SolvedTake:
