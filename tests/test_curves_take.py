@@ -15,7 +15,7 @@ from livecap.demo.performance import GroundTruth
 from livecap.offline.real_eval import blink_retention, oracle_weights
 from tests.conftest import SHARED
 from transport.arkit import ARKIT_NAMES
-from transport.llf_csv import read_llf_csv
+from transport.llf_csv import is_llf_csv, read_llf_csv
 from transport.recorders import LLF_CSV_HEADER
 from transport.takefile import read_take
 
@@ -46,6 +46,16 @@ def test_reader_maps_by_header_name_and_drops_lost_rows(tmp_path):
     assert np.allclose(c.times, [0.0, 4 / 60])
     assert c.weights[0, ARKIT_NAMES.index("jawRight")] == pytest.approx(0.7)
     assert c.weights[0, ARKIT_NAMES.index("jawLeft")] == 0.0
+
+
+def test_reader_takes_a_csv_saved_with_a_byte_order_mark(tmp_path):
+    """A CSV re-saved by a spreadsheet starts with a UTF-8 BOM; both the sniffer and the reader must see the header."""
+    n = len(LLF_CSV_HEADER) - 2
+    rows = [["00:00:01:00.000", "61", *["0.5"] * n], ["00:00:01:01.000", "61", *["0.25"] * n]]
+    _write_llf(tmp_path / "a.csv", rows)
+    (tmp_path / "a.csv").write_bytes(b"\xef\xbb\xbf" + (tmp_path / "a.csv").read_bytes())
+    assert is_llf_csv(tmp_path / "a.csv")
+    assert read_llf_csv(tmp_path / "a.csv").weights.shape == (2, len(ARKIT_NAMES))
 
 
 @pytest.mark.parametrize("text,msg", [("frame,x\n1,2\n", "no Timecode header"),

@@ -57,7 +57,7 @@ class ArkitCurves:
 def is_llf_csv(path: str | Path) -> bool:
     """True when the file's first header cell is ``Timecode`` (the app's layout), without reading the rest."""
     try:
-        with open(path, newline="", encoding="utf-8") as fh:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
             first = fh.readline(4096)
     except (OSError, UnicodeDecodeError):
         return False
@@ -68,7 +68,7 @@ def read_llf_csv(path: str | Path) -> ArkitCurves:
     """Read a Live Link Face CSV; a bad file raises one ValueError naming it."""
     p = Path(path)
     try:
-        with open(p, newline="") as fh:
+        with open(p, newline="", encoding="utf-8-sig") as fh:
             rows = list(csv.reader(fh))
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise ValueError(f"{p}: cannot read Live Link Face CSV ({exc})") from None
