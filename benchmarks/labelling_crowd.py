@@ -16,6 +16,7 @@ import numpy as np
 from livecap.calibration.profile import calibrate, estimate_neutral
 from livecap.core.markers import MarkerLayout
 from livecap.core.rig import Rig
+from livecap.demo.unlabelled import in_a_crowd
 from livecap.live.unlabelled import labeller_for
 from transport.takefile import read_take
 
@@ -31,13 +32,7 @@ prof = calibrate(rig, layout, estimate_neutral(read_take(REC / "demo_neutral.c3d
 take = read_take(REC / "demo_take.c3d").select(prof.labels)
 N = int(sys.argv[2]) if len(sys.argv) > 2 else 600
 K = int(sys.argv[3]) if len(sys.argv) > 3 else 2340
-rng = np.random.default_rng(0)
-centre = np.nanmean(take.positions[0], 0)
-clouds = []
-for f in range(N):
-    face = take.positions[f][take.valid[f]]
-    c = np.vstack([face, centre + rng.uniform(-1000, 1000, (K, 3))])
-    clouds.append(c[rng.permutation(len(c))])
+clouds = in_a_crowd(take, N, K)
 old = ml.MarkerLabeller(prof.source_neutral, prof.stable, prof.basis, prof.lower, prof.upper)
 new = labeller_for(prof)
 to, tn, same = [], [], 0

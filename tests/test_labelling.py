@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from livecap.calibration.profile import calibrate, estimate_neutral
 from livecap.core.take import Take
 from livecap.demo.performance import PerformanceSettings, perform
-from livecap.demo.unlabelled import faster_larger, score, scramble
+from livecap.demo.unlabelled import faster_larger, in_a_crowd, score, scramble
 from livecap.live.pipeline import Pipeline
 from livecap.live.unlabelled import LabelledSource, label_take, labeller_for
 from livecap.offline.labelling import labelling_study
@@ -231,19 +231,6 @@ def test_fast_assignment_agrees_with_the_full_one_on_separated_clouds(n, ghosts,
 
 
 # ------------------------------------------------------------------ issue 36 item 11
-def _in_a_crowd(take, frames, ghosts, seed=0):
-    """Each frame's visible face markers shuffled among ``ghosts`` points uniform in a 2 m cube
-    about the face (a body capture around it)."""
-    rng = np.random.default_rng(seed)
-    centre = np.nanmean(take.positions[0], 0)
-    out = []
-    for f in range(frames):
-        face = take.positions[f][take.valid[f]]
-        cloud = np.vstack([face, centre + rng.uniform(-1000, 1000, (ghosts, 3))])
-        out.append(cloud[rng.permutation(len(cloud))])
-    return out
-
-
 @settings(max_examples=20, deadline=None)
 @given(st.integers(1, 60), st.integers(0, 400), st.floats(0.5, 30.0), st.integers(0, 2**31 - 1))
 def test_assignment_through_a_kd_tree_is_the_same(n, k, gate, seed):
@@ -264,7 +251,7 @@ def test_a_large_cloud_costs_the_face_not_its_size(demo_setup):
     import solvers.labelling as labelling
 
     _, _, profile, take, _ = demo_setup
-    clouds = _in_a_crowd(take, 40, 2340)
+    clouds = in_a_crowd(take, 40, 2340)
     plain, fast = labeller_for(profile), labeller_for(profile)
     seen = []
     with patch.object(labelling, "TREE_POINTS", 10**9):  # the plain path: no tree
@@ -311,4 +298,4 @@ def _cloud_frames(cloud):
 def test_one_face_among_ghosts_is_not_a_rival(demo_setup):
     _, _, profile, take, _ = demo_setup
     lab = labeller_for(profile)
-    assert lab.step(_in_a_crowd(take, 1, 2340)[0]).initialised and lab.rival is None
+    assert lab.step(in_a_crowd(take, 1, 2340)[0]).initialised and lab.rival is None

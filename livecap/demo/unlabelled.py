@@ -71,6 +71,19 @@ class LabelScores:
                 f"ghosts labelled {self.ghost_labelled}")
 
 
+def in_a_crowd(take: Take, frames: int, ghosts: int, seed: int = 0) -> list[np.ndarray]:
+    """Each frame's visible face markers shuffled among ``ghosts`` points uniform in a 2 m cube about the
+    face: a body capture around it, as a facial labeller meets it on a full-body stage."""
+    rng = np.random.default_rng(seed)
+    centre = np.nanmean(take.positions[0], 0)
+    out = []
+    for f in range(frames):
+        face = take.positions[f][take.valid[f]]
+        cloud = np.vstack([face, centre + rng.uniform(-1000, 1000, (ghosts, 3))])
+        out.append(cloud[rng.permutation(len(cloud))])
+    return out
+
+
 def score(columns: np.ndarray, source: np.ndarray) -> LabelScores:
     """``columns`` (T x n): the cloud column given to each label (-1: missing)."""
     T, n = columns.shape
