@@ -15,7 +15,7 @@ import numpy as np
 EYE_YAW = np.radians(30.0)
 EYE_PITCH = np.radians(25.0)
 LOOKS = ("Out", "In", "Down", "Up")  # column order of :func:`eye_angles`' input
-_OUTWARD = np.array([-1.0, 1.0])  # the left eye looks out towards the subject's left
+_OUTWARD = (-1.0, 1.0)  # the left eye looks out towards the subject's left
 
 
 def eye_angles(looks: np.ndarray, yaw: float = EYE_YAW, pitch: float = EYE_PITCH) -> np.ndarray:
@@ -23,5 +23,5 @@ def eye_angles(looks: np.ndarray, yaw: float = EYE_YAW, pitch: float = EYE_PITCH
     Out, In, Down, Up for the left and the right eye."""
     # Python floats: it runs per packet, where each small numpy operation costs more (docs/iphone.md, Latency)
     (o0, i0, d0, u0), (o1, i1, d1, u1) = np.asarray(looks, dtype=float).reshape(2, 4).tolist()
-    s0, s1 = _OUTWARD.tolist()
+    s0, s1 = _OUTWARD
     return np.array([[yaw * s0 * (o0 - i0), pitch * (d0 - u0)], [yaw * s1 * (o1 - i1), pitch * (d1 - u1)]])
