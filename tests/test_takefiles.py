@@ -1,9 +1,11 @@
+import struct
 import warnings
 
 import numpy as np
 import pytest
 
 from livecap.core.take import Take
+from transport.c3d_check import Param, _int
 from transport.errors import TakeFileError
 from transport.takefile import read_take, write_take
 
@@ -90,3 +92,13 @@ def test_bad_files(tmp_path):
         read_take(tmp_path / "x.bvh")
     with pytest.raises(TakeFileError, match="no such take"):
         read_take(tmp_path / "missing.c3d")
+
+
+@pytest.mark.parametrize("processor", [84, 85, 86])
+def test_c3d_check_reads_a_float_frame_count_in_the_files_own_format(processor):
+    """POINT:LONG_FRAMES is a float in many files; in a DEC (VAX) file it is a VAX float, which read as IEEE is
+    another number (the check would then call a valid long take truncated)."""
+    raw = struct.pack(">f" if processor == 86 else "<f", 70000.0 * (4 if processor == 85 else 1))
+    if processor == 85:
+        raw = raw[2:4] + raw[0:2]
+    assert _int({("POINT", "LONG_FRAMES"): Param(4, (), raw)}, "POINT", "LONG_FRAMES", processor) == 70000

@@ -90,10 +90,10 @@ def check_c3d(path: Path) -> C3DLayout:
             raise TakeFileError(f"{path}: the header says {n_points} points but there is no POINT:{name} parameter")
         if params[("POINT", name)].type not in (1, 2, 4) or _count(params[("POINT", name)]) < 1:
             raise TakeFileError(f"{path}: POINT:{name} holds no number")
-    used = _int(params, "POINT", "USED", end)
+    used = _int(params, "POINT", "USED", processor)
     if used is not None and used != n_points:
         raise TakeFileError(f"{path}: POINT:USED is {used} but the header says {n_points} points")
-    a_used = _int(params, "ANALOG", "USED", end) or 0
+    a_used = _int(params, "ANALOG", "USED", processor) or 0
     if a_used < 0:
         raise TakeFileError(f"{path}: ANALOG:USED is {a_used}")
     if a_used and n_analog % a_used:
@@ -105,7 +105,7 @@ def check_c3d(path: Path) -> C3DLayout:
             raise TakeFileError(f"{path}: ANALOG:{name} has {p and _count(p)} values for {a_used} channels")
     frames = last - first + 1 if last >= first else 0
     for group, name in (("POINT", "FRAMES"), ("POINT", "LONG_FRAMES")):
-        n = _int(params, group, name, end, unsigned=True)
+        n = _int(params, group, name, processor, unsigned=True)
         if n is not None and n > frames and (last == 0xFFFF or n > 0xFFFF):
             frames = n  # more frames than a header word holds
     width = 4 if is_float else 2
@@ -114,10 +114,10 @@ def check_c3d(path: Path) -> C3DLayout:
         raise TakeFileError(
             f"{path}: truncated C3D: header declares {frames} frames of {n_points} points and {n_analog} analog "
             f"samples ({need} bytes of data), the file holds {size - data_start} after its data start")
-    rot = _int(params, "ROTATION", "USED", end) or 0
+    rot = _int(params, "ROTATION", "USED", processor) or 0
     if rot:
-        block = _int(params, "ROTATION", "DATA_START", end, unsigned=True) or 0
-        ratio = _int(params, "ROTATION", "RATIO", end) or 1
+        block = _int(params, "ROTATION", "DATA_START", processor, unsigned=True) or 0
+        ratio = _int(params, "ROTATION", "RATIO", processor) or 1
         rneed = frames * max(ratio, 1) * rot * 17 * 4
         if block < 1 or (block - 1) * BLOCK + rneed > size:
             raise TakeFileError(f"{path}: ROTATION:USED {rot} at ROTATION:DATA_START {block} needs {rneed} bytes "
@@ -200,7 +200,9 @@ def _count(p: Param) -> int:
     return math.prod(p.dims) if p.dims else 1
 
 
-def _int(params: dict, group: str, name: str, end: str, unsigned: bool = False) -> int | None:
+def _int(params: dict, group: str, name: str, processor: int, unsigned: bool = False) -> int | None:
+    """A parameter's first value as an integer, read in the file's processor format (a DEC file's floats are VAX)."""
+    end = ">" if processor == MIPS else "<"
     p = params.get((group, name))
     if p is None or not p.data:
         return None
@@ -209,6 +211,6 @@ def _int(params: dict, group: str, name: str, end: str, unsigned: bool = False) 
     if p.type == 1:
         return p.data[0]
     if p.type == 4 and len(p.data) >= 4:
-        v = struct.unpack(end + "f", p.data[:4])[0]
+        v = _float(p.data[:4], processor)
         return int(v) if math.isfinite(v) and 0 <= v < 2**31 else None
     return None
