@@ -102,3 +102,15 @@ def test_c3d_check_reads_a_float_frame_count_in_the_files_own_format(processor):
     if processor == 85:
         raw = raw[2:4] + raw[0:2]
     assert _int({("POINT", "LONG_FRAMES"): Param(4, (), raw)}, "POINT", "LONG_FRAMES", processor) == 70000
+
+
+def test_trc_with_more_rows_than_its_numframes_is_refused_at_the_first_extra_row(tmp_path):
+    """A header that under-declares its rows is a lie like an over-declaring one; the reader stops at the first row
+    past it (naming the line) instead of reading the whole file first."""
+    take = Take(["a", "b"], np.zeros((50, 2, 3)), np.ones((50, 2), bool), 60.0)
+    write_take(take, tmp_path / "t.trc")
+    lines = (tmp_path / "t.trc").read_text().split("\n")
+    lines[2] = lines[2].replace("\t50\t2\t", "\t10\t2\t", 1)
+    (tmp_path / "t.trc").write_text("\n".join(lines))
+    with pytest.raises(TakeFileError, match=r"t.trc:17: more data rows than the header's NumFrames 10"):
+        read_take(tmp_path / "t.trc")

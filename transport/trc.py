@@ -21,7 +21,7 @@ from transport.textlines import CELL, HEADER_LINE, bounded_line, bounded_lines
 def read_trc(path: str | Path) -> Take:
     path = Path(path)
     try:
-        with open(path) as fh:  # line by line: memory follows the rows, not the file's text
+        with open(path, encoding="utf-8", errors="replace") as fh:  # line by line: memory follows the rows
             head = [bounded_line(fh, path, HEADER_LINE, f"header line {i + 1}") for i in range(5)]
             if not head[0].startswith("PathFileType") or not head[4]:
                 raise TakeFileError(f"{path}: not a TRC file (no PathFileType header)")
@@ -53,6 +53,8 @@ def _read_rows(path: Path, head: list[str], fh) -> Take:
     for lineno, line in bounded_lines(fh, path, CELL * (2 + 3 * n_markers) + 256, 6):
         if not line.strip():
             continue
+        if declared is not None and len(rows) == declared:  # refused at the first extra row, not after reading them all
+            raise TakeFileError(f"{path}:{lineno}: more data rows than the header's NumFrames {declared}")
         cells = line.rstrip("\r\n").split("\t")
         if len(cells) < 2:
             raise TakeFileError(f"{path}:{lineno}: short data row")
