@@ -27,7 +27,7 @@ S is kept between solves with its free set: a pass on an unchanged free set reus
 partition did not move costs no factorisation); otherwise S is updated by the columns that changed sides (O(r^2)
 each) or, where fewer, formed from all columns' S less the bounded ones', and refactored (O(r^3 / 3)); formed
 afresh every ``REFRESH`` updates against drift. Warm from the last frame, the 72 x 1000 synthetic take's fit
-moves ~60-90 weights in the first pass and takes 2-4 passes.
+moves ~60-90 weights in the first pass and takes 3-5 passes.
 """
 
 from __future__ import annotations
