@@ -110,3 +110,15 @@ def test_frameqp_marker_space_path_equals_weight_space(monkeypatch, strength):
 def test_small_rigs_keep_the_weight_space_path():
     (B, lo, hi, mean, P), _ = _rig(20, 50)  # 60 marker coordinates, 56 columns: as ICT (~53 shapes) or 72 x 150
     assert not FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1.0).marker_space
+
+
+def test_prepare_builds_every_seen_patterns_marker_space_solver():
+    (B, lo, hi, mean, P), _ = _rig(8, 80)
+    qp = FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1.0)
+    for drop in range(3):
+        seen = np.ones(8, bool)
+        seen[drop] = False
+        qp.step(np.zeros((8, 3)), seen)
+    assert all(ws.marker_space is None for ws in qp._models.values())  # zero weights free: not taken yet
+    qp.prepare_marker_space()
+    assert len(qp._models) == 3 and all(isinstance(ws.marker_space, MarkerSpaceQP) for ws in qp._models.values())

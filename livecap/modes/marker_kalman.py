@@ -203,6 +203,7 @@ class MarkerKalmanSolver:
         for k in range(len(STRENGTHS)):  # build every workspace (and the IMM's spread) now, not on the first frames
             self._fit(k).step(np.zeros(3 * self.profile.n_markers), np.ones(self.profile.n_markers, bool))
             self._fits[k].reset()
+            self._fits[k].prepare_marker_space()
             self._spread_of(k)
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
