@@ -172,7 +172,7 @@ class FrameQP:
         self.iterations = 0  # active-set passes (DAQP: iterations) of the last solve
         # far more weights than marker coordinates, and D + J'J with D diagonal (a ridge or diagonal prior): while
         # the last solution has at least as many weights free as there are marker coordinates (kalman's fit at
-        # 72 x 1000; not robust's sparse one there) the frame is solved in marker space (docs/performance.md,
+        # 72 x 1000; not the qp mode's sparse one there) the frame is solved in marker space (docs/performance.md,
         # "`kalman` at 72 x 1000")
         d = np.diagonal(self._const)
         self.marker_space = bool(self.m >= MARKER_SPACE_RATIO * 3 * self.n and not np.any(self._const - np.diag(d))
