@@ -4,7 +4,8 @@
   ``benchmarks.kalman_step``: 0.5 mm, 5 % occlusion, the prior from the other files), thread CPU per ``step``
   p50 / p99 / mean after 50 frames, for robust, kalman, and kalman with its held-out strength trial switched
   off (not a mode: the floor the rest of its step sets);
-* 72x1000: the synthetic rig of ``benchmarks.synthetic`` (every marker seen, a ridge), kalman and robust;
+* 72x1000: the synthetic rig of ``benchmarks.synthetic`` (every marker seen, a ridge), kalman and robust
+  (``--only 72x1000`` runs it alone; kalman's fit there is solved in marker space, solvers/marker_space_qp.py);
 * offline: ``solve_take`` of the first 30 s of each performance (with the prior), x real time (wall);
 * marker-space primitives at 72x1000 (:func:`marker_space`): why a factorisation that survives visibility changes
   belongs in the 216-dim marker space;
@@ -27,7 +28,10 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # as livecap/__init__.py sets for the
+    os.environ.setdefault(_var, "1")  # app: numpy loads here first, and a threaded BLAS makes 216 x 216 factors slow
+
+import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a file: PYTHONPATH's packages first (an A/B runs another tree), then ours
@@ -171,12 +175,16 @@ def marker_space(free: int = 530, rows: int = 216, m: int = 1006, reps: int = 20
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="20 s of each real take, 60 frames at 72x1000")
-    p.add_argument("--skip", nargs="*", default=[], choices=["streamed", "72x1000", "offline", "numba",
-                                                                   "marker-space"])
+    parts = ["streamed", "72x1000", "offline", "numba", "marker-space"]
+    p.add_argument("--skip", nargs="*", default=[], choices=parts)
+    p.add_argument("--only", nargs="*", default=[], choices=parts, help="run these parts alone (e.g. 72x1000)")
+    p.add_argument("--frames", type=int, default=400, help="frames of the 72x1000 take (default 400)")
     p.add_argument("--weights", help="save kalman's streamed weights per case (.npz)")
     p.add_argument("--compare", help="weights saved by another tree: report the largest difference")
     p.add_argument("--json", help="write the result as JSON")
     a = p.parse_args()
+    if a.only:
+        a.skip = [part for part in parts if part not in a.only]
     start = {"utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()), "load": os.getloadavg()}
     res: dict = {}
     saved = {}
@@ -186,7 +194,7 @@ def main() -> int:
             res[label], saved[label] = streamed(*real_case(name, 20.0 if a.quick else 0.0))
     if "72x1000" not in a.skip:
         res["synthetic 72x1000"], saved["synthetic 72x1000"] = streamed(
-            *synthetic_case(72, 1000, 60 + WARMUP if a.quick else 400), floor=False)
+            *synthetic_case(72, 1000, 60 + WARMUP if a.quick else a.frames), floor=False)
     if "offline" not in a.skip:
         res["offline 30 s"] = {name: offline(name, 30.0) for name in REAL}
     if "marker-space" not in a.skip:

@@ -38,6 +38,7 @@ class HeldOutStrength:
             for f in range(folds):
                 qp.step(np.zeros(3 * n), self.fold_of != f)
             qp.reset()
+            qp.prepare_marker_space()
 
     def observe(self, target: np.ndarray, valid: np.ndarray, start: np.ndarray | None = None) -> None:
         """``start``: a solution near this frame's (e.g. the last frame's fit) to start the trial's QP from;

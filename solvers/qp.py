@@ -30,11 +30,15 @@ from collections import OrderedDict
 import numpy as np
 
 from solvers.box_qp import BoxQP
+from solvers.marker_space_qp import MarkerSpaceQP
 from solvers.qp_kernels import smallest_eigenvalue
 
 log = logging.getLogger(__name__)
 
 
+# the marker-space path when the shapes number at least this many times the marker coordinates (72 x 1000: 4.7;
+# 72 x 150 and ICT's ~53 shapes stay in weight space)
+MARKER_SPACE_RATIO = 2.0
 _LAMBDA_MIN_SIZE = 256
 _LAMBDA_MIN: dict[bytes, float] = {}  # smallest eigenvalue per matrix content: FrameQPs at several strengths share one
 
@@ -87,13 +91,14 @@ class _Workspace:
     """One visibility pattern: H, the linear-term matrix, the active-set solver and DAQP, each built on
     first use (with many markers missing most patterns are seen once, often while DAQP has taken over)."""
 
-    __slots__ = ("H", "floor", "rows", "_limits", "_box", "_daqp")
+    __slots__ = ("H", "floor", "rows", "_limits", "_box", "_daqp", "marker_space")
 
     def __init__(self, H: np.ndarray, floor: float, rows: np.ndarray | None, limits: tuple) -> None:
         self.H, self.floor, self.rows = H, floor, rows
         self._limits = limits  # lower, upper and BoxQP.limit_rows of them: shared by every pattern
         self._box: BoxQP | None = None
         self._daqp = None
+        self.marker_space: MarkerSpaceQP | None | bool = None  # built on first use; False where it cannot be
 
     @property
     def box(self) -> BoxQP:
@@ -165,6 +170,13 @@ class FrameQP:
         self._prior_term = np.zeros(self.m) if self._prior_f is None else self._prior_f
         self.failures = 0
         self.iterations = 0  # active-set passes (DAQP: iterations) of the last solve
+        # far more weights than marker coordinates, and D + J'J with D diagonal (a ridge or diagonal prior): while
+        # the last solution has at least as many weights free as there are marker coordinates (kalman's fit at
+        # 72 x 1000; not the qp mode's sparse one there) the frame is solved in marker space (docs/performance.md,
+        # "`kalman` at 72 x 1000")
+        d = np.diagonal(self._const)
+        self.marker_space = bool(self.m >= MARKER_SPACE_RATIO * 3 * self.n and not np.any(self._const - np.diag(d))
+                                 and np.all((d > 0) | ~(np.isfinite(self.lower) | np.isfinite(self.upper))))
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -178,10 +190,10 @@ class FrameQP:
         """Start the next solve from ``x`` (clipped to the limits), e.g. a nearby problem's solution. Not where
         hundreds of weights were free: a nearer start lowers the churn that hands such solves to DAQP, and the box
         QP's passes on them cost more than DAQP's (kalman's trials at 72 x 1000, docs/performance.md
-        "`kalman`'s streamed step")."""
+        "`kalman`'s streamed step"); there the marker-space path takes the start whatever it is."""
         ws = getattr(self, "_last_ws", None)
-        if self._daqp_key is not None or (ws is not None and ws._box is not None
-                                          and len(ws.box.F) >= self._FREE_DAQP):
+        if not self.marker_space and (self._daqp_key is not None or (ws is not None and ws._box is not None
+                                                                     and len(ws.box.F) >= self._FREE_DAQP)):
             return
         self._prev = np.minimum(np.maximum(np.asarray(x, dtype=np.float64), self.lower), self.upper)
         self._last_key = None
@@ -310,6 +322,11 @@ class FrameQP:
                s: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray]:
         """The frame's solution (None on failure) and its linear term (``f``, or formed from ``s``)."""
         x = None
+        if self.marker_space and np.count_nonzero((self._prev > self.lower) & (self._prev < self.upper)) >= 3 * self.n:
+            x, f = self._solve_marker_space(ws, f, s)
+            if x is not None:
+                self._last_key, self._daqp_key, self._last_ws = key, None, ws
+                return x, f
         if self._daqp_key is not None:
             use_daqp = self.churn > self._CHURN_BOX
         else:
@@ -343,6 +360,36 @@ class FrameQP:
         if x is not None:
             self._last_ws = ws
         return x, f
+
+    def _solve_marker_space(self, ws: _Workspace, f: np.ndarray | None,
+                            s: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray]:
+        """The frame on this pattern's MarkerSpaceQP (built on first use), or None: the weight-space path then."""
+        self._build_marker_space(ws)
+        if f is None:
+            f = self._linear_term(ws, self._BtD @ (s if ws.rows is None else np.where(ws.rows, s, 0.0)))
+        if ws.marker_space is False:
+            return None, f
+        x = ws.marker_space.solve(f, self._prev)
+        self.iterations = ws.marker_space.iterations
+        return x, f
+
+    def _build_marker_space(self, ws: _Workspace) -> None:
+        if ws.marker_space is None:
+            rows = self._all_rows if ws.rows is None else ws.rows
+            J = self.basis[rows] * np.sqrt(self._row_w[rows])[:, None]
+            try:
+                ws.marker_space = MarkerSpaceQP(J, np.diagonal(self._const) + ws.floor, self.lower, self.upper)
+            except (np.linalg.LinAlgError, ValueError) as exc:  # e.g. too few markers seen to fix the pose
+                log.debug("marker-space QP not built: %s", exc)
+                ws.marker_space = False
+
+    def prepare_marker_space(self) -> None:
+        """Build the marker-space solver of every pattern seen so far now, where this QP may take that path: the
+        expensive preparation (an r x r product over every column, ~9 ms at 72 x 1000) before the stream, not on
+        the frame that first needs it."""
+        if self.marker_space:
+            for ws in self._models.values():
+                self._build_marker_space(ws)
 
     def _fallback(self, ws: _Workspace, f: np.ndarray) -> np.ndarray:
         x = np.linalg.lstsq(ws.H, -f, rcond=None)[0]

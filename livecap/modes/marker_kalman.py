@@ -199,9 +199,12 @@ class MarkerKalmanSolver:
         self._fits: dict[int, FrameQP] = {}
         self._spreads: dict[int, np.ndarray] = {}
         self._imm: tuple[float, IMMFilter] | None = None
-        for k in range(len(STRENGTHS)):  # build every workspace now, not on the first frames
+        self._fit_k: int | None = None  # the strength fitted last frame
+        for k in range(len(STRENGTHS)):  # build every workspace (and the IMM's spread) now, not on the first frames
             self._fit(k).step(np.zeros(3 * self.profile.n_markers), np.ones(self.profile.n_markers, bool))
             self._fits[k].reset()
+            self._fits[k].prepare_marker_space()
+            self._spread_of(k)
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         x, ok = self.filter.step(target, valid)
@@ -210,7 +213,11 @@ class MarkerKalmanSolver:
         if self._frame % STRENGTH_TRIAL_EVERY == 0:
             self.selector.observe(x, ok, self._z)
         self._frame += 1
-        z = self._z = self._fit(self.selector.best).step(x, ok)
+        fit = self._fit(self.selector.best)
+        if fit.marker_space and self._fit_k != self.selector.best and self._z is not None:
+            fit.warm(self._z)  # a strength not fitted last frame: from the last fit, not from its own old frame
+        self._fit_k = self.selector.best
+        z = self._z = fit.step(x, ok)
         w, self.head_correction = z[:self.m], z[self.m:]
         noise = self.filter.noise_mm
         if self._imm is None or self._imm[0] != noise:  # noise settles in the first frames; rarely changes after

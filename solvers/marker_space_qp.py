@@ -1,0 +1,173 @@
+"""A box QP with many more weights than marker coordinates, its linear algebra done in marker space.
+
+    minimise  1/2 x' (D + J'J) x + f' x   subject to  lower <= x <= upper,
+
+J the r seen (marker-weighted) rows of the basis (r = 3 x seen markers), D diagonal: a ridge or diagonal prior, the
+temporal term and the floor of solvers.qp. Columns with D = 0 (solvers.pose_refine's six rigid columns: unbounded,
+outside the prior) are eliminated first: for given x_G their least-squares fit leaves the same kind of box QP on
+G with J_G projected off their range and f_G corrected, and x_P follows from x_G.
+
+At 72 markers x 1000 shapes (r = 216, ~520 weights free) a weight-space method factors the free block H_FF (O(k^3))
+and DAQP moves the active set one bound an iteration (~117 a frame, docs/performance.md, "`kalman` against
+`robust`"). Here each pass is the primal-dual active-set method (Hintermueller, Ito & Kunisch 2003, SIAM J. Optim.
+13(3), §2; for bounds it is block principal pivoting: every free weight outside its limits and every bounded one
+whose multiplier has the wrong sign change sides at once; where the count of wrong sides stops falling for
+PIVOT_BUDGET passes, the primal active-set method takes over from the clipped point, as solvers.box_qp does in
+weight space: it terminates for any positive definite H) with the free block solved by Woodbury in marker space:
+with S = I + J_F D_F^-1 J_F' (r x r however many weights are free), the fitted markers y = J x of the subproblem are
+
+    y = S^-1 (J_A x_A - J_F D_F^-1 f_F),    x_F = -D_F^-1 (f_F + J_F' y),
+
+and the multipliers of the bounded weights are the gradient D x + J'y + f there: two r x n products and one r x r
+solve a pass. It ends exactly: when a pass leaves the partition as it was, x satisfies the KKT conditions
+(tests/test_marker_space_qp.py). Where ``max_iter`` passes are not enough ``solve`` returns None and solvers.qp
+falls back to DAQP.
+
+S is kept between solves with its free set: a pass on an unchanged free set reuses its factor (a frame whose
+partition did not move costs no factorisation); otherwise S is updated by the columns that changed sides (O(r^2)
+each) or, where fewer, formed from all columns' S less the bounded ones', and refactored (O(r^3 / 3)); formed
+afresh every ``REFRESH`` updates against drift. Warm from the last frame, the 72 x 1000 synthetic take's fit
+moves ~60-90 weights in the first pass and takes 3-5 passes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sl
+
+REFRESH = 64  # updates of the kept marker-space matrix before it is formed afresh
+PIVOT_BUDGET = 3  # block-pivoting passes without fewer wrong sides before the primal active-set method takes over
+
+
+class MarkerSpaceQP:
+    """One visibility pattern's J, D and limits. ``solve(f, x0)``: the optimum from any start ``x0`` (its
+    partition is the first guess), or None where ``max_iter`` passes did not settle (the caller falls back)."""
+
+    def __init__(self, J: np.ndarray, d: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+                 max_iter: int = 200) -> None:
+        """Raises ``np.linalg.LinAlgError`` where the columns with d = 0 are not fixed by J (e.g. too few markers
+        seen for the pose) and ``ValueError`` for a d = 0 column with a limit."""
+        J = np.asarray(J, dtype=np.float64)
+        d = np.asarray(d, dtype=np.float64).reshape(-1)
+        self.r, n = J.shape
+        lower = np.asarray(lower, dtype=np.float64).reshape(n)
+        upper = np.asarray(upper, dtype=np.float64).reshape(n)
+        if d.shape != (n,) or np.any(d < 0) or not np.isfinite(d).all():
+            raise ValueError(f"d must be {n} finite values >= 0")
+        self.P, self.G = np.flatnonzero(d == 0), np.flatnonzero(d > 0)
+        if np.isfinite(lower[self.P]).any() or np.isfinite(upper[self.P]).any():
+            raise ValueError("a variable without curvature of its own (d = 0) must be unbounded")
+        JG = J[:, self.G]
+        self._C = None
+        if len(self.P):  # x_P = -C^-1 (J_P'J_G x_G + f_P), C = J_P'J_P
+            JP = J[:, self.P]
+            self._C = sl.cho_factor(JP.T @ JP)
+            if np.diagonal(self._C[0]).min() <= 1e-9 * np.sqrt(np.abs(np.diagonal(JP.T @ JP)).max()):
+                raise np.linalg.LinAlgError("the unpenalised columns are not fixed by the seen rows")
+            self._A = sl.cho_solve(self._C, JP.T @ JG)
+            JG = JG - JP @ self._A
+        self.J = np.ascontiguousarray(JG)
+        self.d = d[self.G]
+        self.dinv = 1.0 / self.d
+        self.lo, self.hi = lower[self.G], upper[self.G]
+        self.max_iter = int(max_iter)
+        self.iterations = 0
+        W = self.J * np.sqrt(self.dinv)
+        self._S_all = W @ W.T  # every column free
+        self._S_all.flat[:: self.r + 1] += 1.0
+        self._S, self._F, self._L = self._S_all, np.ones(len(self.G), bool), None
+        self._updates = 0
+
+    def _factor(self, F: np.ndarray) -> tuple:
+        """The Cholesky factor of S for free set F: the kept one, or the kept S updated, or formed."""
+        changed = np.flatnonzero(F != self._F)
+        if not len(changed) and self._L is not None:
+            return self._L
+        n_free = int(np.count_nonzero(F))
+        n_bound = len(F) - n_free
+        if len(changed) <= min(n_bound, n_free) and self._updates < REFRESH:
+            W = self.J[:, changed] * np.sqrt(self.dinv[changed])
+            S = self._S + (W * np.where(F[changed], 1.0, -1.0)) @ W.T
+            self._updates += 1
+        else:
+            if n_bound <= n_free:
+                W = self.J[:, ~F] * np.sqrt(self.dinv[~F])
+                S = self._S_all - W @ W.T
+            else:
+                W = self.J[:, F] * np.sqrt(self.dinv[F])
+                S = W @ W.T
+                S.flat[:: self.r + 1] += 1.0
+            self._updates = 0
+        self._S, self._F = S, F
+        self._L = sl.cho_factor(S, lower=True, check_finite=False)
+        return self._L
+
+    def _subproblem(self, fG: np.ndarray, at_lo: np.ndarray, at_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The minimiser with the bounded weights held at their limits (x) and the gradient there (0 on F)."""
+        F = ~(at_lo | at_hi)
+        xA = np.where(at_lo, self.lo, np.where(at_hi, self.hi, 0.0))
+        y = sl.cho_solve(self._factor(F), self.J @ np.where(F, -fG * self.dinv, xA), check_finite=False)
+        z = self.J.T @ y
+        x = np.where(F, -(fG + z) * self.dinv, xA)
+        return x, self.d * x + z + fG
+
+    def solve(self, f: np.ndarray, x0: np.ndarray) -> np.ndarray | None:
+        f = np.asarray(f, dtype=np.float64)
+        fG = f[self.G] if self._C is None else f[self.G] - self._A.T @ f[self.P]
+        x = np.asarray(x0, dtype=np.float64)[self.G]
+        at_lo, at_hi = x <= self.lo, x >= self.hi
+        best, budget = len(x) + 1, PIVOT_BUDGET
+        for it in range(1, self.max_iter + 1):
+            x, g = self._subproblem(fG, at_lo, at_hi)
+            F = ~(at_lo | at_hi)
+            lo1 = np.where(F, x <= self.lo, at_lo & (g >= 0))
+            hi1 = np.where(F, x >= self.hi, at_hi & (g <= 0))
+            wrong = np.count_nonzero((lo1 != at_lo) | (hi1 != at_hi))
+            if not wrong:
+                self.iterations = it
+                return self._full(x, f)
+            if wrong < best:
+                best, budget = wrong, PIVOT_BUDGET
+            else:
+                budget -= 1
+            if budget <= 0:
+                return self._primal(fG, f, np.minimum(np.maximum(x, self.lo), self.hi), it)
+            at_lo, at_hi = lo1, hi1
+        self.iterations = self.max_iter
+        return None
+
+    def _primal(self, fG: np.ndarray, f: np.ndarray, x: np.ndarray, it: int) -> np.ndarray | None:
+        """The primal active-set method from the feasible ``x``: a step towards the subproblem's minimiser until
+        a limit blocks, or the bounded weight with the most wrong multiplier freed; the objective falls at every
+        step, so it terminates (Nocedal & Wright 2006 §16.5)."""
+        at_lo, at_hi = x <= self.lo, x >= self.hi
+        while it < self.max_iter:
+            it += 1
+            xs, g = self._subproblem(fG, at_lo, at_hi)
+            p = xs - x
+            F = ~(at_lo | at_hi)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                room = np.where(p < 0, (self.lo - x) / p, np.where(p > 0, (self.hi - x) / p, np.inf))
+            room[~F] = np.inf
+            j = int(np.argmin(room))
+            if room[j] < 1.0:  # a limit blocks: step to it and bound it
+                x = x + max(room[j], 0.0) * p
+                x[j] = self.lo[j] if p[j] < 0 else self.hi[j]
+                at_lo[j], at_hi[j] = p[j] < 0, p[j] > 0
+                continue
+            x = xs
+            push = np.where(at_lo, -g, np.where(at_hi, g, 0.0)) * np.sqrt(self.dinv)  # > 0: wants inside
+            j = int(np.argmax(push))
+            if push[j] <= 0:
+                self.iterations = it
+                return self._full(x, f)
+            at_lo[j] = at_hi[j] = False
+        self.iterations = self.max_iter
+        return None
+
+    def _full(self, xG: np.ndarray, f: np.ndarray) -> np.ndarray:
+        out = np.empty(len(self.G) + len(self.P))
+        out[self.G] = xG
+        if self._C is not None:
+            out[self.P] = -(self._A @ xG + sl.cho_solve(self._C, f[self.P]))
+        return out
