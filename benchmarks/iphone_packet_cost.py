@@ -7,7 +7,8 @@ sleeps between packets as it does live, so the figure includes what a woken proc
 caches (several times the warm cost, docs/iphone.md, Latency); ``back to back`` is the warm cost. Load
 distorts this less than the loopback benchmark (benchmarks/iphone_latency.py): no other process sits
 on the path. With ``--baseline DIR`` the same measurement runs on another checkout (e.g. /work/main),
-alternately with this one, in the same run.
+alternately with this one, in the same run. ``decode+encode only`` is the floor for this relay in Python:
+the source's decode with all its checks and the sink's packet, none of the session around them.
 
     python -m benchmarks.iphone_packet_cost [--quick] [--runs 3] [--baseline /work/main]
 """
@@ -81,10 +82,33 @@ def measure(count: int, rate: float) -> dict:
     return {"packets": count, "rate_hz": rate, "p50_us": float(p50), "p90_us": float(p90), "p99_us": float(p99)}
 
 
-def _child(tree: str, count: int, rate: float) -> dict:
-    """:func:`measure` in a fresh process that imports livecap from ``tree``."""
+def measure_floor(count: int, rate: float) -> dict:
+    """The least a Python relay of these packets does: decode one (every check of the source) and encode a
+    Live Link packet of its values (the sink's struct), nothing else; the same timing as :func:`measure`."""
+    from benchmarks.iphone_latency import _with_frame, real_packets
+    from transport.livelink import _body, livelink_header
+    from transport.livelink_source import decode_livelink
+
+    pkts = real_packets()
+    data = [_with_frame(pkts[k % len(pkts)], k) for k in range(count)]
+    header = livelink_header("livecap")
+    us = np.zeros(count)
+    t0 = time.perf_counter()
+    for k in range(count):
+        if rate:
+            time.sleep(max(0.0, t0 + k / rate - time.perf_counter()))
+        t = time.perf_counter()
+        p = decode_livelink(data[k])
+        header + _body(list(p.floats), p.frame, p.sub_frame, p.fps, p.denominator)
+        us[k] = (time.perf_counter() - t) * 1e6
+    p50, p90, p99 = np.percentile(us[10:], [50, 90, 99])
+    return {"packets": count, "rate_hz": rate, "p50_us": float(p50), "p90_us": float(p90), "p99_us": float(p99)}
+
+
+def _child(tree: str, count: int, rate: float, what: str = "path") -> dict:
+    """:func:`measure` (or :func:`measure_floor`) in a fresh process that imports livecap from ``tree``."""
     env = {**os.environ, "PYTHONPATH": tree, "OPENBLAS_NUM_THREADS": "1"}
-    out = subprocess.run([sys.executable, __file__, "--child", str(count), str(rate)], cwd=tree, env=env,
+    out = subprocess.run([sys.executable, __file__, "--child", str(count), str(rate), what], cwd=tree, env=env,
                          capture_output=True, text=True, timeout=600)
     if out.returncode:
         raise RuntimeError(f"{tree}: {out.stderr.strip().splitlines()[-1:]}")
@@ -103,8 +127,10 @@ def run(quick: bool = False, runs: tuple = ("",), baseline: tuple = ("",)) -> di
     load = os.getloadavg()[0]
     per_run = []
     for _ in range(n_runs):
-        per_run.append({f"{name} {label}": _child(tree, n, rate) for name, tree in trees.items()
-                        for label, n, rate in (("60 Hz", count, 60.0), ("back to back", 2000, 0.0))})
+        row = {f"{name} {label}": _child(tree, n, rate) for name, tree in trees.items()
+               for label, n, rate in (("60 Hz", count, 60.0), ("back to back", 2000, 0.0))}
+        row["decode+encode only 60 Hz"] = _child(str(ROOT), count, 60.0, "floor")
+        per_run.append(row)
     rows = {key: {k: float(np.median([r[key][k] for r in per_run])) for k in ("p50_us", "p90_us", "p99_us")}
             for key in per_run[0]}
     out = {"runs": n_runs, "per_run": per_run, "median": rows, "baseline_tree": baseline[0],
@@ -121,7 +147,8 @@ def run(quick: bool = False, runs: tuple = ("",), baseline: tuple = ("",)) -> di
 if __name__ == "__main__":
     if sys.argv[1:2] == ["--child"]:
         del sys.path[0]  # this file's folder: livecap and benchmarks come from the tree on PYTHONPATH
-        print(json.dumps(measure(int(sys.argv[2]), float(sys.argv[3]))))
+        what = measure_floor if sys.argv[4:5] == ["floor"] else measure
+        print(json.dumps(what(int(sys.argv[2]), float(sys.argv[3]))))
         sys.exit(0)
     from benchmarks.timing import suite_main
 

@@ -428,3 +428,26 @@ def test_the_live_link_sink_in_floats_writes_what_numpy_wrote(weights, q0):
     packed = (struct.pack("<I", 6) + dev.encode() + struct.pack(">i", 4) + b"Face"
               + struct.pack(">ifiiB", 7, 0.25, 60, 1, 61) + np.asarray(got, ">f4").tobytes())
     assert encode_livelink(got, 7, "Face", dev, 60, 1, 0.25) == packed
+
+
+def test_the_source_waits_in_recv_with_the_kernels_timeout():
+    """A blocking socket with SO_RCVTIMEO: Python's settimeout would poll before each recv (a system call per
+    packet on the latency path); the idle timeout still ends the session."""
+    src = LiveLinkFaceSource("127.0.0.1", 0, idle_timeout=0.3, poll_s=0.25)
+    try:
+        assert src.sock.gettimeout() is None
+        sec, usec = struct.unpack("ll", src.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, 16))
+        assert sec == 0 and abs(usec - 250000) < 10000  # the kernel rounds to its clock tick
+        t0 = time.monotonic()
+        assert list(src) == [] and time.monotonic() - t0 < 2.0
+    finally:
+        src.close()
+
+
+def test_the_packet_cost_benchmark_runs_the_real_path():
+    """benchmarks/iphone_packet_cost swaps the source's and the sink's sockets: it must still drive the real loop."""
+    from benchmarks.iphone_packet_cost import measure
+
+    real_packets()
+    got = measure(40, 0.0)
+    assert got["packets"] == 40 and 0 < got["p50_us"] <= got["p99_us"] < 1e5

@@ -107,7 +107,8 @@ def decode_livelink(dgram: bytes) -> LiveLinkPacket:
 def head_quaternion(yaw_pitch_roll: np.ndarray) -> np.ndarray:
     """The rotation (x, y, z, w) whose :func:`transport.arkit.head_angles` are these angles:
     intrinsic Y, X, Z, i.e. Ry(yaw) Rx(pitch) Rz(roll)."""
-    a, b, c = (0.5 * float(v) for v in yaw_pitch_roll)  # floats: per packet (docs/iphone.md, Latency)
+    yaw, pitch, roll = yaw_pitch_roll
+    a, b, c = 0.5 * float(yaw), 0.5 * float(pitch), 0.5 * float(roll)  # floats: per packet (docs/iphone.md, Latency)
     sy, cy, sx, cx, sz, cz = math.sin(a), math.cos(a), math.sin(b), math.cos(b), math.sin(c), math.cos(c)
     x, y, z, w = cy * sx, sy * cx, -sy * sx, cy * cx  # (0, sy, 0, cy) (sx, 0, 0, cx), Hamilton's product
     return np.array([x * cz + y * sz, y * cz - x * sz, w * sz + z * cz, w * cz - z * sz])  # then (0, 0, sz, cz)
@@ -124,14 +125,16 @@ class LiveLinkFaceSource:
         self.names = list(ARKIT_NAMES)
         self.received = 0
         self.last_decode_seconds = 0.0
-        self.last_packet: LiveLinkPacket | None = None
         self.device: str | None = None
         self._order = FrameOrder()
         self._running = True
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
         self.sock.bind((host, port))
-        self.sock.settimeout(poll_s)
+        # the kernel's receive timeout on a blocking socket, not settimeout's, which polls before every recv (one
+        # more system call per packet); a wait with no packet raises BlockingIOError. 0 would mean "forever".
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO,
+                             struct.pack("ll", *divmod(max(1, round(poll_s * 1e6)), 1_000_000)))
         self.address = self.sock.getsockname()
         self.bad = BadInput(f"livelink {host}:{self.address[1]}")
 
@@ -153,7 +156,6 @@ class LiveLinkFaceSource:
             self.device = pkt.device
         if not self.bad.in_order(self._order, pkt.frame, pkt.seconds):
             return None
-        self.last_packet = pkt
         return SolveResult(pkt.frame, pkt.seconds, self.names, np.array(pkt.floats[:52]),
                            head_quaternion(pkt.floats[52:55]), np.zeros(3))
 
@@ -170,7 +172,7 @@ class LiveLinkFaceSource:
         while self._running:
             try:
                 dgram = self.sock.recv(65536)
-            except TimeoutError:
+            except BlockingIOError:  # SO_RCVTIMEO passed without a packet
                 dgram = None
             except OSError:
                 return  # closed
