@@ -360,3 +360,96 @@ def test_one_euro_smoothing_quietens_still_weights_without_delaying_frames():
     assert [f for f, _, _ in sink.got] == list(range(200))
     out = np.array([w[1] for _, w, _ in sink.got])
     assert np.std(out[50:]) < 0.7 * np.std(raw[50:])  # 0.53 x measured: beta 30 opens the cutoff on jitter
+
+
+def _numpy_calls(fn) -> int:
+    """How many numpy functions and array methods ``fn()`` calls (C calls seen by the profiler)."""
+    seen = [0]
+
+    def hook(frame, event, arg):
+        if event == "c_call":
+            owner = getattr(arg, "__self__", None)
+            module = getattr(arg, "__module__", None) or type(owner).__module__
+            seen[0] += str(module).startswith("numpy")
+
+    sys.setprofile(hook)
+    try:
+        fn()
+    finally:
+        sys.setprofile(None)
+    return seen[0]
+
+
+def test_the_live_link_pass_through_makes_few_numpy_calls_per_packet():
+    """Packet in -> Live Link packet out with ARKit names. On a process woken by each packet (60 Hz) every
+    numpy call costs ~10-30 us, ~10-100x its warm cost (docs/iphone.md, Latency): the path decodes, timestamps and
+    encodes in Python floats (30 numpy calls per packet before, 2026-12-04)."""
+    from livecap.live.relay import WeightsPipeline
+
+    pkts = real_packets()[:20]
+    src = LiveLinkFaceSource("127.0.0.1", 0)
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    sink = LiveLinkSink("127.0.0.1", rx.getsockname()[1], timecode="take")
+    pipe = WeightsPipeline(iter(()), [sink], rate=60.0)
+    try:
+        pipe.publish(src.decode(pkts[0]))  # the first packet builds the sink's name matrix
+        counts = [_numpy_calls(lambda p=p: (pipe.timing["receive"].add(1e-5), pipe.publish(src.decode(p))))
+                  for p in pkts[1:]]
+    finally:
+        src.close()
+        sink.close()
+        rx.close()
+    assert sink.sent == len(pkts) and max(counts) <= 5, counts
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.floats(0, 1), min_size=52, max_size=52), st.lists(st.floats(-1, 1), min_size=4, max_size=4))
+def test_the_live_link_sink_in_floats_writes_what_numpy_wrote(weights, q0):
+    """The sink's values and packet, built in Python floats, against scipy's angles and numpy's float32 bytes."""
+    from transport.arkit import ARKIT_NAMES
+    from transport.livelink import device_id
+
+    if np.linalg.norm(q0) < 0.1:
+        return
+    sink = LiveLinkSink("127.0.0.1", 9, timecode="take")
+    sink.close()
+    sink.neutral.fix(NeutralPose(np.eye(3), np.zeros(3)))  # the iPhone's: angles already relative
+    got = sink.values(SolveResult(7, 7 / 60, list(ARKIT_NAMES), np.array(weights), np.array(q0), np.zeros(3)))
+    want = np.zeros(61)
+    want[:52] = weights
+    want[52:55] = Rotation.from_quat(q0).as_euler("YXZ")
+    look = {n: w for n, w in zip(ARKIT_NAMES, weights, strict=True)}
+    for at, side, out in ((55, "Left", -1.0), (58, "Right", 1.0)):
+        want[at] = out * EYE_YAW * (look[f"eyeLookOut{side}"] - look[f"eyeLookIn{side}"])
+        want[at + 1] = EYE_PITCH * (look[f"eyeLookDown{side}"] - look[f"eyeLookUp{side}"])
+    diff = got - want
+    diff[52:55] = (diff[52:55] + np.pi) % (2 * np.pi) - np.pi  # a roll of pi is also one of -pi
+    assert np.allclose(diff, 0.0, atol=1e-7)
+    dev = device_id("a")
+    packed = (struct.pack("<I", 6) + dev.encode() + struct.pack(">i", 4) + b"Face"
+              + struct.pack(">ifiiB", 7, 0.25, 60, 1, 61) + np.asarray(got, ">f4").tobytes())
+    assert encode_livelink(got, 7, "Face", dev, 60, 1, 0.25) == packed
+
+
+def test_the_source_waits_in_recv_with_the_kernels_timeout():
+    """A blocking socket with SO_RCVTIMEO: Python's settimeout would poll before each recv (a system call per
+    packet on the latency path); the idle timeout still ends the session."""
+    src = LiveLinkFaceSource("127.0.0.1", 0, idle_timeout=0.3, poll_s=0.25)
+    try:
+        assert src.sock.gettimeout() is None
+        sec, usec = struct.unpack("ll", src.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, 16))
+        assert sec == 0 and abs(usec - 250000) < 10000  # the kernel rounds to its clock tick
+        t0 = time.monotonic()
+        assert list(src) == [] and time.monotonic() - t0 < 2.0
+    finally:
+        src.close()
+
+
+def test_the_packet_cost_benchmark_runs_the_real_path():
+    """benchmarks/iphone_packet_cost swaps the source's and the sink's sockets: it must still drive the real loop."""
+    from benchmarks.iphone_packet_cost import measure
+
+    real_packets()
+    got = measure(40, 0.0)
+    assert got["packets"] == 40 and 0 < got["p50_us"] <= got["p99_us"] < 1e5

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from livecap.core.eyes import LOOKS, eye_angles
+from livecap.core.eyes import LOOKS, eye_angles, eye_yaw_pitch
 from livecap.core.names import ARKIT_NAMES, arkit_matrix, is_arkit
 
 __all__ = ["ARKIT_NAMES", "arkit_matrix", "is_arkit"]  # the names below livecap.core; wire formats import them here
@@ -28,11 +28,17 @@ POSE_NAMES = ["HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", 
 
 EYE_LOOK_INDEX = np.array([[ARKIT_NAMES.index(f"eyeLook{look}{side}") for look in LOOKS]
                            for side in ("Left", "Right")])
+_EYE_LOOKS = EYE_LOOK_INDEX.ravel().tolist()
 
 
 def arkit_eye_angles(arkit: np.ndarray) -> np.ndarray:
     """Eye (yaw, pitch) of the left and right eye (2 x 2, radians) from 52 ARKit weights."""
     return eye_angles(np.asarray(arkit, dtype=float)[EYE_LOOK_INDEX])
+
+
+def arkit_eye_yaw_pitch(arkit: list[float]) -> tuple[float, ...]:
+    """:func:`arkit_eye_angles` of 52 Python floats, flat (left yaw, pitch, right yaw, pitch): a per-packet path."""
+    return eye_yaw_pitch([arkit[i] for i in _EYE_LOOKS])
 
 
 def load_mapping(path: str | Path) -> dict:
@@ -53,11 +59,17 @@ def head_angles(quat_xyzw: np.ndarray) -> np.ndarray:
     Axes of livecap's head frame: +y up (yaw), +x towards the subject's left (pitch), +z out of
     the face (roll); intrinsic Y-X-Z order.
     """
-    x, y, z, w = np.asarray(quat_xyzw, dtype=float).tolist()  # floats: a per-packet path (docs/iphone.md)
+    return np.array(head_yaw_pitch_roll(np.asarray(quat_xyzw, dtype=float).tolist()))
+
+
+def head_yaw_pitch_roll(quat_xyzw: list[float]) -> tuple[float, float, float]:
+    """:func:`head_angles` of four Python floats (a per-packet path: no numpy call, docs/iphone.md); 0s for a
+    zero or non-finite quaternion."""
+    x, y, z, w = quat_xyzw
     n = math.sqrt(x * x + y * y + z * z + w * w)
     if not math.isfinite(n) or n < 1e-9:
-        return np.zeros(3)
+        return 0.0, 0.0, 0.0
     x, y, z, w = x / n, y / n, z / n, w / n  # the matrix entries of R = Ry(yaw) Rx(pitch) Rz(roll) that give them
-    return np.array([math.atan2(2 * (x * z + w * y), 1 - 2 * (x * x + y * y)),
-                     math.asin(min(1.0, max(-1.0, -2 * (y * z - w * x)))),
-                     math.atan2(2 * (x * y + w * z), 1 - 2 * (x * x + z * z))])
+    return (math.atan2(2 * (x * z + w * y), 1 - 2 * (x * x + y * y)),
+            math.asin(min(1.0, max(-1.0, -2 * (y * z - w * x)))),
+            math.atan2(2 * (x * y + w * z), 1 - 2 * (x * x + z * z)))

@@ -36,12 +36,12 @@ import numpy as np
 
 from livecap.core.headpose import NeutralWindow
 from livecap.core.timecode import TimecodeClock, frame_rate_fraction, split_frames
-from transport.arkit import ARKIT_NAMES, arkit_eye_angles, arkit_matrix, head_angles
+from transport.arkit import ARKIT_NAMES, arkit_eye_yaw_pitch, arkit_matrix, head_yaw_pitch_roll
 
 VERSION = 6
 N_VALUES = 61
-_EYE_ANGLES = np.array([55, 56, 58, 59])  # left eye yaw, pitch, right eye yaw, pitch (the rolls stay 0)
 DEFAULT_PORT = 11111
+_BODY = struct.Struct(f">ifiiB{N_VALUES}f")
 
 
 def device_id(actor: str | None = None) -> str:
@@ -52,17 +52,25 @@ def device_id(actor: str | None = None) -> str:
 
 def encode_livelink(values61: np.ndarray, frame: int, subject: str = "livecap", device: str | None = None,
                     fps: int = 60, denominator: int = 1, sub_frame: float = 0.0) -> bytes:
+    vals = np.asarray(values61, dtype=float)
+    if vals.shape != (N_VALUES,):
+        raise ValueError(f"a Live Link Face packet carries {N_VALUES} values, got {vals.shape}")
+    return livelink_header(subject, device) + _body(vals.tolist(), frame, sub_frame, fps, denominator)
+
+
+def livelink_header(subject: str = "livecap", device: str | None = None) -> bytes:
+    """A packet's bytes before its frame time: the same for every packet of a sink."""
     dev = (device or device_id()).encode()
     if len(dev) != 37 or not dev.startswith(b"$"):
         raise ValueError(f"device id must be '$' + a 36-character UUID (the '$' is Unreal's length byte 36), "
                          f"got {dev[:40]!r}")
     name = subject.encode()
-    vals = np.asarray(values61, dtype=">f4")
-    if vals.shape != (N_VALUES,):
-        raise ValueError(f"a Live Link Face packet carries {N_VALUES} values, got {vals.shape}")
-    return (struct.pack("<I", VERSION) + dev + struct.pack(">i", len(name)) + name
-            + struct.pack(">ifiiB", int(frame) & 0x7FFFFFFF, float(sub_frame), int(fps), int(denominator), N_VALUES)
-            + vals.tobytes())
+    return struct.pack("<I", VERSION) + dev + struct.pack(">i", len(name)) + name
+
+
+def _body(values61: list[float], frame: int, sub_frame: float, fps: int, denominator: int) -> bytes:
+    """Frame time and the 61 values as float32 (struct from Python floats: one call, no numpy per packet)."""
+    return _BODY.pack(int(frame) & 0x7FFFFFFF, float(sub_frame), int(fps), int(denominator), N_VALUES, *values61)
 
 
 class LiveLinkSink:
@@ -84,25 +92,33 @@ class LiveLinkSink:
         self._names: Sequence[str] | None = None
         self._M = np.zeros((len(ARKIT_NAMES), 0))
         self._same = False
+        self._header = livelink_header(self.subject, self.device)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setblocking(False)
 
     def values(self, result) -> np.ndarray:
+        return np.array(self._floats(result))
+
+    def _floats(self, result) -> list[float]:
+        """The 61 values in Python floats: per packet, each small numpy call costs more than its arithmetic,
+        and several times more on a process just woken by the packet (docs/iphone.md, Latency)."""
         if result.names is not self._names:
             self._M = arkit_matrix(result.names, self.mapping, self.where)
             self._names = result.names
             self._same = self._M.shape == (52, 52) and np.array_equal(self._M, np.eye(52))  # ARKit in, in order
-        out = np.zeros(N_VALUES)
-        out[:52] = result.weights if self._same else self._M @ np.asarray(result.weights, dtype=float)
-        rotation, _ = self.neutral.relative(result.head_rotation, result.head_translation)
-        out[52:55] = head_angles(rotation)
-        out[_EYE_ANGLES] = arkit_eye_angles(out[:52]).ravel()
+        w = result.weights if self._same else self._M @ np.asarray(result.weights, dtype=float)
+        out = w.tolist() if isinstance(w, np.ndarray) else [float(v) for v in w]
+        q = result.head_rotation if self.neutral.identity else self.neutral.relative(result.head_rotation,
+                                                                                     result.head_translation)[0]
+        left_yaw, left_pitch, right_yaw, right_pitch = arkit_eye_yaw_pitch(out)
+        out += head_yaw_pitch_roll(q.tolist() if isinstance(q, np.ndarray) else [float(v) for v in q])
+        out += (left_yaw, left_pitch, 0.0, right_yaw, right_pitch, 0.0)  # eye rolls stay 0
         return out
 
     def publish(self, result) -> None:
         tod = self.clock.seconds_of_day(result.timestamp, result.received)
         frame, sub = split_frames(tod, self.fps / self.denominator)
-        pkt = encode_livelink(self.values(result), frame, self.subject, self.device, self.fps, self.denominator, sub)
+        pkt = self._header + _body(self._floats(result), frame, sub, self.fps, self.denominator)
         try:
             self.sock.sendto(pkt, self.target)
             self.sent += 1

@@ -35,6 +35,9 @@ VERSIONS = (6,)
 COUNTS = (52, 61)
 MAX_ID = 256  # bytes: a device id or subject longer than this is not the app's
 MAX_DATAGRAM = 2048
+_TIME = struct.Struct(">ifiiB")  # frame, sub-frame, fps numerator, denominator, value count
+_VALUES = {n: struct.Struct(f">{n}f") for n in COUNTS}
+_NO_ANGLES = (0.0,) * (61 - 52)
 
 
 class LiveLinkDecodeError(ValueError):
@@ -51,7 +54,12 @@ class LiveLinkPacket:
     sub_frame: float
     fps: int
     denominator: int
-    values: np.ndarray  # 61: 52 ARKit weights, head yaw/pitch/roll, left eye, right eye (radians)
+    floats: tuple[float, ...]  # 61: 52 ARKit weights, head yaw/pitch/roll, left eye, right eye (radians)
+
+    @property
+    def values(self) -> np.ndarray:
+        """The 61 values as an array (the live path reads :attr:`floats`: no numpy call per packet)."""
+        return np.array(self.floats)
 
     @property
     def seconds(self) -> float:
@@ -80,7 +88,7 @@ def decode_livelink(dgram: bytes) -> LiveLinkPacket:
         i += 4 + n
     if i + 17 > len(dgram):
         raise LiveLinkDecodeError("short", "frame time cut off")
-    frame, sub, fps, den, count = struct.unpack_from(">ifiiB", dgram, i)
+    frame, sub, fps, den, count = _TIME.unpack_from(dgram, i)
     i += 17
     if count not in COUNTS:
         raise LiveLinkDecodeError("malformed", f"{count} values, the app sends {COUNTS}")
@@ -89,17 +97,18 @@ def decode_livelink(dgram: bytes) -> LiveLinkPacket:
         raise LiveLinkDecodeError(kind, f"{len(dgram)} bytes, {count} values need {i + 4 * count}")
     if fps <= 0 or den <= 0 or frame < 0:
         raise LiveLinkDecodeError("malformed", f"frame {frame} at {fps}/{den} fps")
-    values = np.zeros(61)
-    values[:count] = np.frombuffer(dgram, ">f4", count, i)
-    if not math.isfinite(float(values.sum()) + sub):  # NaN or inf anywhere survives the sum (no float32 overflows it)
+    # Python floats, not numpy: woken once per packet, numpy's cast and reduction cost ~10x their warm time
+    values = _VALUES[count].unpack_from(dgram, i)
+    if not math.isfinite(sum(values) + sub):  # NaN or inf anywhere survives the sum (no float32 overflows it)
         raise LiveLinkDecodeError("nonfinite", "a value is NaN or infinite")
-    return LiveLinkPacket(texts[0], texts[1], frame, float(sub), fps, den, values)
+    return LiveLinkPacket(texts[0], texts[1], frame, sub, fps, den, values if count == 61 else values + _NO_ANGLES)
 
 
 def head_quaternion(yaw_pitch_roll: np.ndarray) -> np.ndarray:
     """The rotation (x, y, z, w) whose :func:`transport.arkit.head_angles` are these angles:
     intrinsic Y, X, Z, i.e. Ry(yaw) Rx(pitch) Rz(roll)."""
-    a, b, c = (0.5 * float(v) for v in yaw_pitch_roll)  # floats: per packet (docs/iphone.md, Latency)
+    yaw, pitch, roll = yaw_pitch_roll
+    a, b, c = 0.5 * float(yaw), 0.5 * float(pitch), 0.5 * float(roll)  # floats: per packet (docs/iphone.md, Latency)
     sy, cy, sx, cx, sz, cz = math.sin(a), math.cos(a), math.sin(b), math.cos(b), math.sin(c), math.cos(c)
     x, y, z, w = cy * sx, sy * cx, -sy * sx, cy * cx  # (0, sy, 0, cy) (sx, 0, 0, cx), Hamilton's product
     return np.array([x * cz + y * sz, y * cz - x * sz, w * sz + z * cz, w * cz - z * sz])  # then (0, 0, sz, cz)
@@ -116,14 +125,16 @@ class LiveLinkFaceSource:
         self.names = list(ARKIT_NAMES)
         self.received = 0
         self.last_decode_seconds = 0.0
-        self.last_packet: LiveLinkPacket | None = None
         self.device: str | None = None
         self._order = FrameOrder()
         self._running = True
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
         self.sock.bind((host, port))
-        self.sock.settimeout(poll_s)
+        # the kernel's receive timeout on a blocking socket, not settimeout's, which polls before every recv (one
+        # more system call per packet); a wait with no packet raises BlockingIOError. 0 would mean "forever".
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO,
+                             struct.pack("ll", *divmod(max(1, round(poll_s * 1e6)), 1_000_000)))
         self.address = self.sock.getsockname()
         self.bad = BadInput(f"livelink {host}:{self.address[1]}")
 
@@ -145,9 +156,8 @@ class LiveLinkFaceSource:
             self.device = pkt.device
         if not self.bad.in_order(self._order, pkt.frame, pkt.seconds):
             return None
-        self.last_packet = pkt
-        return SolveResult(pkt.frame, pkt.seconds, self.names, pkt.values[:52].copy(),
-                           head_quaternion(pkt.values[52:55]), np.zeros(3))
+        return SolveResult(pkt.frame, pkt.seconds, self.names, np.array(pkt.floats[:52]),
+                           head_quaternion(pkt.floats[52:55]), np.zeros(3))
 
     def stop(self) -> None:
         self._running = False
@@ -162,7 +172,7 @@ class LiveLinkFaceSource:
         while self._running:
             try:
                 dgram = self.sock.recv(65536)
-            except TimeoutError:
+            except BlockingIOError:  # SO_RCVTIMEO passed without a packet
                 dgram = None
             except OSError:
                 return  # closed

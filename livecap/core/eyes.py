@@ -10,18 +10,24 @@ on the five longer takes; 30 and 25 degrees (0.52, 0.44 rad) sit inside both ran
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
+
 import numpy as np
 
-EYE_YAW = np.radians(30.0)
-EYE_PITCH = np.radians(25.0)
+EYE_YAW = math.radians(30.0)
+EYE_PITCH = math.radians(25.0)
 LOOKS = ("Out", "In", "Down", "Up")  # column order of :func:`eye_angles`' input
-_OUTWARD = (-1.0, 1.0)  # the left eye looks out towards the subject's left
 
 
 def eye_angles(looks: np.ndarray, yaw: float = EYE_YAW, pitch: float = EYE_PITCH) -> np.ndarray:
     """2 x 2 (left, right) x (yaw, pitch) radians from ``looks``, 2 x 4 weights of eyeLook
     Out, In, Down, Up for the left and the right eye."""
-    # Python floats: it runs per packet, where each small numpy operation costs more (docs/iphone.md, Latency)
-    (o0, i0, d0, u0), (o1, i1, d1, u1) = np.asarray(looks, dtype=float).reshape(2, 4).tolist()
-    s0, s1 = _OUTWARD
-    return np.array([[yaw * s0 * (o0 - i0), pitch * (d0 - u0)], [yaw * s1 * (o1 - i1), pitch * (d1 - u1)]])
+    return np.array(eye_yaw_pitch(np.asarray(looks, dtype=float).ravel().tolist(), yaw, pitch)).reshape(2, 2)
+
+
+def eye_yaw_pitch(looks: Sequence[float], yaw: float = EYE_YAW, pitch: float = EYE_PITCH) -> tuple[float, ...]:
+    """:func:`eye_angles` in Python floats, flat: left yaw, left pitch, right yaw, right pitch from the 8 looks
+    (left Out, In, Down, Up, then the right's). Per packet numpy's per-call cost dominates (docs/iphone.md, Latency)."""
+    o0, i0, d0, u0, o1, i1, d1, u1 = looks
+    return -yaw * (o0 - i0), pitch * (d0 - u0), yaw * (o1 - i1), pitch * (d1 - u1)  # the left eye's out is -yaw

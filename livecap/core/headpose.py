@@ -94,12 +94,15 @@ class NeutralWindow:
         self._q: list[np.ndarray] = []
         self._t: list[np.ndarray] = []
         self.pose: NeutralPose | None = None
+        self.identity = False  # fixed to the identity: every rotation is its own relative one
 
     def fix(self, pose: NeutralPose) -> None:
         """Use ``pose`` from now on: a source whose angles are already relative to its own neutral
-        (the iPhone's) passes them through with the identity."""
+        (the iPhone's) passes them through with the identity (:attr:`identity`, which a sink may test
+        to skip :meth:`relative` per packet)."""
         self.frames = 0
         self.pose = pose
+        self.identity = pose._identity
 
     def relative(self, quaternion: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         q = np.asarray(quaternion, dtype=np.float64)

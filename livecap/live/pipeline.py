@@ -51,10 +51,12 @@ STAGES = ("receive", "solve", "step", "publish", "frame", "around_step")
 
 
 class StageTiming:
-    """A ring of the last ``window`` durations of one stage; percentiles on request."""
+    """A ring of the last ``window`` durations of one stage; percentiles on request. A list, not an array:
+    :meth:`add` runs per frame, and a numpy store on a process just woken by a packet costs ~10-30 us
+    (docs/iphone.md, Latency)."""
 
     def __init__(self, window: int = 4096) -> None:
-        self.samples = np.zeros(window)
+        self.samples = [0.0] * window
         self.count = 0
 
     def add(self, seconds: float) -> None:
@@ -65,7 +67,7 @@ class StageTiming:
         k = min(self.count, len(self.samples))
         if k == 0:
             return {"p50_ms": float("nan"), "p99_ms": float("nan"), "max_ms": float("nan")}
-        s = self.samples[:k] * 1e3
+        s = np.array(self.samples[:k]) * 1e3
         p50, p99 = np.percentile(s, [50, 99])
         return {"p50_ms": float(p50), "p99_ms": float(p99), "max_ms": float(s.max())}
 
