@@ -10,7 +10,8 @@ one, a ridge — whose strength is chosen by held-out markers on the take (solve
 
 The weights then pass an IMM of a 'hold' and a 'move' constant-velocity model (solvers.tracking;
 Bar-Shalom et al. 2001 §11.6.6), the ``robust`` mode's weight stage and settings, its measurement
-variance per shape the take's marker noise over the shape's marker norm. Issue 15 measured where
+variance per shape the marker noise (the marker filter's estimate, at least the calibrated noise) over the
+shape's marker norm, times IMM_SPREAD_CAP; one IMM a take, its noise changed in place. Issue 15 measured where
 the streamed jitter came from (ICT 0.5 mm, S07-001 and apfel): the filtered markers' residual noise
 through the ill-conditioned basis (jitter 13 x / 6 x the truth's; the per-frame strength switching
 adds about a tenth), not the pose re-fit; the IMM cuts it to 3.3 x / 2.2 x at no weight RMSE cost
@@ -96,6 +97,9 @@ class MarkerKalmanSolver:
         self.prior_cov, self._precision0 = prior_cov, precision
         self.support: Support | None = None
         self.norms = np.maximum(np.linalg.norm(profile.basis, axis=0), 1e-9)
+        # the weight stage's noise floor: what calibration measured the rig cannot explain (issue 35.2); the marker
+        # filter's own estimate starts small and reads only the jitter of a smoothed capture
+        self.calibrated_noise = float(profile.settings.get("robust", {}).get("noise_mm") or 0.0)
         self.pose = RigidColumns(profile.source_neutral)
         self.m = len(profile.names)
         self.lower, self.upper = profile.lower, profile.upper
@@ -198,7 +202,7 @@ class MarkerKalmanSolver:
         self._z: np.ndarray | None = None  # the last frame's weights and pose: where the next trial starts
         self._fits: dict[int, FrameQP] = {}
         self._spreads: dict[int, np.ndarray] = {}
-        self._imm: tuple[float, IMMFilter] | None = None
+        self._imm: IMMFilter | None = None
         for k in range(len(STRENGTHS)):  # build every workspace now, not on the first frames
             self._fit(k).step(np.zeros(3 * self.profile.n_markers), np.ones(self.profile.n_markers, bool))
             self._fits[k].reset()
@@ -212,12 +216,12 @@ class MarkerKalmanSolver:
         self._frame += 1
         z = self._z = self._fit(self.selector.best).step(x, ok)
         w, self.head_correction = z[:self.m], z[self.m:]
-        noise = self.filter.noise_mm
-        if self._imm is None or self._imm[0] != noise:  # noise settles in the first frames; rarely changes after
-            self._imm = (noise, self.motion.imm(noise, self.norms))
-        self._imm[1].set_noise(noise**2 * self._spread_of(self.selector.best))
+        noise = max(self.filter.noise_mm, self.calibrated_noise)
+        if self._imm is None:
+            self._imm = self.motion.imm(noise, self.norms)
+        self._imm.set_noise(noise**2 * self._spread_of(self.selector.best))
         # the IMM's constant-velocity models overshoot a weight resting on its limit: back within the rig's limits
-        return np.clip(self._imm[1].step(w), self.lower, self.upper)
+        return np.clip(self._imm.step(w), self.lower, self.upper)
 
     def solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """RTS-smoothed markers -> joint pose and prior fit; POSE_PASSES times, the pose fitted on the
