@@ -332,6 +332,7 @@ def test_the_weight_stage_keeps_its_state_when_the_noise_estimate_changes():
 def test_the_weight_stage_noise_is_at_least_the_calibrated_noise():
     """The IMM's noise never falls under what calibration measured (the marker filter's estimate starts small)."""
     _, solver = _still_face_stream(False, calibrated=5.0)
-    np.testing.assert_allclose(solver._imm.r, 25.0 * solver._spread_of(solver.selector.best))
+    V, C = solver._imm.axes, solver._spread_of(solver.selector.best)
+    np.testing.assert_allclose(solver._imm.r, 25.0 * np.diag(V.T @ C @ V))
     _, plain = _still_face_stream(False)
     assert plain.filter.noise_mm < 5.0
