@@ -202,6 +202,11 @@ class IMMFilter:
         return out
 
 
+def variances_along(axes: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """A covariance (m x m) as variances along orthonormal ``axes`` (its diagonal in them; the rest dropped)."""
+    return np.maximum(((np.asarray(cov, dtype=np.float64) @ axes) * axes).sum(0), 1e-300)
+
+
 class RotatedIMM:
     """An IMMFilter over the coordinates ``u = V' y`` of an orthonormal basis ``V`` (``axes``, columns), output
     rotated back. Why: weights from one least-squares fit carry correlated noise, covariance ``sigma^2 C`` with
@@ -229,8 +234,7 @@ class RotatedIMM:
         return self.imm.r
 
     def along(self, cov: np.ndarray) -> np.ndarray:
-        """A covariance of ``y`` (m x m) as variances along the axes (its diagonal in them; the rest is dropped)."""
-        return np.maximum(((np.asarray(cov, dtype=np.float64) @ self.axes) * self.axes).sum(0), 1e-300)
+        return variances_along(self.axes, cov)
 
     def set_noise(self, r: np.ndarray) -> None:
         """The measurement variance per direction (``along`` of the noise's covariance), the state kept."""

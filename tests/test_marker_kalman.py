@@ -336,3 +336,25 @@ def test_the_weight_stage_noise_is_at_least_the_calibrated_noise():
     np.testing.assert_allclose(solver._imm.r, 25.0 * np.diag(V.T @ C @ V))
     _, plain = _still_face_stream(False)
     assert plain.filter.noise_mm < 5.0
+
+
+def test_offline_weight_stage_along_the_fit_noise_on_two_nearly_parallel_shapes():
+    """Two shapes whose marker motions are nearly parallel (as eyeWide / eyeLookUp): their fitted difference is
+    noisy, their sum is not. Smoothed along the fit's noise directions (solvers.tracking.RotatedIMM) the offline
+    weights are closer to the truth and steadier than smoothed per shape (the code before: RMSE 0.0146, jitter
+    1.20 x truth; now 0.0126, 1.14)."""
+    from livecap.modes.marker_kalman import kalman_mode
+
+    p = _face()
+    p.basis[:, 1] = 0.97 * p.basis[:, 0] + 0.25 * np.random.default_rng(1).normal(0, 2.0, len(p.basis))
+    rng = np.random.default_rng(6)
+    T = 240
+    truth = np.clip(0.5 + 0.4 * np.sin(np.arange(T)[:, None] * rng.uniform(0.01, 0.06, 8) + rng.uniform(0, 6, 8)),
+                    0, 1)
+    X = (truth @ p.basis.T).reshape(T, -1, 3) + rng.normal(0, 0.5, (T, 40, 3))
+    W = kalman_mode(p, {"rate": 60.0}).solve(X, np.ones((T, 40), bool))
+    def jitter(A):
+        return np.mean(np.abs(np.diff(A, 2, axis=0)))
+
+    assert np.sqrt(np.mean((W - truth) ** 2)) < 0.0136
+    assert jitter(W) < 1.17 * jitter(truth)

@@ -10,11 +10,10 @@ one, a ridge — whose strength is chosen by held-out markers on the take (solve
 
 The weights then pass an IMM of a 'hold' and a 'move' constant-velocity model (solvers.tracking;
 Bar-Shalom et al. 2001 §11.6.6), the ``robust`` mode's weight stage and settings. Its measurement noise
-is the marker noise (the marker filter's estimate, never under the calibrated noise) through the fit:
-offline over each shape's marker norm; streamed the fit's whole weight covariance (noise^2 x the inverse
-Hessian), the IMM run along its eigenvectors (solvers.tracking.RotatedIMM: issue 41 measured jitter,
-weight RMSE and vertex p95 all lower than a per-shape variance). One IMM a take, its noise changed in
-place. Issue 15 measured where the streamed jitter came from (ICT 0.5 mm, S07-001 and apfel): the
+is the marker noise (the marker filter's estimate, never under the calibrated noise) through the fit: the
+fit's whole weight covariance (noise^2 x the inverse Hessian), the IMM run along its eigenvectors
+(solvers.tracking.RotatedIMM; issue 41 measured jitter, weight RMSE and vertex p95 all lower, streamed and
+offline, than with a variance per shape). One IMM a take, its noise changed in place. Issue 15 measured where the streamed jitter came from (ICT 0.5 mm, S07-001 and apfel): the
 filtered markers' residual noise through the ill-conditioned basis (jitter 13 x / 6 x the truth's;
 the per-frame strength switching adds about a tenth), not the pose re-fit; the IMM cuts it to 3.3 x /
 2.2 x at no weight RMSE cost and no added lag (it holds while innovations look like noise and follows
@@ -52,7 +51,7 @@ from solvers.pose_refine import RigidColumns
 from solvers.prior_strength import HeldOutStrength
 from solvers.prior_support import Support, widen_prior
 from solvers.qp import FrameQP
-from solvers.tracking import IMMFilter, RotatedIMM, dwna_variance
+from solvers.tracking import IMMFilter, RotatedIMM, dwna_variance, variances_along
 
 STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it balances)
 STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
@@ -236,11 +235,17 @@ class MarkerKalmanSolver:
             Z = self._solve_once(d, valid)
             if i < POSE_PASSES - 1:
                 d = self.pose.remove(d, valid, Z[:, self.m:])
-        W = Z[:, :self.m]
-        noise = self.chosen["noise_mm"]
-        forward = self.motion.imm(noise, self.norms).filter(W)
-        backward = self.motion.imm(noise, self.norms).filter(W[::-1])[::-1]
-        return 0.5 * (forward + backward)
+        noise = max(self.chosen["noise_mm"], self.calibrated_noise)
+        spread = self._spread_of(int(np.argmin(np.abs(STRENGTHS - self.chosen["prior_weight"]))))
+        axes = np.linalg.eigh(spread)[1]
+        U = Z[:, :self.m] @ axes  # the fit's noise independent along these (solvers.tracking.RotatedIMM)
+        r = noise**2 * variances_along(axes, spread)
+        forward = self.motion.imm(noise, self.norms)
+        forward.set_noise(r)
+        backward = self.motion.imm(noise, self.norms)
+        backward.set_noise(r)
+        W = 0.5 * (forward.filter(U) + backward.filter(U[::-1])[::-1]) @ axes.T
+        return np.clip(W, self.lower, self.upper)
 
     def _solve_once(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """Weights and pose (T x (m + 6)) of the RTS-smoothed take."""
