@@ -13,8 +13,9 @@ Bar-Shalom et al. 2001 §11.6.6), the ``robust`` mode's weight stage and setting
 is the marker noise (the marker filter's estimate, never under the calibrated noise) through the fit: the
 fit's whole weight covariance (noise^2 x the inverse Hessian), the IMM run along its eigenvectors
 (solvers.tracking.RotatedIMM; issue 41 measured jitter, weight RMSE and vertex p95 all lower, streamed and
-offline, than with a variance per shape). One IMM a take, its noise changed in place. Issue 15 measured where the streamed jitter came from (ICT 0.5 mm, S07-001 and apfel): the
-filtered markers' residual noise through the ill-conditioned basis (jitter 13 x / 6 x the truth's;
+offline, than with a variance per shape). One IMM a take, its noise changed in place. Issue 15 measured
+where the streamed jitter came from (ICT 0.5 mm, S07-001 and apfel): the filtered markers' residual noise
+through the ill-conditioned basis (jitter 13 x / 6 x the truth's;
 the per-frame strength switching adds about a tenth), not the pose re-fit; the IMM cuts it to 3.3 x /
 2.2 x at no weight RMSE cost and no added lag (it holds while innovations look like noise and follows
 at once when they do not).
