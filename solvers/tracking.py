@@ -200,3 +200,45 @@ class IMMFilter:
         self._kernels.imm_take(self._state, np.require(Y[1:], np.float64, "CW").reshape(T - 1, C), ok,
                                self.transition, out[1:].reshape(T - 1, C))
         return out
+
+
+def variances_along(axes: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """A covariance (m x m) as variances along orthonormal ``axes`` (its diagonal in them; the rest dropped)."""
+    return np.maximum(((np.asarray(cov, dtype=np.float64) @ axes) * axes).sum(0), 1e-300)
+
+
+class RotatedIMM:
+    """An IMMFilter over the coordinates ``u = V' y`` of an orthonormal basis ``V`` (``axes``, columns), output
+    rotated back. Why: weights from one least-squares fit carry correlated noise, covariance ``sigma^2 C`` with
+    ``C`` the fit's inverse Hessian; shapes the markers tell apart badly (eyeWide / eyeLookUp) are noisy in their
+    difference, not in their sum. Along ``C``'s eigenvectors the noise is independent, so each direction gets its
+    own variance (``set_noise(along(cov))``: the diagonal of ``V' cov V``) and its own hold / move decision: the
+    ill-seen directions are held hard while the well-seen ones (a blink, the jaw) follow at once. A per-shape
+    IMM can only take the diagonal of ``C``, which smooths every direction of a noisy shape alike. The
+    constant-velocity models' process noise is isotropic, so a rotation leaves it as it is."""
+
+    latency_frames = 0
+
+    def __init__(self, axes: np.ndarray, imm: IMMFilter) -> None:
+        self.axes = np.asarray(axes, dtype=np.float64)
+        if self.axes.ndim != 2 or self.axes.shape[0] != self.axes.shape[1]:
+            raise ValueError(f"RotatedIMM axes must be a square matrix, got shape {self.axes.shape}")
+        self.imm = imm
+
+    def reset(self) -> None:
+        self.imm.reset()
+
+    @property
+    def r(self) -> np.ndarray:
+        """The measurement variance per direction."""
+        return self.imm.r
+
+    def along(self, cov: np.ndarray) -> np.ndarray:
+        return variances_along(self.axes, cov)
+
+    def set_noise(self, r: np.ndarray) -> None:
+        """The measurement variance per direction (``along`` of the noise's covariance), the state kept."""
+        self.imm.set_noise(r)
+
+    def step(self, y: np.ndarray) -> np.ndarray:
+        return self.axes @ self.imm.step(self.axes.T @ np.asarray(y, dtype=np.float64))

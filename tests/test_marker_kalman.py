@@ -282,3 +282,79 @@ def test_bridging_and_the_compiled_rts_pass_equal_their_loops(T, n, missing, max
     out = np.empty((T, 3 * n))
     rts(xs, ps, xp, pp, out)
     np.testing.assert_array_equal(out, _rts(xs, np.repeat(ps, 3, axis=2), xp, np.repeat(pp, 3, axis=2)))
+
+
+class _NoiseFlips:
+    """The marker filter with its noise estimate flipping between two grid values, as the streamed estimate does
+    at 0.2 mm (issue 41: 0.2 <-> 0.3 mm several times in a take's first second)."""
+
+    def __init__(self, inner, values, every: int) -> None:
+        self.inner, self.values, self.every, self.t = inner, values, every, 0
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    @property
+    def noise_mm(self) -> float:
+        return self.values[(self.t // self.every) % len(self.values)]
+
+    def step(self, target, valid):
+        self.t += 1
+        return self.inner.step(target, valid)
+
+
+def _still_face_stream(flips: bool, calibrated: float | None = None) -> tuple[np.ndarray, object]:
+    from livecap.modes.marker_kalman import kalman_mode
+
+    p = _face()
+    if calibrated is not None:
+        p.settings["robust"] = {"noise_mm": calibrated}
+    rng = np.random.default_rng(6)
+    T = 240
+    X = (np.full(8, 0.4) @ p.basis.T).reshape(-1, 3)[None] + rng.normal(0, 0.3, (T, 40, 3))
+    solver = kalman_mode(p, {"rate": 60.0})
+    if flips:
+        solver.filter = _NoiseFlips(solver.filter, (0.2, 0.3), 10)
+    return np.array([solver.step(X[t], np.ones(40, bool)) for t in range(T)]), solver
+
+
+def test_the_weight_stage_keeps_its_state_when_the_noise_estimate_changes():
+    """A changed noise estimate changes the IMM's measurement variance, not its state: rebuilt on each change
+    (the code before), the weights restarted from the raw fit every 10 frames here (jitter 2.9 x)."""
+    steady, _ = _still_face_stream(False)
+    flipping, _ = _still_face_stream(True)
+    def jitter(W):
+        return np.mean(np.abs(np.diff(W[60:], 2, axis=0)))
+
+    assert jitter(flipping) < 1.3 * jitter(steady)
+
+
+def test_the_weight_stage_noise_is_at_least_the_calibrated_noise():
+    """The IMM's noise never falls under what calibration measured (the marker filter's estimate starts small)."""
+    _, solver = _still_face_stream(False, calibrated=5.0)
+    V, C = solver._imm.axes, solver._spread_of(solver.selector.best)
+    np.testing.assert_allclose(solver._imm.r, 25.0 * np.diag(V.T @ C @ V))
+    _, plain = _still_face_stream(False)
+    assert plain.filter.noise_mm < 5.0
+
+
+def test_offline_weight_stage_along_the_fit_noise_on_two_nearly_parallel_shapes():
+    """Two shapes whose marker motions are nearly parallel (as eyeWide / eyeLookUp): their fitted difference is
+    noisy, their sum is not. Smoothed along the fit's noise directions (solvers.tracking.RotatedIMM) the offline
+    weights are closer to the truth and steadier than smoothed per shape (the code before: RMSE 0.0146, jitter
+    1.20 x truth; now 0.0126, 1.14)."""
+    from livecap.modes.marker_kalman import kalman_mode
+
+    p = _face()
+    p.basis[:, 1] = 0.97 * p.basis[:, 0] + 0.25 * np.random.default_rng(1).normal(0, 2.0, len(p.basis))
+    rng = np.random.default_rng(6)
+    T = 240
+    truth = np.clip(0.5 + 0.4 * np.sin(np.arange(T)[:, None] * rng.uniform(0.01, 0.06, 8) + rng.uniform(0, 6, 8)),
+                    0, 1)
+    X = (truth @ p.basis.T).reshape(T, -1, 3) + rng.normal(0, 0.5, (T, 40, 3))
+    W = kalman_mode(p, {"rate": 60.0}).solve(X, np.ones((T, 40), bool))
+    def jitter(A):
+        return np.mean(np.abs(np.diff(A, 2, axis=0)))
+
+    assert np.sqrt(np.mean((W - truth) ** 2)) < 0.0136
+    assert jitter(W) < 1.17 * jitter(truth)

@@ -9,12 +9,16 @@ animation (``--prior``, livecap.calibration.animation_prior; Lewis et al. 2014 �
 one, a ridge — whose strength is chosen by held-out markers on the take (solvers.prior_strength).
 
 The weights then pass an IMM of a 'hold' and a 'move' constant-velocity model (solvers.tracking;
-Bar-Shalom et al. 2001 §11.6.6), the ``robust`` mode's weight stage and settings, its measurement
-variance per shape the take's marker noise over the shape's marker norm. Issue 15 measured where
-the streamed jitter came from (ICT 0.5 mm, S07-001 and apfel): the filtered markers' residual noise
-through the ill-conditioned basis (jitter 13 x / 6 x the truth's; the per-frame strength switching
-adds about a tenth), not the pose re-fit; the IMM cuts it to 3.3 x / 2.2 x at no weight RMSE cost
-and no added lag (it holds while innovations look like noise and follows at once when they do not).
+Bar-Shalom et al. 2001 §11.6.6), the ``robust`` mode's weight stage and settings. Its measurement noise
+is the marker noise (the marker filter's estimate, never under the calibrated noise) through the fit: the
+fit's whole weight covariance (noise^2 x the inverse Hessian), the IMM run along its eigenvectors
+(solvers.tracking.RotatedIMM; issue 41 measured jitter, weight RMSE and vertex p95 all lower, streamed and
+offline, than with a variance per shape). One IMM a take, its noise changed in place. Issue 15 measured
+where the streamed jitter came from (ICT 0.5 mm, S07-001 and apfel): the filtered markers' residual noise
+through the ill-conditioned basis (jitter 13 x / 6 x the truth's;
+the per-frame strength switching adds about a tenth), not the pose re-fit; the IMM cuts it to 3.3 x /
+2.2 x at no weight RMSE cost and no added lag (it holds while innovations look like noise and follows
+at once when they do not).
 Offline the IMM runs forwards and backwards and the two are averaged (zero phase).
 
 The stabiliser's residual head-pose error is fitted with the expression: six linearised rigid
@@ -48,7 +52,7 @@ from solvers.pose_refine import RigidColumns
 from solvers.prior_strength import HeldOutStrength
 from solvers.prior_support import Support, widen_prior
 from solvers.qp import FrameQP
-from solvers.tracking import IMMFilter, dwna_variance
+from solvers.tracking import IMMFilter, RotatedIMM, dwna_variance, variances_along
 
 STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it balances)
 STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
@@ -58,10 +62,6 @@ SUPPORT_SECONDS = 1.0  # streaming: the first seconds a prior is checked against
 SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
 SUPPORT_SWAP_SECONDS = 0.5  # streaming: the check runs in a thread meanwhile; its prior is used this much later
 
-# streaming: the IMM's measurement variance per weight is the fit's (the inverse Hessian's diagonal x the marker
-# noise), at most this many times noise^2 / the shape's marker norm^2 (issue 41, ICT 0.5 mm, no prior, S07-001 /
-# apfel: jitter 9.3 / 4.2 x truth at 1 (before), 6.5 / 3.0 at 4, 5.4 / 2.4 at 10 but blinks kept 0.87)
-IMM_SPREAD_CAP = 4.0
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +96,9 @@ class MarkerKalmanSolver:
         self.prior_cov, self._precision0 = prior_cov, precision
         self.support: Support | None = None
         self.norms = np.maximum(np.linalg.norm(profile.basis, axis=0), 1e-9)
+        # the weight stage's noise floor: what calibration measured the rig cannot explain (issue 35.2); the marker
+        # filter's own estimate starts small and reads only the jitter of a smoothed capture
+        self.calibrated_noise = float(profile.settings.get("robust", {}).get("noise_mm") or 0.0)
         self.pose = RigidColumns(profile.source_neutral)
         self.m = len(profile.names)
         self.lower, self.upper = profile.lower, profile.upper
@@ -114,12 +117,11 @@ class MarkerKalmanSolver:
         return self._fits[k]
 
     def _spread_of(self, k: int) -> np.ndarray:
-        """Each weight's variance per unit marker variance in the fit at strength ``k``: the diagonal of the
-        inverse Hessian (the shapes the markers tell apart badly are noisier than their marker norm says)."""
+        """The weights' covariance per unit marker variance in the fit at strength ``k`` (m x m): the weights'
+        block of the inverse Hessian, the head-pose columns fitted beside them marginalised."""
         if k not in self._spreads:
             B, _, _, _, P = self.joint
-            spread = np.diag(np.linalg.inv(B.T @ B + STRENGTHS[k] * P))[:self.m]
-            self._spreads[k] = np.minimum(spread, IMM_SPREAD_CAP / self.norms**2)
+            self._spreads[k] = np.linalg.inv(B.T @ B + STRENGTHS[k] * P)[:self.m, :self.m]
         return self._spreads[k]
 
     def _check_support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> None:
@@ -141,7 +143,7 @@ class MarkerKalmanSolver:
                     "outside it", len(wide), len(s.before), ", ".join(self.profile.names[i] for i in top))
         self.precision = s.precision
         self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
-        self._fits, self._spreads = {}, {}
+        self._fits, self._spreads, self._along = {}, {}, {}
         decay = self.selector.decay
         self.selector = self._selector(decay)
 
@@ -184,7 +186,7 @@ class MarkerKalmanSolver:
         if self.support is not None and self.precision is not self._precision0:
             self.precision = self._precision0
             self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
-            self._fits, self._spreads = {}, {}
+            self._fits, self._spreads, self._along = {}, {}, {}
         self.support = None
         self._seen: list[tuple[np.ndarray, np.ndarray]] = []
         self._checking: tuple | None = None  # streaming: the check's thread, its result, the frame to use it, frames
@@ -198,7 +200,8 @@ class MarkerKalmanSolver:
         self._z: np.ndarray | None = None  # the last frame's weights and pose: where the next trial starts
         self._fits: dict[int, FrameQP] = {}
         self._spreads: dict[int, np.ndarray] = {}
-        self._imm: tuple[float, IMMFilter] | None = None
+        self._along: dict[int, np.ndarray] = {}  # the spreads along the IMM's axes
+        self._imm: RotatedIMM | None = None
         self._fit_k: int | None = None  # the strength fitted last frame
         for k in range(len(STRENGTHS)):  # build every workspace (and the IMM's spread) now, not on the first frames
             self._fit(k).step(np.zeros(3 * self.profile.n_markers), np.ones(self.profile.n_markers, bool))
@@ -219,12 +222,15 @@ class MarkerKalmanSolver:
         self._fit_k = self.selector.best
         z = self._z = fit.step(x, ok)
         w, self.head_correction = z[:self.m], z[self.m:]
-        noise = self.filter.noise_mm
-        if self._imm is None or self._imm[0] != noise:  # noise settles in the first frames; rarely changes after
-            self._imm = (noise, self.motion.imm(noise, self.norms))
-        self._imm[1].set_noise(noise**2 * self._spread_of(self.selector.best))
+        noise = max(self.filter.noise_mm, self.calibrated_noise)
+        k = self.selector.best
+        if self._imm is None:  # the axes: the first frame's fit's; later strengths' noise is read in them
+            self._imm = RotatedIMM(np.linalg.eigh(self._spread_of(k))[1], self.motion.imm(noise, self.norms))
+        if k not in self._along:
+            self._along[k] = self._imm.along(self._spread_of(k))
+        self._imm.set_noise(noise**2 * self._along[k])
         # the IMM's constant-velocity models overshoot a weight resting on its limit: back within the rig's limits
-        return np.clip(self._imm[1].step(w), self.lower, self.upper)
+        return np.clip(self._imm.step(w), self.lower, self.upper)
 
     def solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """RTS-smoothed markers -> joint pose and prior fit; POSE_PASSES times, the pose fitted on the
@@ -237,11 +243,17 @@ class MarkerKalmanSolver:
             Z = self._solve_once(d, valid)
             if i < POSE_PASSES - 1:
                 d = self.pose.remove(d, valid, Z[:, self.m:])
-        W = Z[:, :self.m]
-        noise = self.chosen["noise_mm"]
-        forward = self.motion.imm(noise, self.norms).filter(W)
-        backward = self.motion.imm(noise, self.norms).filter(W[::-1])[::-1]
-        return 0.5 * (forward + backward)
+        noise = max(self.chosen["noise_mm"], self.calibrated_noise)
+        spread = self._spread_of(int(np.argmin(np.abs(STRENGTHS - self.chosen["prior_weight"]))))
+        axes = np.linalg.eigh(spread)[1]
+        U = Z[:, :self.m] @ axes  # the fit's noise independent along these (solvers.tracking.RotatedIMM)
+        r = noise**2 * variances_along(axes, spread)
+        forward = self.motion.imm(noise, self.norms)
+        forward.set_noise(r)
+        backward = self.motion.imm(noise, self.norms)
+        backward.set_noise(r)
+        W = 0.5 * (forward.filter(U) + backward.filter(U[::-1])[::-1]) @ axes.T
+        return np.clip(W, self.lower, self.upper)
 
     def _solve_once(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """Weights and pose (T x (m + 6)) of the RTS-smoothed take."""
