@@ -168,3 +168,49 @@ def quiet_shapes(basis: np.ndarray, noise_mm: float, threshold: float = QUIET_SD
         j = int(over[np.argmin(norms[np.asarray(keep)[over]])])  # the weakest of them: it moves the markers least
         out.append(keep.pop(j))
     return np.sort(np.asarray(out, dtype=int))
+
+
+def whiten(basis: np.ndarray, noise_mm: float, marker_noise: np.ndarray | None) -> np.ndarray:
+    """B in units of the marker noise: each marker's rows divided by its own noise sd (``marker_noise``, n: its
+    shape across markers, rescaled to RMS ``noise_mm``; a marker counts as at least ``MARKER_NOISE_FLOOR`` of the
+    noisiest), or by ``noise_mm`` when ``None``.
+
+    The honest per-marker noise (calibration's fit residual, ``livecap.modes.robust.tune_profile``) is largest
+    where the rig cannot follow the actor (the mouth and chin on a real capture, issue 35.1): motion there counts
+    for less."""
+    B = np.asarray(basis, dtype=np.float64)
+    if marker_noise is None:
+        return B / float(noise_mm)
+    s = np.asarray(marker_noise, dtype=np.float64)
+    if s.shape != (B.shape[0] // 3,) or not np.all(np.isfinite(s)) or not s.max() > 0:
+        raise ValueError(f"marker_noise: {B.shape[0] // 3} positive values expected (one per marker), "
+                         f"got shape {s.shape}")
+    s = np.maximum(s, MARKER_NOISE_FLOOR * s.max())
+    s = s * (float(noise_mm) / np.sqrt(np.mean(s**2)))  # its shape across markers, at the noise in use (--noise-mm)
+    return B / np.repeat(s, 3)[:, None]
+
+
+MARKER_NOISE_FLOOR = 0.1  # an exactly fitted marker is not noiseless: at least this share of the noisiest one
+
+
+def unique_evidence(basis: np.ndarray, noise_mm: float, marker_noise: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Per shape, what of its marker motion no non-negative blend of the other shapes makes (its *unique*
+    direction: the NNLS residual of its whitened column against the others', ``whiten``), as ``(E, d)``: ``E``
+    (m x 3n) maps a marker residual (mm, flattened) to the evidence along each unique direction in noise sd units;
+    ``d`` (m) is the unique motion per unit weight in noise sd units (``1 / d``: the weight's per-frame sd).
+
+    Issue 35: a shape that is nearly a blend of partners takes up the partners' model mismatch; its weight is
+    worth trusting only as far as the markers move along what it alone explains, by more than the noise there
+    (``livecap.modes.quiet.EvidenceGate``). Non-negative blends, as ``quiet_shapes``: jawLeft is not -jawRight."""
+    from scipy.optimize import nnls
+
+    Bw = whiten(basis, noise_mm, marker_noise)
+    m = Bw.shape[1]
+    U = np.array(Bw.T)
+    for k in range(m if m > 1 else 0):
+        others = np.delete(Bw, k, axis=1)
+        U[k] -= others @ nnls(others, Bw[:, k])[0]
+    d = np.linalg.norm(U, axis=1)
+    per_mm = whiten(np.ones((Bw.shape[0], 1)), noise_mm, marker_noise)[:, 0]  # 1 / noise sd per coordinate
+    return U / np.maximum(d, 1e-300)[:, None] * per_mm[None, :], d
