@@ -86,3 +86,17 @@ def test_the_gate_runs_only_under_model_mismatch_and_only_lowers_weights(demo_pr
     gated = solve_take(take, q, build_solver(mode, q)).weights
     assert np.all(np.abs(gated) <= np.abs(loose) + 1e-12)
     assert gated.sum() < loose.sum()
+
+
+def test_streamed_evidence_is_the_takes_causal_average():
+    """Frame by frame (``step``) the gate gives what it gives over the whole take (``solve``): one causal average."""
+    B, _ = _partners_and_phantom(3.0)
+    rng = np.random.default_rng(2)
+    W = rng.uniform(0, 1, size=(40, 3))
+    Y = (W @ B.T + rng.normal(scale=0.5, size=(40, 30))).reshape(40, 10, 3)
+    valid = rng.uniform(size=(40, 10)) > 0.1
+    gate = EvidenceGate(B, 0.5, None, np.ones(3, bool), rate=60.0)
+    whole = gate(W, Y, valid)
+    gate.reset()
+    np.testing.assert_allclose(np.array([gate(W[i], Y[i], valid[i]) for i in range(40)]), whole, atol=1e-12)
+    assert gate.keep > 0.5

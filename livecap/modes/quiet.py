@@ -14,12 +14,14 @@ actor, smoothed data), a shape that is nearly a blend of partners takes up the p
 mouthFrown rises with the jaw shapes, eyeLookIn with the blink). Every solved weight is then trusted only as far as
 the markers move along what its shape alone explains (its signature's part outside the cone of the others',
 in the per-marker noise calibration measured, ``solvers.observability.unique_evidence``): at rest below 2 noise sd
-of that evidence, whole above 6 (``EvidenceGate``). Same-rig takes with white noise never reach that branch.
+of that evidence (averaged over 0.16 s), whole above 6 (``EvidenceGate``). Same-rig takes with white noise never
+reach that branch.
 """
 
 from __future__ import annotations
 
 import logging
+from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -34,24 +36,39 @@ log = logging.getLogger(__name__)
 
 EVIDENCE_ZERO = 2.0  # a weight whose unique evidence is below this many noise sd is published at rest ...
 EVIDENCE_FULL = 6.0  # ... and whole above this many, scaled linearly between (chosen on the AnimFace takes)
+EVIDENCE_SECONDS = 0.16  # time constant of the evidence's causal average (a phantom flickers with single frames)
 
 
 class EvidenceGate:
     """Each weight scaled by how far the markers move along what its shape alone explains (issue 35; module
     docstring): 0 below ``EVIDENCE_ZERO`` noise sd, whole above ``EVIDENCE_FULL``. The evidence of shape k in a
-    frame is the residual with k's own part put back, along k's unique direction (``unique_evidence``)."""
+    frame is the residual with k's own part put back, along k's unique direction (``unique_evidence``), averaged
+    causally over ``EVIDENCE_SECONDS`` (``rate`` Hz; None: per frame). One frame (``step``) or a take (``T x m``)."""
 
-    def __init__(self, basis: np.ndarray, noise_mm: float, marker_noise: np.ndarray | None, gated: np.ndarray) -> None:
+    def __init__(self, basis: np.ndarray, noise_mm: float, marker_noise: np.ndarray | None, gated: np.ndarray,
+                 rate: float | None = None) -> None:
         self.B = np.asarray(basis, dtype=float)
         self.E, _ = unique_evidence(self.B, noise_mm, marker_noise)
         self.own = self.E * self.B.T  # each shape's evidence per unit of its own weight, per coordinate
         self.gated = gated
+        self.keep = float(np.exp(-1.0 / (rate * EVIDENCE_SECONDS))) if rate else 0.0  # the average's memory
+        self.last: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self.last = None
 
     def __call__(self, W: np.ndarray, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        from scipy.signal import lfilter
+
         Y = np.asarray(targets, dtype=float).reshape(*np.shape(W)[:-1], -1)
         seen = np.repeat(np.asarray(valid, dtype=bool), 3, axis=-1)
         R = np.where(seen, Y - W @ self.B.T, 0.0)  # hidden markers (NaN or stale) say nothing
         t = np.abs(R @ self.E.T + (seen @ self.own.T) * W)
+        if np.ndim(W) == 1:
+            t = t if self.last is None else self.keep * self.last + (1.0 - self.keep) * t
+            self.last = t
+        elif len(t):
+            t = lfilter([1.0 - self.keep], [1.0, -self.keep], t, axis=0, zi=self.keep * t[:1])[0]
         gate = np.clip((t - EVIDENCE_ZERO) / (EVIDENCE_FULL - EVIDENCE_ZERO), 0.0, 1.0)
         return np.where(self.gated, W * gate, W)
 
@@ -63,7 +80,7 @@ class QuietShapes:
     def __init__(self, inner, m: int, keep: np.ndarray, held: np.ndarray, fill: Callable[[np.ndarray], np.ndarray],
                  reduced: bool, gate: EvidenceGate | None = None) -> None:
         self.inner, self.m, self.keep, self.held, self.fill, self.reduced = inner, m, keep, held, fill, reduced
-        self.gate = gate
+        self.gate, self.seen = gate, deque()
         if hasattr(inner, "solve"):  # a streaming-only mode stays streaming-only (callers test hasattr)
             self.solve = self._solve
 
@@ -76,7 +93,20 @@ class QuietShapes:
         return out if self.gate is None else self.gate(out, targets, valid)
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
-        return self._full(self.inner.step(target, valid), target, valid)
+        w = self.inner.step(target, valid)
+        if self.gate is None:
+            return self._full(w, target, valid)
+        self.seen.append((np.array(target, dtype=float), np.array(valid, dtype=bool)))
+        lag = min(int(getattr(self.inner, "latency_frames", 0) or 0), len(self.seen) - 1)  # w is of frame t - lag
+        while len(self.seen) > lag + 1:
+            self.seen.popleft()
+        return self._full(w, *self.seen[0])
+
+    def reset(self) -> None:
+        getattr(self.inner, "reset", lambda: None)()
+        self.seen.clear()
+        if self.gate is not None:
+            self.gate.reset()
 
     def _solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         return self._full(self.inner.solve(targets, valid), targets, valid)
@@ -137,7 +167,8 @@ def build_quiet(factory: Callable, profile: Profile, options: dict, reduce: bool
     if mismatched(profile):
         rest = np.zeros(len(profile.names), bool)
         rest[keep] = (profile.lower[keep] <= 0) & (profile.upper[keep] >= 0)
-        gate = EvidenceGate(profile.basis, float(noise), marker_noise(profile), rest)
+        gate = EvidenceGate(profile.basis, float(noise), marker_noise(profile), rest,
+                            profile.settings.get("robust", {}).get("rate"))
         log.info("the rig leaves more unexplained than the markers' jitter: weights trusted as far as their "
                  "shape's own marker motion is seen above the noise (option quiet=false turns this off)")
     if not len(held) and gate is None:
