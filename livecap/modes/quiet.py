@@ -83,6 +83,8 @@ class QuietShapes:
         self.gate, self.seen = gate, deque()
         if hasattr(inner, "solve"):  # a streaming-only mode stays streaming-only (callers test hasattr)
             self.solve = self._solve
+        if hasattr(inner, "reset"):  # likewise: the live warm-up steps only solvers it can reset
+            self.reset = self._reset
 
     def _full(self, W: np.ndarray, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         W = np.asarray(W, dtype=float)
@@ -102,8 +104,8 @@ class QuietShapes:
             self.seen.popleft()
         return self._full(w, *self.seen[0])
 
-    def reset(self) -> None:
-        getattr(self.inner, "reset", lambda: None)()
+    def _reset(self) -> None:
+        self.inner.reset()
         self.seen.clear()
         if self.gate is not None:
             self.gate.reset()
