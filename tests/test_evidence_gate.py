@@ -100,3 +100,17 @@ def test_streamed_evidence_is_the_takes_causal_average():
     gate.reset()
     np.testing.assert_allclose(np.array([gate(W[i], Y[i], valid[i]) for i in range(40)]), whole, atol=1e-12)
     assert gate.keep > 0.5
+
+
+def test_a_held_shape_is_no_partner():
+    """eyeBlink beside a held eyeLookDown: a held shape explains nothing; the blink's evidence is all its motion."""
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=30)
+    B = np.column_stack([a, a + 0.05 * rng.normal(size=30)])  # nearly parallel: each is the other's partner
+    both = EvidenceGate(B, 0.5, None, np.array([True, True]))
+    alone = EvidenceGate(B, 0.5, None, np.array([False, True]))  # shape 0 held (at rest)
+    y = B[:, 1].reshape(10, 3)
+    W = np.array([0.0, 1.0])
+    assert both(W, y, np.ones(10, bool))[1] < 1.0  # beside its partner, its own part is small
+    assert alone(W, y, np.ones(10, bool))[1] == 1.0
+    assert np.all(alone.E[0] == 0.0)

@@ -43,12 +43,15 @@ class EvidenceGate:
     """Each weight scaled by how far the markers move along what its shape alone explains (issue 35; module
     docstring): 0 below ``EVIDENCE_ZERO`` noise sd, whole above ``EVIDENCE_FULL``. The evidence of shape k in a
     frame is the residual with k's own part put back, along k's unique direction (``unique_evidence``), averaged
-    causally over ``EVIDENCE_SECONDS`` (``rate`` Hz; None: per frame). One frame (``step``) or a take (``T x m``)."""
+    causally over ``EVIDENCE_SECONDS`` (``rate`` Hz; None: per frame). One frame (``step``) or a take (``T x m``).
+    Only the ``gated`` shapes are gated and count as each other's partners (a held shape explains nothing)."""
 
     def __init__(self, basis: np.ndarray, noise_mm: float, marker_noise: np.ndarray | None, gated: np.ndarray,
                  rate: float | None = None) -> None:
         self.B = np.asarray(basis, dtype=float)
-        self.E, _ = unique_evidence(self.B, noise_mm, marker_noise)
+        cols = np.flatnonzero(gated)
+        self.E = np.zeros((self.B.shape[1], self.B.shape[0]))
+        self.E[cols] = unique_evidence(self.B[:, cols], noise_mm, marker_noise)[0]
         self.own = self.E * self.B.T  # each shape's evidence per unit of its own weight, per coordinate
         self.gated = gated
         self.keep = float(np.exp(-1.0 / (rate * EVIDENCE_SECONDS))) if rate else 0.0  # the average's memory
