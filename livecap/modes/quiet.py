@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 
 
 EVIDENCE_ZERO = 2.0  # a weight whose unique evidence is below this many noise sd is published at rest ...
-EVIDENCE_FULL = 6.0  # ... and whole above this many, scaled linearly between (chosen on the AnimFace takes)
+EVIDENCE_FULL = 6.0  # ... whole above this many, linear between (AnimFace takes; 12 lost on the mismatch takes)
 EVIDENCE_SECONDS = 0.16  # time constant of the evidence's causal average (a phantom flickers with single frames)
 
 
