@@ -31,6 +31,7 @@ class ObservabilityReport:
     noise_mm: float
     seen_mm: float
     held: list[int] = field(default_factory=list)  # quiet_shapes at noise_mm: held in every mode (issue 35.3)
+    own_sd: np.ndarray | None = None  # m: weight sd per frame from the shape's own part alone (``unique_evidence``)
 
     @property
     def condition(self) -> float:
@@ -53,11 +54,14 @@ class ObservabilityReport:
         out = [f"observability: {len(self.names)} shapes, rank {int(np.sum(s > s[0] * 1e-9))}, "
                f"condition {self.condition:.3g}, marker noise {self.noise_mm:g} mm",
                f"  singular values (mm per unit weight): max {s[0]:.2f}, median {np.median(s):.2f}, min {s[-1]:.3g}",
-               f"  {'shape':24s} {'max disp mm':>11s} {'markers':>7s} {'noise sd':>8s}"]
+               f"  {'shape':24s} {'max disp mm':>11s} {'markers':>7s} {'noise sd':>8s} {'own sd':>7s}"]
+        own = self.own_sd if self.own_sd is not None else np.full(len(self.names), np.nan)
         for i in np.argsort(-self.noise_sd):
             flag = "  << noise-driven" if self.noise_sd[i] > 0.1 else ""
             out.append(f"  {self.names[i]:24s} {self.displacement[i]:11.2f} {self.marker_count[i]:7d} "
-                       f"{self.noise_sd[i]:8.3f}{flag}")
+                       f"{self.noise_sd[i]:8.3f} {own[i]:7.3f}{flag}")
+        out.append("  (own sd: from what no non-negative blend of the other shapes makes, in the per-marker noise when "
+                   "known; under model mismatch every mode trusts a weight as far as that part is seen)")
         out.append(f"  nearly indistinguishable pairs (column cosine >= {PAIR_COSINE:g}): {len(self.pairs)}")
         for i, j, c in self.pairs[:top_pairs]:
             out.append(f"    {self.names[i]} ~ {self.names[j]}  cos {c:.3f}")
@@ -74,8 +78,9 @@ PAIR_COSINE = 0.9
 
 
 def observability(basis: np.ndarray, names: list[str], noise_mm: float = 0.5, seen_mm: float = 1.0,
-                  pair_cosine: float = PAIR_COSINE) -> ObservabilityReport:
-    """Singular structure, per-shape displacement and noise floor, and near-duplicate pairs of B."""
+                  pair_cosine: float = PAIR_COSINE, marker_noise: np.ndarray | None = None) -> ObservabilityReport:
+    """Singular structure, per-shape displacement and noise floor, and near-duplicate pairs of B; each shape's
+    own part (``unique_evidence``, per-marker ``marker_noise`` when given) up to ``MAX_QUIET_SHAPES`` shapes."""
     B = np.asarray(basis, dtype=np.float64)
     m = B.shape[1]
     if len(names) != m:
@@ -90,8 +95,12 @@ def observability(basis: np.ndarray, names: list[str], noise_mm: float = 0.5, se
     C = Bn.T @ Bn
     pairs = [(i, j, float(C[i, j])) for i in range(m) for j in range(i + 1, m) if C[i, j] >= pair_cosine]
     pairs.sort(key=lambda p: -p[2])
+    own = None
+    if m <= MAX_QUIET_SHAPES:
+        d = unique_evidence(B, noise_mm, marker_noise)[1]
+        own = np.divide(1.0, d, out=np.full(m, np.inf), where=d > 0)
     return ObservabilityReport(list(names), s, Vt.T, disp, count.astype(int), sd, pairs, float(noise_mm),
-                               float(seen_mm), quiet_shapes(B, noise_mm).tolist())
+                               float(seen_mm), quiet_shapes(B, noise_mm).tolist(), own)
 
 
 def noise_floor(basis: np.ndarray, noise_mm: float, ridge: float | np.ndarray = 0.0) -> np.ndarray:
