@@ -96,7 +96,7 @@ def observability(basis: np.ndarray, names: list[str], noise_mm: float = 0.5, se
     pairs = [(i, j, float(C[i, j])) for i in range(m) for j in range(i + 1, m) if C[i, j] >= pair_cosine]
     pairs.sort(key=lambda p: -p[2])
     own = None
-    if m <= MAX_QUIET_SHAPES:
+    if m <= MAX_QUIET_SHAPES and noise_mm > 0:
         d = unique_evidence(B, noise_mm, marker_noise)[1]
         own = np.divide(1.0, d, out=np.full(m, np.inf), where=d > 0)
     return ObservabilityReport(list(names), s, Vt.T, disp, count.astype(int), sd, pairs, float(noise_mm),
