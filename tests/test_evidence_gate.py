@@ -114,3 +114,37 @@ def test_a_held_shape_is_no_partner():
     assert both(W, y, np.ones(10, bool))[1] < 1.0  # beside its partner, its own part is small
     assert alone(W, y, np.ones(10, bool))[1] == 1.0
     assert np.all(alone.E[0] == 0.0)
+
+
+def test_streamed_the_gate_reads_the_frame_a_lagged_mode_publishes():
+    """A mode with ``latency_frames`` L returns frame t - L's weights at step t: the gate must read frame t - L."""
+    from livecap.modes.quiet import QuietShapes
+
+    class Lagged:  # a stand-in for kalman / robust-lag: the weights of two frames ago
+        latency_frames = 2
+
+        def __init__(self):
+            self.frames = []
+
+        def step(self, target, valid):
+            self.frames.append(float(target[0, 0]))
+            return np.array([self.frames[max(0, len(self.frames) - 3)]])
+
+        def reset(self):
+            self.frames = []
+
+    read = []
+
+    class Spy:
+        def __call__(self, W, targets, valid):
+            read.append(float(targets[0, 0]))
+            return W
+
+        def reset(self):
+            read.append("reset")
+
+    q = QuietShapes(Lagged(), 1, np.array([0]), np.zeros(0, int), lambda kept: np.zeros((0,)), False, Spy())
+    out = [q.step(np.full((2, 3), float(t)), np.ones(2, bool))[0] for t in range(6)]
+    assert out == [0.0, 0.0, 0.0, 1.0, 2.0, 3.0] and read == [0.0, 0.0, 0.0, 1.0, 2.0, 3.0]
+    q.reset()
+    assert not q.seen and not q.inner.frames and read[-1] == "reset"
