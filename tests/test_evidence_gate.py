@@ -148,3 +148,16 @@ def test_streamed_the_gate_reads_the_frame_a_lagged_mode_publishes():
     assert out == [0.0, 0.0, 0.0, 1.0, 2.0, 3.0] and read == [0.0, 0.0, 0.0, 1.0, 2.0, 3.0]
     q.reset()
     assert not q.seen and not q.inner.frames and read[-1] == "reset"
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000))
+def test_the_gate_only_ever_pulls_toward_rest(seed):
+    """Whatever the markers do, a gated weight keeps its sign and is never larger than the mode solved it."""
+    rng = np.random.default_rng(seed)
+    B = rng.normal(size=(18, 4)) * rng.uniform(0.1, 5.0, size=4)
+    gate = EvidenceGate(B, 0.5, rng.uniform(0.2, 3.0, size=6), np.array([True, True, True, False]))
+    W = rng.uniform(-1, 1, size=(20, 4))
+    Y = rng.normal(scale=3.0, size=(20, 6, 3))
+    out = gate(W, Y, rng.uniform(size=(20, 6)) > 0.2)
+    assert np.all(np.abs(out) <= np.abs(W) + 1e-12) and np.all(out * W >= 0) and np.all(out[:, 3] == W[:, 3])
