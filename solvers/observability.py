@@ -31,6 +31,7 @@ class ObservabilityReport:
     noise_mm: float
     seen_mm: float
     held: list[int] = field(default_factory=list)  # quiet_shapes at noise_mm: held in every mode (issue 35.3)
+    own_sd: np.ndarray | None = None  # m: weight sd per frame from the shape's own part alone (``unique_evidence``)
 
     @property
     def condition(self) -> float:
@@ -53,11 +54,14 @@ class ObservabilityReport:
         out = [f"observability: {len(self.names)} shapes, rank {int(np.sum(s > s[0] * 1e-9))}, "
                f"condition {self.condition:.3g}, marker noise {self.noise_mm:g} mm",
                f"  singular values (mm per unit weight): max {s[0]:.2f}, median {np.median(s):.2f}, min {s[-1]:.3g}",
-               f"  {'shape':24s} {'max disp mm':>11s} {'markers':>7s} {'noise sd':>8s}"]
+               f"  {'shape':24s} {'max disp mm':>11s} {'markers':>7s} {'noise sd':>8s} {'own sd':>7s}"]
+        own = self.own_sd if self.own_sd is not None else np.full(len(self.names), np.nan)
         for i in np.argsort(-self.noise_sd):
             flag = "  << noise-driven" if self.noise_sd[i] > 0.1 else ""
             out.append(f"  {self.names[i]:24s} {self.displacement[i]:11.2f} {self.marker_count[i]:7d} "
-                       f"{self.noise_sd[i]:8.3f}{flag}")
+                       f"{self.noise_sd[i]:8.3f} {own[i]:7.3f}{flag}")
+        out.append("  (own sd: from what no non-negative blend of the other shapes makes, in the per-marker noise when "
+                   "known; under model mismatch every mode trusts a weight as far as that part is seen)")
         out.append(f"  nearly indistinguishable pairs (column cosine >= {PAIR_COSINE:g}): {len(self.pairs)}")
         for i, j, c in self.pairs[:top_pairs]:
             out.append(f"    {self.names[i]} ~ {self.names[j]}  cos {c:.3f}")
@@ -74,8 +78,9 @@ PAIR_COSINE = 0.9
 
 
 def observability(basis: np.ndarray, names: list[str], noise_mm: float = 0.5, seen_mm: float = 1.0,
-                  pair_cosine: float = PAIR_COSINE) -> ObservabilityReport:
-    """Singular structure, per-shape displacement and noise floor, and near-duplicate pairs of B."""
+                  pair_cosine: float = PAIR_COSINE, marker_noise: np.ndarray | None = None) -> ObservabilityReport:
+    """Singular structure, per-shape displacement and noise floor, and near-duplicate pairs of B; each shape's
+    own part (``unique_evidence``, per-marker ``marker_noise`` when given) up to ``MAX_QUIET_SHAPES`` shapes."""
     B = np.asarray(basis, dtype=np.float64)
     m = B.shape[1]
     if len(names) != m:
@@ -90,8 +95,12 @@ def observability(basis: np.ndarray, names: list[str], noise_mm: float = 0.5, se
     C = Bn.T @ Bn
     pairs = [(i, j, float(C[i, j])) for i in range(m) for j in range(i + 1, m) if C[i, j] >= pair_cosine]
     pairs.sort(key=lambda p: -p[2])
+    own = None
+    if m <= MAX_QUIET_SHAPES and noise_mm > 0:
+        d = unique_evidence(B, noise_mm, marker_noise)[1]
+        own = np.divide(1.0, d, out=np.full(m, np.inf), where=d > 0)
     return ObservabilityReport(list(names), s, Vt.T, disp, count.astype(int), sd, pairs, float(noise_mm),
-                               float(seen_mm), quiet_shapes(B, noise_mm).tolist())
+                               float(seen_mm), quiet_shapes(B, noise_mm).tolist(), own)
 
 
 def noise_floor(basis: np.ndarray, noise_mm: float, ridge: float | np.ndarray = 0.0) -> np.ndarray:
@@ -168,3 +177,49 @@ def quiet_shapes(basis: np.ndarray, noise_mm: float, threshold: float = QUIET_SD
         j = int(over[np.argmin(norms[np.asarray(keep)[over]])])  # the weakest of them: it moves the markers least
         out.append(keep.pop(j))
     return np.sort(np.asarray(out, dtype=int))
+
+
+def whiten(basis: np.ndarray, noise_mm: float, marker_noise: np.ndarray | None) -> np.ndarray:
+    """B in units of the marker noise: each marker's rows divided by its own noise sd (``marker_noise``, n: its
+    shape across markers, rescaled to RMS ``noise_mm``; a marker counts as at least ``MARKER_NOISE_FLOOR`` of the
+    noisiest), or by ``noise_mm`` when ``None``.
+
+    The honest per-marker noise (calibration's fit residual, ``livecap.modes.robust.tune_profile``) is largest
+    where the rig cannot follow the actor (the mouth and chin on a real capture, issue 35.1): motion there counts
+    for less."""
+    B = np.asarray(basis, dtype=np.float64)
+    if marker_noise is None:
+        return B / float(noise_mm)
+    s = np.asarray(marker_noise, dtype=np.float64)
+    if s.shape != (B.shape[0] // 3,) or not np.all(np.isfinite(s)) or not s.max() > 0:
+        raise ValueError(f"marker_noise: {B.shape[0] // 3} positive values expected (one per marker), "
+                         f"got shape {s.shape}")
+    s = np.maximum(s, MARKER_NOISE_FLOOR * s.max())
+    s = s * (float(noise_mm) / np.sqrt(np.mean(s**2)))  # its shape across markers, at the noise in use (--noise-mm)
+    return B / np.repeat(s, 3)[:, None]
+
+
+MARKER_NOISE_FLOOR = 0.1  # an exactly fitted marker is not noiseless: at least this share of the noisiest one
+
+
+def unique_evidence(basis: np.ndarray, noise_mm: float, marker_noise: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Per shape, what of its marker motion no non-negative blend of the other shapes makes (its *unique*
+    direction: the NNLS residual of its whitened column against the others', ``whiten``), as ``(E, d)``: ``E``
+    (m x 3n) maps a marker residual (mm, flattened) to the evidence along each unique direction in noise sd units;
+    ``d`` (m) is the unique motion per unit weight in noise sd units (``1 / d``: the weight's per-frame sd).
+
+    Issue 35: a shape that is nearly a blend of partners takes up the partners' model mismatch; its weight is
+    worth trusting only as far as the markers move along what it alone explains, by more than the noise there
+    (``livecap.modes.quiet.EvidenceGate``). Non-negative blends, as ``quiet_shapes``: jawLeft is not -jawRight."""
+    from scipy.optimize import nnls
+
+    Bw = whiten(basis, noise_mm, marker_noise)
+    m = Bw.shape[1]
+    U = np.array(Bw.T)
+    for k in range(m if m > 1 else 0):
+        others = np.delete(Bw, k, axis=1)
+        U[k] -= others @ nnls(others, Bw[:, k])[0]
+    d = np.linalg.norm(U, axis=1)
+    per_mm = whiten(np.ones((Bw.shape[0], 1)), noise_mm, marker_noise)[:, 0]  # 1 / noise sd per coordinate
+    return U / np.maximum(d, 1e-300)[:, None] * per_mm[None, :], d

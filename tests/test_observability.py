@@ -20,6 +20,9 @@ def test_duplicate_and_invisible_shapes_are_reported():
     assert any(abs(rep.directions[4, k]) > 0.99 for k in rep.unobservable())
     text = "\n".join(rep.lines())
     assert "b ~ d" in text and "e" in text
+    # each shape's own part (issue 35): the near-duplicates have little, the unseen shape none
+    assert rep.own_sd[1] > 10 * rep.own_sd[0] and rep.own_sd[3] > 10 * rep.own_sd[0] and np.isinf(rep.own_sd[4])
+    assert "own sd" in text
 
 
 def test_noise_floor_matches_monte_carlo():

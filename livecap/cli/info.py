@@ -30,9 +30,12 @@ def observability_report(args: argparse.Namespace, rig: Rig | None, layout: Mark
     from livecap.calibration.profile import Profile
     from solvers.observability import observability
 
+    per_marker = None
     if args.profile:
+        from livecap.modes.quiet import marker_noise
+
         prof = Profile.load(args.profile)
-        basis, names = prof.basis, prof.names
+        basis, names, per_marker = prof.basis, prof.names, marker_noise(prof)
         noise = args.noise_mm or prof.settings.get("robust", {}).get("noise_mm", 0.5)
         source = args.profile
     else:
@@ -40,7 +43,7 @@ def observability_report(args: argparse.Namespace, rig: Rig | None, layout: Mark
             raise ValueError(f"{args.path}: --observability needs the rig's markers.json (give --markers)")
         basis, names, noise, source = layout.basis(rig), rig.names, args.noise_mm or 0.5, "rig + markers"
     print(f"  ({source})")
-    for line in observability(basis, names, noise).lines():
+    for line in observability(basis, names, noise, marker_noise=per_marker).lines():
         print(line)
 
 

@@ -8,11 +8,20 @@ absorbed by eye gaze or frowns; a nearly parallel partner carries the motion the
 published at rest, or with an animation prior at its conditional mean given the solved shapes (the Gaussian's
 regression, clipped to the limits). Modes built from key pairs (``keys``: rbf, qp's actor basis) solve every
 shape and have the held ones overwritten the same way. Option ``quiet: false`` turns this off.
+
+When calibration measured model mismatch (the rig leaves far more unexplained than the markers' jitter: a real
+actor, smoothed data), a shape that is nearly a blend of partners takes up the partners' mismatch (issue 35.1:
+mouthFrown rises with the jaw shapes, eyeLookIn with the blink). Every solved weight is then trusted only as far as
+the markers move along what its shape alone explains (its signature's part outside the cone of the others',
+in the per-marker noise calibration measured, ``solvers.observability.unique_evidence``): at rest below 2 noise sd
+of that evidence (averaged over 0.16 s), whole above 6 (``EvidenceGate``). Same-rig takes with white noise never
+reach that branch.
 """
 
 from __future__ import annotations
 
 import logging
+from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -20,33 +29,92 @@ import numpy as np
 
 from livecap.calibration.animation_prior import AnimationPrior, prior_from_spec
 from livecap.calibration.profile import Profile
-from solvers.observability import quiet_shapes
+from solvers.observability import quiet_shapes, unique_evidence
 
 log = logging.getLogger(__name__)
 
 
+EVIDENCE_ZERO = 2.0  # a weight whose unique evidence is below this many noise sd is published at rest ...
+EVIDENCE_FULL = 6.0  # ... whole above this many, linear between (AnimFace takes; 12 lost on the mismatch takes)
+EVIDENCE_SECONDS = 0.16  # time constant of the evidence's causal average (a phantom flickers with single frames)
+
+
+class EvidenceGate:
+    """Each weight scaled by how far the markers move along what its shape alone explains (issue 35; module
+    docstring): 0 below ``EVIDENCE_ZERO`` noise sd, whole above ``EVIDENCE_FULL``. The evidence of shape k in a
+    frame is the residual with k's own part put back, along k's unique direction (``unique_evidence``), averaged
+    causally over ``EVIDENCE_SECONDS`` (``rate`` Hz; None: per frame). One frame (``step``) or a take (``T x m``).
+    Only the ``gated`` shapes are gated and count as each other's partners (a held shape explains nothing)."""
+
+    def __init__(self, basis: np.ndarray, noise_mm: float, marker_noise: np.ndarray | None, gated: np.ndarray,
+                 rate: float | None = None) -> None:
+        self.B = np.asarray(basis, dtype=float)
+        cols = np.flatnonzero(gated)
+        self.E = np.zeros((self.B.shape[1], self.B.shape[0]))
+        self.E[cols] = unique_evidence(self.B[:, cols], noise_mm, marker_noise)[0]
+        self.own = self.E * self.B.T  # each shape's evidence per unit of its own weight, per coordinate
+        self.gated = gated
+        self.keep = float(np.exp(-1.0 / (rate * EVIDENCE_SECONDS))) if rate else 0.0  # the average's memory
+        self.last: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self.last = None
+
+    def __call__(self, W: np.ndarray, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        from scipy.signal import lfilter
+
+        Y = np.asarray(targets, dtype=float).reshape(*np.shape(W)[:-1], -1)
+        seen = np.repeat(np.asarray(valid, dtype=bool), 3, axis=-1)
+        R = np.where(seen, Y - W @ self.B.T, 0.0)  # hidden markers (NaN or stale) say nothing
+        t = np.abs(R @ self.E.T + (seen @ self.own.T) * W)
+        if np.ndim(W) == 1:
+            t = t if self.last is None else self.keep * self.last + (1.0 - self.keep) * t
+            self.last = t
+        elif len(t):
+            t = lfilter([1.0 - self.keep], [1.0, -self.keep], t, axis=0, zi=self.keep * t[:1])[0]
+        gate = np.clip((t - EVIDENCE_ZERO) / (EVIDENCE_FULL - EVIDENCE_ZERO), 0.0, 1.0)
+        return np.where(self.gated, W * gate, W)
+
+
 class QuietShapes:
-    """A mode solving the ``keep`` shapes (or all, ``reduced`` False), published with the ``held`` ones filled."""
+    """A mode solving the ``keep`` shapes (or all, ``reduced`` False), published with the ``held`` ones filled and
+    the others through the ``gate`` when there is one."""
 
     def __init__(self, inner, m: int, keep: np.ndarray, held: np.ndarray, fill: Callable[[np.ndarray], np.ndarray],
-                 reduced: bool) -> None:
+                 reduced: bool, gate: EvidenceGate | None = None) -> None:
         self.inner, self.m, self.keep, self.held, self.fill, self.reduced = inner, m, keep, held, fill, reduced
+        self.gate, self.seen = gate, deque()
         if hasattr(inner, "solve"):  # a streaming-only mode stays streaming-only (callers test hasattr)
             self.solve = self._solve
+        if hasattr(inner, "reset"):  # likewise: the live warm-up steps only solvers it can reset
+            self.reset = self._reset
 
-    def _full(self, W: np.ndarray) -> np.ndarray:
+    def _full(self, W: np.ndarray, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         W = np.asarray(W, dtype=float)
         kept = W[..., self.keep] if not self.reduced else W
         out = np.empty((*W.shape[:-1], self.m))
         out[..., self.keep] = kept
         out[..., self.held] = self.fill(kept)
-        return out
+        return out if self.gate is None else self.gate(out, targets, valid)
 
-    def step(self, *args, **kwargs) -> np.ndarray:
-        return self._full(self.inner.step(*args, **kwargs))
+    def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        w = self.inner.step(target, valid)
+        if self.gate is None:
+            return self._full(w, target, valid)
+        self.seen.append((np.array(target, dtype=float), np.array(valid, dtype=bool)))
+        lag = min(int(getattr(self.inner, "latency_frames", 0) or 0), len(self.seen) - 1)  # w is of frame t - lag
+        while len(self.seen) > lag + 1:
+            self.seen.popleft()
+        return self._full(w, *self.seen[0])
 
-    def _solve(self, *args, **kwargs) -> np.ndarray:
-        return self._full(self.inner.solve(*args, **kwargs))
+    def _reset(self) -> None:
+        self.inner.reset()
+        self.seen.clear()
+        if self.gate is not None:
+            self.gate.reset()
+
+    def _solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        return self._full(self.inner.solve(targets, valid), targets, valid)
 
     def __getattr__(self, name: str):  # latency_frames, edit, reset ... of the inner mode
         return getattr(self.inner, name)
@@ -74,6 +142,24 @@ def reduced_profile(profile: Profile, keep: np.ndarray) -> Profile:
                    lower=profile.lower[keep], upper=profile.upper[keep], prior=prior, marker_rig=None)
 
 
+def marker_noise(profile: Profile) -> np.ndarray | None:
+    """The per-marker noise calibration measured (its fit residual, misfit included), when it fits the layout."""
+    per = profile.settings.get("robust", {}).get("marker_noise_mm")
+    if per is None or len(per) * 3 != profile.basis.shape[0]:
+        return None
+    return np.asarray(per, dtype=float)
+
+
+def mismatched(profile: Profile) -> bool:
+    """Calibration measured the rig leaving far more unexplained than the markers' jitter (its warning: the actor
+    is not the rig, or the data were smoothed; ``livecap.modes.robust.NOISE_DISAGREES``)."""
+    from livecap.modes.robust import NOISE_DISAGREES
+
+    tuned = profile.settings.get("robust", {})
+    jitter, residual = tuned.get("jitter_mm"), tuned.get("residual_mm")
+    return jitter is not None and residual is not None and residual > NOISE_DISAGREES * jitter
+
+
 def build_quiet(factory: Callable, profile: Profile, options: dict, reduce: bool = True):
     """``factory(profile, options)``, with the shapes the markers cannot see held (module docstring); ``reduce``
     False for modes built from key pairs over every shape (they solve all, the held ones are overwritten)."""
@@ -81,11 +167,20 @@ def build_quiet(factory: Callable, profile: Profile, options: dict, reduce: bool
     if noise is None or options.get("quiet") is False:
         return factory(profile, options)
     held = quiet_shapes(profile.basis, float(noise))
-    if not len(held):
-        return factory(profile, options)
     keep = np.setdiff1d(np.arange(len(profile.names)), held)
-    log.info("held %s: the markers cannot tell them from noise at %.3g mm (option quiet=false solves them)",
-             ", ".join(profile.names[i] for i in held), noise)
+    gate = None
+    if mismatched(profile):
+        rest = np.zeros(len(profile.names), bool)
+        rest[keep] = (profile.lower[keep] <= 0) & (profile.upper[keep] >= 0)
+        gate = EvidenceGate(profile.basis, float(noise), marker_noise(profile), rest,
+                            profile.settings.get("robust", {}).get("rate"))
+        log.info("the rig leaves more unexplained than the markers' jitter: weights trusted as far as their "
+                 "shape's own marker motion is seen above the noise (option quiet=false turns this off)")
+    if not len(held) and gate is None:
+        return factory(profile, options)
+    if len(held):
+        log.info("held %s: the markers cannot tell them from noise at %.3g mm (option quiet=false solves them)",
+                 ", ".join(profile.names[i] for i in held), noise)
     spec = options.get("prior")
     if spec is not None and not (isinstance(spec, str) and spec in ("shapes", "none", "profile")):
         given = prior_from_spec(spec, profile.prior)
@@ -94,5 +189,6 @@ def build_quiet(factory: Callable, profile: Profile, options: dict, reduce: bool
             profile, options = replace(profile, prior=given), {**options, "prior": "profile"}
     if isinstance(spec, str) and spec == "none":
         profile = replace(profile, prior=None)
+    reduce = reduce and bool(len(held))
     inner = factory(reduced_profile(profile, keep) if reduce else profile, options)
-    return QuietShapes(inner, len(profile.names), keep, held, _fill(profile, keep, held), reduce)
+    return QuietShapes(inner, len(profile.names), keep, held, _fill(profile, keep, held), reduce, gate)
