@@ -219,9 +219,11 @@ class RotatedIMM:
 
     latency_frames = 0
 
-    def __init__(self, axes: np.ndarray, imm: IMMFilter) -> None:
-        self.axes = np.asarray(axes, dtype=np.float64)
-        if self.axes.ndim != 2 or self.axes.shape[0] != self.axes.shape[1]:
+    def __init__(self, axes: np.ndarray | None, imm: IMMFilter) -> None:
+        """``axes`` None: the shapes' own axes (no rotation), where two m x m products a frame cost more than the
+        rotation is worth (1000-shape rigs: ~1 ms of a 2 ms budget, docs/performance.md)."""
+        self.axes = None if axes is None else np.asarray(axes, dtype=np.float64)
+        if self.axes is not None and (self.axes.ndim != 2 or self.axes.shape[0] != self.axes.shape[1]):
             raise ValueError(f"RotatedIMM axes must be a square matrix, got shape {self.axes.shape}")
         self.imm = imm
 
@@ -234,6 +236,8 @@ class RotatedIMM:
         return self.imm.r
 
     def along(self, cov: np.ndarray) -> np.ndarray:
+        if self.axes is None:
+            return np.maximum(np.diag(np.asarray(cov, dtype=np.float64)).copy(), 1e-300)
         return variances_along(self.axes, cov)
 
     def set_noise(self, r: np.ndarray) -> None:
@@ -241,4 +245,6 @@ class RotatedIMM:
         self.imm.set_noise(r)
 
     def step(self, y: np.ndarray) -> np.ndarray:
+        if self.axes is None:
+            return self.imm.step(np.asarray(y, dtype=np.float64))
         return self.axes @ self.imm.step(self.axes.T @ np.asarray(y, dtype=np.float64))

@@ -149,6 +149,18 @@ def test_rotated_imm_along_the_channels_is_the_imm():
                                atol=1e-12)
 
 
+def test_rotated_imm_without_axes_is_the_per_shape_imm_on_the_diagonal():
+    """No axes (the 1000-shape rigs, where the rotation's two m x m products cost ~1 ms a frame): the plain IMM,
+    its noise the covariance's diagonal."""
+    rng = np.random.default_rng(11)
+    Y = rng.normal(size=(40, 3)).cumsum(0)
+    cov = np.array([[0.1, 0.05, 0.0], [0.05, 0.2, 0.01], [0.0, 0.01, 0.3]])
+    plain = RotatedIMM(None, IMMFilter(1e-4, 1e-2, 1.0))
+    plain.set_noise(plain.along(cov))
+    np.testing.assert_allclose(np.array([plain.step(y) for y in Y]),
+                               IMMFilter(1e-4, 1e-2, np.diag(cov)).filter(Y), atol=1e-12)
+
+
 def test_rotated_imm_holds_the_noisy_difference_and_follows_the_sum():
     """Two weights whose fit noise is anticorrelated (as eyeWide / eyeLookUp): their sum is well seen, their
     difference badly. Run along the noise's eigenvectors the step in the sum is followed at once, as steady as a

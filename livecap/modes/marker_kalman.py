@@ -225,7 +225,8 @@ class MarkerKalmanSolver:
         noise = max(self.filter.noise_mm, self.calibrated_noise)
         k = self.selector.best
         if self._imm is None:  # the axes: the first frame's fit's; later strengths' noise is read in them
-            self._imm = RotatedIMM(np.linalg.eigh(self._spread_of(k))[1], self.motion.imm(noise, self.norms))
+            axes = None if fit.marker_space else np.linalg.eigh(self._spread_of(k))[1]
+            self._imm = RotatedIMM(axes, self.motion.imm(noise, self.norms))
         if k not in self._along:
             self._along[k] = self._imm.along(self._spread_of(k))
         self._imm.set_noise(noise**2 * self._along[k])
