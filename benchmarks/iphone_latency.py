@@ -2,7 +2,8 @@
 
 The 180 real app packets (../shared/realdata/performance/dao.gesichter), looped, each with its frame
 number rewritten to its index, are sent at ``--rate`` (the app's 60 Hz) from this process over
-loopback UDP, through either a bare relay process (recv -> sendto, nothing decoded) or
+loopback UDP, through a bare relay process (recv -> sendto, nothing decoded), a *floor* relay (recv, livecap's
+decode with every check, the Live Link sink's encode, sendto: the least a Python relay of these packets does) or
 ``livecap run --livelink-in ... --livelink ... --timecode take`` (decode, every step of a live
 session, encode), and received back here; latency = receive time - send time of the same frame.
 Both paths run in the same invocation, alternately, ``--runs`` times; the tables hold the medians
@@ -49,6 +50,25 @@ while True:
         tx.sendto(rx.recv(65536), out)
     except TimeoutError:
         break
+"""
+
+FLOOR = """
+import socket, sys
+from transport.livelink import _body, livelink_header
+from transport.livelink_source import decode_livelink
+rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+rx.bind(("127.0.0.1", 0))
+tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+out = ("127.0.0.1", int(sys.argv[1]))
+header = livelink_header("livecap")
+rx.settimeout(3.0)
+print(f"relay 127.0.0.1:{rx.getsockname()[1]}", flush=True)
+while True:
+    try:
+        p = decode_livelink(rx.recv(65536))
+    except TimeoutError:
+        break
+    tx.sendto(header + _body(list(p.floats), p.frame, p.sub_frame, p.fps, p.denominator), out)
 """
 
 
@@ -138,7 +158,9 @@ def run(quick: bool = False, runs: tuple = ("",), baseline: tuple = ("",), drive
     per_run = []
     for _ in range(n_runs):
         bare, _ = _measure(["-c", textwrap.dedent(RELAY), "{RX}"], r"relay [\d.]+:(\d+)", count, rate)
-        row = {"bare_udp": bare}
+        floor, _ = _measure(["-c", textwrap.dedent(FLOOR), "{RX}"], r"relay [\d.]+:(\d+)", count, rate)
+        floor["p99_over_bare"] = floor.get("p99_ms", float("nan")) / bare.get("p99_ms", float("nan"))
+        row = {"bare_udp": bare, "floor": floor}
         for path, tree in [("livecap", ""), ("baseline", baseline[0])] if baseline[0] else [("livecap", "")]:
             drv, _ = _measure(DRIVER + [a for a in driver if a], r"livelink-in [\d.]+:(\d+)", count, rate, tree)
             drv["p99_over_bare"] = drv.get("p99_ms", float("nan")) / bare.get("p99_ms", float("nan"))

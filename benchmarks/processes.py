@@ -14,7 +14,8 @@ ROOT = Path(__file__).resolve().parents[1]
 def spawn(args: list, **kw) -> subprocess.Popen:
     """``python ARGS...`` with the project importable; stdout/stderr piped as text."""
     return subprocess.Popen([sys.executable, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, **kw)
+                            text=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(
+                                filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}, **kw)
 
 
 def first_line(proc: subprocess.Popen) -> str:
