@@ -5,7 +5,8 @@
   p50 / p99 / mean after 50 frames, for robust, kalman, and kalman with its held-out strength trial switched
   off (not a mode: the floor the rest of its step sets);
 * 72x1000: the synthetic rig of ``benchmarks.synthetic`` (every marker seen, a ridge), kalman and robust;
-* offline: ``solve_take`` of the first 30 s of each performance (with the prior), x real time (wall);
+* offline: ``solve_take`` of the first 30 s of each performance (with the prior), x real time (wall and CPU), and
+  where kalman's CPU goes (:func:`offline_parts`: cProfile on process time, stage by stage);
 * marker-space primitives at 72x1000 (:func:`marker_space`): why a factorisation that survives visibility changes
   belongs in the 216-dim marker space;
 * numba cold / warm: a fresh process compiling kalman's and robust's kernels into an empty ``NUMBA_CACHE_DIR``,
@@ -92,7 +93,33 @@ def offline(name: str, seconds: float) -> dict:
         res[mode] = {"seconds": wall, "x_real_time": take.n_frames / take.rate / wall, "cpu_seconds": cpu,
                      "x_real_time_cpu": take.n_frames / take.rate / cpu}
     res["frames"], res["rate"] = take.n_frames, take.rate
+    res["kalman parts, CPU s"] = offline_parts(take, profile)
     return res
+
+
+PARTS = {"targets (stabilise, fill)": "prepare_targets", "marker smoother": "smooth_take",
+         "prior support check": "widen_prior", "held-out strength trials": "observe", "fit": "step_take",
+         "rigid pose undone": "remove", "weight IMM": "filter"}
+
+
+def offline_parts(take, profile) -> dict:
+    """kalman's ``solve_take`` under cProfile on process time (one more warm run): CPU seconds per stage, each the
+    cumulative time of the function that is that stage (the profiler adds its own overhead, most to the stages
+    made of many Python calls: the trials)."""
+    import cProfile
+    import pstats
+
+    from livecap.modes.registry import build_solver
+    from livecap.offline.solve import solve_take
+
+    solver = build_solver("kalman", profile, {"rate": take.rate})
+    prof = cProfile.Profile(time.process_time)
+    prof.runcall(solve_take, take, profile, solver)
+    stats = pstats.Stats(prof).stats  # (file, line, name) -> (calls, primitive calls, tottime, cumtime, callers)
+    out = {"total": max(v[3] for v in stats.values())}
+    for label, fn in PARTS.items():
+        out[label] = sum(v[3] for k, v in stats.items() if k[2] == fn and ("livecap" in k[0] or "solvers" in k[0]))
+    return out
 
 
 COLD = """
