@@ -6,7 +6,7 @@
   off (not a mode: the floor the rest of its step sets);
 * 72x1000: the synthetic rig of ``benchmarks.synthetic`` (every marker seen, a ridge), kalman and robust;
 * offline: ``solve_take`` of the first 30 s of each performance (with the prior), x real time (wall and CPU), and
-  where kalman's CPU goes (:func:`offline_parts`: cProfile on process time, stage by stage);
+  where kalman's CPU goes (:func:`offline_parts`, stage by stage);
 * marker-space primitives at 72x1000 (:func:`marker_space`): why a factorisation that survives visibility changes
   belongs in the 216-dim marker space;
 * numba cold / warm: a fresh process compiling kalman's and robust's kernels into an empty ``NUMBA_CACHE_DIR``,
@@ -97,29 +97,52 @@ def offline(name: str, seconds: float) -> dict:
     return res
 
 
-PARTS = {"targets (stabilise, fill)": "prepare_targets", "marker smoother": "smooth_take",
-         "prior support check": "widen_prior", "held-out strength trials": "observe", "fit": "step_take",
-         "rigid pose undone": "remove", "weight IMM": "filter"}
+PARTS = {"targets (stabilise, fill)": ("livecap.offline.solve", "prepare_targets"),
+         "marker smoother": ("livecap.modes.marker_kalman", "smooth_take"),
+         "prior support check": ("livecap.modes.marker_kalman", "widen_prior"),
+         "held-out strength trials": ("solvers.prior_strength", "HeldOutStrength.observe"),
+         "fit": ("solvers.qp", "FrameQP.step_take"),
+         "rigid pose undone": ("solvers.pose_refine", "RigidColumns.remove"),
+         "weight IMM": ("solvers.tracking", "IMMFilter.filter")}
 
 
 def offline_parts(take, profile) -> dict:
-    """kalman's ``solve_take`` under cProfile on process time (one more warm run): CPU seconds per stage, each the
-    cumulative time of the function that is that stage (the profiler adds its own overhead, most to the stages
-    made of many Python calls: the trials)."""
-    import cProfile
-    import pstats
+    """kalman's ``solve_take`` (one more warm run) with each stage's function wrapped in a process-time clock: CPU
+    seconds per stage (not cProfile: its per-call cost swamped the trials, ~2 calls a frame, two thirds of
+    its total on a 30 s take where they are about a third)."""
+    import importlib
 
     from livecap.modes.registry import build_solver
     from livecap.offline.solve import solve_take
 
-    solver = build_solver("kalman", profile, {"rate": take.rate})
-    prof = cProfile.Profile(time.process_time)
-    prof.runcall(solve_take, take, profile, solver)
-    stats = pstats.Stats(prof).stats  # (file, line, name) -> (calls, primitive calls, tottime, cumtime, callers)
-    out = {"total": max(v[3] for v in stats.values())}
-    for label, fn in PARTS.items():
-        out[label] = sum(v[3] for k, v in stats.items() if k[2] == fn and ("livecap" in k[0] or "solvers" in k[0]))
-    return out
+    spent = dict.fromkeys(PARTS, 0.0)
+    saved = []
+
+    def clocked(label, fn):
+        def run(*a, **k):
+            c0 = time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                spent[label] += time.process_time() - c0
+        return run
+
+    for label, (module, name) in PARTS.items():
+        owner = importlib.import_module(module)
+        *cls, attr = name.split(".")
+        if cls:
+            owner = getattr(owner, cls[0])
+        saved.append((owner, attr, owner.__dict__[attr]))
+        setattr(owner, attr, clocked(label, getattr(owner, attr)))
+    try:
+        solver = build_solver("kalman", profile, {"rate": take.rate})
+        c0 = time.process_time()
+        solve_take(take, profile, solver)
+        spent["total"] = time.process_time() - c0
+    finally:
+        for owner, attr, fn in saved:
+            setattr(owner, attr, fn)
+    return spent
 
 
 COLD = """
