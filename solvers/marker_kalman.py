@@ -36,7 +36,7 @@ class KalmanSettings:
     stream_max_gap_frames: int = 2
     local_frames: int = 4  # offline: q chosen per frame by the likelihood over +- this many frames
     # offline: the shared r chosen on at most this many markers, evenly spread (issue 39: on the ICT takes its
-    # log-likelihood margin is > 1e4 and every eighth marker chose as all 60; the 7 x 15 bank was ~40 % of a solve)
+    # log-likelihood margin is > 1e4 and every eighth marker chose as all 60; the bank over all was ~1/4 of a solve)
     noise_markers: int = 12
 
 

@@ -46,7 +46,7 @@ def test_smoother_and_filter_cut_noise_and_likelihood_finds_it():
 @pytest.mark.parametrize("noise", [0.1, 0.5, 1.0])
 def test_the_shared_noise_chosen_on_a_dozen_markers_is_the_one_all_choose(noise):
     """smooth_take chooses r on ``noise_markers`` of them (issue 39: the 7 x 15 bank over all 60 ICT markers was
-    ~40 % of an offline solve): on 40 random walks with occlusion bursts it picks the r all 40 pick."""
+    ~1/4 of an offline solve): on 40 random walks with occlusion bursts it picks the r all 40 pick."""
     _, noisy = _walk(600, 40, noise, 7)
     valid = np.random.default_rng(1).random((600, 40)) >= 0.05
     few = smooth_take(noisy, valid)[2]["noise_mm"]
