@@ -5,12 +5,13 @@
   p50 / p99 / mean after 50 frames, for robust, kalman, and kalman with its held-out strength trial switched
   off (not a mode: the floor the rest of its step sets);
 * 72x1000: the synthetic rig of ``benchmarks.synthetic`` (every marker seen, a ridge), kalman and robust;
-* offline: ``solve_take`` of the first 30 s of each performance (with the prior), x real time (wall and CPU), and
-  where kalman's CPU goes (:func:`offline_parts`, stage by stage);
+* offline: ``solve_take`` of the first 30 s of each performance (with the prior), x real time (wall);
 * marker-space primitives at 72x1000 (:func:`marker_space`): why a factorisation that survives visibility changes
   belongs in the 216-dim marker space;
 * numba cold / warm: a fresh process compiling kalman's and robust's kernels into an empty ``NUMBA_CACHE_DIR``,
-  then a second process loading them (seconds to build both solvers, step 5 frames and solve 120 offline).
+  then a second process loading them (seconds to build both solvers, step 5 frames and solve 120 offline);
+* offline, also: the CPU x real time beside the wall, and where kalman's CPU goes (:func:`offline_parts`, stage by
+  stage).
 
 ``--weights OUT`` saves kalman's streamed weights per case; ``--compare IN`` reports the largest difference from
 weights saved so by another tree (the baseline: ``PYTHONPATH=<old tree> python <old tree>/benchmarks/kalman_step.py
