@@ -10,7 +10,9 @@
 * marker-space primitives at 72x1000 (:func:`marker_space`): why a factorisation that survives visibility changes
   belongs in the 216-dim marker space;
 * numba cold / warm: a fresh process compiling kalman's and robust's kernels into an empty ``NUMBA_CACHE_DIR``,
-  then a second process loading them (seconds to build both solvers, step 5 frames and solve 120 offline).
+  then a second process loading them (seconds to build both solvers, step 5 frames and solve 120 offline);
+* offline, also: the CPU x real time beside the wall, and where kalman's CPU goes (:func:`offline_parts`, stage by
+  stage).
 
 ``--weights OUT`` saves kalman's streamed weights per case; ``--compare IN`` reports the largest difference from
 weights saved so by another tree (the baseline: ``PYTHONPATH=<old tree> python <old tree>/benchmarks/kalman_step.py
@@ -96,7 +98,56 @@ def offline(name: str, seconds: float) -> dict:
         res[mode] = {"seconds": wall, "x_real_time": take.n_frames / take.rate / wall, "cpu_seconds": cpu,
                      "x_real_time_cpu": take.n_frames / take.rate / cpu}
     res["frames"], res["rate"] = take.n_frames, take.rate
+    res["kalman parts, CPU s"] = offline_parts(take, profile)
     return res
+
+
+PARTS = {"targets (stabilise, fill)": ("livecap.offline.solve", "prepare_targets"),
+         "marker smoother": ("livecap.modes.marker_kalman", "smooth_take"),
+         "prior support check": ("livecap.modes.marker_kalman", "widen_prior"),
+         "held-out strength trials": ("solvers.prior_strength", "HeldOutStrength.observe"),
+         "fit": ("solvers.qp", "FrameQP.step_take"),
+         "rigid pose undone": ("solvers.pose_refine", "RigidColumns.remove"),
+         "weight IMM": ("solvers.tracking", "IMMFilter.filter")}
+
+
+def offline_parts(take, profile) -> dict:
+    """kalman's ``solve_take`` (one more warm run) with each stage's function wrapped in a process-time clock: CPU
+    seconds per stage (not cProfile: its per-call cost swamped the trials, ~2 calls a frame, two thirds of
+    its total on a 30 s take where they are about a third)."""
+    import importlib
+
+    from livecap.modes.registry import build_solver
+    from livecap.offline.solve import solve_take
+
+    spent = dict.fromkeys(PARTS, 0.0)
+    saved = []
+
+    def clocked(label, fn):
+        def run(*a, **k):
+            c0 = time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                spent[label] += time.process_time() - c0
+        return run
+
+    for label, (module, name) in PARTS.items():
+        owner = importlib.import_module(module)
+        *cls, attr = name.split(".")
+        if cls:
+            owner = getattr(owner, cls[0])
+        saved.append((owner, attr, owner.__dict__[attr]))
+        setattr(owner, attr, clocked(label, getattr(owner, attr)))
+    try:
+        solver = build_solver("kalman", profile, {"rate": take.rate})
+        c0 = time.process_time()
+        solve_take(take, profile, solver)
+        spent["total"] = time.process_time() - c0
+    finally:
+        for owner, attr, fn in saved:
+            setattr(owner, attr, fn)
+    return spent
 
 
 COLD = """

@@ -14,6 +14,7 @@ from solvers.marker_kalman import (
     _choose,
     _grid,
     _rts,
+    _spread,
     bridged,
 )
 
@@ -167,13 +168,14 @@ def numpy_smooth_take(targets: np.ndarray, valid: np.ndarray, settings: KalmanSe
     z = np.asarray(targets, float)
     seen = np.asarray(valid, bool)
     r, q = _grid(s)
-    bank = _Bank(r, q, n)
-    ll = np.zeros((len(r), n, 3))
+    pick = _spread(n, s.noise_markers)
+    bank = _Bank(r, q, len(pick))
+    ll = np.zeros((len(r), len(pick), 3))
     for t in range(T):
         if t:
             bank.predict()
-        ll += bank.update(z[t], seen[t])
-    ri, _ = _choose(ll, n, len(s.r_grid))
+        ll += bank.update(z[t, pick], seen[t, pick])
+    ri, _ = _choose(ll, len(pick), len(s.r_grid))
     qg, r0 = np.asarray(s.q_grid, float), float(s.r_grid[ri])
     bank = _Bank(np.full(len(qg), r0), qg, n)
     cum = np.zeros((T + 1, len(qg), n))

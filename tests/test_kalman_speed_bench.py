@@ -22,3 +22,15 @@ def test_marker_space_primitives_are_timed():
     assert set(out["median_us"]) == {"weight-space Cholesky of H_FF", "marker-space factor, fresh",
                                      "marker-space solve, kept factor", "gradient J'Jx, all weights"}
     assert all(v > 0 for v in out["median_us"].values())
+
+
+def test_offline_parts_split_kalmans_cpu_by_stage():
+    from benchmarks.synthetic import synthetic_profile, synthetic_stream
+    from livecap.core.take import Take
+
+    profile = synthetic_profile(12, 8)
+    S, V, _ = synthetic_stream(profile, 90)
+    take = Take(list(profile.labels), np.asarray(S, float) + profile.source_neutral, V, 60.0)
+    out = kalman_speed.offline_parts(take, profile)
+    assert set(out) == {"total", *kalman_speed.PARTS}
+    assert 0 < out["marker smoother"] < out["total"] and out["fit"] > 0 and out["held-out strength trials"] > 0

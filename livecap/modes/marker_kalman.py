@@ -236,12 +236,21 @@ class MarkerKalmanSolver:
     def solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """RTS-smoothed markers -> joint pose and prior fit; POSE_PASSES times, the pose fitted on the
         smoothed markers undone on the raw ones (fitted on the raw ones it would carry their noise into
-        every marker as a rigid jitter); last the IMM forwards and backwards, averaged."""
+        every marker as a rigid jitter); last the IMM forwards and backwards, averaged.
+
+        BLAS on this thread alone: every product and inverse here is of ~60 x 60 matrices, which OpenBLAS's
+        other threads only slow (issue 39: the same weights bit for bit, less CPU; docs/performance.md)."""
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(limits=1, user_api="blas"):
+            return self._solve(targets, valid)
+
+    def _solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         valid = np.asarray(valid, bool)
         d = np.asarray(targets, float)
         self._prior_as_given()
         for i in range(POSE_PASSES):
-            Z = self._solve_once(d, valid)
+            Z = self._solve_once(d, valid, first=i == 0)
             if i < POSE_PASSES - 1:
                 d = self.pose.remove(d, valid, Z[:, self.m:])
         noise = max(self.chosen["noise_mm"], self.calibrated_noise)
@@ -256,9 +265,11 @@ class MarkerKalmanSolver:
         W = 0.5 * (forward.filter(U) + backward.filter(U[::-1])[::-1]) @ axes.T
         return np.clip(W, self.lower, self.upper)
 
-    def _solve_once(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
-        """Weights and pose (T x (m + 6)) of the RTS-smoothed take."""
-        smoothed, ok, self.chosen = smooth_take(targets, valid, self.settings)
+    def _solve_once(self, targets: np.ndarray, valid: np.ndarray, first: bool = True) -> np.ndarray:
+        """Weights and pose (T x (m + 6)) of the RTS-smoothed take. After the ``first`` pass, the marker noise r
+        is the first's: it is the take's, and a rigid correction does not move it (issue 39: its likelihood margin
+        on the ICT takes is > 1e4; the realeval rows are equal to every digit)."""
+        smoothed, ok, self.chosen = smooth_take(targets, valid, self.settings, None if first else self.chosen["r"])
         if self.prior_cov is not None and self.support is None:
             pick = _spread(len(targets), SUPPORT_FRAMES)
             self._check_support(smoothed[pick].reshape(len(pick), -1), ok[pick], self.chosen["noise_mm"])
