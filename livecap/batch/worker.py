@@ -14,11 +14,11 @@ from distributed.diagnostics.plugin import WorkerPlugin
 
 from livecap.batch.jobs import Job
 from livecap.batch.outputs import write_output
-from livecap.batch.spec import SolveSpec
+from livecap.batch.spec import PRIOR_WORDS, SolveSpec
 from livecap.batch.stats import take_stats
 from livecap.core.take import Take
 from livecap.modes.registry import build_solver
-from livecap.offline.setup import check_labels, load_rig_layout, profile_from_take
+from livecap.offline.setup import check_labels, load_rig_layout, markers_path, profile_from_take
 from livecap.offline.solve import solve_take
 from transport.takefile import read_take
 
@@ -53,7 +53,7 @@ class SolverCache(WorkerPlugin):
         self.__init__()
 
     def rig(self, spec: SolveSpec):
-        key = (spec.rig, spec.markers)
+        key = (spec.rig, spec.markers, _stamp([Path(spec.rig), *_rig_files(spec)]))
         with self._lock:
             if key not in self.rigs:
                 self.rigs[key] = load_rig_layout(spec.rig, spec.markers)
@@ -72,16 +72,29 @@ class SolverCache(WorkerPlugin):
                 self.profiles[key] = profile
             return key, self.profiles[key]
 
-    def solver(self, spec: SolveSpec, profile_key, profile, options: dict):
-        key = (profile_key, spec.mode, spec.settings, threading.get_ident())
+    def solver(self, spec: SolveSpec, profile_key, profile):
+        """The spec's solver, built (its options read: a weights-CSV prior is parsed then) only on a miss."""
+        files = [Path(p) for p in (spec.settings.keys, spec.settings.prior) if p and p not in PRIOR_WORDS]
+        key = (profile_key, spec.mode, spec.settings, _stamp(files), threading.get_ident())
         solver = self.solvers.get(key)
         if solver is None or not hasattr(solver, "reset"):
-            solver = build_solver(spec.mode, profile, options)
+            solver = build_solver(spec.mode, profile, spec.settings.options())
             self.built += 1
             self.solvers[key] = solver
         else:
             solver.reset()
         return solver
+
+
+def _stamp(paths: list[Path]) -> tuple:
+    """The modification times of the files a cached object was read from: a changed file is read again."""
+    return tuple(p.stat().st_mtime_ns if p.exists() else None for p in paths)
+
+
+def _rig_files(spec: SolveSpec) -> list[Path]:
+    rig = Path(spec.rig)
+    files = sorted(p for p in rig.iterdir() if p.is_file()) if rig.is_dir() else []
+    return [*files, Path(spec.markers) if spec.markers else markers_path(spec.rig)]
 
 
 _LOCAL = SolverCache()  # in-process use (no Dask worker), e.g. the benchmark's loop
@@ -124,14 +137,13 @@ def solve_spec(spec: SolveSpec, take: Take, take_path: str, cache: SolverCache):
     """The take solved as ``livecap solve`` would with the spec's settings: (solved, profile, rig)."""
     rig, layout = cache.rig(spec)
     settings = spec.settings
-    options = settings.options()
     if spec.profile:
         profile_key, profile = cache.profile(spec.profile, settings.noise_mm)
-        solver = cache.solver(spec, profile_key, profile, options)
+        solver = cache.solver(spec, profile_key, profile)
     else:
         check_labels(take, layout.labels, take_path, spec.rig)
         profile = profile_from_take(rig, layout, take, spec.neutral_seconds, settings.noise_mm)
-        solver = build_solver(spec.mode, profile, options)
+        solver = build_solver(spec.mode, profile, settings.options())
     return solve_take(take, profile, solver), profile, rig
 
 
