@@ -38,13 +38,18 @@ class SolverCache(WorkerPlugin):
         self.rigs: dict = {}
         self.profiles: dict = {}
         self.solvers: dict = {}
+        self.spare: dict = {}  # solvers prepared before the fork, not yet claimed by a thread
         self.built = 0
         self._lock = threading.Lock()
 
     def setup(self, worker=None) -> None:
-        self.rigs.clear()
-        self.profiles.clear()
+        """Start from what the forkserver prepared before forking this worker (``PRELOADED``; empty in a
+        spawned worker or on a user's cluster): its first take then loads and builds nothing (keys hold the
+        files' mtimes, so nothing stale is adopted)."""
+        self.rigs = dict(PRELOADED.rigs)
+        self.profiles = dict(PRELOADED.profiles)
         self.solvers.clear()
+        self.spare = {key[:-1]: solver for key, solver in PRELOADED.solvers.items()}
 
     def __getstate__(self) -> dict:  # travels to the workers empty
         return {}
@@ -77,6 +82,8 @@ class SolverCache(WorkerPlugin):
         files = [Path(p) for p in (spec.settings.keys, spec.settings.prior) if p and p not in PRIOR_WORDS]
         key = (profile_key, spec.mode, spec.settings, _stamp(files), threading.get_ident())
         solver = self.solvers.get(key)
+        if solver is None and (solver := self.spare.pop(key[:-1], None)) is not None:
+            self.solvers[key] = solver
         if solver is None or not hasattr(solver, "reset"):
             solver = build_solver(spec.mode, profile, spec.settings.options())
             self.built += 1
@@ -98,6 +105,7 @@ def _rig_files(spec: SolveSpec) -> list[Path]:
 
 
 _LOCAL = SolverCache()  # in-process use (no Dask worker), e.g. the benchmark's loop
+PRELOADED = SolverCache()  # filled in the forkserver (livecap/batch/forkserver.py) before workers are forked
 
 
 def _cache() -> SolverCache:
@@ -162,7 +170,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     """Solve one take exactly as ``livecap solve`` would and write its output and record; never raises:
     a failure comes back as a row with ``status`` "failed" and a one-line ``error``."""
     cache = cache or _cache()
-    start, cpu, compiled = time.perf_counter(), time.process_time(), compiled_kernels()
+    start, cpu, compiled, built = time.perf_counter(), time.process_time(), compiled_kernels(), cache.built
     row: dict = {"take": job.take, "stem": job.stem, "actor": job.actor, "mode": job.spec.mode,
                  "profile": job.spec.profile or "", "output": str(job.output), "status": "failed", "error": "",
                  "worker": os.getpid(), "started": time.time(), "spec": repr(job.spec)}
@@ -188,6 +196,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     row["seconds"] = time.perf_counter() - start
     row["cpu_seconds"] = time.process_time() - cpu  # the worker process's CPU: load on a shared machine aside
     row["kernels_compiled"] = compiled_kernels() - compiled
+    row["solvers_built"] = cache.built - built
     if row["status"] == "ok":
         job.record.parent.mkdir(parents=True, exist_ok=True)
         tmp = job.record.with_name(job.record.name + ".partial")
