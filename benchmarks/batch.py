@@ -306,10 +306,14 @@ def _end_to_end(workers: int, profile: str, out: Path, takes: list[Path]) -> dic
         busy[r["worker"]] = busy.get(r["worker"], 0.0) + r["seconds"]
         spans.setdefault(r["worker"], []).append((r["started"], r["started"] + r["seconds"]))
     gaps = [b[0] - a[1] for s in spans.values() for a, b in pairwise(sorted(s))]
+    firsts = {min((r for r in rows if r["worker"] == w), key=lambda r: r["started"])["take"] for w in spans}
+    rest = [r["cpu_seconds"] for r in rows if r["take"] not in firsts]
     n, solve = len(takes), meta["wall_seconds"]
     return {"workers": workers, "takes": n, "start_s": t1 - t0, "solve_s": solve,
             "first_task_s": min(r["started"] for r in rows) - sent,  # run_batch called to the first take begun
             "idle_between_takes_s": float(np.mean(gaps)) if gaps else 0.0,  # a worker's, result out to next in
+            "first_take_cpu_s": float(np.mean([r["cpu_seconds"] for r in rows if r["take"] in firsts])),
+            "rest_cpu_per_take_s": float(np.mean(rest)) if rest else float("nan"),  # each worker's first aside
             "summary_s": t2 - t1 - solve, "close_s": t3 - t2, "total_s": t3 - t0, "per_take_s": solve * workers / n,
             "cpu_per_take_s": sum(r["cpu_seconds"] for r in rows) / n, "client_cpu_per_take_s": client_cpu / n,
             "kernels_compiled": sum(r["kernels_compiled"] for r in rows),
@@ -438,11 +442,20 @@ def fixed_cost_fits(runs: list[dict]) -> dict:
     n = np.array([r["batch"]["takes"] for r in runs], float)
     costs = {key: np.array([r["batch"][key] for r in runs]) for key in (*FIXED, "solve_s")}
     costs["fixed_s"] = sum(costs[key] for key in FIXED)
+    # CPU over all takes: the slope b is the CPU of one more take, the intercept a the batch's fixed CPU
+    costs["worker_cpu_s"] = n * [r["batch"]["cpu_per_take_s"] for r in runs]
+    costs["loop_cpu_s"] = n * [r["loop"]["cpu_per_take_s"] for r in runs]
+    costs["two_loops_cpu_s"] = n * [r["loop"]["two_loops_cpu_per_take_s"] for r in runs]
     fits = {}
     for key, c in costs.items():
         b, a = np.polyfit(n, c, 1) if len(n) > 1 else (0.0, float(c[0]))
         p = np.polyfit(np.log(n), np.log(np.maximum(c, 1e-6)), 1)[0] if len(n) > 1 else float("nan")
         fits[key] = {"a_s": float(a), "b_s_per_take": float(b), "exponent": float(p)}
+    fits["per_take_cpu_ratio"] = {"vs_loop": fits["worker_cpu_s"]["b_s_per_take"] / fits["loop_cpu_s"]["b_s_per_take"],
+                                  "vs_two_loops": fits["worker_cpu_s"]["b_s_per_take"]
+                                  / fits["two_loops_cpu_s"]["b_s_per_take"],
+                                  "pooled_vs_loop": costs["worker_cpu_s"].sum() / costs["loop_cpu_s"].sum(),
+                                  "pooled_vs_two_loops": costs["worker_cpu_s"].sum() / costs["two_loops_cpu_s"].sum()}
     return fits
 
 
@@ -471,8 +484,18 @@ def _print_scale(res: dict) -> None:
               f"batch), batch {e['per_take_s']:.3f} (CPU {e['cpu_per_take_s']:.3f}): overhead wall "
               f"{e['overhead_vs_two_loops']:+.1%}, CPU {e['cpu_overhead_vs_two_loops']:+.1%} (goal <= 10%)")
     print("fixed costs against the take count N: c = a + b N, and c ~ N^p")
-    for key, f in res["fits"].items():
-        print(f"  {key:>13}: a {f['a_s']:7.3f} s, b {f['b_s_per_take'] * 1000:8.2f} ms/take, p {f['exponent']:5.2f}")
+    fits = dict(res["fits"])
+    ratio = fits.pop("per_take_cpu_ratio")
+    for key, f in fits.items():
+        print(f"  {key:>15}: a {f['a_s']:7.3f} s, b {f['b_s_per_take'] * 1000:8.2f} ms/take, p {f['exponent']:5.2f}")
+    print(f"per-take CPU, worker over loop (goal <= 1.1): {ratio['vs_loop']:.3f} from the slopes, "
+          f"{ratio['pooled_vs_loop']:.3f} pooled; over two loops {ratio['vs_two_loops']:.3f} / "
+          f"{ratio['pooled_vs_two_loops']:.3f}")
+    for run in res["runs"]:
+        e = run["batch"]
+        if "first_take_cpu_s" in e:
+            print(f"{e['takes']:>5} takes: a worker's first take {e['first_take_cpu_s']:.3f} CPU s, the others "
+                  f"{e['rest_cpu_per_take_s']:.3f}")
 
 
 def _real_takes(work: Path, n: int) -> tuple[Path, list[Path]]:
@@ -509,14 +532,20 @@ def _real_takes(work: Path, n: int) -> tuple[Path, list[Path]]:
 
 def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",), settings: tuple[str, ...] = ("livecap",),
         takes: str = "demo", scale: tuple[str, ...] = ("",), methods: tuple[str, ...] = ("",),
-        order: tuple[str, ...] = ("",)) -> dict:
+        order: tuple[str, ...] = ("",), refit: tuple[str, ...] = ("",)) -> dict:
     """``placement``: "cluster" (livecap's LocalCluster) and/or "sessions" (dask scheduler and workers as
     separate processes, each in its own session); ``settings`` of the LocalCluster: "livecap" (what
     ``livecap batch`` starts) and/or "dask" (Dask's defaults, the profiler off: the code before them).
     ``scale`` (e.g. 12,24,48): instead, the start-up A/B and ``livecap batch`` end to end at 2 workers on that
     many demo takes, each against the warm loop on the same takes. ``methods`` (e.g. 16): instead, spawned
     against forked workers end to end on that many takes. ``order`` ("uneven"): instead, largest take first
-    against the listed order on a library of uneven takes."""
+    against the listed order on a library of uneven takes. ``refit`` (a ``--scale`` run's JSON file): instead,
+    its tables and fits printed again."""
+    if refit[0]:
+        res = json.loads(Path(refit[0]).read_text())["scale"]
+        res["fits"] = fixed_cost_fits(res["runs"])
+        _print_scale(res)
+        return {"scale": res}
     from livecap.cli import main as livecap
     from transport.takefile import read_take, write_take
 
@@ -612,4 +641,4 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",), settings
 
 if __name__ == "__main__":
     sys.exit(suite_main(run, __doc__, placement="cluster", settings="livecap", takes="demo", scale="", methods="",
-                        order=""))
+                        order="", refit=""))
