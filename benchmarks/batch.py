@@ -5,7 +5,7 @@ does (read the take, build the solver, solve, write the CSV), on copies of the b
 
     python -m benchmarks.batch [--quick] [--json FILE] [--settings livecap,dask] [--placement cluster,sessions]
                                [--takes demo|real] [--scale 8,16,32,64] [--methods 16]
-                               [--order uneven]
+                               [--order uneven] [--refit FILE]
 
 ``--takes real``: instead of demo copies, 12 different 20 s takes on the ICT-FaceKit rig driven by the real
 Live Link Face performances of ../shared/realdata/performance (`livecap generate --curves`, one actor, 20 s
