@@ -185,6 +185,7 @@ def test_glb_and_jsonl_outputs_and_a_reused_solver(library, tmp_path):
         job = Job(str(library["takes"] / f"{stem}.c3d"), spec, str(tmp_path), fmt)
         row = solve_job(job, cache)
         assert row["status"] == "ok", row["error"]
+        assert 0 < row["thread_cpu_seconds"] <= row["cpu_seconds"] + 1e-3  # the solving thread's share
     assert cache.built == 1
     (tmp_path / "solo").mkdir()
     for fmt in ("glb", "csv"):

@@ -171,6 +171,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     a failure comes back as a row with ``status`` "failed" and a one-line ``error``."""
     cache = cache or _cache()
     start, cpu, compiled, built = time.perf_counter(), time.process_time(), compiled_kernels(), cache.built
+    thread_cpu = time.thread_time()
     row: dict = {"take": job.take, "stem": job.stem, "actor": job.actor, "mode": job.spec.mode,
                  "profile": job.spec.profile or "", "output": str(job.output), "status": "failed", "error": "",
                  "worker": os.getpid(), "started": time.time(), "spec": repr(job.spec)}
@@ -195,6 +196,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
         logging.getLogger().removeHandler(handler)
     row["seconds"] = time.perf_counter() - start
     row["cpu_seconds"] = time.process_time() - cpu  # the worker process's CPU: load on a shared machine aside
+    row["thread_cpu_seconds"] = time.thread_time() - thread_cpu  # the solving thread's alone (no event loop)
     row["kernels_compiled"] = compiled_kernels() - compiled
     row["solvers_built"] = cache.built - built
     if row["status"] == "ok":
