@@ -4,8 +4,8 @@ does (read the take, build the solver, solve, write the CSV), on copies of the b
 (2400 frames, 60 markers, 43 shapes) with a profile calibrated from the demo neutral take.
 
     python -m benchmarks.batch [--quick] [--json FILE] [--settings livecap,dask] [--placement cluster,sessions]
-                               [--takes demo|real] [--scale 12,24,48] [--methods 16]
-                               [--order uneven]
+                               [--takes demo|real] [--scale 8,16,32,64] [--methods 16]
+                               [--order uneven] [--refit FILE]
 
 ``--takes real``: instead of demo copies, 12 different 20 s takes on the ICT-FaceKit rig driven by the real
 Live Link Face performances of ../shared/realdata/performance (`livecap generate --curves`, one actor, 20 s
@@ -31,7 +31,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -291,7 +293,7 @@ def _end_to_end(workers: int, profile: str, out: Path, takes: list[Path]) -> dic
     load0 = _load()
     t0 = time.perf_counter()
     with runner.dask_client(workers, warm=jobs) as client:
-        t1, c1 = time.perf_counter(), time.process_time()
+        t1, c1, sent = time.perf_counter(), time.process_time(), time.time()
         rows, meta = runner.run_batch(jobs, out, client, force=True)
         t2, client_cpu = time.perf_counter(), time.process_time() - c1
     t3 = time.perf_counter()
@@ -299,10 +301,19 @@ def _end_to_end(workers: int, profile: str, out: Path, takes: list[Path]) -> dic
     if failed:
         raise RuntimeError(f"batch failed: {failed[0]}")
     busy: dict = {}
+    spans: dict = {}
     for r in rows:
         busy[r["worker"]] = busy.get(r["worker"], 0.0) + r["seconds"]
+        spans.setdefault(r["worker"], []).append((r["started"], r["started"] + r["seconds"]))
+    gaps = [b[0] - a[1] for s in spans.values() for a, b in pairwise(sorted(s))]
+    firsts = {min((r for r in rows if r["worker"] == w), key=lambda r: r["started"])["take"] for w in spans}
+    rest = [r["cpu_seconds"] for r in rows if r["take"] not in firsts]
     n, solve = len(takes), meta["wall_seconds"]
     return {"workers": workers, "takes": n, "start_s": t1 - t0, "solve_s": solve,
+            "first_task_s": min(r["started"] for r in rows) - sent,  # run_batch called to the first take begun
+            "idle_between_takes_s": float(np.mean(gaps)) if gaps else 0.0,  # a worker's, result out to next in
+            "first_take_cpu_s": float(np.mean([r["cpu_seconds"] for r in rows if r["take"] in firsts])),
+            "rest_cpu_per_take_s": float(np.mean(rest)) if rest else float("nan"),  # each worker's first aside
             "summary_s": t2 - t1 - solve, "close_s": t3 - t2, "total_s": t3 - t0, "per_take_s": solve * workers / n,
             "cpu_per_take_s": sum(r["cpu_seconds"] for r in rows) / n, "client_cpu_per_take_s": client_cpu / n,
             "kernels_compiled": sum(r["kernels_compiled"] for r in rows),
@@ -330,6 +341,19 @@ def order_main(order: str, profile: str, out: str, *takes: str) -> dict:
     return {"order": order, **_end_to_end(2, profile, Path(out), [Path(t) for t in takes])}
 
 
+def _alternate(call: str, choices: tuple[str, ...], reps: int, profile: str, work: Path, takes: list[Path],
+               line: Callable[[dict], str]) -> list[dict]:
+    """``benchmarks.batch.CALL(choice, ...)`` end to end on ``takes``, a fresh process each, the choices
+    alternating ``reps`` times (the machine is shared: neighbours' load falls on every choice alike)."""
+    out = []
+    for rep in range(reps):
+        for choice in choices:
+            r = {**_in_child(call, choice, profile, str(work / f"{call}-{choice}-{rep}"), *map(str, takes)), "rep": rep}
+            out.append(r)
+            print("  " + line(r))
+    return out
+
+
 def uneven(profile: str, work: Path, demo: Path, reps: int = 3) -> list[dict]:
     """A library of uneven takes, the long one listed last: 16 copies of the 20 s demo take, then one of 200 s
     (the demo take ten times over), at 2 workers, largest first (livecap's) against the listed order (Dask's
@@ -348,14 +372,9 @@ def uneven(profile: str, work: Path, demo: Path, reps: int = 3) -> list[dict]:
         shutil.copy(demo, takes[-1])
     takes.append(folder / "z.c3d")
     write_take(long, takes[-1])
-    out = []
-    for rep in range(reps):
-        for order in ("listed", "largest"):
-            r = _in_child("order_main", order, profile, str(work / f"u-{order}-{rep}"), *map(str, takes))
-            out.append({**r, "rep": rep})
-            print(f"  {order:>8} first, rep {rep}: solving {r['solve_s']:.2f} s, the two workers busy "
-                  f"{r['busy_s'][0]:.2f} / {r['busy_s'][1]:.2f} s, load {r['load_start']:.1f}-{r['load_end']:.1f}")
-    return out
+    return _alternate("order_main", ("listed", "largest"), reps, profile, work, takes, lambda r: (
+        f"{r['order']:>8} first, rep {r['rep']}: solving {r['solve_s']:.2f} s, the two workers busy "
+        f"{r['busy_s'][0]:.2f} / {r['busy_s'][1]:.2f} s, load {r['load_start']:.1f}-{r['load_end']:.1f}"))
 
 
 def methods(n: int, profile: str, work: Path, demo: Path, reps: int = 3) -> list[dict]:
@@ -366,52 +385,78 @@ def methods(n: int, profile: str, work: Path, demo: Path, reps: int = 3) -> list
         takes.append(work / "methods" / f"take{i:03d}.c3d")
         takes[-1].parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(demo, takes[-1])
-    out = []
-    for rep in range(reps):
-        for method in ("spawn", "forkserver"):
-            r = _in_child("method_main", method, profile, str(work / f"m-{method}-{rep}"), *map(str, takes))
-            out.append({**r, "rep": rep})
-            print(f"  {method:>10} rep {rep}: worker CPU {r['cpu_per_take_s']:.3f} s/take, solving "
-                  f"{r['solve_s']:.2f} s ({r['per_take_s']:.3f} s/take at 2 workers), start {r['start_s']:.2f} s, "
-                  f"close {r['close_s']:.2f} s, load {r['load_start']:.1f}-{r['load_end']:.1f}")
-    return out
+    return _alternate("method_main", ("spawn", "forkserver"), reps, profile, work, takes, lambda r: (
+        f"{r['method']:>10} rep {r['rep']}: worker CPU {r['cpu_per_take_s']:.3f} s/take, solving "
+        f"{r['solve_s']:.2f} s ({r['per_take_s']:.3f} s/take at 2 workers), start {r['start_s']:.2f} s, "
+        f"close {r['close_s']:.2f} s, load {r['load_start']:.1f}-{r['load_end']:.1f}"))
 
 
-def scale(ns: list[int], profile: str, work: Path, demo: Path, warm: Path, start_reps: int = 3) -> dict:
+def scale(ns: list[int], profile: str, work: Path, sources: list[Path], warm: Path, start_reps: int = 3) -> dict:
     """Issue 39.3's acceptance: per take, ``livecap batch`` at 2 workers (a fresh process, as the command is)
-    against the warm in-process loop on the same takes, run just before and just after it (the machine is
-    shared: the mean of the two is the baseline), at 12, 24, 48 takes; the fixed costs beside."""
+    against the warm in-process loop on the same takes (copies of ``sources`` in turn), run just before and
+    just after it (the machine is shared: the mean of the two is the baseline), and against two such loops in
+    parallel processes, run before the batch at every other take count and after it at the others; the fixed
+    costs (start, first task, summary, close) beside, and their fit against the take count."""
     out: dict = {"start": [], "runs": []}
     for rep in range(start_reps):  # start-up A/B, alternating, each in a fresh process
         for method in ("spawn", "forkserver"):
             r = _in_child("start_once", method, profile, str(warm))
             r.update(rep=rep, load=_load())
             out["start"].append(r)
-    for n in ns:
+    for k, n in enumerate(ns):
         takes = []
         for i in range(n):
             takes.append(work / f"scale{n}" / f"take{i:03d}.c3d")
             takes[-1].parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy(demo, takes[-1])
+            shutil.copy(sources[i % len(sources)], takes[-1])
         load0 = _load()
         before = _loop_in_process(profile, work / f"loop{n}", warm, takes)
+        two = _parallel_loops(2, profile, work / f"loop2-{n}", warm, takes) if k % 2 else None
         e2e = _in_child("end_to_end_main", "2", profile, str(work / f"batch{n}"), *map(str, takes))
+        two = two or _parallel_loops(2, profile, work / f"loop2-{n}", warm, takes)
         after = _loop_in_process(profile, work / f"loop{n}", warm, takes)
-        two = _parallel_loops(2, profile, work / f"loop2-{n}", warm, takes)
         base = {"takes": n, "per_take_s": (before["wall"] + after["wall"]) / (2 * n),
                 "cpu_per_take_s": (before["cpu"] + after["cpu"]) / (2 * n),
                 "per_take_before_after_s": [before["wall"] / n, after["wall"] / n],
                 "cpu_per_take_before_after_s": [before["cpu"] / n, after["cpu"] / n],
                 "job_cpu_per_take_s": (before["job_cpu"] + after["job_cpu"]) / (2 * n),
                 "two_loops_per_take_s": two["wall"] * 2 / n, "two_loops_cpu_per_take_s": two["cpu"] / n,
-                "load_start": load0, "load_end": _load()}
+                "two_loops_first": bool(k % 2), "load_start": load0, "load_end": _load()}
         e2e["overhead"] = e2e["per_take_s"] / base["per_take_s"] - 1.0
         e2e["cpu_overhead"] = e2e["cpu_per_take_s"] / base["cpu_per_take_s"] - 1.0
         e2e["overhead_vs_two_loops"] = e2e["per_take_s"] / base["two_loops_per_take_s"] - 1.0
         e2e["cpu_overhead_vs_two_loops"] = e2e["cpu_per_take_s"] / base["two_loops_cpu_per_take_s"] - 1.0
+        e2e["speedup_end_to_end"] = base["per_take_s"] * n / e2e["total_s"]  # fixed costs included
         out["runs"].append({"loop": base, "batch": e2e})
         shutil.rmtree(takes[0].parent, ignore_errors=True)
+    out["fits"] = fixed_cost_fits(out["runs"])
     return out
+
+
+FIXED = ("start_s", "first_task_s", "summary_s", "close_s")
+
+
+def fixed_cost_fits(runs: list[dict]) -> dict:
+    """Each fixed cost of the batch (and their sum, and the solving) against the take count N: a least-squares
+    line a + b N, and the exponent p of c ~ N^p (log-log fit): p <= 1 is growing no faster than the take count."""
+    n = np.array([r["batch"]["takes"] for r in runs], float)
+    costs = {key: np.array([r["batch"][key] for r in runs]) for key in (*FIXED, "solve_s")}
+    costs["fixed_s"] = sum(costs[key] for key in FIXED)
+    # CPU over all takes: the slope b is the CPU of one more take, the intercept a the batch's fixed CPU
+    costs["worker_cpu_s"] = n * [r["batch"]["cpu_per_take_s"] for r in runs]
+    costs["loop_cpu_s"] = n * [r["loop"]["cpu_per_take_s"] for r in runs]
+    costs["two_loops_cpu_s"] = n * [r["loop"]["two_loops_cpu_per_take_s"] for r in runs]
+    fits = {}
+    for key, c in costs.items():
+        b, a = np.polyfit(n, c, 1) if len(n) > 1 else (0.0, float(c[0]))
+        p = np.polyfit(np.log(n), np.log(np.maximum(c, 1e-6)), 1)[0] if len(n) > 1 else float("nan")
+        fits[key] = {"a_s": float(a), "b_s_per_take": float(b), "exponent": float(p)}
+    fits["per_take_cpu_ratio"] = {"vs_loop": fits["worker_cpu_s"]["b_s_per_take"] / fits["loop_cpu_s"]["b_s_per_take"],
+                                  "vs_two_loops": fits["worker_cpu_s"]["b_s_per_take"]
+                                  / fits["two_loops_cpu_s"]["b_s_per_take"],
+                                  "pooled_vs_loop": costs["worker_cpu_s"].sum() / costs["loop_cpu_s"].sum(),
+                                  "pooled_vs_two_loops": costs["worker_cpu_s"].sum() / costs["two_loops_cpu_s"].sum()}
+    return fits
 
 
 def _print_scale(res: dict) -> None:
@@ -421,22 +466,36 @@ def _print_scale(res: dict) -> None:
         print(f"  {r['method']:>10} rep {r['rep']}: import {r['import_s']:.2f}  start {r['start_s']:.2f}  first take "
               f"{r['first_take_s']:.2f} (CPU {r['first_take_cpu_s']:.2f})  close {r['close_s']:.2f}  total "
               f"{r['total_s']:.2f}  load {r['load']:.1f}")
-    print(f"{'takes':>5} {'loop s/take':>11} {'batch s/take':>12} {'overhead':>9} {'loop CPU':>8} {'job CPU':>8} "
-          f"{'worker CPU':>10} {'CPU overhead':>12} {'start s':>8} {'summary s':>9} {'close s':>8} {'total s':>8} "
-          f"{'busy max/mean':>13} {'load':>9}")
+    print(f"{'takes':>5} {'loop s/take':>11} {'batch s/take':>12} {'x2/loop':>8} {'loop CPU':>8} {'job CPU':>8} "
+          f"{'worker CPU':>10} {'CPU ratio':>9} {'start s':>7} {'1st task s':>10} {'summary s':>9} {'close s':>7} "
+          f"{'idle s':>6} {'total s':>7} {'e2e x':>6} {'load':>9}")
     for run in res["runs"]:
         b, e = run["loop"], run["batch"]
-        print(f"{b['takes']:>5} {b['per_take_s']:>11.3f} {e['per_take_s']:>12.3f} {e['overhead']:>+9.1%} "
+        print(f"{b['takes']:>5} {b['per_take_s']:>11.3f} {e['solve_s'] / e['takes']:>12.3f} {e['overhead'] + 1:>8.3f} "
               f"{b['cpu_per_take_s']:>8.3f} {b['job_cpu_per_take_s']:>8.3f} {e['cpu_per_take_s']:>10.3f} "
-              f"{e['cpu_overhead']:>+12.1%} {e['start_s']:>8.2f} {e['summary_s']:>9.2f} {e['close_s']:>8.2f} "
-              f"{e['total_s']:>8.1f} {e['busy_max_over_mean']:>13.2f} {b['load_start']:>4.1f}-{b['load_end']:<4.1f}")
+              f"{e['cpu_overhead'] + 1:>9.3f} {e['start_s']:>7.2f} {e['first_task_s']:>10.3f} {e['summary_s']:>9.2f} "
+              f"{e['close_s']:>7.2f} {e['idle_between_takes_s']:>6.3f} {e['total_s']:>7.1f} "
+              f"{e['speedup_end_to_end']:>6.2f} {b['load_start']:>4.1f}-{b['load_end']:<4.1f}")
     print("against two warm loops in parallel processes (the batch's parallelism, same takes):")
     for run in res["runs"]:
         b, e = run["loop"], run["batch"]
         print(f"{b['takes']:>5} takes: two loops {b['two_loops_per_take_s']:.3f} s/take "
-              f"(CPU {b['two_loops_cpu_per_take_s']:.3f}), batch {e['per_take_s']:.3f} "
-              f"(CPU {e['cpu_per_take_s']:.3f}): overhead wall {e['overhead_vs_two_loops']:+.1%}, "
-              f"CPU {e['cpu_overhead_vs_two_loops']:+.1%} (goal <= 10%)")
+              f"(CPU {b['two_loops_cpu_per_take_s']:.3f}, run {'before' if b['two_loops_first'] else 'after'} the "
+              f"batch), batch {e['per_take_s']:.3f} (CPU {e['cpu_per_take_s']:.3f}): overhead wall "
+              f"{e['overhead_vs_two_loops']:+.1%}, CPU {e['cpu_overhead_vs_two_loops']:+.1%} (goal <= 10%)")
+    print("fixed costs against the take count N: c = a + b N, and c ~ N^p")
+    fits = dict(res["fits"])
+    ratio = fits.pop("per_take_cpu_ratio")
+    for key, f in fits.items():
+        print(f"  {key:>15}: a {f['a_s']:7.3f} s, b {f['b_s_per_take'] * 1000:8.2f} ms/take, p {f['exponent']:5.2f}")
+    print(f"per-take CPU, worker over loop (goal <= 1.1): {ratio['vs_loop']:.3f} from the slopes, "
+          f"{ratio['pooled_vs_loop']:.3f} pooled; over two loops {ratio['vs_two_loops']:.3f} / "
+          f"{ratio['pooled_vs_two_loops']:.3f}")
+    for run in res["runs"]:
+        e = run["batch"]
+        if "first_take_cpu_s" in e:
+            print(f"{e['takes']:>5} takes: a worker's first take {e['first_take_cpu_s']:.3f} CPU s, the others "
+                  f"{e['rest_cpu_per_take_s']:.3f}")
 
 
 def _real_takes(work: Path, n: int) -> tuple[Path, list[Path]]:
@@ -473,14 +532,20 @@ def _real_takes(work: Path, n: int) -> tuple[Path, list[Path]]:
 
 def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",), settings: tuple[str, ...] = ("livecap",),
         takes: str = "demo", scale: tuple[str, ...] = ("",), methods: tuple[str, ...] = ("",),
-        order: tuple[str, ...] = ("",)) -> dict:
+        order: tuple[str, ...] = ("",), refit: tuple[str, ...] = ("",)) -> dict:
     """``placement``: "cluster" (livecap's LocalCluster) and/or "sessions" (dask scheduler and workers as
     separate processes, each in its own session); ``settings`` of the LocalCluster: "livecap" (what
     ``livecap batch`` starts) and/or "dask" (Dask's defaults, the profiler off: the code before them).
     ``scale`` (e.g. 12,24,48): instead, the start-up A/B and ``livecap batch`` end to end at 2 workers on that
     many demo takes, each against the warm loop on the same takes. ``methods`` (e.g. 16): instead, spawned
     against forked workers end to end on that many takes. ``order`` ("uneven"): instead, largest take first
-    against the listed order on a library of uneven takes."""
+    against the listed order on a library of uneven takes. ``refit`` (a ``--scale`` run's JSON file): instead,
+    its tables and fits printed again."""
+    if refit[0]:
+        res = json.loads(Path(refit[0]).read_text())["scale"]
+        res["fits"] = fixed_cost_fits(res["runs"])
+        _print_scale(res)
+        return {"scale": res}
     from livecap.cli import main as livecap
     from transport.takefile import read_take, write_take
 
@@ -517,7 +582,7 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",), settings
                                                     if quick else 3)}
         ns = [int(x) for x in scale if x]
         if ns:
-            res = globals()["scale"](ns if not quick else [2], profile, work, paths[0], warm, 1 if quick else 3)
+            res = globals()["scale"](ns if not quick else [2, 4], profile, work, paths, warm, 1 if quick else 3)
             _print_scale(res)
             return {"scale": res, "mode": MODE, "take_frames": read_take(paths[0]).n_frames}
         frames = read_take(paths[0]).n_frames
@@ -576,4 +641,4 @@ def run(quick: bool = False, placement: tuple[str, ...] = ("cluster",), settings
 
 if __name__ == "__main__":
     sys.exit(suite_main(run, __doc__, placement="cluster", settings="livecap", takes="demo", scale="", methods="",
-                        order=""))
+                        order="", refit=""))

@@ -185,6 +185,7 @@ def test_glb_and_jsonl_outputs_and_a_reused_solver(library, tmp_path):
         job = Job(str(library["takes"] / f"{stem}.c3d"), spec, str(tmp_path), fmt)
         row = solve_job(job, cache)
         assert row["status"] == "ok", row["error"]
+        assert 0 < row["thread_cpu_seconds"] <= row["cpu_seconds"] + 1e-3  # the solving thread's share
     assert cache.built == 1
     (tmp_path / "solo").mkdir()
     for fmt in ("glb", "csv"):
@@ -307,7 +308,7 @@ def test_largest_takes_first_and_the_summary_grows_as_takes_finish(library, clie
 def test_kernels_are_compiled_once_and_loaded_by_every_worker(library, tmp_path):
     """``livecap batch`` on a cold numba cache (its own NUMBA_CACHE_DIR): the mode's kernels are compiled once,
     into the cache, by the forkserver the workers are forked from; no worker compiles one (each row counts its
-    worker's compilations during the take)."""
+    worker's compilations during the take), nor builds a solver (the forkserver's, adopted by every worker)."""
     cache = tmp_path / "numba"
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
     out = tmp_path / "out"
@@ -319,4 +320,5 @@ def test_kernels_are_compiled_once_and_loaded_by_every_worker(library, tmp_path)
     rows = json.loads((out / "summary.json").read_text())["takes"]
     assert [r["status"] for r in rows] == ["ok"] * 3
     assert [r["kernels_compiled"] for r in rows] == [0, 0, 0]
+    assert [r["solvers_built"] for r in rows] == [0, 0, 0]
     assert list(cache.rglob("*.nbi")), "the kernels were not cached where the workers look"

@@ -55,15 +55,16 @@ def _few_per_spec(jobs: Sequence[Job]) -> list[Job]:
     return [j for j in jobs if not j.error and (count.update([j.spec]) or count[j.spec] <= WARM_TRIES)]
 
 
-def warm_kernels(jobs: Sequence[Job]) -> float:
+def warm_kernels(jobs: Sequence[Job], cache: SolverCache | None = None) -> float:
     """Solve the first frames of one take per spec in this process, which loads the numba kernels they need,
     compiling them into the on-disk cache (numba's ``cache=True``, shared by every process of this user and
-    install) only if they are not there yet. Seconds taken."""
-    from livecap.batch.worker import SolverCache, solve_spec
+    install) only if they are not there yet; the rigs, profiles and solvers it prepares stay in ``cache``.
+    Seconds taken."""
+    from livecap.batch.worker import solve_spec
     from transport.takefile import read_take
 
     start = time.perf_counter()
-    cache, done, tries = SolverCache(), set(), Counter()
+    cache, done, tries = SolverCache() if cache is None else cache, set(), Counter()
     for job in jobs:
         if job.error or job.spec in done or tries[job.spec] >= WARM_TRIES:
             continue

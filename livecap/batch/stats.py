@@ -16,11 +16,23 @@ UPPER_FLAG = 0.05  # ... or with more than this share of weight samples pinned a
 def frame_residual(solved: SolvedTake, profile: Profile) -> np.ndarray:
     """RMS marker residual per frame (mm) of the linear marker model at the solved weights, over the
     markers seen in that frame (NaN when none); the same fit error ``livecap calibration-report`` prints."""
-    fit = (solved.weights @ profile.basis.T).reshape(solved.targets.shape)
-    sq = np.where(solved.valid[..., None], solved.targets - fit, 0.0) ** 2
+    T, n, _ = solved.targets.shape
+    err = solved.targets.reshape(T, 3 * n) - solved.weights @ profile.basis.T
+    err *= err  # in place: a take's T x 3n temporaries are most of this function's cost
+    sq = err.reshape(solved.targets.shape).sum(axis=2)
     count = solved.valid.sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.sqrt(sq.sum(axis=(1, 2)) / count)
+        return np.sqrt(np.where(solved.valid, sq, 0.0).sum(axis=1) / count)
+
+
+def missing_share(take: Take, labels: list[str]) -> float:
+    """Share of the marker-frames of ``labels`` the take lacks (a label it does not have: every frame), what
+    ``1 - take.select(labels).valid.mean()`` is, without copying the take's positions."""
+    if not take.n_frames or not labels:
+        return 1.0
+    where = {lab: i for i, lab in enumerate(take.labels)}
+    seen = take.valid[:, [where[lab] for lab in labels if lab in where]].sum()
+    return float(1.0 - seen / (take.n_frames * len(labels)))
 
 
 def take_stats(take: Take, solved: SolvedTake, profile: Profile) -> dict:
@@ -30,7 +42,7 @@ def take_stats(take: Take, solved: SolvedTake, profile: Profile) -> dict:
     lower, upper = np.broadcast_to(profile.lower, W.shape), np.broadcast_to(profile.upper, W.shape)
     at_lower = float(np.mean(W <= lower + BOUND_TOL)) if W.size else 0.0
     at_upper = float(np.mean(W >= upper - BOUND_TOL)) if W.size else 0.0
-    missing = float(1.0 - take.select(profile.labels).valid.mean()) if take.n_frames else 1.0
+    missing = missing_share(take, profile.labels)
     flags = []
     if missing > MISSING_FLAG:
         flags.append(f"{missing:.0%} of marker-frames missing")

@@ -14,11 +14,11 @@ from distributed.diagnostics.plugin import WorkerPlugin
 
 from livecap.batch.jobs import Job
 from livecap.batch.outputs import write_output
-from livecap.batch.spec import SolveSpec
+from livecap.batch.spec import PRIOR_WORDS, SolveSpec
 from livecap.batch.stats import take_stats
 from livecap.core.take import Take
 from livecap.modes.registry import build_solver
-from livecap.offline.setup import check_labels, load_rig_layout, profile_from_take
+from livecap.offline.setup import check_labels, load_rig_layout, markers_path, profile_from_take
 from livecap.offline.solve import solve_take
 from transport.takefile import read_take
 
@@ -38,13 +38,18 @@ class SolverCache(WorkerPlugin):
         self.rigs: dict = {}
         self.profiles: dict = {}
         self.solvers: dict = {}
+        self.spare: dict = {}  # solvers prepared before the fork, not yet claimed by a thread
         self.built = 0
         self._lock = threading.Lock()
 
     def setup(self, worker=None) -> None:
-        self.rigs.clear()
-        self.profiles.clear()
+        """Start from what the forkserver prepared before forking this worker (``PRELOADED``; empty in a
+        spawned worker or on a user's cluster): its first take then loads and builds nothing (keys hold the
+        files' mtimes, so nothing stale is adopted)."""
+        self.rigs = dict(PRELOADED.rigs)
+        self.profiles = dict(PRELOADED.profiles)
         self.solvers.clear()
+        self.spare = {key[:-1]: solver for key, solver in PRELOADED.solvers.items()}
 
     def __getstate__(self) -> dict:  # travels to the workers empty
         return {}
@@ -53,7 +58,7 @@ class SolverCache(WorkerPlugin):
         self.__init__()
 
     def rig(self, spec: SolveSpec):
-        key = (spec.rig, spec.markers)
+        key = (spec.rig, spec.markers, _stamp([Path(spec.rig), *_rig_files(spec)]))
         with self._lock:
             if key not in self.rigs:
                 self.rigs[key] = load_rig_layout(spec.rig, spec.markers)
@@ -72,11 +77,15 @@ class SolverCache(WorkerPlugin):
                 self.profiles[key] = profile
             return key, self.profiles[key]
 
-    def solver(self, spec: SolveSpec, profile_key, profile, options: dict):
-        key = (profile_key, spec.mode, spec.settings, threading.get_ident())
+    def solver(self, spec: SolveSpec, profile_key, profile):
+        """The spec's solver, built (its options read: a weights-CSV prior is parsed then) only on a miss."""
+        files = [Path(p) for p in (spec.settings.keys, spec.settings.prior) if p and p not in PRIOR_WORDS]
+        key = (profile_key, spec.mode, spec.settings, _stamp(files), threading.get_ident())
         solver = self.solvers.get(key)
+        if solver is None and (solver := self.spare.pop(key[:-1], None)) is not None:
+            self.solvers[key] = solver
         if solver is None or not hasattr(solver, "reset"):
-            solver = build_solver(spec.mode, profile, options)
+            solver = build_solver(spec.mode, profile, spec.settings.options())
             self.built += 1
             self.solvers[key] = solver
         else:
@@ -84,7 +93,19 @@ class SolverCache(WorkerPlugin):
         return solver
 
 
+def _stamp(paths: list[Path]) -> tuple:
+    """The modification times of the files a cached object was read from: a changed file is read again."""
+    return tuple(p.stat().st_mtime_ns if p.exists() else None for p in paths)
+
+
+def _rig_files(spec: SolveSpec) -> list[Path]:
+    rig = Path(spec.rig)
+    files = sorted(p for p in rig.iterdir() if p.is_file()) if rig.is_dir() else []
+    return [*files, Path(spec.markers) if spec.markers else markers_path(spec.rig)]
+
+
 _LOCAL = SolverCache()  # in-process use (no Dask worker), e.g. the benchmark's loop
+PRELOADED = SolverCache()  # filled in the forkserver (livecap/batch/forkserver.py) before workers are forked
 
 
 def _cache() -> SolverCache:
@@ -124,14 +145,13 @@ def solve_spec(spec: SolveSpec, take: Take, take_path: str, cache: SolverCache):
     """The take solved as ``livecap solve`` would with the spec's settings: (solved, profile, rig)."""
     rig, layout = cache.rig(spec)
     settings = spec.settings
-    options = settings.options()
     if spec.profile:
         profile_key, profile = cache.profile(spec.profile, settings.noise_mm)
-        solver = cache.solver(spec, profile_key, profile, options)
+        solver = cache.solver(spec, profile_key, profile)
     else:
         check_labels(take, layout.labels, take_path, spec.rig)
         profile = profile_from_take(rig, layout, take, spec.neutral_seconds, settings.noise_mm)
-        solver = build_solver(spec.mode, profile, options)
+        solver = build_solver(spec.mode, profile, settings.options())
     return solve_take(take, profile, solver), profile, rig
 
 
@@ -150,7 +170,8 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     """Solve one take exactly as ``livecap solve`` would and write its output and record; never raises:
     a failure comes back as a row with ``status`` "failed" and a one-line ``error``."""
     cache = cache or _cache()
-    start, cpu, compiled = time.perf_counter(), time.process_time(), compiled_kernels()
+    start, cpu, compiled, built = time.perf_counter(), time.process_time(), compiled_kernels(), cache.built
+    thread_cpu = time.thread_time()
     row: dict = {"take": job.take, "stem": job.stem, "actor": job.actor, "mode": job.spec.mode,
                  "profile": job.spec.profile or "", "output": str(job.output), "status": "failed", "error": "",
                  "worker": os.getpid(), "started": time.time(), "spec": repr(job.spec)}
@@ -175,7 +196,9 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
         logging.getLogger().removeHandler(handler)
     row["seconds"] = time.perf_counter() - start
     row["cpu_seconds"] = time.process_time() - cpu  # the worker process's CPU: load on a shared machine aside
+    row["thread_cpu_seconds"] = time.thread_time() - thread_cpu  # the solving thread's alone (no event loop)
     row["kernels_compiled"] = compiled_kernels() - compiled
+    row["solvers_built"] = cache.built - built
     if row["status"] == "ok":
         job.record.parent.mkdir(parents=True, exist_ok=True)
         tmp = job.record.with_name(job.record.name + ".partial")

@@ -1,0 +1,101 @@
+"""The worker's cache and per-take statistics (issue 39 item 3): what a worker reads once per batch is read
+once (a weights-CSV prior, the rig), read again when its file changes, and the statistics equal their
+definitions."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import transport.weights_csv
+from livecap.batch.jobs import Job
+from livecap.batch.spec import SolveSettings, SolveSpec
+from livecap.batch.stats import frame_residual, missing_share
+from livecap.batch.worker import SolverCache, solve_job
+from livecap.cli import main
+from livecap.core.take import Take
+from livecap.offline.solve import SolvedTake
+from transport.takefile import read_take, write_take
+
+ROOT = Path(__file__).resolve().parents[1]
+FRAMES = 60
+
+
+@pytest.fixture(scope="module")
+def lib(tmp_path_factory) -> dict:
+    root = tmp_path_factory.mktemp("cache")
+    for name in ("demo_rig.npz", "demo_rig.markers.json"):
+        shutil.copy(ROOT / "recordings" / name, root / name)
+    full = read_take(ROOT / "recordings" / "demo_take.c3d")
+    takes = []
+    for i in range(3):
+        takes.append(root / f"take{i}.c3d")
+        write_take(full.slice(300 * i, 300 * i + FRAMES), takes[-1])
+    profile = root / "actor.npz"
+    assert main(["calibrate", str(ROOT / "recordings" / "demo_neutral.c3d"), "--rig", str(root / "demo_rig.npz"),
+                 "--out", str(profile)]) == 0
+    return {"root": root, "rig": str(root / "demo_rig.npz"), "takes": takes, "profile": str(profile)}
+
+
+def test_a_weights_csv_prior_is_read_once_per_worker_not_per_take(lib, tmp_path, monkeypatch):
+    first = solve_job(Job(str(lib["takes"][0]), SolveSpec(lib["rig"], "robust", lib["profile"]), str(tmp_path)))
+    assert first["status"] == "ok", first["error"]
+    reads = []
+    real = transport.weights_csv.read_weights_csv
+    monkeypatch.setattr(transport.weights_csv, "read_weights_csv", lambda p: reads.append(p) or real(p))
+    spec = SolveSpec(lib["rig"], "movement", lib["profile"], settings=SolveSettings(prior=first["output"]))
+    cache = SolverCache()
+    for take in lib["takes"]:
+        row = solve_job(Job(str(take), spec, str(tmp_path / "k")), cache)
+        assert row["status"] == "ok", row["error"]
+    assert len(reads) == 1 and cache.built == 1
+    os.utime(first["output"], ns=(os.stat(first["output"]).st_mtime_ns + 10**9,) * 2)
+    assert solve_job(Job(str(lib["takes"][0]), spec, str(tmp_path / "k")), cache)["status"] == "ok"
+    assert len(reads) == 2 and cache.built == 2  # a changed prior is read again
+
+
+def test_the_rig_is_loaded_once_and_again_when_its_files_change(lib):
+    cache = SolverCache()
+    spec = SolveSpec(lib["rig"], "robust", lib["profile"])
+    rig = cache.rig(spec)
+    assert cache.rig(spec) is rig
+    markers = lib["root"] / "demo_rig.markers.json"
+    os.utime(markers, ns=(os.stat(markers).st_mtime_ns + 10**9,) * 2)
+    assert cache.rig(spec) is not rig
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.data())
+def test_missing_share_is_the_selected_takes_missing_share(data):
+    n, frames = data.draw(st.integers(1, 6)), data.draw(st.integers(0, 8))
+    labels = [f"m{i}" for i in range(n)]
+    valid = np.array(data.draw(st.lists(st.booleans(), min_size=n * frames, max_size=n * frames)), bool)
+    take = Take(labels, np.zeros((frames, n, 3)), valid.reshape(frames, n), 120.0)
+    wanted = data.draw(st.lists(st.sampled_from([*labels, "absent", "gone"]), min_size=1, max_size=8, unique=True))
+    expected = float(1.0 - take.select(wanted).valid.mean()) if frames else 1.0
+    assert missing_share(take, wanted) == expected
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 5), st.integers(1, 4), st.integers(0, 6), st.integers(0, 2**32 - 1))
+def test_frame_residual_is_the_rms_over_the_seen_markers(n, m, frames, seed):
+    rng = np.random.default_rng(seed)
+    targets, W = rng.normal(size=(frames, n, 3)), rng.normal(size=(frames, m))
+    valid = rng.random((frames, n)) < 0.7
+
+    class Profile:
+        basis = rng.normal(size=(3 * n, m))
+
+    solved = SolvedTake([f"s{i}" for i in range(m)], W, np.zeros((frames, 4)), np.zeros((frames, 3)), targets, valid,
+                        120.0, 0, 0.0)
+    got = frame_residual(solved, Profile)
+    for t in range(frames):
+        err = (targets[t] - (Profile.basis @ W[t]).reshape(n, 3))[valid[t]]
+        want = np.sqrt((err**2).sum() / valid[t].sum()) if valid[t].any() else np.nan
+        np.testing.assert_allclose(got[t], want, rtol=1e-12, atol=1e-12)
