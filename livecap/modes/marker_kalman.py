@@ -93,7 +93,7 @@ class MarkerKalmanSolver:
         widened where the actor leaves it (solvers.prior_support); None for the ridge, which is not checked."""
         self.profile, self.mean, self.precision, self.settings = profile, mean, precision, settings
         self.motion = motion
-        self.prior_cov, self._precision0 = prior_cov, precision
+        self.prior_cov, self._precision0, self._mean0 = prior_cov, precision, mean
         self.support: Support | None = None
         self.norms = np.maximum(np.linalg.norm(profile.basis, axis=0), 1e-9)
         # the weight stage's noise floor: what calibration measured the rig cannot explain (issue 35.2); the marker
@@ -135,13 +135,22 @@ class MarkerKalmanSolver:
     def _use_support(self, s: Support, frames: int) -> None:
         self.support = s
         wide = s.widened
-        if not len(wide):
+        moved = s.mean - self._mean0
+        sd = np.sqrt(np.diag(self.prior_cov))
+        far = np.flatnonzero(np.abs(moved) > sd)  # said only where it is news: beyond one of the prior's sds
+        if not len(wide) and not np.any(moved):
             log.info("animation prior: the actor's activity lies inside it (%d frames)", frames)
             return
-        top = np.argsort(-s.added_per_shape())[:3]
-        log.warning("animation prior widened along %d of %d directions, most in %s: the actor's activity lies "
-                    "outside it", len(wide), len(s.before), ", ".join(self.profile.names[i] for i in top))
+        if len(wide):
+            top = np.argsort(-s.added_per_shape())[:3]
+            log.warning("animation prior widened along %d of %d directions, most in %s: the actor's activity lies "
+                        "outside it", len(wide), len(s.before), ", ".join(self.profile.names[i] for i in top))
+        if len(far):
+            top = far[np.argsort(-np.abs(moved[far]) / sd[far])][:3]
+            log.warning("animation prior re-centred on the actor (%d frames): %s", frames, ", ".join(
+                f"{self.profile.names[i]} {self._mean0[i]:.2f} -> {s.mean[i]:.2f}" for i in top))
         self.precision = s.precision
+        self.mean = s.mean
         self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
         self._fits, self._spreads, self._along = {}, {}, {}
         decay = self.selector.decay
@@ -179,12 +188,12 @@ class MarkerKalmanSolver:
                 return
             log.warning("animation prior: its check against the actor failed (%s); used as given", out[:1])
             lam, axes = np.linalg.eigh(self.prior_cov)
-            self.support = Support(axes, lam, lam, float("nan"), 0)  # checked no further
+            self.support = Support(axes, lam, lam, float("nan"), 0, self._mean0)  # checked no further
 
     def _prior_as_given(self) -> None:
         """A new take: the prior as given, to be checked against this take."""
-        if self.support is not None and self.precision is not self._precision0:
-            self.precision = self._precision0
+        if self.support is not None and (self.precision is not self._precision0 or self.mean is not self._mean0):
+            self.precision, self.mean = self._precision0, self._mean0
             self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
             self._fits, self._spreads, self._along = {}, {}, {}
         self.support = None
