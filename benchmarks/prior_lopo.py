@@ -1,12 +1,12 @@
 """Leave one PERFORMER out: is a prior from other performers ever worse than no prior? (issue 41.2)
 
 For each real performance, an ICT take (livecap.demo.curves_take) is solved by ``kalman`` (the default mode with
-a prior) three ways, streamed through the live pipeline and offline: with no prior (a ridge), with a prior built
+a prior) several ways, streamed through the live pipeline and offline: with no prior (a ridge), with a prior built
 from the files of *other performers only* as given, the same prior checked against the take and widened where
-the actor leaves it (solvers.prior_support's variance only, the check before branch prior3), and checked with its
-mean re-centred on the actor as well (today's code). Performers are the sources' folders
-(../shared/realdata/performance/README.md): alexdjulin's anim/ (alex_rom_3, alex_rom_4, S07-001, S88-001), his
-csv/ (apfel), JMTechArt (MySlate).
+the actor leaves it (solvers.prior_support's variance only, on the first second streamed: the check before
+branch prior3), and checked with its mean re-centred on the actor as well, streamed again at 5 s (today's code).
+Performers are the sources' folders (../shared/realdata/performance/README.md): alexdjulin's anim/ (alex_rom_3,
+alex_rom_4, S07-001, S88-001), his csv/ (apfel), JMTechArt (MySlate).
 
     python -m benchmarks.prior_lopo [--noise 0.5] [--seconds 10] [--json out.json]
 """
@@ -41,7 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--files", nargs="+", default=list(PERFORMERS))
     p.add_argument("--variants", nargs="+", default=["no prior", "prior as given", "prior widened",
-                                                       "prior re-centred"])
+                                                       "prior re-centred"],
+                   help="also: 'prior re-centred 1 s' (no second check), 'prior mean only' (the variance as given)")
     p.add_argument("--json")
     args = p.parse_args(argv)
     rig, layout = _rig("ict")
@@ -49,12 +50,19 @@ def main(argv: list[str] | None = None) -> int:
     out = []
     check = marker_kalman.MarkerKalmanSolver._use_support
     support = marker_kalman.MarkerKalmanSolver._support
+    recheck_s = marker_kalman.SUPPORT_RECHECK_SECONDS
 
     def widen_only(solver, targets, valid, noise_mm):  # the check before branch prior3: the variance only
         from solvers.prior_support import widen_prior
 
         return widen_prior(solver.profile.basis, solver.mean, solver.prior_cov, targets, valid, solver.lower,
                            solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, recentre=False)
+
+    def recentre_only(solver, targets, valid, noise_mm):  # the mean re-centred, the variance as given
+        from solvers.prior_support import widen_prior
+
+        return widen_prior(solver.profile.basis, solver.mean, solver.prior_cov, targets, valid, solver.lower,
+                           solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, outside=float("inf"))
 
     for noise in args.noise:
         for name in args.files:
@@ -64,10 +72,14 @@ def main(argv: list[str] | None = None) -> int:
             ct = curves_take(rig, layout, f, CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise))
             prior = build_prior(others, rig.names, rig.lower, rig.upper)
             opts = {"kalman": {"rate": ct.take.rate}}
-            for label, pr, how in (("no prior", None, None), ("prior as given", prior, None),
-                                   ("prior widened", prior, widen_only), ("prior re-centred", prior, support)):
+            for label, pr, how, recheck in (("no prior", None, None, False), ("prior as given", prior, None, False),
+                                            ("prior widened", prior, widen_only, False),
+                                            ("prior re-centred", prior, support, True),
+                                            ("prior re-centred 1 s", prior, support, False),
+                                            ("prior mean only", prior, recentre_only, True)):
                 if label not in args.variants:
                     continue
+                marker_kalman.SUPPORT_RECHECK_SECONDS = recheck_s if recheck else float("inf")
                 marker_kalman.MarkerKalmanSolver._use_support = _as_given if how is None else check
                 marker_kalman.MarkerKalmanSolver._support = how or support
                 t0 = time.perf_counter()
@@ -83,6 +95,7 @@ def main(argv: list[str] | None = None) -> int:
                           f"[{time.perf_counter() - t0:.0f} s]", flush=True)
     marker_kalman.MarkerKalmanSolver._use_support = check
     marker_kalman.MarkerKalmanSolver._support = support
+    marker_kalman.SUPPORT_RECHECK_SECONDS = recheck_s
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": platform.node(), "date": time.strftime("%Y-%m-%d %H:%M"),
                                                "seconds": args.seconds, "rows": out}, indent=1))
