@@ -225,3 +225,19 @@ def test_kalman_recentres_a_prior_on_an_actor_resting_elsewhere_and_says_so(capl
     assert sum("re-centred" in line and "s0 0.10 ->" in line for line in lines) == 2, lines  # stream, offline
     before = run(False)
     assert now[0] < 0.7 * before[0] and now[1] < before[1], (now, before)  # 0.025 / 0.051, 0.0144 / 0.0149
+
+
+def test_one_slow_expression_counts_as_a_few_frames():
+    """A second of acting is a few independent frames, not 60: an actor inside the prior who makes one slow
+    expression (a half cycle, 1.9 sds off the prior's mean on average over the window) moves the prior's mean
+    part of the way (1.2 sds: ~2 frames' worth against the hyperprior); counted as 60 independent frames it went
+    all the way (1.9, the first version: apfel and MySlate streamed worse than no prior)."""
+    rng, B, cov = _problem(8)
+    lam, U = np.linalg.eigh(cov)
+    T = 60
+    W = np.sin(np.pi * np.arange(T) / T)[:, None] * (3.0 * np.sqrt(lam) * U).sum(1)[None]
+    X = W @ B.T + rng.normal(scale=0.05, size=(T, B.shape[0]))  # a clean capture: the motion dominates
+    s = widen_prior(B, np.zeros(6), cov, X, np.ones((T, B.shape[0] // 3), bool), -np.ones(6), np.ones(6),
+                    noise_var=0.0025, outside=np.inf)
+    moved = U.T @ s.mean / np.sqrt(lam)
+    assert np.all((moved > 0.5) & (moved < 1.5)), moved
