@@ -4,7 +4,7 @@ For each real performance, an ICT take (livecap.demo.curves_take) is solved by `
 a prior) several ways, streamed through the live pipeline and offline: with no prior (a ridge), with a prior built
 from the files of *other performers only* as given, the same prior checked against the take and widened where
 the actor leaves it (solvers.prior_support's variance only, on the first second streamed: the check before
-branch prior3), and checked with its mean re-centred on the actor as well, streamed again at 5 s (today's code).
+branch prior3), and checked with its mean re-centred on the actor instead, streamed again at 5 s (today's code).
 Performers are the sources' folders (../shared/realdata/performance/README.md): alexdjulin's anim/ (alex_rom_3,
 alex_rom_4, S07-001, S88-001), his csv/ (apfel), JMTechArt (MySlate).
 
@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--files", nargs="+", default=list(PERFORMERS))
     p.add_argument("--variants", nargs="+", default=["no prior", "prior as given", "prior widened",
                                                        "prior re-centred"],
-                   help="also: 'prior re-centred 1 s' (no second check), 'prior mean only' (the variance as given)")
+                   help="also: 'prior re-centred 1 s' (no 2nd check), 'prior re-centred, widened' (the variance too)")
     p.add_argument("--json")
     args = p.parse_args(argv)
     rig, layout = _rig("ict")
@@ -56,13 +56,13 @@ def main(argv: list[str] | None = None) -> int:
         from solvers.prior_support import widen_prior
 
         return widen_prior(solver.profile.basis, solver.mean, solver.prior_cov, targets, valid, solver.lower,
-                           solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, recentre=False)
+                           solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, recentre=False, outside=10.0)
 
-    def recentre_only(solver, targets, valid, noise_mm):  # the mean re-centred, the variance as given
+    def recentre_widen(solver, targets, valid, noise_mm):  # the mean re-centred, the variance widened as before
         from solvers.prior_support import widen_prior
 
         return widen_prior(solver.profile.basis, solver.mean, solver.prior_cov, targets, valid, solver.lower,
-                           solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, outside=float("inf"))
+                           solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, outside=10.0)
 
     for noise in args.noise:
         for name in args.files:
@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
                                             ("prior widened", prior, widen_only, False),
                                             ("prior re-centred", prior, support, True),
                                             ("prior re-centred 1 s", prior, support, False),
-                                            ("prior mean only", prior, recentre_only, True)):
+                                            ("prior re-centred, widened", prior, recentre_widen, True)):
                 if label not in args.variants:
                     continue
                 marker_kalman.SUPPORT_RECHECK_SECONDS = recheck_s if recheck else float("inf")

@@ -46,7 +46,7 @@ def test_activity_outside_the_prior_widens_that_direction():
     lam, U = np.linalg.eigh(cov)
     actor = cov + 0.04 * np.outer(U[:, 0], U[:, 0])  # the actor moves along the prior's tightest direction
     _, X, valid = _frames(rng, B, actor, 400, 0.5, 0.95)
-    s = widen_prior(B, np.zeros(6), cov, X, valid, -np.ones(6), np.ones(6))
+    s = widen_prior(B, np.zeros(6), cov, X, valid, -np.ones(6), np.ones(6), outside=10.0)
     assert list(s.widened) == [0]
     assert 0.5 * 0.04 < s.after[0] < 2 * 0.04
 
@@ -57,8 +57,9 @@ def test_a_biased_mean_is_recentred_not_widened():
     lam, U = np.linalg.eigh(cov)
     W, X, valid = _frames(rng, B, cov, 300, 0.3)
     X = X + (0.3 * U[:, 0]) @ B.T  # the actor rests 0.3 away along the tight direction
-    assert 0 in widen_prior(B, np.zeros(6), cov, X, valid, -np.ones(6), np.ones(6), recentre=False).widened
-    s = widen_prior(B, np.zeros(6), cov, X, valid, -np.ones(6), np.ones(6))
+    assert 0 in widen_prior(B, np.zeros(6), cov, X, valid, -np.ones(6), np.ones(6), recentre=False,
+                            outside=10.0).widened
+    s = widen_prior(B, np.zeros(6), cov, X, valid, -np.ones(6), np.ones(6), outside=10.0)
     assert len(s.widened) == 0
     assert abs(U[:, 0] @ s.mean - 0.3) < 0.03
 
@@ -80,33 +81,21 @@ def _tight_prior_take(seed: int = 4, T: int = 480):
     return p, W, X
 
 
-def test_kalman_widens_a_prior_the_actor_leaves_and_says_so(caplog):
-    """Streamed and offline: the check finds shape 0 outside the prior (one warning line naming it) and the
-    solve after it is more accurate than under the prior as given (the code before issue 41.2's check)."""
-    import logging
-
-    from livecap.modes import marker_kalman
+def test_kalman_keeps_the_priors_variance():
+    """Issue 41.2, measured: widening the prior's variance where the frames want 10 x more cost more than it saved
+    (12 leave-one-performer-out cases: never worse than no prior 10 / 9 of 12 with it, 11 / 11 without), so the
+    check keeps the variance, streamed and offline, even where the actor moves along a direction the prior holds
+    tight (the code before widened it here)."""
     from livecap.modes.marker_kalman import kalman_mode
 
-    p, W, X = _tight_prior_take()
-    valid = np.ones(40, bool)
-
-    def run(check: bool):
-        solver = kalman_mode(p, {"rate": 60.0})
-        if not check:
-            solver.prior_cov = None  # not checked: the prior as given
-        out = np.array([solver.step(X[t], valid) for t in range(len(X))])
-        after = int((marker_kalman.SUPPORT_SECONDS + marker_kalman.SUPPORT_SWAP_SECONDS) * 60) + 30
-        stream = np.sqrt(np.mean((out[after:-1, :2] - W[after - 1:-2, :2]) ** 2))  # one frame of latency
-        offline = solver.solve(X, np.ones((len(X), 40), bool))
-        return stream, np.sqrt(np.mean((offline[:, :2] - W[:, :2]) ** 2))
-
-    with caplog.at_level(logging.INFO, logger=marker_kalman.__name__):
-        checked = run(True)
-    lines = [r.getMessage() for r in caplog.records if r.name == marker_kalman.__name__ and "widened" in r.getMessage()]
-    assert len(lines) == 3 and all("s0" in line for line in lines)  # stream at 1 s and 5 s, offline
-    given = run(False)
-    assert checked[0] < 0.7 * given[0] and checked[1] < 0.7 * given[1], (checked, given)
+    p, W, X = _tight_prior_take(T=240)
+    solver = kalman_mode(p, {"rate": 60.0})
+    for t in range(len(X)):
+        solver.step(X[t], np.ones(40, bool))
+    assert solver.support is not None and len(solver.support.widened) == 0
+    np.testing.assert_allclose(solver.precision, np.linalg.inv(p.prior.cov))
+    solver.solve(X, np.ones((len(X), 40), bool))
+    assert len(solver.support.widened) == 0
 
 
 def test_streamed_weights_the_markers_tell_apart_badly_are_smoothed_more():
@@ -134,7 +123,7 @@ def test_streamed_check_is_used_at_a_fixed_frame_so_a_stream_is_reproducible():
     for _ in range(2):
         solver = kalman_mode(p, {"rate": 60.0})
         runs.append(np.array([solver.step(X[t], np.ones(40, bool)) for t in range(len(X))]))
-        assert solver.support is not None and 0 in solver.support.widened
+        assert solver.support is not None
     np.testing.assert_array_equal(runs[0], runs[1])
 
 
@@ -212,7 +201,7 @@ def test_kalman_recentres_a_prior_on_an_actor_resting_elsewhere_and_says_so(capl
         if not recentre:
             solver._support = lambda x, ok, noise: widen_prior(
                 p.basis, solver.mean, solver.prior_cov, x, ok, solver.lower, solver.upper,
-                extra=solver.pose.matrix, noise_var=noise**2, recentre=False)
+                extra=solver.pose.matrix, noise_var=noise**2, recentre=False, outside=10.0)
         out = np.array([solver.step(X[t], valid) for t in range(T)])
         after = int((marker_kalman.SUPPORT_SECONDS + marker_kalman.SUPPORT_SWAP_SECONDS) * 60) + 30
         stream = np.sqrt(np.mean((out[after:-1, :2] - W[after - 1:-2, :2]) ** 2))
