@@ -55,13 +55,13 @@ def main(argv: list[str] | None = None) -> int:
     def widen_only(solver, targets, valid, noise_mm):  # the check before branch prior3: the variance only
         from solvers.prior_support import widen_prior
 
-        return widen_prior(solver.profile.basis, solver.mean, solver.prior_cov, targets, valid, solver.lower,
+        return widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
                            solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, recentre=False, outside=10.0)
 
     def recentre_widen(solver, targets, valid, noise_mm):  # the mean re-centred, the variance widened as before
         from solvers.prior_support import widen_prior
 
-        return widen_prior(solver.profile.basis, solver.mean, solver.prior_cov, targets, valid, solver.lower,
+        return widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
                            solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, outside=10.0)
 
     for noise in args.noise:

@@ -90,8 +90,9 @@ class MarkerKalmanSolver:
 
     def __init__(self, profile: Profile, mean: np.ndarray, precision: np.ndarray, settings: KalmanSettings,
                  motion: WeightMotion, prior_cov: np.ndarray | None = None) -> None:
-        """``prior_cov``: an animation prior's covariance (``precision`` its inverse), checked against the take and
-        widened where the actor leaves it (solvers.prior_support); None for the ridge, which is not checked."""
+        """``prior_cov``: an animation prior's covariance (``precision`` its inverse), checked against the take: its
+        mean re-centred where the frames say the actor rests elsewhere (solvers.prior_support); None for the ridge,
+        which is not checked."""
         self.profile, self.mean, self.precision, self.settings = profile, mean, precision, settings
         self.motion = motion
         self.prior_cov, self._precision0, self._mean0 = prior_cov, precision, mean
@@ -126,7 +127,7 @@ class MarkerKalmanSolver:
         return self._spreads[k]
 
     def _check_support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> None:
-        """Widen the prior where the frames' marginal likelihood says the actor moves outside it, and say so."""
+        """Re-centre the prior where the frames' marginal likelihood says the actor rests elsewhere, and say so."""
         self._use_support(self._support(targets, valid, noise_mm), len(targets))
 
     def _support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> Support:
