@@ -115,15 +115,17 @@ def test_streamed_weights_the_markers_tell_apart_badly_are_smoothed_more():
 
 
 def test_streamed_check_is_used_at_a_fixed_frame_so_a_stream_is_reproducible():
-    """The check runs in a thread; its prior is used at the same frame however long it took."""
+    """The checks (at 1 s and 5 s) run in a thread; each prior is used at the same frame however long it took."""
+    from livecap.modes import marker_kalman
     from livecap.modes.marker_kalman import kalman_mode
 
-    p, W, X = _tight_prior_take(T=200)
+    p, W, X = _tight_prior_take(T=360)
     runs = []
     for _ in range(2):
         solver = kalman_mode(p, {"rate": 60.0})
         runs.append(np.array([solver.step(X[t], np.ones(40, bool)) for t in range(len(X))]))
-        assert solver.support is not None
+        assert solver.support is not None and not solver._windows  # both checks used
+        assert (marker_kalman.SUPPORT_RECHECK_SECONDS + marker_kalman.SUPPORT_SWAP_SECONDS) * 60 < len(X)
     np.testing.assert_array_equal(runs[0], runs[1])
 
 
