@@ -1,11 +1,12 @@
 """Leave one PERFORMER out: is a prior from other performers ever worse than no prior? (issue 41.2)
 
 For each real performance, an ICT take (livecap.demo.curves_take) is solved by ``kalman`` (the default mode with
-a prior) three ways, streamed through the live pipeline and offline: with no prior (a ridge), with a prior built
-from the files of *other performers only* as given, and the same prior checked against the take and widened where
-the actor leaves it (solvers.prior_support, today's code). Performers are the sources' folders
-(../shared/realdata/performance/README.md): alexdjulin's anim/ (alex_rom_3, alex_rom_4, S07-001, S88-001), his
-csv/ (apfel), JMTechArt (MySlate).
+a prior) several ways, streamed through the live pipeline and offline: with no prior (a ridge), with a prior built
+from the files of *other performers only* as given, the same prior checked against the take and widened where
+the actor leaves it (solvers.prior_support's variance only, on the first second streamed: the check before
+branch prior3), and checked with its mean re-centred on the actor instead, streamed again at 5 s (today's code).
+Performers are the sources' folders (../shared/realdata/performance/README.md): alexdjulin's anim/ (alex_rom_3,
+alex_rom_4, S07-001, S88-001), his csv/ (apfel), JMTechArt (MySlate).
 
     python -m benchmarks.prior_lopo [--noise 0.5] [--seconds 10] [--json out.json]
 """
@@ -24,7 +25,7 @@ PERFORMERS = {"alex_rom_3": "anim", "alex_rom_4": "anim", "S07-001": "anim", "S8
 
 def _as_given(solver, support, frames) -> None:
     """The check's result set aside: the prior as given (the code before issue 41.2's check)."""
-    solver.support = type(support)(support.axes, support.before, support.before, support.noise_var, 0)
+    solver.support = type(support)(support.axes, support.before, support.before, support.noise_var, 0, solver.mean)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -39,12 +40,30 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--noise", type=float, nargs="+", default=[0.5])
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--files", nargs="+", default=list(PERFORMERS))
+    p.add_argument("--variants", nargs="+", default=["no prior", "prior as given", "prior widened",
+                                                       "prior re-centred"],
+                   help="also: 'prior re-centred 1 s' (no 2nd check), 'prior re-centred, widened' (the variance too)")
     p.add_argument("--json")
     args = p.parse_args(argv)
     rig, layout = _rig("ict")
     folder = _realdata() / "performance"
     out = []
     check = marker_kalman.MarkerKalmanSolver._use_support
+    support = marker_kalman.MarkerKalmanSolver._support
+    recheck_s = marker_kalman.SUPPORT_RECHECK_SECONDS
+
+    def widen_only(solver, targets, valid, noise_mm):  # the check before branch prior3: the variance only
+        from solvers.prior_support import widen_prior
+
+        return widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
+                           solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, recentre=False, outside=10.0)
+
+    def recentre_widen(solver, targets, valid, noise_mm):  # the mean re-centred, the variance widened as before
+        from solvers.prior_support import widen_prior
+
+        return widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
+                           solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, outside=10.0)
+
     for noise in args.noise:
         for name in args.files:
             f = folder / f"{name}.csv"
@@ -53,9 +72,16 @@ def main(argv: list[str] | None = None) -> int:
             ct = curves_take(rig, layout, f, CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise))
             prior = build_prior(others, rig.names, rig.lower, rig.upper)
             opts = {"kalman": {"rate": ct.take.rate}}
-            for label, pr, widen in (("no prior", None, False), ("prior as given", prior, False),
-                                     ("prior checked", prior, True)):
-                marker_kalman.MarkerKalmanSolver._use_support = check if widen else _as_given
+            for label, pr, how, recheck in (("no prior", None, None, False), ("prior as given", prior, None, False),
+                                            ("prior widened", prior, widen_only, False),
+                                            ("prior re-centred", prior, support, True),
+                                            ("prior re-centred 1 s", prior, support, False),
+                                            ("prior re-centred, widened", prior, recentre_widen, True)):
+                if label not in args.variants:
+                    continue
+                marker_kalman.SUPPORT_RECHECK_SECONDS = recheck_s if recheck else float("inf")
+                marker_kalman.MarkerKalmanSolver._use_support = _as_given if how is None else check
+                marker_kalman.MarkerKalmanSolver._support = how or support
                 t0 = time.perf_counter()
                 rows = evaluate_curve_take(rig, layout, ct, ["kalman"], opts, pr)
                 oracle = rows[0]
@@ -68,6 +94,8 @@ def main(argv: list[str] | None = None) -> int:
                           f"p95 {r.p95_mm:.2f} ({rec['p95_x']:.2f}x) jitter {r.jitter_x:.2f} blink {r.blink:.2f} "
                           f"[{time.perf_counter() - t0:.0f} s]", flush=True)
     marker_kalman.MarkerKalmanSolver._use_support = check
+    marker_kalman.MarkerKalmanSolver._support = support
+    marker_kalman.SUPPORT_RECHECK_SECONDS = recheck_s
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": platform.node(), "date": time.strftime("%Y-%m-%d %H:%M"),
                                                "seconds": args.seconds, "rows": out}, indent=1))

@@ -61,6 +61,7 @@ POSE_PASSES = 2  # offline: joint solves, the pose undone on the raw markers bet
 SUPPORT_SECONDS = 1.0  # streaming: the first seconds a prior is checked against (solvers.prior_support)
 SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
 SUPPORT_SWAP_SECONDS = 0.5  # streaming: the check runs in a thread meanwhile; its prior is used this much later
+SUPPORT_RECHECK_SECONDS = 5.0  # streaming: checked again on the first this many seconds (one second's mean is noisy)
 
 
 log = logging.getLogger(__name__)
@@ -89,11 +90,12 @@ class MarkerKalmanSolver:
 
     def __init__(self, profile: Profile, mean: np.ndarray, precision: np.ndarray, settings: KalmanSettings,
                  motion: WeightMotion, prior_cov: np.ndarray | None = None) -> None:
-        """``prior_cov``: an animation prior's covariance (``precision`` its inverse), checked against the take and
-        widened where the actor leaves it (solvers.prior_support); None for the ridge, which is not checked."""
+        """``prior_cov``: an animation prior's covariance (``precision`` its inverse), checked against the take: its
+        mean re-centred where the frames say the actor rests elsewhere (solvers.prior_support); None for the ridge,
+        which is not checked."""
         self.profile, self.mean, self.precision, self.settings = profile, mean, precision, settings
         self.motion = motion
-        self.prior_cov, self._precision0 = prior_cov, precision
+        self.prior_cov, self._precision0, self._mean0 = prior_cov, precision, mean
         self.support: Support | None = None
         self.norms = np.maximum(np.linalg.norm(profile.basis, axis=0), 1e-9)
         # the weight stage's noise floor: what calibration measured the rig cannot explain (issue 35.2); the marker
@@ -125,23 +127,33 @@ class MarkerKalmanSolver:
         return self._spreads[k]
 
     def _check_support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> None:
-        """Widen the prior where the frames' marginal likelihood says the actor moves outside it, and say so."""
+        """Re-centre the prior where the frames' marginal likelihood says the actor rests elsewhere, and say so."""
         self._use_support(self._support(targets, valid, noise_mm), len(targets))
 
     def _support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> Support:
-        return widen_prior(self.profile.basis, self.mean, self.prior_cov, targets, valid, self.lower, self.upper,
+        return widen_prior(self.profile.basis, self._mean0, self.prior_cov, targets, valid, self.lower, self.upper,
                            extra=self.pose.matrix, noise_var=noise_mm**2)
 
     def _use_support(self, s: Support, frames: int) -> None:
         self.support = s
         wide = s.widened
-        if not len(wide):
+        moved = s.mean - self._mean0
+        sd = np.sqrt(np.diag(self.prior_cov))
+        far = np.flatnonzero(np.abs(moved) > sd)  # said only where it is news: beyond one of the prior's sds
+        if not len(wide) and not np.any(moved):
             log.info("animation prior: the actor's activity lies inside it (%d frames)", frames)
-            return
-        top = np.argsort(-s.added_per_shape())[:3]
-        log.warning("animation prior widened along %d of %d directions, most in %s: the actor's activity lies "
-                    "outside it", len(wide), len(s.before), ", ".join(self.profile.names[i] for i in top))
+            if self.precision is self._precision0 and self.mean is self._mean0:
+                return
+        if len(wide):
+            top = np.argsort(-s.added_per_shape())[:3]
+            log.warning("animation prior widened along %d of %d directions, most in %s: the actor's activity lies "
+                        "outside it", len(wide), len(s.before), ", ".join(self.profile.names[i] for i in top))
+        if len(far):
+            top = far[np.argsort(-np.abs(moved[far]) / sd[far])][:3]
+            log.warning("animation prior re-centred on the actor (%d frames): %s", frames, ", ".join(
+                f"{self.profile.names[i]} {self._mean0[i]:.2f} -> {s.mean[i]:.2f}" for i in top))
         self.precision = s.precision
+        self.mean = s.mean
         self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
         self._fits, self._spreads, self._along = {}, {}, {}
         decay = self.selector.decay
@@ -150,10 +162,11 @@ class MarkerKalmanSolver:
     def _stream_support(self, x: np.ndarray, ok: np.ndarray) -> None:
         """Collect the first SUPPORT_SECONDS, check them in a thread (numpy's inverses release the GIL, so the
         frames keep coming), and use the result SUPPORT_SWAP_SECONDS later: always at the same frame, so a
-        streamed solve is reproducible; it waits there only if the check has not finished."""
+        streamed solve is reproducible; it waits there only if the check has not finished. Then the same again
+        on the first SUPPORT_RECHECK_SECONDS, from the prior as given."""
         if self._checking is None:
             self._seen.append((x.reshape(-1).copy(), ok.copy()))
-            if len(self._seen) >= SUPPORT_SECONDS * self.motion.rate:
+            if len(self._seen) >= self._windows[0] * self.motion.rate:
                 pick = _spread(len(self._seen), SUPPORT_FRAMES)
                 args = (np.stack([self._seen[i][0] for i in pick]), np.stack([self._seen[i][1] for i in pick]),
                         self.filter.noise_mm)
@@ -169,27 +182,33 @@ class MarkerKalmanSolver:
                 thread.start()
                 self._checking = (thread, out, self._frame + max(1, int(SUPPORT_SWAP_SECONDS * self.motion.rate)),
                                   len(pick))
-                self._seen = []
         elif self._frame >= self._checking[2]:
             thread, out, _, frames = self._checking
             thread.join()
             self._checking = None
+            self._windows = self._windows[1:]
+            if not self._windows:
+                self._seen = []
             if out and isinstance(out[0], Support):
                 self._use_support(out[0], frames)
                 return
-            log.warning("animation prior: its check against the actor failed (%s); used as given", out[:1])
-            lam, axes = np.linalg.eigh(self.prior_cov)
-            self.support = Support(axes, lam, lam, float("nan"), 0)  # checked no further
+            log.warning("animation prior: its check against the actor failed (%s); kept as it is", out[:1])
+            self._windows, self._seen = (), []
+            if self.support is None:
+                lam, axes = np.linalg.eigh(self.prior_cov)
+                self.support = Support(axes, lam, lam, float("nan"), 0, self._mean0)
 
     def _prior_as_given(self) -> None:
         """A new take: the prior as given, to be checked against this take."""
-        if self.support is not None and self.precision is not self._precision0:
-            self.precision = self._precision0
+        if self.support is not None and (self.precision is not self._precision0 or self.mean is not self._mean0):
+            self.precision, self.mean = self._precision0, self._mean0
             self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
             self._fits, self._spreads, self._along = {}, {}, {}
         self.support = None
         self._seen: list[tuple[np.ndarray, np.ndarray]] = []
         self._checking: tuple | None = None  # streaming: the check's thread, its result, the frame to use it, frames
+        # streaming: the windows still to check (seconds from the take's start)
+        self._windows = tuple(w for w in (SUPPORT_SECONDS, SUPPORT_RECHECK_SECONDS) if w < float("inf"))
 
     def reset(self) -> None:
         self._prior_as_given()
@@ -211,7 +230,7 @@ class MarkerKalmanSolver:
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         x, ok = self.filter.step(target, valid)
-        if self.prior_cov is not None and self.support is None:
+        if self.prior_cov is not None and self._windows:
             self._stream_support(x, ok)
         if self._frame % STRENGTH_TRIAL_EVERY == 0:
             self.selector.observe(x, ok, self._z)
