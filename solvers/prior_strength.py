@@ -40,16 +40,32 @@ class HeldOutStrength:
             qp.reset()
             qp.prepare_marker_space()
 
-    def observe(self, target: np.ndarray, valid: np.ndarray, start: np.ndarray | None = None) -> None:
-        """``start``: a solution near this frame's (e.g. the last frame's fit) to start the trial's QP from;
-        by default the trial starts from this strength's last trial, ``len(grid)`` trials ago."""
+    def _next(self, valid: np.ndarray) -> tuple[int, int, np.ndarray, np.ndarray]:
+        """The next trial's strength, fold, held-out markers seen (of the fold's) and training pattern."""
         g = self.t % len(self.grid)
         f = (self.t // len(self.grid)) % self.folds
-        self.t += 1
+        return g, f, valid[self._fold_markers[f]], valid & self._outside[f]
+
+    def prepare(self, valid: np.ndarray) -> bool:
+        """Build the next trial's workspace if its training pattern is new to its QP (about half a trial's cost on
+        one) and say whether it did: a streamed caller then ``observe``s the same markers on the next frame, so that
+        no frame carries a whole trial on a new pattern (issue 39)."""
+        g, _, seen, train = self._next(np.asarray(valid, bool))
+        qp = self.qps[g]
+        if not seen.any() or np.count_nonzero(train) < 3 or qp.knows(train):
+            return False
+        qp.prepare(train)
+        return True
+
+    def observe(self, target: np.ndarray, valid: np.ndarray, start: np.ndarray | None = None,
+                elapsed: float = 1.0) -> None:
+        """``start``: a solution near this frame's (e.g. the last frame's fit) to start the trial's QP from;
+        by default the trial starts from this strength's last trial, ``len(grid)`` trials ago. ``elapsed``: the
+        frames since the last trial, in ``decay``'s unit (a streamed caller whose trials come unevenly)."""
         valid = np.asarray(valid, bool)
-        seen = valid[self._fold_markers[f]]  # the fold's markers seen: those held out
+        g, f, seen, train = self._next(valid)  # seen: the fold's markers seen, those held out
+        self.t += 1
         n_held = int(np.count_nonzero(seen))
-        train = valid & self._outside[f]
         if not n_held or np.count_nonzero(train) < 3:
             return
         if start is not None:
@@ -58,8 +74,8 @@ class HeldOutStrength:
         rows = self._fold_rows[f] if n_held == len(seen) else self._fold_rows[f][np.repeat(seen, 3)]
         basis = self._fold_basis[f] if n_held == len(seen) else self.basis[rows]
         r = basis @ w - np.asarray(target, float).reshape(-1)[rows]
-        self.err *= self.decay
-        self.count *= self.decay
+        self.err *= self.decay ** elapsed
+        self.count *= self.decay ** elapsed
         self.err[g] += float(r @ r)
         self.count[g] += n_held
         if (self.count > 0).all():

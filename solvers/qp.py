@@ -202,6 +202,20 @@ class FrameQP:
     def cached_patterns(self) -> int:
         return len(self._models)
 
+    def knows(self, valid: np.ndarray) -> bool:
+        """Whether a step on this visibility pattern finds its workspace built (its cost is then the solve)."""
+        key = np.asarray(valid, dtype=bool).reshape(-1).tobytes()
+        return key == self._last_key or key == self._daqp_key or key in self._models
+
+    def prepare(self, valid: np.ndarray) -> None:
+        """Build this pattern's workspace now (H downdated, its condition check, the box QP's state): a caller
+        can so spread a new pattern's cost over two frames, this one and the step's."""
+        seen = np.asarray(valid, dtype=bool).reshape(-1)
+        if seen.shape[0] == self.n and seen.any():
+            ws = self._workspace(seen.tobytes(), seen)
+            if not self.marker_space:
+                ws.box  # noqa: B018 - built on first use; here, not on the step's frame
+
     def _workspace(self, key: bytes, seen: np.ndarray) -> _Workspace:
         ws = self._models.get(key)
         if ws is not None:

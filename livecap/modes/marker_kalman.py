@@ -235,9 +235,11 @@ class MarkerKalmanSolver:
         self._prior_as_given()
         self.filter.reset()
         self.head_correction = np.zeros(6)
-        self.selector = self._selector(0.5 ** (STRENGTH_TRIAL_EVERY / STREAM_HALF_LIFE_FRAMES))
+        self.selector = self._selector(0.5 ** (1.0 / STREAM_HALF_LIFE_FRAMES))  # per frame (``_trial``)
         self._frame = 0
-        self._z: np.ndarray | None = None  # the last frame's weights and pose: where the next trial starts
+        self._due = self._last_trial = 0  # the frame the next strength trial is due, the frame of the last
+        self._pending: tuple | None = None  # a trial whose workspace is built: its markers, pattern and start
+        self._z: np.ndarray | None = None  # the last frame's weights and pose: where the fit's warm start comes from
         self._fits: dict[int, FrameQP] = {}
         self._spreads: dict[int, np.ndarray] = {}
         self._along: dict[int, np.ndarray] = {}  # the spreads along the IMM's axes
@@ -253,17 +255,16 @@ class MarkerKalmanSolver:
         x, ok = self.filter.step(target, valid)
         if self.prior_cov is not None and self._windows:
             self._stream_support(x, ok)
-        if self._frame % STRENGTH_TRIAL_EVERY == 0:
-            self.selector.observe(x, ok, self._z)
         self._frame += 1
-        fit = self._fit(self.selector.best)
-        if fit.marker_space and self._fit_k != self.selector.best and self._z is not None:
+        k = self.selector.best
+        fit = self._fit(k)
+        if fit.marker_space and self._fit_k != k and self._z is not None:
             fit.warm(self._z)  # a strength not fitted last frame: from the last fit, not from its own old frame
-        self._fit_k = self.selector.best
+        self._fit_k = k
         z = self._z = fit.step(x, ok)
+        self._trial(x, ok, z)
         w, self.head_correction = z[:self.m], z[self.m:]
         noise = max(self.filter.noise_mm, self.calibrated_noise)
-        k = self.selector.best
         if self._imm is None:  # the axes: the first frame's fit's; later strengths' noise is read in them
             axes = None if fit.marker_space else np.linalg.eigh(self._spread_of(k))[1]
             self._imm = RotatedIMM(axes, self.motion.imm(noise, self.norms))
@@ -272,6 +273,25 @@ class MarkerKalmanSolver:
         self._imm.set_noise(noise**2 * self._along[k])
         # the IMM's constant-velocity models overshoot a weight resting on its limit: back within the rig's limits
         return np.clip(self._imm.step(w), self.lower, self.upper)
+
+    def _trial(self, x: np.ndarray, ok: np.ndarray, z: np.ndarray) -> None:
+        """The held-out strength trial, due every STRENGTH_TRIAL_EVERY-th frame; on a training pattern new to its QP
+        split over two frames, its workspace built on one and solved on the next. Issue 39: a trial on a new pattern
+        cost as much as two fits on one frame, and such frames set kalman's p99 (docs/performance.md). Its memory
+        decays with the frames between trials, so the choice's half-life stays STREAM_HALF_LIFE_FRAMES."""
+        if self._pending is not None:
+            self._observe(*self._pending)
+            self._pending = None
+        elif self._frame >= self._due:
+            if self.selector.prepare(ok):
+                self._pending = (x.copy(), ok.copy(), z)
+            else:
+                self._observe(x, ok, z)
+
+    def _observe(self, x: np.ndarray, ok: np.ndarray, z: np.ndarray) -> None:
+        self.selector.observe(x, ok, z, elapsed=self._frame - self._last_trial)
+        self._last_trial = self._frame
+        self._due = self._frame + STRENGTH_TRIAL_EVERY
 
     def solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """RTS-smoothed markers -> joint pose and prior fit; POSE_PASSES times, the pose fitted on the
