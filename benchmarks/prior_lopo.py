@@ -23,7 +23,7 @@ PERFORMERS = {"alex_rom_3": "anim", "alex_rom_4": "anim", "S07-001": "anim", "S8
               "apfel": "csv", "MySlate_3_Jason_Millers_iPhone": "jmtechart"}
 
 
-def _as_given(solver, support, frames) -> None:
+def _as_given(solver, support, frames, built=None) -> None:
     """The check's result set aside: the prior as given (the code before issue 41.2's check)."""
     solver.support = type(support)(support.axes, support.before, support.before, support.noise_var, 0, solver.mean)
 

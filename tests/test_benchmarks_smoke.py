@@ -113,3 +113,15 @@ def test_live_driver_streams_a_real_performance_on_the_ict_rig():
     res = measure("robust", 240, waits=("none",), take_name="S07-001")
     assert set(res) == {"none"} and set(res["none"]) == set(PARTS)
     assert all(res["none"][p]["p99_us"] > 0 for p in ("decode", "step", "frame"))
+
+
+def test_prior_lopo_stands_in_for_the_prior_check_with_its_signature():
+    """benchmarks.prior_lopo replaces MarkerKalmanSolver._use_support to measure 'the prior as given'; when the
+    check's signature grew, the stand-in raised on every streamed take (counted solver errors, rows still printed)."""
+    import inspect
+
+    from benchmarks.prior_lopo import _as_given
+    from livecap.modes.marker_kalman import MarkerKalmanSolver
+
+    assert list(inspect.signature(_as_given).parameters)[1:] == \
+        list(inspect.signature(MarkerKalmanSolver._use_support).parameters)[1:]
