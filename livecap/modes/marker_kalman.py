@@ -123,7 +123,7 @@ class MarkerKalmanSolver:
         block of the inverse Hessian, the head-pose columns fitted beside them marginalised."""
         if k not in self._spreads:
             B, _, _, _, P = self.joint
-            self._spreads[k] = np.linalg.inv(B.T @ B + STRENGTHS[k] * P)[:self.m, :self.m]
+            self._spreads[k] = _weight_cov(B, P, STRENGTHS[k], self.m)
         return self._spreads[k]
 
     def _check_support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> None:
@@ -161,21 +161,15 @@ class MarkerKalmanSolver:
         else:
             self.joint, self._fits, self._spreads, self.selector = built
             self._along = {}
+        self._noise_key = None
 
     def _build(self, s: Support, decay: float) -> tuple:
         """The joint prior, every strength's fit (its all-seen workspace warmed, as ``reset`` does), the weights'
         spreads and a fresh selector for the checked prior ``s``, built without touching the solver: streamed, the
         check's thread builds them, so the swap costs the step nothing (built at the swap they took 10-23 ms)."""
         joint = self.pose.augment(self.profile.basis, self.lower, self.upper, s.mean, s.precision)
-        B, lower, upper, mean, precision = joint
-        fits, spreads = {}, {}
-        for k, a in enumerate(STRENGTHS):
-            fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(a))
-            fits[k].step(np.zeros(3 * self.profile.n_markers), np.ones(self.profile.n_markers, bool))
-            fits[k].reset()
-            fits[k].prepare_marker_space()
-            spreads[k] = np.linalg.inv(B.T @ B + a * precision)[:self.m, :self.m]
-        return joint, fits, spreads, HeldOutStrength(*joint, STRENGTHS, decay=decay)
+        return (joint, *_warmed_fits(joint, self.profile.n_markers, self.m),
+                HeldOutStrength(*joint, STRENGTHS, decay=decay))
 
     def _stream_support(self, x: np.ndarray, ok: np.ndarray) -> None:
         """Collect the first SUPPORT_SECONDS, check them in a thread (numpy's inverses release the GIL, so the
@@ -225,11 +219,12 @@ class MarkerKalmanSolver:
             self.precision, self.mean = self._precision0, self._mean0
             self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
             self._fits, self._spreads, self._along = {}, {}, {}
+            self._noise_key = None
         self.support = None
         self._seen: list[tuple[np.ndarray, np.ndarray]] = []
         self._checking: tuple | None = None  # streaming: the check's thread, its result, the frame to use it, frames
         # streaming: the windows still to check (seconds from the take's start)
-        self._windows = tuple(w for w in (SUPPORT_SECONDS, SUPPORT_RECHECK_SECONDS) if w < float("inf"))
+        self._windows = (SUPPORT_SECONDS, SUPPORT_RECHECK_SECONDS)
 
     def reset(self) -> None:
         self._prior_as_given()
@@ -240,16 +235,12 @@ class MarkerKalmanSolver:
         self._due = self._last_trial = 0  # the frame the next strength trial is due, the frame of the last
         self._pending: tuple | None = None  # a trial whose workspace is built: its markers, pattern and start
         self._z: np.ndarray | None = None  # the last frame's weights and pose: where the fit's warm start comes from
-        self._fits: dict[int, FrameQP] = {}
-        self._spreads: dict[int, np.ndarray] = {}
+        # every workspace (and the IMM's spread) built now, not on the first frames
+        self._fits, self._spreads = _warmed_fits(self.joint, self.profile.n_markers, self.m)
         self._along: dict[int, np.ndarray] = {}  # the spreads along the IMM's axes
         self._imm: RotatedIMM | None = None
+        self._noise_key: tuple | None = None  # (noise, strength) the IMM's noise was last set for
         self._fit_k: int | None = None  # the strength fitted last frame
-        for k in range(len(STRENGTHS)):  # build every workspace (and the IMM's spread) now, not on the first frames
-            self._fit(k).step(np.zeros(3 * self.profile.n_markers), np.ones(self.profile.n_markers, bool))
-            self._fits[k].reset()
-            self._fits[k].prepare_marker_space()
-            self._spread_of(k)
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         x, ok = self.filter.step(target, valid)
@@ -268,9 +259,11 @@ class MarkerKalmanSolver:
         if self._imm is None:  # the axes: the first frame's fit's; later strengths' noise is read in them
             axes = None if fit.marker_space else np.linalg.eigh(self._spread_of(k))[1]
             self._imm = RotatedIMM(axes, self.motion.imm(noise, self.norms))
-        if k not in self._along:
-            self._along[k] = self._imm.along(self._spread_of(k))
-        self._imm.set_noise(noise**2 * self._along[k])
+        if (noise, k) != self._noise_key:  # the noise settles in the first frames; the strength changes now and then
+            if k not in self._along:
+                self._along[k] = self._imm.along(self._spread_of(k))
+            self._imm.set_noise(noise**2 * self._along[k])
+            self._noise_key = (noise, k)
         # the IMM's constant-velocity models overshoot a weight resting on its limit: back within the rig's limits
         return np.clip(self._imm.step(w), self.lower, self.upper)
 
@@ -340,6 +333,26 @@ class MarkerKalmanSolver:
         fit = self._fit(sel.best)
         fit.reset()
         return fit.step_take(smoothed, ok)
+
+
+def _weight_cov(B: np.ndarray, P: np.ndarray, strength: float, m: int) -> np.ndarray:
+    """The weights' covariance per unit marker variance in the fit at ``strength`` (the weights' block of the
+    inverse Hessian, the head-pose columns fitted beside them marginalised)."""
+    return np.linalg.inv(B.T @ B + strength * P)[:m, :m]
+
+
+def _warmed_fits(joint: tuple, n_markers: int, m: int) -> tuple[dict[int, FrameQP], dict[int, np.ndarray]]:
+    """Every strength's fit with its all-seen workspace built (and its marker-space solver), and each one's weight
+    covariance: what the first frames would otherwise build."""
+    B, lower, upper, mean, precision = joint
+    fits, spreads = {}, {}
+    for k, a in enumerate(STRENGTHS):
+        fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(a))
+        fits[k].step(np.zeros(3 * n_markers), np.ones(n_markers, bool))
+        fits[k].reset()
+        fits[k].prepare_marker_space()
+        spreads[k] = _weight_cov(B, precision, a, m)
+    return fits, spreads
 
 
 def _spread(n: int, k: int) -> np.ndarray:
