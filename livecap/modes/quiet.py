@@ -61,8 +61,6 @@ class EvidenceGate:
         self.last = None
 
     def __call__(self, W: np.ndarray, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
-        from scipy.signal import lfilter
-
         Y = np.asarray(targets, dtype=float).reshape(*np.shape(W)[:-1], -1)
         seen = np.repeat(np.asarray(valid, dtype=bool), 3, axis=-1)
         R = np.where(seen, Y - W @ self.B.T, 0.0)  # hidden markers (NaN or stale) say nothing
@@ -70,7 +68,9 @@ class EvidenceGate:
         if np.ndim(W) == 1:
             t = t if self.last is None else self.keep * self.last + (1.0 - self.keep) * t
             self.last = t
-        elif len(t):
+        elif len(t):  # a whole take: the same average, in one pass
+            from scipy.signal import lfilter
+
             t = lfilter([1.0 - self.keep], [1.0, -self.keep], t, axis=0, zi=self.keep * t[:1])[0]
         gate = np.clip((t - EVIDENCE_ZERO) / (EVIDENCE_FULL - EVIDENCE_ZERO), 0.0, 1.0)
         return np.where(self.gated, W * gate, W)
@@ -99,10 +99,11 @@ class QuietShapes:
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         w = self.inner.step(target, valid)
-        if self.gate is None:
+        lag = int(getattr(self.inner, "latency_frames", 0) or 0)
+        if self.gate is None or lag == 0:  # the weights are this frame's: nothing to keep
             return self._full(w, target, valid)
         self.seen.append((np.array(target, dtype=float), np.array(valid, dtype=bool)))
-        lag = min(int(getattr(self.inner, "latency_frames", 0) or 0), len(self.seen) - 1)  # w is of frame t - lag
+        lag = min(lag, len(self.seen) - 1)  # w is of frame t - lag
         while len(self.seen) > lag + 1:
             self.seen.popleft()
         return self._full(w, *self.seen[0])
