@@ -49,7 +49,7 @@ class NeutralPose:
             x, y, z, w = q.tolist()
             n = math.sqrt(x * x + y * y + z * z + w * w)
             unit = (x / n, y / n, z / n, w / n)
-            if self._identity:  # a source already relative to its neutral (the iPhone's): nothing to undo
+            if self.identity:  # a source already relative to its neutral (the iPhone's): nothing to undo
                 return np.array(unit), t / 1000.0
             shift = (t.reshape(-1, 3) - self.translation) @ self.rotation / 1000.0
             return hamilton(self._inverse_quat, unit), shift.reshape(t.shape)
@@ -58,7 +58,8 @@ class NeutralPose:
         return rel.as_quat().reshape(q.shape), shift.reshape(t.shape)
 
     @cached_property
-    def _identity(self) -> bool:
+    def identity(self) -> bool:
+        """The identity pose: a source already relative to its own neutral (the iPhone's)."""
         return bool(np.array_equal(self.rotation, np.eye(3)) and not np.any(self.translation))
 
     @cached_property
@@ -102,7 +103,7 @@ class NeutralWindow:
         to skip :meth:`relative` per packet)."""
         self.frames = 0
         self.pose = pose
-        self.identity = pose._identity
+        self.identity = pose.identity
 
     def relative(self, quaternion: np.ndarray, translation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         q = np.asarray(quaternion, dtype=np.float64)
