@@ -42,6 +42,13 @@ class BoxQP:
     solve from any feasible point ``x`` instead (another workspace's solution, a reset).
     """
 
+    @property
+    def _k(self):  # noqa: ANN202 - the kernels' module, imported with the first solver (numba with it)
+        from solvers import box_qp_kernels
+
+        BoxQP._k = box_qp_kernels  # the class attribute now shadows this property: no import per solver
+        return box_qp_kernels
+
     def __init__(self, H: np.ndarray, lower: np.ndarray, upper: np.ndarray, max_iter: int | None = None,
                  limit_rows: np.ndarray | None = None) -> None:
         """``limit_rows``: :meth:`limit_rows` of these limits, when many solvers share them (one per visibility
@@ -50,17 +57,16 @@ class BoxQP:
         self.m = self.H.shape[0]
         if self.H.shape != (self.m, self.m):
             raise ValueError(f"H must be square, got {self.H.shape}")
-        from solvers import box_qp_kernels as k
-
-        self._k = k
+        k = self._k
         V = self.limit_rows(lower, upper, self.m) if limit_rows is None else limit_rows.copy()
         self.lo, self.hi = V[k.LO], V[k.HI]
         ref = V[k.REF]
-        if np.any(ref):
+        if ref.any():  # (the method: np.any's dispatch cost a new visibility pattern of kalman's 2.4 µs)
             V[k.HREF] = self.H @ ref
         self._V, self._I, self._meta = V, np.zeros((4, self.m), np.int64), np.zeros(2, np.int64)
         self._L = np.empty((min(self.m, 32), min(self.m, 32)))
-        self.tol = 1e-11 * max(1.0, float(np.abs(self.H.diagonal()).max(initial=0.0)))
+        d = self.H.diagonal()
+        self.tol = 1e-11 * max(1.0, float(d.max(initial=0.0)), -float(d.min(initial=0.0)))
         self.max_iter = 3 * self.m + 10 if max_iter is None else int(max_iter)
         self.iterations = 0
         self.warm(np.zeros(self.m))

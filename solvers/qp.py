@@ -31,7 +31,7 @@ import numpy as np
 
 from solvers.box_qp import BoxQP
 from solvers.marker_space_qp import MarkerSpaceQP
-from solvers.qp_kernels import smallest_eigenvalue
+from solvers.qp_kernels import pattern_hessian, smallest_eigenvalue
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +72,8 @@ class _CondBound:
         self.U, S = np.flatnonzero(free), np.flatnonzero(~free)
         contiguous = len(self.U) and self.U[-1] - self.U[0] == len(self.U) - 1
         self._block = (slice(self.U[0], self.U[-1] + 1),) * 2 if contiguous else np.ix_(self.U, self.U)
+        # the block as a range, for the compiled pattern kernel (solvers.qp_kernels.pattern_hessian); None if not one
+        self.span = (int(self.U[0]), int(self.U[-1]) + 1) if contiguous else (0, 0) if not len(self.U) else None
         self.c = _lambda_min(const[np.ix_(S, S)]) if len(S) else 0.0
         self.b2 = 0.0
         if len(self.U) and self.c > 0:
@@ -83,7 +85,14 @@ class _CondBound:
             return 0.0
         if not len(self.U):
             return self.c
-        s2 = smallest_eigenvalue(np.ascontiguousarray(H[self._block]))
+        return self.from_block(smallest_eigenvalue(np.ascontiguousarray(H[self._block])))
+
+    def from_block(self, s2: float) -> float:
+        """The bound from s^2, the smallest eigenvalue of H's U block."""
+        if not self.c > 0:
+            return 0.0
+        if not len(self.U):
+            return self.c
         return self.c * s2 / (self.c + self.b2 + s2) if s2 > 0 else 0.0
 
 
@@ -226,16 +235,23 @@ class FrameQP:
             self._H_all = self.basis.T @ (self.basis * self._row_w[:, None]) + self._const
         miss = ~rows
         n_miss = int(np.count_nonzero(miss))
+        bound = None
         if n_miss == 0:
             H = self._H_all
-        elif n_miss <= len(rows) // 2:  # a few markers missing: a rank-3k downdate, O(k m^2) not O(n m^2)
+        elif n_miss <= len(rows) // 2 and self._cond.span is not None:  # a few markers missing: a rank-3k
+            H = np.empty_like(self._H_all)  # downdate, O(k m^2) not O(n m^2), in one compiled call
+            trace, s2 = pattern_hessian(self._H_all, self.basis, self._row_w, seen, *self._cond.span, H)
+            bound = self._cond.from_block(s2)
+        elif n_miss <= len(rows) // 2:
             Bm = self.basis[miss]
             H = self._H_all - Bm.T @ (Bm * self._row_w[miss, None])
         else:
             Bv = self.basis[rows]
             H = Bv.T @ (Bv * self._row_w[rows, None]) + self._const
+        if bound is None:
+            trace, bound = np.trace(H), self._cond.lambda_min(H)
         floor = 0.0
-        if np.trace(H) > 1e12 * self._cond.lambda_min(H):
+        if trace > 1e12 * bound:
             try:  # (max / min Cholesky diagonal)^2 bounds cond(H) from below: no SVD per new pattern
                 d = np.diagonal(np.linalg.cholesky(H))
                 if d.min() <= 0 or (d.max() / d.min()) ** 2 > 1e12:

@@ -184,3 +184,28 @@ def test_a_take_at_once_equals_stepping_it(temporal):
         assert np.abs(taken - stepped).max() <= 1e-9
         assert np.abs(a.step(S[0], valid[0]) - b.step(S[0], valid[0])).max() <= 1e-9
         assert np.isfinite(taken).all() and np.ptp(taken, axis=0).max() > 0.1
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(2, 12), m=st.integers(1, 10), free=st.integers(0, 4),
+       missing=st.floats(0.0, 0.5))
+def test_a_patterns_compiled_hessian_is_the_downdate_of_the_all_seen_one(seed, n, m, free, missing):
+    """pattern_hessian (one call per new visibility pattern, issue 39): H_all less the missing markers' weighted rows,
+    its trace, and the unpenalised block's smallest eigenvalue, as the numpy expressions it replaced give them."""
+    from solvers.qp_kernels import pattern_hessian
+
+    rng = np.random.default_rng(seed)
+    B = rng.normal(0, 3, (3 * n, m + free))
+    w = np.repeat(rng.uniform(0.2, 2.0, n), 3)
+    H_all = B.T @ (B * w[:, None]) + np.diag(np.r_[rng.uniform(0.1, 1, m), np.zeros(free)])
+    seen = rng.random(n) >= missing
+    miss = ~np.repeat(seen, 3)
+    ref = H_all - B[miss].T @ (B[miss] * w[miss, None])
+    H = np.empty_like(H_all)
+    trace, s2 = pattern_hessian(H_all, B, w, seen, m, m + free, H)
+    np.testing.assert_allclose(H, ref, rtol=0, atol=1e-12 * np.abs(H_all).max())
+    assert np.array_equal(H, H.T) and trace == pytest.approx(np.trace(ref), rel=1e-12)
+    if free:
+        assert s2 == pytest.approx(np.linalg.eigvalsh(ref[m:, m:])[0], abs=1e-9 * np.abs(H_all).max())
+    else:
+        assert s2 == np.inf
