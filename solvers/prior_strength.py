@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from solvers.prior_strength_kernels import held_out_error
 from solvers.qp import FrameQP
 
 
@@ -28,10 +29,9 @@ class HeldOutStrength:
         self.folds, self.decay = folds, decay
         self._fold_markers = [np.flatnonzero(self.fold_of == f) for f in range(folds)]
         self._outside = [self.fold_of != f for f in range(folds)]
-        self._fold_rows = [np.flatnonzero(np.repeat(self.fold_of == f, 3)) for f in range(folds)]
-        self._fold_basis = [self.basis[r] for r in self._fold_rows]  # the rows a trial predicts when all are seen
         self.err = np.zeros(len(self.grid))
         self.count = np.zeros(len(self.grid))
+        self._counted = False
         self.t = 0
         self.best = len(self.grid) // 2
         for qp in self.qps:  # expensive preparation once: each fold's workspace, not on the first frames
@@ -70,13 +70,13 @@ class HeldOutStrength:
             return
         if start is not None:
             self.qps[g].warm(start)
+        target = np.asarray(target, dtype=np.float64).reshape(-1)
         w = self.qps[g].step(target, train)
-        rows = self._fold_rows[f] if n_held == len(seen) else self._fold_rows[f][np.repeat(seen, 3)]
-        basis = self._fold_basis[f] if n_held == len(seen) else self.basis[rows]
-        r = basis @ w - np.asarray(target, float).reshape(-1)[rows]
-        self.err *= self.decay ** elapsed
-        self.count *= self.decay ** elapsed
-        self.err[g] += float(r @ r)
+        d = self.decay ** elapsed
+        self.err *= d
+        self.count *= d
+        self.err[g] += held_out_error(self.basis, self._fold_markers[f], seen, w, target)
         self.count[g] += n_held
-        if (self.count > 0).all():
+        if self._counted or (self.count > 0).all():  # (decayed counts stay > 0: checked until they are)
+            self._counted = True
             self.best = int(np.argmin(self.err / self.count))

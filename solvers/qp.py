@@ -233,8 +233,7 @@ class FrameQP:
         rows = np.repeat(seen, 3)
         if self._H_all is None:
             self._H_all = self.basis.T @ (self.basis * self._row_w[:, None]) + self._const
-        miss = ~rows
-        n_miss = int(np.count_nonzero(miss))
+        n_miss = 3 * (self.n - int(np.count_nonzero(seen)))
         bound = None
         if n_miss == 0:
             H = self._H_all
@@ -243,6 +242,7 @@ class FrameQP:
             trace, s2 = pattern_hessian(self._H_all, self.basis, self._row_w, seen, *self._cond.span, H)
             bound = self._cond.from_block(s2)
         elif n_miss <= len(rows) // 2:
+            miss = ~rows
             Bm = self.basis[miss]
             H = self._H_all - Bm.T @ (Bm * self._row_w[miss, None])
         else:
@@ -261,7 +261,7 @@ class FrameQP:
                 H = H + floor * np.eye(self.m)
         if self._limits is None:
             self._limits = (self.lower, self.upper, BoxQP.limit_rows(self.lower, self.upper, self.m))
-        ws = _Workspace(H, floor, None if seen.all() else rows, self._limits)
+        ws = _Workspace(H, floor, None if n_miss == 0 else rows, self._limits)
         self._models[key] = ws
         if len(self._models) > self.cache_size:
             self._models.popitem(last=False)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from solvers.prior_strength import HeldOutStrength
 from solvers.qp import FrameQP
@@ -81,3 +82,16 @@ def test_no_streamed_frame_both_builds_a_trial_workspace_and_solves_a_trial():
     trials = sum("solve" in e for e in events)
     assert trials >= T // (mk.STRENGTH_TRIAL_EVERY + 1)  # one every 2nd frame, every 3rd on a new pattern
     assert sum("build" in e for e in events) > 0  # the bursts did make new trial patterns
+
+
+def test_the_compiled_held_out_error_is_the_numpy_sum_it_replaced():
+    from solvers.prior_strength_kernels import held_out_error
+
+    rng = np.random.default_rng(7)
+    n, m = 15, 8
+    B, w, s = rng.normal(0, 2, (3 * n, m)), rng.normal(0, 1, m), rng.normal(0, 5, 3 * n)
+    markers = np.array([1, 4, 6, 11, 14])
+    for seen in (np.ones(5, bool), np.array([True, False, True, True, False]), np.zeros(5, bool)):
+        rows = np.repeat(3 * markers[seen], 3) + np.tile(np.arange(3), int(seen.sum()))
+        r = B[rows] @ w - s[rows]
+        assert held_out_error(B, markers, seen, w, s) == pytest.approx(float(r @ r), rel=1e-13, abs=1e-300)
