@@ -57,6 +57,7 @@ from solvers.tracking import IMMFilter, RotatedIMM, dwna_variance, variances_alo
 STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it balances)
 STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
 STRENGTH_TRIAL_EVERY = 2  # streaming: frames per held-out strength trial (4: demo take RMSE +13 %, see docs)
+TRIAL_LATE_FRAMES = 2  # streaming: frames a trial part may wait while the fit meets new visibility patterns
 POSE_PASSES = 2  # offline: joint solves, the pose undone on the raw markers between (3: no better, issue 15)
 SUPPORT_SECONDS = 1.0  # streaming: the first seconds a prior is checked against (solvers.prior_support)
 SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
@@ -234,6 +235,7 @@ class MarkerKalmanSolver:
         self._frame = 0
         self._due = self._last_trial = 0  # the frame the next strength trial is due, the frame of the last
         self._pending: tuple | None = None  # a trial whose workspace is built: its markers, pattern and start
+        self._late = 0  # frames a due trial part has waited beside the fit's new patterns
         self._z: np.ndarray | None = None  # the last frame's weights and pose: where the fit's warm start comes from
         # every workspace (and the IMM's spread) built now, not on the first frames
         self._fits, self._spreads = _warmed_fits(self.joint, self.profile.n_markers, self.m)
@@ -252,8 +254,9 @@ class MarkerKalmanSolver:
         if fit.marker_space and self._fit_k != k and self._z is not None:
             fit.warm(self._z)  # a strength not fitted last frame: from the last fit, not from its own old frame
         self._fit_k = k
+        busy = not fit.knows(ok)  # a new pattern's workspace and cold solve: no trial part beside it
         z = self._z = fit.step(x, ok)
-        self._trial(x, ok, z)
+        self._trial(x, ok, z, busy)
         w, self.head_correction = z[:self.m], z[self.m:]
         noise = max(self.filter.noise_mm, self.calibrated_noise)
         if self._imm is None:  # the axes: the first frame's fit's; later strengths' noise is read in them
@@ -267,11 +270,19 @@ class MarkerKalmanSolver:
         # the IMM's constant-velocity models overshoot a weight resting on its limit: back within the rig's limits
         return np.clip(self._imm.step(w), self.lower, self.upper)
 
-    def _trial(self, x: np.ndarray, ok: np.ndarray, z: np.ndarray) -> None:
+    def _trial(self, x: np.ndarray, ok: np.ndarray, z: np.ndarray, busy: bool) -> None:
         """The held-out strength trial, due every STRENGTH_TRIAL_EVERY-th frame; on a training pattern new to its QP
-        split over two frames, its workspace built on one and solved on the next. Issue 39: a trial on a new pattern
-        cost as much as two fits on one frame, and such frames set kalman's p99 (docs/performance.md). Its memory
-        decays with the frames between trials, so the choice's half-life stays STREAM_HALF_LIFE_FRAMES."""
+        split over two frames, its workspace built on one and solved on the next; and no part of it on a frame whose
+        fit met a new visibility pattern (``busy``), up to TRIAL_LATE_FRAMES late. Issue 39: a trial on a new pattern
+        cost as much as two fits on one frame, a trial part beside the fit's new pattern was most of kalman's top 1 %
+        (docs/performance.md). Its memory decays with the frames between trials, so the choice's half-life stays
+        STREAM_HALF_LIFE_FRAMES."""
+        if self._pending is None and self._frame < self._due:
+            return
+        if busy and self._late < TRIAL_LATE_FRAMES:
+            self._late += 1
+            return
+        self._late = 0
         if self._pending is not None:
             self._observe(*self._pending)
             self._pending = None
