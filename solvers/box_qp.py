@@ -58,18 +58,11 @@ class BoxQP:
         if self.H.shape != (self.m, self.m):
             raise ValueError(f"H must be square, got {self.H.shape}")
         k = self._k
-        V = self.limit_rows(lower, upper, self.m) if limit_rows is None else limit_rows.copy()
-        self.lo, self.hi = V[k.LO], V[k.HI]
-        ref = V[k.REF]
-        if ref.any():  # (the method: np.any's dispatch cost a new visibility pattern of kalman's 2.4 µs)
-            V[k.HREF] = self.H @ ref
-        self._V, self._I, self._meta = V, np.zeros((4, self.m), np.int64), np.zeros(2, np.int64)
-        self._L = np.empty((min(self.m, 32), min(self.m, 32)))
-        d = self.H.diagonal()
-        self.tol = 1e-11 * max(1.0, float(d.max(initial=0.0)), -float(d.min(initial=0.0)))
+        V = self.limit_rows(lower, upper, self.m) if limit_rows is None else limit_rows
+        self._V, self._I, self._meta, self._L, self.tol = k.state(self.H, V)
+        self.lo, self.hi = self._V[k.LO], self._V[k.HI]
         self.max_iter = 3 * self.m + 10 if max_iter is None else int(max_iter)
         self.iterations = 0
-        self.warm(np.zeros(self.m))
 
     @staticmethod
     def limit_rows(lower: np.ndarray, upper: np.ndarray, m: int) -> np.ndarray:

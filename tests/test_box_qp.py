@@ -292,3 +292,26 @@ def test_a_frame_in_one_call_equals_its_linear_term_then_solve(seed, n, m, kind,
         assert np.abs(f - f_ref).max() <= 1e-9 * max(1.0, np.abs(f_ref).max())
         assert x is not None and x_ref is not None and np.abs(x - x_ref).max() <= 1e-9
         prev = x
+
+
+def test_a_new_solvers_compiled_state_is_the_one_numpy_built():
+    """box_qp_kernels.state (one call per new visibility pattern, issue 39): H ref, the tolerance and the warm start
+    from 0 as BoxQP's numpy set-up made them, with limits whose reference point is not 0."""
+    from solvers import box_qp_kernels as k
+
+    rng = np.random.default_rng(3)
+    m = 9
+    A = rng.normal(size=(m, m))
+    H = A @ A.T + np.diag(rng.uniform(1, 50, m))
+    lo = np.r_[np.zeros(3), -np.ones(3), np.full(3, -np.inf)]
+    hi = np.r_[np.ones(3), np.full(3, 2.0), np.full(3, np.inf)]
+    V0 = BoxQP.limit_rows(lo, hi, m)
+    V, I, meta, L, tol = k.state(H, V0)
+    ref = V0[k.REF]
+    np.testing.assert_allclose(V[k.HREF], H @ ref, rtol=1e-13)
+    assert not V0[k.HREF].any()  # the shared rows are left as they were
+    assert tol == 1e-11 * max(1.0, np.abs(np.diag(H)).max())
+    x0 = np.clip(np.zeros(m), lo, hi)
+    assert meta[0] == np.count_nonzero((x0 > lo) & (x0 < hi)) and meta[1] == 0
+    f = rng.normal(size=m)
+    np.testing.assert_allclose(BoxQP(H, lo, hi).solve(f), BoxQP(H, lo, hi, limit_rows=V0).solve(f), atol=1e-12)
