@@ -216,15 +216,6 @@ class FrameQP:
         key = np.asarray(valid, dtype=bool).reshape(-1).tobytes()
         return key == self._last_key or key == self._daqp_key or key in self._models
 
-    def prepare(self, valid: np.ndarray) -> None:
-        """Build this pattern's workspace now (H downdated, its condition check, the box QP's state): a caller
-        can so spread a new pattern's cost over two frames, this one and the step's."""
-        seen = np.asarray(valid, dtype=bool).reshape(-1)
-        if seen.shape[0] == self.n and seen.any():
-            ws = self._workspace(seen.tobytes(), seen)
-            if not self.marker_space:
-                ws.box  # noqa: B018 - built on first use; here, not on the step's frame
-
     def _workspace(self, key: bytes, seen: np.ndarray) -> _Workspace:
         ws = self._models.get(key)
         if ws is not None:

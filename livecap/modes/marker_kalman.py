@@ -51,7 +51,7 @@ from solvers.marker_kalman import KalmanSettings, StreamingMarkerKalman, smooth_
 from solvers.pose_refine import RigidColumns
 from solvers.prior_strength import HeldOutStrength
 from solvers.prior_support import Support, widen_prior
-from solvers.qp import FrameQP
+from solvers.qp import MARKER_SPACE_RATIO, FrameQP
 from solvers.tracking import IMMFilter, RotatedIMM, dwna_variance, variances_along
 
 STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it balances)
@@ -110,8 +110,8 @@ class MarkerKalmanSolver:
         self.chosen: dict = {}
         self.reset()
 
-    def _selector(self, decay: float) -> HeldOutStrength:
-        return HeldOutStrength(*self.joint, STRENGTHS, decay=decay)
+    def _selector(self, decay: float, streamed: bool = True) -> HeldOutStrength:
+        return _selector(self.joint, decay, streamed)
 
     def _fit(self, k: int) -> FrameQP:
         if k not in self._fits:
@@ -169,8 +169,7 @@ class MarkerKalmanSolver:
         spreads and a fresh selector for the checked prior ``s``, built without touching the solver: streamed, the
         check's thread builds them, so the swap costs the step nothing (built at the swap they took 10-23 ms)."""
         joint = self.pose.augment(self.profile.basis, self.lower, self.upper, s.mean, s.precision)
-        return (joint, *_warmed_fits(joint, self.profile.n_markers, self.m),
-                HeldOutStrength(*joint, STRENGTHS, decay=decay))
+        return (joint, *_warmed_fits(joint, self.profile.n_markers, self.m), _selector(joint, decay, True))
 
     def _stream_support(self, x: np.ndarray, ok: np.ndarray) -> None:
         """Collect the first SUPPORT_SECONDS, check them in a thread (numpy's inverses release the GIL, so the
@@ -234,7 +233,6 @@ class MarkerKalmanSolver:
         self.selector = self._selector(0.5 ** (1.0 / STREAM_HALF_LIFE_FRAMES))  # per frame (``_trial``)
         self._frame = 0
         self._due = self._last_trial = 0  # the frame the next strength trial is due, the frame of the last
-        self._pending: tuple | None = None  # a trial whose workspace is built: its markers, pattern and start
         self._late = 0  # frames a due trial part has waited beside the fit's new patterns
         self._z: np.ndarray | None = None  # the last frame's weights and pose: where the fit's warm start comes from
         # every workspace (and the IMM's spread) built now, not on the first frames
@@ -271,29 +269,23 @@ class MarkerKalmanSolver:
         return np.clip(self._imm.step(w), self.lower, self.upper)
 
     def _trial(self, x: np.ndarray, ok: np.ndarray, z: np.ndarray, busy: bool) -> None:
-        """The held-out strength trial, due every STRENGTH_TRIAL_EVERY-th frame; on a training pattern new to its QP
-        split over two frames, its workspace built on one and solved on the next; and no part of it on a frame whose
-        fit met a new visibility pattern (``busy``), up to TRIAL_LATE_FRAMES late. Issue 39: a trial on a new pattern
-        cost as much as two fits on one frame, a trial part beside the fit's new pattern was most of kalman's top 1 %
-        (docs/performance.md). Its memory decays with the frames between trials, so the choice's half-life stays
-        STREAM_HALF_LIFE_FRAMES."""
-        if self._pending is None and self._frame < self._due:
+        """The held-out strength trial, due every STRENGTH_TRIAL_EVERY-th frame, never on a frame whose fit met a new
+        visibility pattern (``busy``) unless it waited TRIAL_LATE_FRAMES. At rig sizes that stay in weight space the
+        trial is the fit without bounds (HeldOutStrength.observe_unbounded, from this frame's fit ``z``): issue 39
+        measured the bounded one on a new training pattern -- nearly every trial, with occlusion in bursts -- as
+        costly as two fits, most of kalman's streamed p99 (docs/performance.md). Its memory decays with the frames
+        between trials, so the choice's half-life stays STREAM_HALF_LIFE_FRAMES."""
+        if self._frame < self._due:
             return
         if busy and self._late < TRIAL_LATE_FRAMES:
             self._late += 1
             return
         self._late = 0
-        if self._pending is not None:
-            self._observe(*self._pending)
-            self._pending = None
-        elif self._frame >= self._due:
-            if self.selector.prepare(ok):
-                self._pending = (x.copy(), ok.copy(), z)
-            else:
-                self._observe(x, ok, z)
-
-    def _observe(self, x: np.ndarray, ok: np.ndarray, z: np.ndarray) -> None:
-        self.selector.observe(x, ok, z, elapsed=self._frame - self._last_trial)
+        elapsed = self._frame - self._last_trial
+        if self.selector.unbounded:
+            self.selector.observe_unbounded(x, ok, z, elapsed=elapsed)
+        else:
+            self.selector.observe(x, ok, z, elapsed=elapsed)
         self._last_trial = self._frame
         self._due = self._frame + STRENGTH_TRIAL_EVERY
 
@@ -337,13 +329,21 @@ class MarkerKalmanSolver:
         if self.prior_cov is not None and self.support is None:
             pick = _spread(len(targets), SUPPORT_FRAMES)
             self._check_support(smoothed[pick].reshape(len(pick), -1), ok[pick], self.chosen["noise_mm"])
-        sel = self._selector(1.0)
+        sel = self._selector(1.0, streamed=False)
         for t in range(len(targets)):
             sel.observe(smoothed[t], ok[t])
         self.chosen["prior_weight"] = float(STRENGTHS[sel.best])
         fit = self._fit(sel.best)
         fit.reset()
         return fit.step_take(smoothed, ok)
+
+
+def _selector(joint: tuple, decay: float, streamed: bool) -> HeldOutStrength:
+    """The held-out strength choice; streamed, at rig sizes whose fit stays in weight space (fewer shapes than
+    MARKER_SPACE_RATIO x the marker coordinates: ICT, 72 x 150), with its trials' unbounded maps."""
+    B = joint[0]
+    return HeldOutStrength(*joint, STRENGTHS, decay=decay,
+                           unbounded=streamed and B.shape[1] < MARKER_SPACE_RATIO * B.shape[0])
 
 
 def _weight_cov(B: np.ndarray, P: np.ndarray, strength: float, m: int) -> np.ndarray:
