@@ -216,6 +216,18 @@ class FrameQP:
         key = np.asarray(valid, dtype=bool).reshape(-1).tobytes()
         return key == self._last_key or key == self._daqp_key or key in self._models
 
+    def prepare(self, valid: np.ndarray) -> None:
+        """Build this pattern's workspace now (H downdated, its condition check, the box QP's state), so that the
+        frame that steps on it pays only its solve: kalman builds the next frame's, which its marker filter's one
+        frame of lag makes known a frame ahead (issue 39)."""
+        seen = np.asarray(valid, dtype=bool).reshape(-1)
+        key = seen.tobytes()
+        if seen.shape[0] != self.n or not seen.any() or key in self._models:
+            return
+        ws = self._workspace(key, seen)
+        if not self.marker_space:
+            ws.box  # noqa: B018 - built on first use; here, not on the step's frame
+
     def _workspace(self, key: bytes, seen: np.ndarray) -> _Workspace:
         ws = self._models.get(key)
         if ws is not None:

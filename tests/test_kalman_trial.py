@@ -109,7 +109,8 @@ def test_streamed_trials_solve_no_qp_and_none_falls_beside_a_new_fit_pattern():
     assert len(new_fit) > 20
     beside = [t for t in new_fit if "trial" in events[t]]
     # a trial beside a new fit pattern only after TRIAL_LATE_FRAMES frames of new patterns before it
-    assert all(all("new fit pattern" in events[t - d] for d in range(1, mk.TRIAL_LATE_FRAMES + 1)) for t in beside)
+    bad = [t for t in beside if not all("new fit pattern" in events[t - d] for d in range(1, mk.TRIAL_LATE_FRAMES + 1))]
+    assert not bad, [(t, events[t - 3:t + 2]) for t in bad[:3]]
 
 
 def test_the_compiled_held_out_error_is_the_numpy_sum_it_replaced():

@@ -252,9 +252,15 @@ class MarkerKalmanSolver:
         if fit.marker_space and self._fit_k != k and self._z is not None:
             fit.warm(self._z)  # a strength not fitted last frame: from the last fit, not from its own old frame
         self._fit_k = k
-        busy = not fit.knows(ok)  # a new pattern's workspace and cold solve: no trial part beside it
+        busy = not fit.knows(ok)  # a workspace built in this step (the first frame, a new strength or prior)
         z = self._z = fit.step(x, ok)
-        self._trial(x, ok, z, busy)
+        # the next frame's pattern, known a frame ahead (the filter's lag): its workspace built now, on a frame
+        # without a trial, so that no frame pays a trial and a new workspace, nor a new workspace and a cold solve
+        ahead = self.filter.prev
+        ahead = None if ahead is None or self._fit(self.selector.best).knows(ahead) else ahead
+        self._trial(x, ok, z, busy or ahead is not None)
+        if ahead is not None:
+            self._fit(self.selector.best).prepare(ahead)
         w, self.head_correction = z[:self.m], z[self.m:]
         noise = max(self.filter.noise_mm, self.calibrated_noise)
         if self._imm is None:  # the axes: the first frame's fit's; later strengths' noise is read in them
