@@ -124,3 +124,20 @@ def test_the_compiled_held_out_error_is_the_numpy_sum_it_replaced():
         rows = np.repeat(3 * markers[seen], 3) + np.tile(np.arange(3), int(seen.sum()))
         r = B[rows] @ w - s[rows]
         assert held_out_error(B, markers, seen, w, s) == pytest.approx(float(r @ r), rel=1e-13, abs=1e-300)
+
+
+def test_a_prepared_pattern_is_known_and_solves_as_an_unprepared_one():
+    """FrameQP.prepare (kalman builds the next frame's workspace a frame ahead): the step finds it built and solves
+    as if it had built it itself."""
+    from solvers.qp import FrameQP
+
+    B, rng, n, m = _problem()
+    seen = np.ones(n, bool)
+    seen[[2, 7]] = False
+    target = B @ rng.uniform(0, 1, m) + rng.normal(0, 0.01, 3 * n)
+    prepared, plain = (FrameQP(B, np.zeros(m), np.ones(m), ridge=0.1) for _ in range(2))
+    assert not prepared.knows(seen)
+    prepared.prepare(seen)
+    assert prepared.knows(seen) and prepared.cached_patterns == 1
+    np.testing.assert_array_equal(prepared.step(target, seen), plain.step(target, seen))
+    assert prepared.cached_patterns == 1  # the step built nothing more
