@@ -95,6 +95,7 @@ def parts(profile, targets, valid, options) -> dict:
 
     solver.filter.step = timed("filter", solver.filter.step)
     solver.selector.observe = timed("trial", solver.selector.observe)
+    solver.selector.observe_unbounded = timed("trial", solver.selector.observe_unbounded)  # the streamed ICT trial
     for qp in solver._fits.values():
         qp.step = timed("fit", qp.step)
     imm_step = tracking.IMMFilter.step
