@@ -66,7 +66,7 @@ def test_partners_and_marker_residual_name_the_shape_a_phantom_follows_and_the_m
 
 
 def test_the_benchmarks_streamed_option_gives_the_live_pipelines_weights(demo_profile_path):
-    """``benchmarks.realcapture --streamed`` measures what ``livecap run`` streams (causal), not the whole-take solve."""
+    """``benchmarks.realcapture --streamed`` measures what ``livecap run`` streams (causal), not the whole take."""
     from pathlib import Path
 
     from benchmarks.realcapture import solve
