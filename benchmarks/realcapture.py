@@ -6,9 +6,12 @@ metrics of :mod:`livecap.offline.plausibility`: weight sum over the first second
 weight, mean mouthFrown, per-shape activity on frames where the shape's markers are still, the
 main shapes' correlation with the marker geometry, and the share of single-frame jumps > 0.1; the same,
 with the weight RMSE and phantom activity against the truth, on model-mismatch takes (the MakeHuman head
-acting real curves, its markers bound to ICT: ``livecap generate --actor-rig``).
+acting real curves, its markers bound to ICT: ``livecap generate --actor-rig``). ``--streamed``: the weights as
+the live pipeline streams them (``livecap.offline.streamed.stream_take``: frame by frame, causal head pose, the
+mode's latency aligned), measured against the same stabilised markers.
 
     python -m benchmarks.realcapture [--modes auto,movement] [--takes JawMoCap,CheeksMoCap] [--mismatch S07-001,apfel]
+                                     [--streamed]
 """
 
 from __future__ import annotations
@@ -69,7 +72,28 @@ def metrics(profile, solved, signals, first: int) -> dict:
             "jumps": jumps, "jumpiest": names[int(np.argmax(per_shape))]}
 
 
-def run_mismatch(curves: str, modes: list[str], seconds: float = 20.0) -> list[dict]:
+def solve(take, profile, mode: str, streamed: bool):
+    """The whole-take solve, or (``streamed``) the same with the live pipeline's weights in place of its own."""
+    from dataclasses import replace
+
+    from livecap.modes.registry import build_solver
+    from livecap.offline.solve import solve_take
+
+    solved = solve_take(take, profile, build_solver(mode, profile, {}))
+    if not streamed:
+        return solved
+    from livecap.offline.streamed import stream_take
+
+    return replace(solved, weights=stream_take(take, profile, mode).weights)
+
+
+def _name(mode: str, profile, streamed: bool) -> str:
+    from livecap.modes.registry import resolve_mode
+
+    return resolve_mode(mode, profile) + (" streamed" if streamed else "")
+
+
+def run_mismatch(curves: str, modes: list[str], seconds: float = 20.0, streamed: bool = False) -> list[dict]:
     """The MakeHuman head performing ``curves`` (a performance in realdata/performance), bound to ICT: the same
     figures, plus the weight RMSE and phantom activity against the driving curves."""
     from livecap.calibration.profile import calibrate, estimate_neutral
@@ -77,9 +101,7 @@ def run_mismatch(curves: str, modes: list[str], seconds: float = 20.0) -> list[d
     from livecap.core.markers import MarkerLayout
     from livecap.core.rig import Rig
     from livecap.demo.mismatch_take import MismatchSettings, mismatch_take
-    from livecap.modes.registry import build_solver, resolve_mode
     from livecap.offline.setup import tune_on_take
-    from livecap.offline.solve import solve_take
     from transport.arkit import load_mapping
 
     real = _realdata()
@@ -96,9 +118,9 @@ def run_mismatch(curves: str, modes: list[str], seconds: float = 20.0) -> list[d
                               - np.array([true_sites[lab] for lab in mt.layout.labels]), axis=1)
     rows = []
     for mode in modes:
-        solved = solve_take(mt.take, profile, build_solver(mode, profile, {}))
+        solved = solve(mt.take, profile, mode, streamed)
         rest = mt.weights < 0.01
-        rows.append({"take": f"{curves} (MakeHuman -> ICT)", "mode": resolve_mode(mode, profile),
+        rows.append({"take": f"{curves} (MakeHuman -> ICT)", "mode": _name(mode, profile, streamed),
                      "noise_mm": tuned["noise_mm"], "frames": mt.take.n_frames,
                      "rmse": float(np.sqrt(np.mean((solved.weights - mt.weights) ** 2))),
                      "phantom": float(solved.weights[rest].mean()),
@@ -107,14 +129,12 @@ def run_mismatch(curves: str, modes: list[str], seconds: float = 20.0) -> list[d
     return rows
 
 
-def run_take(name: str, modes: list[str]) -> list[dict]:
+def run_take(name: str, modes: list[str], streamed: bool = False) -> list[dict]:
     from livecap.calibration.profile import calibrate, estimate_neutral
     from livecap.cli.realeval import _realdata
     from livecap.core.markers import MarkerLayout
     from livecap.core.rig import Rig
-    from livecap.modes.registry import build_solver, resolve_mode
     from livecap.offline.setup import tune_on_take
-    from livecap.offline.solve import solve_take
     from livecap.transfer.bind import bind_capture
     from transport.takefile import read_take
 
@@ -130,11 +150,10 @@ def run_take(name: str, modes: list[str]) -> list[dict]:
     tuned = tune_on_take(profile, take)  # once: no solver changes the profile
     rows = []
     for mode in modes:
-        solver = build_solver(mode, profile, {})
         t0 = time.perf_counter()
-        solved = solve_take(take, profile, solver)
+        solved = solve(take, profile, mode, streamed)
         seconds = time.perf_counter() - t0
-        rows.append({"take": name, "mode": resolve_mode(mode, profile), "noise_mm": tuned["noise_mm"],
+        rows.append({"take": name, "mode": _name(mode, profile, streamed), "noise_mm": tuned["noise_mm"],
                      "solve_s": seconds, "frames": take.n_frames, **metrics(profile, solved, SIGNALS, second)})
     return rows
 
@@ -145,11 +164,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--takes", default="JawMoCap,CheeksMoCap", help="comma list of AnimFace takes")
     p.add_argument("--mismatch", default="S07-001,apfel", help="performances the MakeHuman head acts, bound to "
                    "ICT (model mismatch with truth); 'none' to skip")
+    p.add_argument("--streamed", action="store_true", help="the weights as the live pipeline streams the take "
+                   "(causal) instead of the whole-take solve")
     args = p.parse_args(argv)
     modes = args.modes.split(",")
-    runs = [run_take(name, modes) for name in args.takes.split(",")]
+    runs = [run_take(name, modes, args.streamed) for name in args.takes.split(",")]
     if args.mismatch != "none":
-        runs += [run_mismatch(c, modes) for c in args.mismatch.split(",")]
+        runs += [run_mismatch(c, modes, streamed=args.streamed) for c in args.mismatch.split(",")]
     for r in (row for rows in runs for row in rows):
         if "rmse" in r:
             print(f"{r['take']} {r['mode']}: weight RMSE vs the curves {r['rmse']:.3f}, phantom {r['phantom']:.3f}; "

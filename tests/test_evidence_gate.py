@@ -161,3 +161,43 @@ def test_the_gate_only_ever_pulls_toward_rest(seed):
     Y = rng.normal(scale=3.0, size=(20, 6, 3))
     out = gate(W, Y, rng.uniform(size=(20, 6)) > 0.2)
     assert np.all(np.abs(out) <= np.abs(W) + 1e-12) and np.all(out * W >= 0) and np.all(out[:, 3] == W[:, 3])
+
+
+def test_the_gate_does_not_switch_within_a_frame():
+    """Cheek take (issue 35): a weight crossing the 2-6 sd ramp in two frames jumped by its whole size. The factor
+    now takes at least ``GATE_SWING_SECONDS`` from rest to whole, streamed and over a take alike."""
+    from livecap.modes.quiet import GATE_SWING_SECONDS
+
+    B, e = _partners_and_phantom(3.0)
+    rate = 60.0
+    W = np.tile([0.0, 0.0, 1.0], (40, 1))
+    Y = np.zeros((40, 10, 3))
+    Y[10:] = (20.0 * B[:, 2]).reshape(10, 3)  # from frame 10 on, far more than enough of its own motion at once
+    W[10:, 2] = 20.0
+    valid = np.ones((40, 10), bool)
+    gate = EvidenceGate(B, 0.5, None, np.ones(3, bool), rate=rate)
+    whole = gate(W, Y, valid)
+    factor = whole[:, 2] / W[:, 2]
+    assert factor[9] == 0.0 and factor[-1] == pytest.approx(1.0)
+    assert np.max(np.diff(factor)) == pytest.approx(1.0 / (rate * GATE_SWING_SECONDS))
+    gate.reset()
+    np.testing.assert_allclose([gate(W[i], Y[i], valid[i]) for i in range(40)], whole, atol=1e-12)
+
+
+def test_evidence_counts_in_the_noise_the_solve_leaves_now():
+    """Calibrated on a neutral take, the noise misses what the rig cannot follow while the actor acts (the
+    model-mismatch takes: 0.125 mm at neutral). The evidence is then read in the residual's own sd when that is
+    larger, so motion the solve leaves unexplained everywhere does not make a partner's blend look like evidence."""
+    B, e = _partners_and_phantom(3.0)
+    rng = np.random.default_rng(4)
+    free = np.linalg.qr(np.column_stack([B, rng.normal(size=(30, 10))]))[0][:, 3:]  # directions no shape makes
+    W = np.array([0.0, 0.0, 1.0])
+    fits = B[:, 2].reshape(10, 3)
+    misfit = (B[:, 2] + free @ rng.normal(scale=3.0, size=10)).reshape(10, 3)  # ~6 sd of misfit per coordinate
+    valid = np.ones(10, bool)
+    gate = EvidenceGate(B, 0.5, None, np.ones(3, bool))
+    assert gate(W, fits, valid)[2] == pytest.approx(1.0)
+    assert gate(W, misfit, valid)[2] < 0.5
+    quiet = EvidenceGate(B, 0.5, None, np.ones(3, bool))  # residual at the calibrated noise: unchanged
+    small = (B[:, 2] + free @ rng.normal(scale=0.1, size=10)).reshape(10, 3)
+    assert quiet(W, small, valid)[2] == pytest.approx(1.0)

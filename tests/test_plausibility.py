@@ -63,3 +63,20 @@ def test_partners_and_marker_residual_name_the_shape_a_phantom_follows_and_the_m
     valid[::2, 0] = False
     res = pl.marker_residual(W, basis, targets, valid)
     assert res == pytest.approx([0.0, 3.0])
+
+
+def test_the_benchmarks_streamed_option_gives_the_live_pipelines_weights(demo_profile_path):
+    """``benchmarks.realcapture --streamed`` measures what ``livecap run`` streams (causal), not the whole take."""
+    from pathlib import Path
+
+    from benchmarks.realcapture import solve
+    from livecap.calibration.profile import Profile
+    from livecap.offline.streamed import stream_take
+    from transport.takefile import read_take
+
+    take = read_take(Path(__file__).resolve().parents[1] / "recordings" / "demo_take.c3d").slice(0, 120)
+    profile = Profile.load(demo_profile_path)
+    streamed, whole = solve(take, profile, "kalman", True), solve(take, profile, "kalman", False)
+    np.testing.assert_allclose(streamed.weights, stream_take(take, profile, "kalman").weights)
+    np.testing.assert_allclose(streamed.targets, whole.targets)
+    assert not np.allclose(streamed.weights, whole.weights)

@@ -14,8 +14,10 @@ actor, smoothed data), a shape that is nearly a blend of partners takes up the p
 mouthFrown rises with the jaw shapes, eyeLookIn with the blink). Every solved weight is then trusted only as far as
 the markers move along what its shape alone explains (its signature's part outside the cone of the others',
 in the per-marker noise calibration measured, ``solvers.observability.unique_evidence``): at rest below 2 noise sd
-of that evidence (averaged over 0.16 s), whole above 6 (``EvidenceGate``). Same-rig takes with white noise never
-reach that branch.
+of that evidence (averaged over 0.16 s), whole above 6 (``EvidenceGate``). The sd is the larger of calibration's and
+the one the solve leaves now (its whitened residual over the same 0.16 s: a neutral take does not show what the rig
+misses while the actor acts), and the gate's factor moves from rest to whole in no less than 0.32 s (a decision on
+a 0.16 s average does not switch within a frame). Same-rig takes with white noise never reach that branch.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ import numpy as np
 
 from livecap.calibration.animation_prior import AnimationPrior, prior_from_spec
 from livecap.calibration.profile import Profile
-from solvers.observability import quiet_shapes, unique_evidence
+from solvers.observability import quiet_shapes, unique_evidence, whiten
 
 log = logging.getLogger(__name__)
 
@@ -37,13 +39,16 @@ log = logging.getLogger(__name__)
 EVIDENCE_ZERO = 2.0  # a weight whose unique evidence is below this many noise sd is published at rest ...
 EVIDENCE_FULL = 6.0  # ... whole above this many, linear between (AnimFace takes; 12 lost on the mismatch takes)
 EVIDENCE_SECONDS = 0.16  # time constant of the evidence's causal average (a phantom flickers with single frames)
+GATE_SWING_SECONDS = 2 * EVIDENCE_SECONDS  # the gate's factor takes at least this long from 0 to 1 (or back)
 
 
 class EvidenceGate:
     """Each weight scaled by how far the markers move along what its shape alone explains (issue 35; module
     docstring): 0 below ``EVIDENCE_ZERO`` noise sd, whole above ``EVIDENCE_FULL``. The evidence of shape k in a
     frame is the residual with k's own part put back, along k's unique direction (``unique_evidence``), averaged
-    causally over ``EVIDENCE_SECONDS`` (``rate`` Hz; None: per frame). One frame (``step``) or a take (``T x m``).
+    causally over ``EVIDENCE_SECONDS`` (``rate`` Hz; None: per frame) and divided by the residual's own sd over the
+    same frames when that exceeds the calibrated noise; the factor then changes by at most ``1 / (rate *
+    GATE_SWING_SECONDS)`` a frame. One frame (``step``) or a take (``T x m``).
     Only the ``gated`` shapes are gated and count as each other's partners (a held shape explains nothing)."""
 
     def __init__(self, basis: np.ndarray, noise_mm: float, marker_noise: np.ndarray | None, gated: np.ndarray,
@@ -53,26 +58,50 @@ class EvidenceGate:
         self.E = np.zeros((self.B.shape[1], self.B.shape[0]))
         self.E[cols] = unique_evidence(self.B[:, cols], noise_mm, marker_noise)[0]
         self.own = self.E * self.B.T  # each shape's evidence per unit of its own weight, per coordinate
+        self.per_mm = whiten(np.ones((self.B.shape[0], 1)), noise_mm, marker_noise)[:, 0]  # 1 / sd per coordinate
         self.gated = gated
         self.keep = float(np.exp(-1.0 / (rate * EVIDENCE_SECONDS))) if rate else 0.0  # the average's memory
-        self.last: np.ndarray | None = None
+        self.slew = 1.0 / (rate * GATE_SWING_SECONDS) if rate else 1.0  # the factor's largest change per frame
+        self.last: np.ndarray | None = None  # the averaged evidence, the averaged residual, the factor
+        self.last_r: np.ndarray | None = None
+        self.g: np.ndarray | None = None
 
     def reset(self) -> None:
-        self.last = None
+        self.last = self.last_r = None
+        self.g = None
+
+    def _limit(self, gate: np.ndarray) -> np.ndarray:
+        """The factor moved toward ``gate`` by at most ``slew`` a frame (a decision on a 0.16 s average does not
+        switch within a frame: issue 35's cheek-take jumps were weights crossing the ramp in 2-4 frames)."""
+        if self.slew >= 1.0:
+            return gate
+        if gate.ndim == 1:
+            if self.g is not None:
+                gate = np.clip(gate, self.g - self.slew, self.g + self.slew)
+            self.g = gate
+            return gate
+        out = np.array(gate)
+        for i in range(1, len(out)):
+            out[i] = np.clip(out[i], out[i - 1] - self.slew, out[i - 1] + self.slew)
+        return out
 
     def __call__(self, W: np.ndarray, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         Y = np.asarray(targets, dtype=float).reshape(*np.shape(W)[:-1], -1)
         seen = np.repeat(np.asarray(valid, dtype=bool), 3, axis=-1)
         R = np.where(seen, Y - W @ self.B.T, 0.0)  # hidden markers (NaN or stale) say nothing
         t = np.abs(R @ self.E.T + (seen @ self.own.T) * W)
+        r2 = np.sum((R * self.per_mm) ** 2, axis=-1, keepdims=True) / np.maximum(seen.sum(-1, keepdims=True), 1)
         if np.ndim(W) == 1:
             t = t if self.last is None else self.keep * self.last + (1.0 - self.keep) * t
-            self.last = t
+            r2 = r2 if self.last_r is None else self.keep * self.last_r + (1.0 - self.keep) * r2
+            self.last, self.last_r = t, r2
         elif len(t):  # a whole take: the same average, in one pass
             from scipy.signal import lfilter
 
             t = lfilter([1.0 - self.keep], [1.0, -self.keep], t, axis=0, zi=self.keep * t[:1])[0]
-        gate = np.clip((t - EVIDENCE_ZERO) / (EVIDENCE_FULL - EVIDENCE_ZERO), 0.0, 1.0)
+            r2 = lfilter([1.0 - self.keep], [1.0, -self.keep], r2, axis=0, zi=self.keep * r2[:1])[0]
+        t = t / np.sqrt(np.maximum(r2, 1.0))  # in the noise the solve leaves now, never below calibration's
+        gate = self._limit(np.clip((t - EVIDENCE_ZERO) / (EVIDENCE_FULL - EVIDENCE_ZERO), 0.0, 1.0))
         return np.where(self.gated, W * gate, W)
 
 
