@@ -122,3 +122,17 @@ def shrink_step(st: np.ndarray, u: np.ndarray, x: np.ndarray, move_before: np.nd
             out[i] = m + g * (x[i] - m)
         else:
             out[i] = x[i]
+
+
+@numba.njit(cache=True, nogil=True)
+def share_move(st: np.ndarray, share: float, out: np.ndarray) -> None:
+    """After a step: every channel's 'move' probability raised to at least ``share`` x the largest one, and the
+    output ``out`` recombined from the two models' values with it (channels of one face share its regime)."""
+    top = 0.0
+    for i in range(st.shape[1]):
+        top = max(top, st[MU_MOVE, i])
+    floor = share * top
+    for i in range(st.shape[1]):
+        mu = max(st[MU_MOVE, i], floor)
+        st[MU_MOVE, i], st[MU_HOLD, i] = mu, 1.0 - mu
+        out[i] = (1.0 - mu) * st[XH, i] + mu * st[XM, i]

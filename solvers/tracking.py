@@ -172,6 +172,11 @@ class IMMFilter:
         if self._state is not None:
             self._state[self._kernels.R] = np.broadcast_to(self.r, self._shape).reshape(-1)
 
+    def share_move(self, share: float, out: np.ndarray) -> None:
+        """After a step: each channel's 'move' probability raised to at least ``share`` x the largest, ``out`` (that
+        step's output) recombined with it (solvers.imm_kernels.share_move)."""
+        self._kernels.share_move(self._state, float(share), out.reshape(-1))
+
     def step(self, y: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         y = np.asarray(y, dtype=np.float64)
         ok = None if valid is None else np.require(np.broadcast_to(valid, y.shape), bool, "CW").reshape(-1)
@@ -267,15 +272,23 @@ class RotatedIMM:
 
     latency_frames = 0
 
-    def __init__(self, axes: np.ndarray | None, imm: IMMFilter, shrink: NoiseShrink | None = None) -> None:
+    def __init__(self, axes: np.ndarray | None, imm: IMMFilter, shrink: NoiseShrink | None = None,
+                 share: float = 0.0) -> None:
         """``axes`` None: the shapes' own axes (no rotation), where two m x m products a frame cost more than the
         rotation is worth (1000-shape rigs: ~1 ms of a 2 ms budget, docs/performance.md). ``shrink``: each
-        direction's output pulled toward its running mean where the stream shows it carries mostly noise."""
+        direction's output pulled toward its running mean where the stream shows it carries mostly noise.
+        ``share``: after each step every direction's 'move' probability is at least this fraction of the largest
+        one. Why: the directions are one face's; a blink the fit spreads over a well-seen direction and an ill-seen
+        one moves both at once, but the ill-seen one alone cannot tell its part from noise and its hold model flattens
+        the peak (issue 41, MakeHuman 0.5 mm: blink retention 0.89 -> 0.91 at 0.3)."""
         self.axes = None if axes is None else np.asarray(axes, dtype=np.float64)
         if self.axes is not None and (self.axes.ndim != 2 or self.axes.shape[0] != self.axes.shape[1]):
             raise ValueError(f"RotatedIMM axes must be a square matrix, got shape {self.axes.shape}")
+        if not 0.0 <= share <= 1.0:
+            raise ValueError(f"RotatedIMM share must lie in [0, 1], got {share}")
         self.imm = imm
         self.shrink = shrink
+        self.share = float(share)
 
     def reset(self) -> None:
         self.imm.reset()
@@ -299,11 +312,13 @@ class RotatedIMM:
     def step(self, y: np.ndarray) -> np.ndarray:
         y = np.asarray(y, dtype=np.float64)
         u = np.ascontiguousarray(y) if self.axes is None else self.axes.T @ y
-        if self.shrink is None or self.imm.move_probability is None:
-            x = self.imm.step(u)
-            if self.shrink is not None:  # the first sample starts both
-                x = self.shrink.step(u, np.zeros(u.size), x, np.zeros(u.size))
-        else:
-            before = self.imm.move_probability.copy()
-            x = self.shrink.step(u, before, self.imm.step(u), self.imm.move_probability)
+        started = self.imm.move_probability is not None
+        before = self.imm.move_probability.copy() if started and self.shrink is not None else None
+        x = self.imm.step(u)
+        if started and self.share > 0:
+            self.imm.share_move(self.share, x)
+        if self.shrink is not None:  # the first sample starts both
+            moving = self.imm.move_probability
+            x = self.shrink.step(u, np.zeros(u.size) if before is None else before, x,
+                                 moving if started else np.zeros(u.size))
         return x if self.axes is None else self.axes @ x

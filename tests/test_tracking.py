@@ -259,3 +259,28 @@ def test_noise_shrink_refuses_bad_settings():
     for kw in ({"c": 0.0}, {"warm_frames": 1}, {"half_life_frames": 0.0}):
         with pytest.raises(ValueError, match="NoiseShrink"):
             NoiseShrink(**kw)
+
+
+def test_shared_move_lets_an_ill_seen_direction_follow_a_blink_the_well_seen_one_shows():
+    """A blink moves a well-seen direction a lot and an ill-seen one a little (its step ~1 sd of its nominal
+    noise): alone, the ill-seen one's hold model takes the step for noise and creeps; with the face's regime
+    shared (``share``), it follows once the well-seen one is seen to move. Still, the two are the plain IMM."""
+    rng = np.random.default_rng(4)
+    T, onset = 300, 200
+    truth = np.zeros((T, 2))
+    truth[onset:, 0], truth[onset:, 1] = 0.08, 0.6
+    Y = truth + rng.normal(0, [0.01, 0.005], (T, 2))
+    q_hold, q_move = dwna_variance(0.5, 60.0), dwna_variance(80.0, 60.0)
+    r = np.array([0.07**2, 0.005**2])
+
+    def run(share):
+        f = RotatedIMM(np.eye(2), IMMFilter(q_hold, q_move, r), share=share)
+        return np.array([f.step(y) for y in Y])
+
+    alone, shared = run(0.0), run(0.3)
+    after = slice(onset, onset + 15)
+    assert np.abs(shared[after, 0] - 0.08).mean() < 0.7 * np.abs(alone[after, 0] - 0.08).mean()  # 0.016, 0.025
+    assert np.abs(shared[after, 1] - 0.6).mean() < 1.05 * np.abs(alone[after, 1] - 0.6).mean()
+    np.testing.assert_allclose(shared[:onset - 10], alone[:onset - 10], atol=0.002)  # still face: as before
+    with pytest.raises(ValueError, match="share"):
+        RotatedIMM(np.eye(2), IMMFilter(q_hold, q_move, r), share=1.5)

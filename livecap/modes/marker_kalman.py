@@ -69,6 +69,7 @@ SUPPORT_RECHECK_SECONDS = 5.0  # streaming: checked again on the first this many
 MARKER_MEMORY_SECONDS = 0.4
 SHRINK_WARM_SECONDS = 1.0  # streaming: the weight stage's pull toward each direction's mean starts after this much
 SHRINK_MEMORY_SECONDS = 60.0  # ... and reads its mean, spread and noise over about this much (solvers.tracking)
+SHARED_MOVE = 0.3  # streaming: every direction's 'move' probability at least this x the largest (RotatedIMM share)
 
 
 log = logging.getLogger(__name__)
@@ -269,7 +270,7 @@ class MarkerKalmanSolver:
         noise = max(self.filter.noise_mm, self.calibrated_noise)
         if self._imm is None:  # the axes: the first frame's fit's; later strengths' noise is read in them
             axes = None if fit.marker_space else np.linalg.eigh(self._spread_of(k))[1]
-            self._imm = RotatedIMM(axes, self.motion.imm(noise, self.norms), self.motion.shrink())
+            self._imm = RotatedIMM(axes, self.motion.imm(noise, self.norms), self.motion.shrink(), SHARED_MOVE)
         if (noise, k) != self._noise_key:  # the noise settles in the first frames; the strength changes now and then
             if k not in self._along:
                 self._along[k] = self._imm.along(self._spread_of(k))
