@@ -220,9 +220,9 @@ class NoiseShrink:
     the stream itself (empirical Bayes).
 
     Why: along the fit's ill-seen directions its error is slow (the bounds and the marker filter shape it), so the
-    IMM's hold model keeps it as signal, and the fit's nominal variance (noise^2 V' C V) overstates the frame
-    noise there 10-30 x, so it cannot tell (issue 41, ICT: three quarters of the streamed weight MSE at 0.2 mm lay
-    in the quarter of the directions with the largest nominal variance). While any direction moves (the largest
+    IMM's hold model keeps it as signal, and the fit's nominal variance (noise^2 V' C V) overstates the fit's
+    actual error there 7-80 x, so it cannot tell (issue 41, ICT 0.2 mm: 72 % of the streamed weight MSE lay in the
+    quarter of the directions with the largest nominal variance). While any direction moves (the largest
     'move' probability) the pull is let go, so a blink that the fit spreads over a noisy direction keeps its peak.
     Nothing is pulled over the first ``warm_frames`` (the spread is not known yet)."""
 
