@@ -84,3 +84,55 @@ def imm_take(st: np.ndarray, Y: np.ndarray, ok: np.ndarray, transition: np.ndarr
     for t in range(Y.shape[0]):
         for i in range(Y.shape[1]):
             out[t, i] = _channel(st, i, Y[t, i], ok[t, i], s00, s01, s10, s11)
+
+
+# rows of the NoiseShrink state (``solvers.tracking.NoiseShrink``): running mean, variance, frame-noise variance,
+# last sample
+S_MEAN, S_VAR, S_NOISE, S_LAST = range(4)
+N_SHRINK = 4
+
+
+@numba.njit(cache=True, nogil=True)
+def shrink_step(st: np.ndarray, u: np.ndarray, x: np.ndarray, move_before: np.ndarray, move_after: np.ndarray,
+                n: int, a: float, b: float, c: float, pull: bool, out: np.ndarray) -> None:
+    """One frame of ``NoiseShrink``: the statistics updated with sample ``u`` (the frame noise only where the
+    direction held, ``move_before`` < 0.5), then, if ``pull``, the IMM's output ``x`` pulled toward the mean by
+    ``g = clip(1 - c noise / var, 0, 1)``, let go by the largest ``move_after``; into ``out``."""
+    C = u.shape[0]
+    if n == 1:
+        for i in range(C):
+            st[S_MEAN, i], st[S_VAR, i], st[S_NOISE, i], st[S_LAST, i] = u[i], 0.0, 0.0, u[i]
+            out[i] = x[i]
+        return
+    top = 0.0
+    for i in range(C):
+        top = max(top, move_after[i])
+    for i in range(C):
+        d = u[i] - st[S_MEAN, i]
+        m = st[S_MEAN, i] + a * d
+        v = (1.0 - a) * (st[S_VAR, i] + a * d * d)
+        e = u[i] - st[S_LAST, i]
+        if move_before[i] < 0.5:
+            st[S_NOISE, i] += b * (0.5 * e * e - st[S_NOISE, i])
+        st[S_MEAN, i], st[S_VAR, i], st[S_LAST, i] = m, v, u[i]
+        if pull:
+            g = 1.0 - c * st[S_NOISE, i] / max(v, 1e-30)
+            g = min(max(g, 0.0), 1.0)
+            g += (1.0 - g) * top
+            out[i] = m + g * (x[i] - m)
+        else:
+            out[i] = x[i]
+
+
+@numba.njit(cache=True, nogil=True)
+def share_move(st: np.ndarray, share: float, out: np.ndarray) -> None:
+    """After a step: every channel's 'move' probability raised to at least ``share`` x the largest one, and the
+    output ``out`` recombined from the two models' values with it (channels of one face share its regime)."""
+    top = 0.0
+    for i in range(st.shape[1]):
+        top = max(top, st[MU_MOVE, i])
+    floor = share * top
+    for i in range(st.shape[1]):
+        mu = max(st[MU_MOVE, i], floor)
+        st[MU_MOVE, i], st[MU_HOLD, i] = mu, 1.0 - mu
+        out[i] = (1.0 - mu) * st[XH, i] + mu * st[XM, i]

@@ -390,3 +390,22 @@ def test_offline_weight_stage_along_the_fit_noise_on_two_nearly_parallel_shapes(
 
     assert np.sqrt(np.mean((W - truth) ** 2)) < 0.0136
     assert jitter(W) < 1.17 * jitter(truth)
+
+
+def test_streamed_marker_filter_keeps_a_blink_after_a_still_face():
+    """Issue 41: after 7 s of a still face the streamed bank's 10 s likelihood memory held every marker at the
+    still face's small q, so a blink's markers kept 0.39 of their peak (0.21 at 0.5 mm); with the mode's short
+    memory (MARKER_MEMORY_SECONDS) the q follows the onset, as the offline smoother's local choice does, and the
+    still face is smoothed as much as before."""
+    from livecap.modes.marker_kalman import kalman_mode
+
+    T, noise = 600, 0.3
+    pulse = np.zeros(T)
+    pulse[450:459] = 3.0 * np.sin(np.linspace(0, np.pi, 9)) ** 2
+    truth = np.zeros((T, 40, 3))
+    truth[:, :8, 1] = pulse[:, None]
+    noisy = truth + np.random.default_rng(1).normal(0, noise, truth.shape)
+    f = kalman_mode(_face(), {"rate": 60.0}).filter
+    out = np.array([f.step(noisy[t], np.ones(40, bool))[0] for t in range(T)])[1:]  # one frame of lag
+    assert out[448:461, :8, 1].max(0).mean() > 0.7 * pulse.max()  # 0.81
+    assert np.sqrt(np.mean((out[100:440] - truth[100:440]) ** 2)) < 0.25 * noise  # 0.24 both ways

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from solvers.tracking import IMMFilter, KalmanCV, RotatedIMM, alpha_beta_gains, dwna_variance
+from solvers.tracking import IMMFilter, KalmanCV, NoiseShrink, RotatedIMM, alpha_beta_gains, dwna_variance
 from tests.imm_reference import NumpyIMMFilter
 
 
@@ -182,3 +182,105 @@ def test_rotated_imm_holds_the_noisy_difference_and_follows_the_sum():
     err, err_plain = np.abs(out[after] - truth[after]).mean(), np.abs(plain[after] - truth[after]).mean()
     assert jitter(out) <= 1.1 * jitter(plain)
     assert err < 0.6 * err_plain  # 0.43 x
+
+
+def _shrink_pair(warm: int = 60) -> tuple[RotatedIMM, RotatedIMM]:
+    q_hold, q_move = dwna_variance(0.5, 60.0), dwna_variance(80.0, 60.0)
+    r = np.array([0.05, 1e-4])  # the fit's nominal variances: direction 0 ill-seen, 1 well seen
+    plain = RotatedIMM(np.eye(2), IMMFilter(q_hold, q_move, r))
+    shrunk = RotatedIMM(np.eye(2), IMMFilter(q_hold, q_move, r), NoiseShrink(warm_frames=warm))
+    return plain, shrunk
+
+
+def _wander_and_signal(T: int = 900, seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Direction 0: at rest (0.3) under a slow wander plus white noise of the same size, as the fit's error along
+    an ill-seen direction; direction 1: a real slow motion under a little white noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(T)
+    truth = np.stack([np.full(T, 0.3), 0.5 + 0.4 * np.sin(2 * np.pi * t / 240)], 1)
+    wander = np.zeros(T)
+    for i in range(1, T):
+        wander[i] = 0.98 * wander[i - 1] + rng.normal(0, 0.03 * np.sqrt(1 - 0.98**2))
+    Y = truth.copy()
+    Y[:, 0] += wander + rng.normal(0, 0.03, T)
+    Y[:, 1] += rng.normal(0, 0.01, T)
+    return Y, truth
+
+
+def test_noise_shrink_pulls_a_wandering_noise_direction_to_its_mean_and_keeps_the_signal():
+    """Issue 41: the IMM's hold model keeps a slow wander as signal; where a direction's spread is mostly its own
+    frame noise the shrink pulls it to its mean. On a direction with real motion it changes next to nothing."""
+    Y, truth = _wander_and_signal()
+    plain, shrunk = _shrink_pair()
+    P = np.array([plain.step(y) for y in Y])
+    S = np.array([shrunk.step(y) for y in Y])
+    after = slice(120, None)
+
+    def err(W, j):
+        return np.sqrt(np.mean((W[after, j] - truth[after, j]) ** 2))
+
+    assert err(S, 0) < 0.5 * err(P, 0)
+    assert err(S, 1) < 1.02 * err(P, 1)
+
+
+def test_noise_shrink_lets_go_while_the_face_moves_and_waits_for_its_warm_up():
+    """No pull over the first ``warm_frames``; and when a well-seen direction jumps (a blink's onset) the pull on
+    the others is let go, so a blink the fit spreads over a noisy direction keeps its peak."""
+    Y, _ = _wander_and_signal()
+    Y[600:606, 1] += 0.6  # a blink on the well-seen direction
+    Y[600:606, 0] += 0.1  # ... part of it on the ill-seen one
+    plain, shrunk = _shrink_pair(warm=60)
+    P = np.array([plain.step(y) for y in Y])
+    S = np.array([shrunk.step(y) for y in Y])
+    np.testing.assert_array_equal(S[:60], P[:60])
+    assert np.std(S[500:590, 0]) < 0.5 * np.std(P[500:590, 0])  # held at its mean before
+    np.testing.assert_allclose(S[602:606, 0], P[602:606, 0], atol=0.02)  # let go during it
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.floats(0.5, 8.0))
+def test_noise_shrink_output_lies_between_the_mean_and_the_imm(seed, c):
+    """The pull is a gain in [0, 1] toward the running mean, per direction: never past the mean, never beyond
+    the IMM's own output."""
+    rng = np.random.default_rng(seed)
+    Y = rng.normal(size=(80, 3)).cumsum(0) * rng.uniform(0.01, 1.0, 3) + rng.normal(0, 0.2, (80, 3))
+    axes = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    plain = RotatedIMM(axes, IMMFilter(1e-4, 1e-2, 0.05))
+    shrunk = RotatedIMM(axes, IMMFilter(1e-4, 1e-2, 0.05), NoiseShrink(c=c, warm_frames=5))
+    for y in Y:
+        x = axes.T @ plain.step(y)
+        s = axes.T @ shrunk.step(y)
+        m = shrunk.shrink.mean
+        assert np.all((s - m) * (x - m) >= -1e-12)
+        assert np.all(np.abs(s - m) <= np.abs(x - m) + 1e-12)
+
+
+def test_noise_shrink_refuses_bad_settings():
+    for kw in ({"c": 0.0}, {"warm_frames": 1}, {"half_life_frames": 0.0}):
+        with pytest.raises(ValueError, match="NoiseShrink"):
+            NoiseShrink(**kw)
+
+
+def test_shared_move_lets_an_ill_seen_direction_follow_a_blink_the_well_seen_one_shows():
+    """A blink moves a well-seen direction a lot and an ill-seen one a little (its step ~1 sd of its nominal
+    noise): alone, the ill-seen one's hold model takes the step for noise and creeps; with the face's regime
+    shared (``share``), it follows once the well-seen one is seen to move. Still, the two are the plain IMM."""
+    rng = np.random.default_rng(4)
+    T, onset = 300, 200
+    truth = np.zeros((T, 2))
+    truth[onset:, 0], truth[onset:, 1] = 0.08, 0.6
+    Y = truth + rng.normal(0, [0.01, 0.005], (T, 2))
+    q_hold, q_move = dwna_variance(0.5, 60.0), dwna_variance(80.0, 60.0)
+    r = np.array([0.07**2, 0.005**2])
+
+    def run(share):
+        f = RotatedIMM(np.eye(2), IMMFilter(q_hold, q_move, r), share=share)
+        return np.array([f.step(y) for y in Y])
+
+    alone, shared = run(0.0), run(0.3)
+    after = slice(onset, onset + 15)
+    assert np.abs(shared[after, 0] - 0.08).mean() < 0.7 * np.abs(alone[after, 0] - 0.08).mean()  # 0.016, 0.025
+    assert np.abs(shared[after, 1] - 0.6).mean() < 1.05 * np.abs(alone[after, 1] - 0.6).mean()
+    np.testing.assert_allclose(shared[:onset - 10], alone[:onset - 10], atol=0.002)  # still face: as before
+    with pytest.raises(ValueError, match="share"):
+        RotatedIMM(np.eye(2), IMMFilter(q_hold, q_move, r), share=1.5)

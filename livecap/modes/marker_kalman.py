@@ -13,7 +13,9 @@ Bar-Shalom et al. 2001 §11.6.6), the ``robust`` mode's weight stage and setting
 is the marker noise (the marker filter's estimate, never under the calibrated noise) through the fit: the
 fit's whole weight covariance (noise^2 x the inverse Hessian), the IMM run along its eigenvectors
 (solvers.tracking.RotatedIMM; issue 41 measured jitter, weight RMSE and vertex p95 all lower, streamed and
-offline, than with a variance per shape). One IMM a take, its noise changed in place. Issue 15 measured
+offline, than with a variance per shape). One IMM a take, its noise changed in place. Streamed, each direction's
+output is then pulled toward its running mean where the stream shows it carries mostly noise (solvers.tracking.
+NoiseShrink; issue 41: ICT 0.2 mm weight RMSE 0.53 -> 0.49 x the oracle, jitter and blinks kept). Issue 15 measured
 where the streamed jitter came from (ICT 0.5 mm, S07-001 and apfel): the filtered markers' residual noise
 through the ill-conditioned basis (jitter 13 x / 6 x the truth's;
 the per-frame strength switching adds about a tenth), not the pose re-fit; the IMM cuts it to 3.3 x /
@@ -52,7 +54,7 @@ from solvers.pose_refine import RigidColumns
 from solvers.prior_strength import HeldOutStrength
 from solvers.prior_support import Support, widen_prior
 from solvers.qp import MARKER_SPACE_RATIO, FrameQP
-from solvers.tracking import IMMFilter, RotatedIMM, dwna_variance, variances_along
+from solvers.tracking import IMMFilter, NoiseShrink, RotatedIMM, dwna_variance, variances_along
 
 STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it balances)
 STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
@@ -63,6 +65,12 @@ SUPPORT_SECONDS = 1.0  # streaming: the first seconds a prior is checked against
 SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
 SUPPORT_SWAP_SECONDS = 0.5  # streaming: the check runs in a thread meanwhile; its prior is used this much later
 SUPPORT_RECHECK_SECONDS = 5.0  # streaming: checked again on the first this many seconds (one second's mean is noisy)
+# streaming: half-life of the marker bank's likelihoods, so each marker's q follows a blink's onset as the offline
+# smoother's local choice does (issue 41, MakeHuman 0.5 mm: 10 s memory kept 0.84 of the blinks' peaks, 0.4 s 0.90)
+MARKER_MEMORY_SECONDS = 0.4
+SHRINK_WARM_SECONDS = 1.0  # streaming: the weight stage's pull toward each direction's mean starts after this much
+SHRINK_MEMORY_SECONDS = 60.0  # ... and reads its mean, spread and noise over about this much (solvers.tracking)
+SHARED_MOVE = 0.3  # streaming: every direction's 'move' probability at least this x the largest (RotatedIMM share)
 
 
 log = logging.getLogger(__name__)
@@ -80,6 +88,10 @@ class WeightMotion:
     def imm(self, noise_mm: float, norms: np.ndarray) -> IMMFilter:
         return IMMFilter(dwna_variance(self.hold_accel, self.rate), dwna_variance(self.move_accel, self.rate),
                          noise_mm**2 / norms**2, sojourn_frames=max(2.0, self.sojourn * self.rate))
+
+    def shrink(self) -> NoiseShrink:
+        return NoiseShrink(warm_frames=max(2, int(SHRINK_WARM_SECONDS * self.rate)),
+                           half_life_frames=SHRINK_MEMORY_SECONDS * self.rate)
 
 
 class MarkerKalmanSolver:
@@ -265,7 +277,7 @@ class MarkerKalmanSolver:
         noise = max(self.filter.noise_mm, self.calibrated_noise)
         if self._imm is None:  # the axes: the first frame's fit's; later strengths' noise is read in them
             axes = None if fit.marker_space else np.linalg.eigh(self._spread_of(k))[1]
-            self._imm = RotatedIMM(axes, self.motion.imm(noise, self.norms))
+            self._imm = RotatedIMM(axes, self.motion.imm(noise, self.norms), self.motion.shrink(), SHARED_MOVE)
         if (noise, k) != self._noise_key:  # the noise settles in the first frames; the strength changes now and then
             if k not in self._along:
                 self._along[k] = self._imm.along(self._spread_of(k))
@@ -406,5 +418,6 @@ def kalman_mode(profile: Profile, options: Mapping | None = None) -> MarkerKalma
         mean, precision = prior.mean, np.linalg.inv(prior.cov)
     r = robust_settings(profile, {"rate": options.get("rate")})
     motion = WeightMotion(float(r.rate), float(r.hold_accel), float(r.move_accel), float(r.sojourn))
-    return MarkerKalmanSolver(profile, mean, precision, KalmanSettings(), motion,
+    settings = KalmanSettings(half_life_frames=MARKER_MEMORY_SECONDS * motion.rate)
+    return MarkerKalmanSolver(profile, mean, precision, settings, motion,
                               None if prior is None else np.asarray(prior.cov, float))
