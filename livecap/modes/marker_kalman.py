@@ -49,7 +49,7 @@ from livecap.calibration.profile import Profile
 from livecap.modes.robust import robust_settings
 from solvers.marker_kalman import KalmanSettings, StreamingMarkerKalman, smooth_take
 from solvers.pose_refine import RigidColumns
-from solvers.prior_strength import HeldOutStrength
+from solvers.prior_strength import HeldOutStrength, take_strength
 from solvers.prior_support import Support, widen_prior
 from solvers.qp import FrameQP
 from solvers.tracking import IMMFilter, RotatedIMM, dwna_variance, variances_along
@@ -59,7 +59,10 @@ STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
 STRENGTH_TRIAL_EVERY = 2  # streaming: frames per held-out strength trial (4: demo take RMSE +13 %, see docs)
 POSE_PASSES = 2  # offline: joint solves, the pose undone on the raw markers between (3: no better, issue 15)
 SUPPORT_SECONDS = 1.0  # streaming: the first seconds a prior is checked against (solvers.prior_support)
-SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
+SUPPORT_FRAMES = 120  # streaming: at most this many frames, evenly spread, for the check (cost ~ frames)
+# offline: the same over the whole take (issue 39: 120 -> 60 halved the check, ~0.1 s of a 30 s take; realeval's
+# offline rows within 1 % either way, docs/performance.md)
+SUPPORT_TAKE_FRAMES = 60
 SUPPORT_SWAP_SECONDS = 0.5  # streaming: the check runs in a thread meanwhile; its prior is used this much later
 SUPPORT_RECHECK_SECONDS = 5.0  # streaming: checked again on the first this many seconds (one second's mean is noisy)
 
@@ -321,16 +324,19 @@ class MarkerKalmanSolver:
     def _solve_once(self, targets: np.ndarray, valid: np.ndarray, first: bool = True) -> np.ndarray:
         """Weights and pose (T x (m + 6)) of the RTS-smoothed take. After the ``first`` pass, the marker noise r
         is the first's: it is the take's, and a rigid correction does not move it (issue 39: its likelihood margin
-        on the ICT takes is > 1e4; the realeval rows are equal to every digit)."""
+        on the ICT takes is > 1e4; the realeval rows are equal to every digit). The prior's strength by the same
+        held-out markers as streamed, every strength on every frame in closed form (unbounded fits: one
+        eigendecomposition per fold, solvers.prior_strength.take_strength) instead of a bounded trial QP per frame
+        (issue 39 item 2: the trials were half of a 30 s take's solve; realeval's offline rows in
+        docs/performance.md)."""
         smoothed, ok, self.chosen = smooth_take(targets, valid, self.settings, None if first else self.chosen["r"])
         if self.prior_cov is not None and self.support is None:
-            pick = _spread(len(targets), SUPPORT_FRAMES)
+            pick = _spread(len(targets), SUPPORT_TAKE_FRAMES)
             self._check_support(smoothed[pick].reshape(len(pick), -1), ok[pick], self.chosen["noise_mm"])
-        sel = self._selector(1.0)
-        for t in range(len(targets)):
-            sel.observe(smoothed[t], ok[t])
-        self.chosen["prior_weight"] = float(STRENGTHS[sel.best])
-        fit = self._fit(sel.best)
+        B, _, _, mean, precision = self.joint
+        best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok)[0]
+        self.chosen["prior_weight"] = float(STRENGTHS[best])
+        fit = self._fit(best)
         fit.reset()
         return fit.step_take(smoothed, ok)
 
