@@ -65,7 +65,7 @@ def test_frames_missing_many_markers_are_left_out_where_enough_miss_few():
 
 def test_offline_kalman_runs_no_bounded_trial_and_checks_the_prior_on_few_frames(monkeypatch):
     """Before issue 39 item 2 the whole-take solve ran a held-out trial QP on every frame of both pose passes, and
-    checked the prior on 120 frames."""
+    checked the prior on 120 frames to the streamed check's tolerance."""
     import livecap.modes.marker_kalman as mk
     from livecap.calibration.animation_prior import AnimationPrior
     from tests.test_marker_kalman import _face
@@ -82,8 +82,9 @@ def test_offline_kalman_runs_no_bounded_trial_and_checks_the_prior_on_few_frames
     trials, checked = [], []
     observe, widen = mk.HeldOutStrength.observe, mk.widen_prior
     monkeypatch.setattr(mk.HeldOutStrength, "observe", lambda self, *a, **k: trials.append(1) or observe(self, *a, **k))
-    monkeypatch.setattr(mk, "widen_prior", lambda *a, **k: checked.append(len(a[3])) or widen(*a, **k))
+    monkeypatch.setattr(mk, "widen_prior", lambda *a, **k: checked.append((len(a[3]), k["tol"])) or widen(*a, **k))
     solver = mk.kalman_mode(p, {"rate": 60.0})
     out = solver.solve(X, valid)
-    assert not trials and checked == [mk.SUPPORT_TAKE_FRAMES] and mk.SUPPORT_TAKE_FRAMES < 120
+    assert not trials and checked == [(mk.SUPPORT_TAKE_FRAMES, mk.SUPPORT_TAKE_TOL)]
+    assert mk.SUPPORT_TAKE_FRAMES < 120 and mk.SUPPORT_TAKE_TOL > 1e-2
     assert np.sqrt(np.mean((out - W) ** 2)) < 0.06

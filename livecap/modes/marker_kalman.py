@@ -63,6 +63,11 @@ SUPPORT_FRAMES = 120  # streaming: at most this many frames, evenly spread, for 
 # offline: the same over the whole take (issue 39: 120 -> 60 halved the check, ~0.1 s of a 30 s take; realeval's
 # offline rows within 1 % either way, docs/performance.md)
 SUPPORT_TAKE_FRAMES = 60
+# offline: the check's iterations stop when no variance moves by more than this (relative) nor the mean by more than
+# this many sds. The variances are not used (only the mean, solvers.prior_support), and they are what converges
+# slowly: on S07-001 0.01 -> 0.05 took 19 -> 7 iterations (0.117 -> 0.044 s) and moved the mean by 0.005 sd at most
+# (issue 39 item 2, docs/performance.md)
+SUPPORT_TAKE_TOL = 0.05
 SUPPORT_SWAP_SECONDS = 0.5  # streaming: the check runs in a thread meanwhile; its prior is used this much later
 SUPPORT_RECHECK_SECONDS = 5.0  # streaming: checked again on the first this many seconds (one second's mean is noisy)
 
@@ -130,12 +135,13 @@ class MarkerKalmanSolver:
         return self._spreads[k]
 
     def _check_support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> None:
-        """Re-centre the prior where the frames' marginal likelihood says the actor rests elsewhere, and say so."""
-        self._use_support(self._support(targets, valid, noise_mm), len(targets))
+        """Re-centre the prior where the frames' marginal likelihood says the actor rests elsewhere, and say so (a
+        whole take: to SUPPORT_TAKE_TOL)."""
+        self._use_support(self._support(targets, valid, noise_mm, SUPPORT_TAKE_TOL), len(targets))
 
-    def _support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> Support:
+    def _support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float, tol: float = 1e-2) -> Support:
         return widen_prior(self.profile.basis, self._mean0, self.prior_cov, targets, valid, self.lower, self.upper,
-                           extra=self.pose.matrix, noise_var=noise_mm**2)
+                           extra=self.pose.matrix, noise_var=noise_mm**2, tol=tol)
 
     def _use_support(self, s: Support, frames: int, built: tuple | None = None) -> None:
         self.support = s
