@@ -90,7 +90,8 @@ FEW_MISSING = 4  # take_strength: frames missing at most this many training mark
 
 
 def take_strength(basis: np.ndarray, mean: np.ndarray, precision: np.ndarray, grid: np.ndarray, targets: np.ndarray,
-                  valid: np.ndarray, folds: int = 5, seed: int = 0) -> tuple[int, np.ndarray, int]:
+                  valid: np.ndarray, folds: int = 5, seed: int = 0,
+                  factors: dict | None = None) -> tuple[int, np.ndarray, int]:
     """A whole take's strength by the held-out markers of :class:`HeldOutStrength` (its folds), every strength on
     every frame, in closed form: the index into ``grid`` of the least mean held-out squared error, those errors, and
     the frames they were measured on.
@@ -104,7 +105,8 @@ def take_strength(basis: np.ndarray, mean: np.ndarray, precision: np.ndarray, gr
     FEW_MISSING training markers, or, where they are fewer, the third of the fold's frames that miss the fewest.
     So the trials are matrix products over the take instead of a bounded QP per frame. The fits are unbounded:
     clipped to the bounds they chose worse, and solved within them they cost that QP per frame (issue 39,
-    docs/performance.md)."""
+    docs/performance.md). ``factors``: a dict that keeps each fold's (M, d) for the next call on the same basis
+    and prior (a second pass over the take)."""
     B = np.asarray(basis, float)
     n3, m = B.shape
     n = n3 // 3
@@ -128,11 +130,16 @@ def take_strength(basis: np.ndarray, mean: np.ndarray, precision: np.ndarray, gr
             continue
         train = np.repeat(~held, 3)
         Bt, Bh = B[train], B[~train]
-        G = Bt.T @ Bt
-        L = np.linalg.cholesky(G + 1e-12 * np.trace(G) / m * np.eye(m))
-        Li = np.linalg.solve(L, np.eye(m))
-        d, Q = np.linalg.eigh(Li @ np.asarray(precision, float) @ Li.T)
-        M = Li.T @ Q
+        if factors is not None and f in factors:
+            M, d = factors[f]
+        else:
+            G = Bt.T @ Bt
+            L = np.linalg.cholesky(G + 1e-12 * np.trace(G) / m * np.eye(m))
+            Li = np.linalg.solve(L, np.eye(m))
+            d, Q = np.linalg.eigh(Li @ np.asarray(precision, float) @ Li.T)
+            M = Li.T @ Q
+            if factors is not None:
+                factors[f] = M, d
         D = 1.0 / (1.0 + grid[:, None] * np.maximum(d, 0.0))  # strengths x m
         BtM = Bt @ M
         Y = D[:, None, :] * (Z[frames][:, train] @ BtM)[None]  # strengths x frames x m: H^-1 B'(s - B mean), M'-wise

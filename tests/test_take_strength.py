@@ -49,10 +49,14 @@ def test_closed_form_trials_equal_a_fit_per_frame(seed, n, m, missing):
     ps.FEW_MISSING = n  # every frame, whatever it misses
     try:
         best, err, used = ps.take_strength(B, mean, P, grid, X, ok)
+        kept: dict = {}
+        again = [ps.take_strength(B, mean, P, grid, X, ok, factors=kept)[1] for _ in range(2)]  # factors kept
     finally:
         ps.FEW_MISSING = old
     want = _per_frame(B, mean, P, grid, X, ok)
     np.testing.assert_allclose(err, want, rtol=1e-8)
+    np.testing.assert_array_equal(again[0], err)
+    np.testing.assert_array_equal(again[1], err)
     assert best == int(np.argmin(want))
 
 

@@ -340,7 +340,9 @@ class MarkerKalmanSolver:
             pick = _spread(len(targets), SUPPORT_TAKE_FRAMES)
             self._check_support(smoothed[pick].reshape(len(pick), -1), ok[pick], self.chosen["noise_mm"])
         B, _, _, mean, precision = self.joint
-        best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok)[0]
+        if first:
+            self._folds: dict = {}  # each fold's factors: the prior is checked by now, the second pass reuses them
+        best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok, factors=self._folds)[0]
         self.chosen["prior_weight"] = float(STRENGTHS[best])
         fit = self._fit(best)
         fit.reset()
