@@ -86,7 +86,9 @@ class HeldOutStrength:
 
 
 
-FEW_MISSING = 4  # take_strength: frames missing at most this many training markers (cost ~ their square)
+# take_strength: frames missing at most this many training markers (their cost grows with its square; issue 39 item 2:
+# 4 -> 2 halved it on a 30 s ICT take, 33 -> 17 ms a pass, the same weights there and in realeval with a prior)
+FEW_MISSING = 2
 
 
 def take_strength(basis: np.ndarray, mean: np.ndarray, precision: np.ndarray, grid: np.ndarray, targets: np.ndarray,
