@@ -106,6 +106,7 @@ PARTS = {"targets (stabilise, fill)": ("livecap.offline.solve", "prepare_targets
          "marker smoother": ("livecap.modes.marker_kalman", "smooth_take"),
          "prior support check": ("livecap.modes.marker_kalman", "widen_prior"),
          "held-out strength trials": ("solvers.prior_strength", "HeldOutStrength.observe"),
+         "strength in closed form": ("livecap.modes.marker_kalman", "take_strength"),
          "fit": ("solvers.qp", "FrameQP.step_take"),
          "rigid pose undone": ("solvers.pose_refine", "RigidColumns.remove"),
          "weight IMM": ("solvers.tracking", "IMMFilter.filter")}

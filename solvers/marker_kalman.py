@@ -38,6 +38,9 @@ class KalmanSettings:
     # offline: the shared r chosen on at most this many markers, evenly spread (issue 39: on the ICT takes its
     # log-likelihood margin is > 1e4 and every eighth marker chose as all 60; the bank over all was ~1/4 of a solve)
     noise_markers: int = 12
+    # offline: ... and on at most this many frames, the take's first (issue 39 item 2: on 24 ICT takes of six real
+    # performances, 10 and 30 s at 0.5 and 0.2 mm, the first 600 chose as all, by > 600 log-likelihood units)
+    noise_frames: int = 600
 
 
 def _grid(s: KalmanSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -59,8 +62,9 @@ def smooth_take(targets: np.ndarray, valid: np.ndarray, settings: KalmanSettings
     """RTS-smoothed targets (T x n x 3), the validity after gap bridging, and the chosen noise.
 
     ``r`` (shared): as given (the ``"r"`` chosen on these markers before, e.g. by the pass before a rigid
-    correction), else by the whole take's likelihood on ``settings.noise_markers`` markers (one r is every
-    marker's: a dozen over every frame tell it as well as all); ``q`` per marker and frame by the likelihood of
+    correction), else by the likelihood of ``settings.noise_markers`` markers over the take's first
+    ``settings.noise_frames`` (one r is every marker's and every frame's: a dozen markers over ten seconds tell it
+    as well as all); ``q`` per marker and frame by the likelihood of
     the fixed-``q`` filters' innovations over ``settings.local_frames`` either side (a local model
     choice, as an IMM's mode probabilities; Bar-Shalom et al. 2001 §11.6.6); then one filter with
     that time-varying ``q`` and the RTS pass."""
@@ -76,8 +80,10 @@ def smooth_take(targets: np.ndarray, valid: np.ndarray, settings: KalmanSettings
         pick = _spread(n, s.noise_markers)
         k = len(pick)
         ll = np.zeros((len(rk), k, 3))
-        bank_take(np.ascontiguousarray(z[:, pick]), np.ascontiguousarray(seen[:, pick]), np.repeat(rk[:, None], k, 1),
-                  np.repeat(qk[None, :, None], k, 2), 1e2, ll, none, none, none, none, none)
+        span = slice(0, max(1, s.noise_frames))
+        bank_take(np.ascontiguousarray(z[span, pick]), np.ascontiguousarray(seen[span, pick]),
+                  np.repeat(rk[:, None], k, 1), np.repeat(qk[None, :, None], k, 2), 1e2, ll, none, none, none, none,
+                  none)
         r = s.r_grid[_choose(ll, k, len(s.r_grid))[0]]
     qg, r0 = np.asarray(s.q_grid, float), float(r)
     cum = np.zeros((T + 1, len(qg), n))

@@ -5,7 +5,8 @@ the other markers predicts the held-out ones, and the squared error is accumulat
 (exponentially discounted when streaming). The strength with the least mean held-out error is
 used. Cross-validation over markers instead of frames, because the data term of one frame is what
 a prior competes with (Lewis et al. 2014 §7.9 on choosing regularisation; Golub, Heath & Wahba 1979
-for the held-out principle).
+for the held-out principle). A whole take: every strength on every frame at once, unbounded, in closed
+form (:func:`take_strength`).
 """
 
 from __future__ import annotations
@@ -107,3 +108,88 @@ class HeldOutStrength:
         if self._counted or (self.count > 0).all():  # (decayed counts stay > 0: checked until they are)
             self._counted = True
             self.best = int(np.argmin(self.err / self.count))
+
+
+
+
+
+# take_strength: frames missing at most this many training markers (their cost grows with its square; issue 39 item 2:
+# 4 -> 2 halved it on a 30 s ICT take, 33 -> 17 ms a pass, the same weights there and in realeval with a prior)
+FEW_MISSING = 2
+
+
+def take_strength(basis: np.ndarray, mean: np.ndarray, precision: np.ndarray, grid: np.ndarray, targets: np.ndarray,
+                  valid: np.ndarray, folds: int = 5, seed: int = 0,
+                  factors: dict | None = None) -> tuple[int, np.ndarray, int]:
+    """A whole take's strength by the held-out markers of :class:`HeldOutStrength` (its folds), every strength on
+    every frame, in closed form: the index into ``grid`` of the least mean held-out squared error, those errors, and
+    the frames they were measured on.
+
+    Frame t holds out fold ``t % folds``. With every other marker seen, the fit at strength a is
+    w(a) = mean + (G + a P)^-1 B'(s - B mean), G = B'B over the training rows; with G = L L' and
+    L^-1 P L^-T = Q diag(d) Q', (G + a P)^-1 = M diag(1 / (1 + a d)) M' for M = L^-T Q: one Cholesky and one
+    eigendecomposition per fold serve every strength and every frame (the pair's generalised eigenproblem; Golub &
+    Van Loan 2013 §8.7). A frame's k unseen training markers take their rows U' out of G: (H - U U')^-1 by
+    Woodbury (ibid. §2.1.4), a 3k x 3k solve per strength and frame. The frames used: those missing at most
+    FEW_MISSING training markers, or, where they are fewer, the third of the fold's frames that miss the fewest.
+    So the trials are matrix products over the take instead of a bounded QP per frame. The fits are unbounded:
+    clipped to the bounds they chose worse, and solved within them they cost that QP per frame (issue 39,
+    docs/performance.md). ``factors``: a dict that keeps each fold's (M, d) for the next call on the same basis
+    and prior (a second pass over the take)."""
+    B = np.asarray(basis, float)
+    n3, m = B.shape
+    n = n3 // 3
+    T = len(valid)
+    ok = np.asarray(valid, bool).reshape(T, n)
+    Z = np.where(np.repeat(ok, 3, axis=1), np.asarray(targets, float).reshape(T, n3) - B @ np.asarray(mean, float),
+                 0.0)
+    grid = np.asarray(grid, float)
+    fold_of = np.random.default_rng(seed).permutation(n) % folds
+    err, count, used = np.zeros(len(grid)), 0.0, 0
+    for f in range(folds):
+        held = fold_of == f
+        frames = np.arange(f, T, folds)
+        frames = frames[ok[frames][:, held].any(1)]
+        missing = ~ok[frames][:, ~held]
+        k = missing.sum(1)
+        order = np.argsort(k, kind="stable")
+        keep = max(int(np.count_nonzero(k <= FEW_MISSING)), len(frames) // 3)
+        frames, missing, k = frames[order[:keep]], missing[order[:keep]], k[order[:keep]]
+        if not len(frames):
+            continue
+        train = np.repeat(~held, 3)
+        Bt, Bh = B[train], B[~train]
+        if factors is not None and f in factors:
+            M, d = factors[f]
+        else:
+            G = Bt.T @ Bt
+            L = np.linalg.cholesky(G + 1e-12 * np.trace(G) / m * np.eye(m))
+            Li = np.linalg.solve(L, np.eye(m))
+            d, Q = np.linalg.eigh(Li @ np.asarray(precision, float) @ Li.T)
+            M = Li.T @ Q
+            if factors is not None:
+                factors[f] = M, d
+        D = 1.0 / (1.0 + grid[:, None] * np.maximum(d, 0.0))  # strengths x m
+        BtM = Bt @ M
+        Y = D[:, None, :] * (Z[frames][:, train] @ BtM)[None]  # strengths x frames x m: H^-1 B'(s - B mean), M'-wise
+        good = np.ones(len(frames), bool)
+        for j in np.unique(k[k > 0]):
+            sel = np.flatnonzero(k == j)
+            rows = (3 * np.nonzero(missing[sel])[1].reshape(len(sel), j, 1) + np.arange(3)).reshape(len(sel), 3 * j)
+            U = BtM[rows]  # frames x 3k x m: the unseen rows, M'-wise
+            S = np.eye(3 * j) - (U[None] * D[:, None, None, :]) @ np.swapaxes(U, 1, 2)[None]
+            sign, logdet = np.linalg.slogdet(S[0])  # the weakest strength's: every S is at least as definite
+            fine = (sign > 0) & (logdet > -25.0)  # the seen markers fix every column
+            X = np.linalg.solve(S[:, fine], (U[fine][None] @ Y[:, sel[fine], :, None]))
+            Y[:, sel[fine]] += D[:, None, :] * (np.swapaxes(U[fine], 1, 2)[None] @ X)[..., 0]
+            good[sel[~fine]] = False
+        frames, Y = frames[good], Y[:, good]
+        seen = np.repeat(ok[frames][:, held], 3, axis=1)
+        E = np.where(seen[None], Y @ (Bh @ M).T - Z[frames][:, ~train][None], 0.0)
+        err += (E**2).sum((1, 2))
+        count += float(seen.sum()) / 3
+        used += len(frames)
+    if not count:
+        return len(grid) // 2, err, 0
+    err /= count
+    return int(np.argmin(err)), err, used

@@ -52,6 +52,10 @@ def test_the_shared_noise_chosen_on_a_dozen_markers_is_the_one_all_choose(noise)
     few = smooth_take(noisy, valid)[2]["noise_mm"]
     assert few == smooth_take(noisy, valid, KalmanSettings(noise_markers=40))[2]["noise_mm"]
     assert few == pytest.approx(noise, rel=0.45)
+    # issue 39 item 2: and on the first 150 frames of 600, with the same smoothed take wherever it chooses the same
+    first = smooth_take(noisy, valid, KalmanSettings(noise_frames=150))
+    assert first[2]["noise_mm"] == few
+    np.testing.assert_array_equal(first[0], smooth_take(noisy, valid)[0])
 
 
 def test_bridged_fills_short_gaps_only():

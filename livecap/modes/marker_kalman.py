@@ -51,7 +51,7 @@ from livecap.calibration.profile import Profile
 from livecap.modes.robust import robust_settings
 from solvers.marker_kalman import KalmanSettings, StreamingMarkerKalman, smooth_take
 from solvers.pose_refine import RigidColumns
-from solvers.prior_strength import HeldOutStrength
+from solvers.prior_strength import HeldOutStrength, take_strength
 from solvers.prior_support import Support, widen_prior
 from solvers.qp import MARKER_SPACE_RATIO, FrameQP
 from solvers.tracking import IMMFilter, NoiseShrink, RotatedIMM, dwna_variance, variances_along
@@ -62,7 +62,15 @@ STRENGTH_TRIAL_EVERY = 2  # streaming: frames per held-out strength trial (4: de
 TRIAL_LATE_FRAMES = 2  # streaming: frames a trial part may wait while the fit meets new visibility patterns
 POSE_PASSES = 2  # offline: joint solves, the pose undone on the raw markers between (3: no better, issue 15)
 SUPPORT_SECONDS = 1.0  # streaming: the first seconds a prior is checked against (solvers.prior_support)
-SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
+SUPPORT_FRAMES = 120  # streaming: at most this many frames, evenly spread, for the check (cost ~ frames)
+# offline: the same over the whole take (issue 39: 120 -> 60 halved the check, ~0.1 s of a 30 s take; realeval's
+# offline rows within 1 % either way, docs/performance.md)
+SUPPORT_TAKE_FRAMES = 60
+# offline: the check's iterations stop when no variance moves by more than this (relative) nor the mean by more than
+# this many sds. The variances are not used (only the mean, solvers.prior_support), and they are what converges
+# slowly: 0.01 -> 0.1 took 19 -> 6 / 7 iterations on S07-001 / apfel (0.12-0.13 -> 0.04-0.05 s) and moved the mean by
+# 0.006 / 0.001 sd at most (issue 39 item 2, docs/performance.md)
+SUPPORT_TAKE_TOL = 0.1
 SUPPORT_SWAP_SECONDS = 0.5  # streaming: the check runs in a thread meanwhile; its prior is used this much later
 SUPPORT_RECHECK_SECONDS = 5.0  # streaming: checked again on the first this many seconds (one second's mean is noisy)
 # streaming: half-life of the marker bank's likelihoods, so each marker's q follows a blink's onset as the offline
@@ -122,8 +130,8 @@ class MarkerKalmanSolver:
         self.chosen: dict = {}
         self.reset()
 
-    def _selector(self, decay: float, streamed: bool = True) -> HeldOutStrength:
-        return _selector(self.joint, decay, streamed)
+    def _selector(self, decay: float) -> HeldOutStrength:
+        return _selector(self.joint, decay)
 
     def _fit(self, k: int) -> FrameQP:
         if k not in self._fits:
@@ -140,12 +148,13 @@ class MarkerKalmanSolver:
         return self._spreads[k]
 
     def _check_support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> None:
-        """Re-centre the prior where the frames' marginal likelihood says the actor rests elsewhere, and say so."""
-        self._use_support(self._support(targets, valid, noise_mm), len(targets))
+        """Re-centre the prior where the frames' marginal likelihood says the actor rests elsewhere, and say so (a
+        whole take: to SUPPORT_TAKE_TOL)."""
+        self._use_support(self._support(targets, valid, noise_mm, SUPPORT_TAKE_TOL), len(targets))
 
-    def _support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> Support:
+    def _support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float, tol: float = 1e-2) -> Support:
         return widen_prior(self.profile.basis, self._mean0, self.prior_cov, targets, valid, self.lower, self.upper,
-                           extra=self.pose.matrix, noise_var=noise_mm**2)
+                           extra=self.pose.matrix, noise_var=noise_mm**2, tol=tol)
 
     def _use_support(self, s: Support, frames: int, built: tuple | None = None) -> None:
         self.support = s
@@ -181,7 +190,7 @@ class MarkerKalmanSolver:
         spreads and a fresh selector for the checked prior ``s``, built without touching the solver: streamed, the
         check's thread builds them, so the swap costs the step nothing (built at the swap they took 10-23 ms)."""
         joint = self.pose.augment(self.profile.basis, self.lower, self.upper, s.mean, s.precision)
-        return (joint, *_warmed_fits(joint, self.profile.n_markers, self.m), _selector(joint, decay, True))
+        return (joint, *_warmed_fits(joint, self.profile.n_markers, self.m), _selector(joint, decay))
 
     def _stream_support(self, x: np.ndarray, ok: np.ndarray) -> None:
         """Collect the first SUPPORT_SECONDS, check them in a thread (numpy's inverses release the GIL, so the
@@ -342,26 +351,31 @@ class MarkerKalmanSolver:
     def _solve_once(self, targets: np.ndarray, valid: np.ndarray, first: bool = True) -> np.ndarray:
         """Weights and pose (T x (m + 6)) of the RTS-smoothed take. After the ``first`` pass, the marker noise r
         is the first's: it is the take's, and a rigid correction does not move it (issue 39: its likelihood margin
-        on the ICT takes is > 1e4; the realeval rows are equal to every digit)."""
+        on the ICT takes is > 1e4; the realeval rows are equal to every digit). The prior's strength by the same
+        held-out markers as streamed, every strength on every frame in closed form (unbounded fits: one
+        eigendecomposition per fold, solvers.prior_strength.take_strength) instead of a bounded trial QP per frame
+        (issue 39 item 2: the trials were half of a 30 s take's solve; realeval's offline rows in
+        docs/performance.md)."""
         smoothed, ok, self.chosen = smooth_take(targets, valid, self.settings, None if first else self.chosen["r"])
         if self.prior_cov is not None and self.support is None:
-            pick = _spread(len(targets), SUPPORT_FRAMES)
+            pick = _spread(len(targets), SUPPORT_TAKE_FRAMES)
             self._check_support(smoothed[pick].reshape(len(pick), -1), ok[pick], self.chosen["noise_mm"])
-        sel = self._selector(1.0, streamed=False)
-        for t in range(len(targets)):
-            sel.observe(smoothed[t], ok[t])
-        self.chosen["prior_weight"] = float(STRENGTHS[sel.best])
-        fit = self._fit(sel.best)
+        B, _, _, mean, precision = self.joint
+        if first:
+            self._folds: dict = {}  # each fold's factors: the prior is checked by now, the second pass reuses them
+        best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok, factors=self._folds)[0]
+        self.chosen["prior_weight"] = float(STRENGTHS[best])
+        fit = self._fit(best)
         fit.reset()
         return fit.step_take(smoothed, ok)
 
 
-def _selector(joint: tuple, decay: float, streamed: bool) -> HeldOutStrength:
-    """The held-out strength choice; streamed, at rig sizes whose fit stays in weight space (fewer shapes than
+def _selector(joint: tuple, decay: float) -> HeldOutStrength:
+    """The streamed held-out strength choice (offline: ``take_strength``); at rig sizes whose fit stays in weight space (fewer shapes than
     MARKER_SPACE_RATIO x the marker coordinates: ICT, 72 x 150), with its trials' unbounded maps."""
     B = joint[0]
     return HeldOutStrength(*joint, STRENGTHS, decay=decay,
-                           unbounded=streamed and B.shape[1] < MARKER_SPACE_RATIO * B.shape[0])
+                           unbounded=B.shape[1] < MARKER_SPACE_RATIO * B.shape[0])
 
 
 def _weight_cov(B: np.ndarray, P: np.ndarray, strength: float, m: int) -> np.ndarray:
