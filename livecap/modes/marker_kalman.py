@@ -371,8 +371,9 @@ class MarkerKalmanSolver:
 
 
 def _selector(joint: tuple, decay: float) -> HeldOutStrength:
-    """The streamed held-out strength choice (offline: ``take_strength``); at rig sizes whose fit stays in weight space (fewer shapes than
-    MARKER_SPACE_RATIO x the marker coordinates: ICT, 72 x 150), with its trials' unbounded maps."""
+    """The streamed held-out strength choice (offline: ``take_strength``); at rig sizes whose fit stays in weight
+    space (fewer shapes than MARKER_SPACE_RATIO x the marker coordinates: ICT, 72 x 150), with its trials' unbounded
+    maps."""
     B = joint[0]
     return HeldOutStrength(*joint, STRENGTHS, decay=decay,
                            unbounded=B.shape[1] < MARKER_SPACE_RATIO * B.shape[0])
