@@ -19,6 +19,8 @@ import platform
 import time
 from pathlib import Path
 
+import numpy as np
+
 PERFORMERS = {"alex_rom_3": "anim", "alex_rom_4": "anim", "S07-001": "anim", "S88-001": "anim",
               "apfel": "csv", "MySlate_3_Jason_Millers_iPhone": "jmtechart"}
 
@@ -26,6 +28,17 @@ PERFORMERS = {"alex_rom_3": "anim", "alex_rom_4": "anim", "S07-001": "anim", "S8
 def _as_given(solver, support, frames, built=None) -> None:
     """The check's result set aside: the prior as given (the code before issue 41.2's check)."""
     solver.support = type(support)(support.axes, support.before, support.before, support.noise_var, 0, solver.mean)
+
+
+def _pull(row) -> float:
+    """The share of the squared weight error that is a constant per-shape bias (mean over shapes of the bias squared
+    over the RMSE squared): 1 = a constant pull, 0 = noise about the truth."""
+    b = np.array(list(row.bias.values()))
+    return float(np.mean(b**2) / max(row.rmse**2, 1e-300))
+
+
+def _top_bias(row, k: int = 4) -> dict[str, float]:
+    return dict(sorted(row.bias.items(), key=lambda kv: -abs(kv[1]))[:k])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -88,10 +101,11 @@ def main(argv: list[str] | None = None) -> int:
                 for r in rows[1:]:
                     rec = {"noise_mm": noise, "file": name, "prior": label, "mode": r.mode, "rmse": r.rmse,
                            "rmse_x": r.rmse / oracle.rmse, "p95_mm": r.p95_mm, "p95_x": r.p95_mm / oracle.p95_mm,
-                           "jitter_x": r.jitter_x, "blink": r.blink}
+                           "jitter_x": r.jitter_x, "blink": r.blink, "pull": _pull(r), "bias": _top_bias(r)}
                     out.append(rec)
                     print(f"{noise:g} mm {name:32s} {label:15s} {r.mode:15s} RMSE {r.rmse:.4f} ({rec['rmse_x']:.2f}x) "
                           f"p95 {r.p95_mm:.2f} ({rec['p95_x']:.2f}x) jitter {r.jitter_x:.2f} blink {r.blink:.2f} "
+                          f"pull {rec['pull']:.2f} "
                           f"[{time.perf_counter() - t0:.0f} s]", flush=True)
     marker_kalman.MarkerKalmanSolver._use_support = check
     marker_kalman.MarkerKalmanSolver._support = support
