@@ -61,7 +61,7 @@ POSE_PASSES = 2  # offline: joint solves, the pose undone on the raw markers bet
 SUPPORT_SECONDS = 1.0  # streaming: the first seconds a prior is checked against (solvers.prior_support)
 SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
 SUPPORT_SWAP_SECONDS = 0.5  # streaming: the check runs in a thread meanwhile; its prior is used this much later
-SUPPORT_RECHECK_SECONDS = 5.0  # streaming: checked again on the first this many seconds (one second's mean is noisy)
+SUPPORT_GROWTH = 2.0  # streaming: checked again on the take so far each time it is this many times the last window
 
 
 log = logging.getLogger(__name__)
@@ -157,9 +157,12 @@ class MarkerKalmanSolver:
         if built is None:
             self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
             self._fits, self._spreads, self._along = {}, {}, {}
-            self.selector = self._selector(self.selector.decay)
+            old, self.selector = self.selector, self._selector(self.selector.decay)
+            self.selector.carry(old)
         else:
+            old = self.selector
             self.joint, self._fits, self._spreads, self.selector = built
+            self.selector.carry(old)
             self._along = {}
         self._noise_key = None
 
@@ -172,13 +175,19 @@ class MarkerKalmanSolver:
                 HeldOutStrength(*joint, STRENGTHS, decay=decay))
 
     def _stream_support(self, x: np.ndarray, ok: np.ndarray) -> None:
-        """Collect the first SUPPORT_SECONDS, check them in a thread (numpy's inverses release the GIL, so the
-        frames keep coming), and use the result SUPPORT_SWAP_SECONDS later: always at the same frame, so a
-        streamed solve is reproducible; it waits there only if the check has not finished. Then the same again
-        on the first SUPPORT_RECHECK_SECONDS, from the prior as given."""
-        if self._checking is None:
+        """Keep the take's frames (at most 2 x SUPPORT_FRAMES, thinned evenly as it grows), check them in a thread
+        after SUPPORT_SECONDS and again each time the take is SUPPORT_GROWTH times as long (numpy's inverses
+        release the GIL, so the frames keep coming), each check from the prior as given on the take so far; use
+        each result SUPPORT_SWAP_SECONDS later, always at the same frame, so a streamed solve is reproducible
+        (it waits there only if the check has not finished)."""
+        if self._offered % self._stride == 0:
             self._seen.append((x.reshape(-1).copy(), ok.copy()))
-            if len(self._seen) >= self._windows[0] * self.motion.rate:
+            if len(self._seen) > 2 * SUPPORT_FRAMES:
+                self._seen, self._stride = self._seen[::2], 2 * self._stride
+        self._offered += 1
+        if self._checking is None:
+            if self._offered >= self._next_check * self.motion.rate:
+                self._next_check *= SUPPORT_GROWTH
                 pick = _spread(len(self._seen), SUPPORT_FRAMES)
                 args = (np.stack([self._seen[i][0] for i in pick]), np.stack([self._seen[i][1] for i in pick]),
                         self.filter.noise_mm)
@@ -201,14 +210,11 @@ class MarkerKalmanSolver:
             thread, out, _, frames = self._checking
             thread.join()
             self._checking = None
-            self._windows = self._windows[1:]
-            if not self._windows:
-                self._seen = []
             if len(out) == 2 and isinstance(out[0], Support):
                 self._use_support(out[0], frames, out[1])
                 return
             log.warning("animation prior: its check against the actor failed (%s); kept as it is", out[:1])
-            self._windows, self._seen = (), []
+            self._next_check, self._seen = float("inf"), []
             if self.support is None:
                 lam, axes = np.linalg.eigh(self.prior_cov)
                 self.support = Support(axes, lam, lam, float("nan"), 0, self._mean0)
@@ -221,10 +227,10 @@ class MarkerKalmanSolver:
             self._fits, self._spreads, self._along = {}, {}, {}
             self._noise_key = None
         self.support = None
-        self._seen: list[tuple[np.ndarray, np.ndarray]] = []
+        self._seen: list[tuple[np.ndarray, np.ndarray]] = []  # streaming: every ``_stride``-th frame of the take
+        self._offered, self._stride = 0, 1
         self._checking: tuple | None = None  # streaming: the check's thread, its result, the frame to use it, frames
-        # streaming: the windows still to check (seconds from the take's start)
-        self._windows = (SUPPORT_SECONDS, SUPPORT_RECHECK_SECONDS)
+        self._next_check = SUPPORT_SECONDS  # streaming: the take's length (s) at which it is checked next
 
     def reset(self) -> None:
         self._prior_as_given()
@@ -244,7 +250,7 @@ class MarkerKalmanSolver:
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         x, ok = self.filter.step(target, valid)
-        if self.prior_cov is not None and self._windows:
+        if self.prior_cov is not None and self._next_check < float("inf"):
             self._stream_support(x, ok)
         self._frame += 1
         k = self.selector.best
