@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     out = []
     check = marker_kalman.MarkerKalmanSolver._use_support
     support = marker_kalman.MarkerKalmanSolver._support
-    growth = marker_kalman.SUPPORT_GROWTH
+    growth, spread = marker_kalman.SUPPORT_GROWTH, marker_kalman.UNCHECKED_SPREAD
 
     def widen_only(solver, targets, valid, noise_mm):  # the check before branch prior3: the variance only
         from solvers.prior_support import widen_prior
@@ -94,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
                 if label not in args.variants:
                     continue
                 marker_kalman.SUPPORT_GROWTH = growth if recheck else float("inf")
+                marker_kalman.UNCHECKED_SPREAD = spread if how is not None else 1.0
                 marker_kalman.MarkerKalmanSolver._use_support = _as_given if how is None else check
                 marker_kalman.MarkerKalmanSolver._support = how or support
                 t0 = time.perf_counter()
@@ -110,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
                           f"[{time.perf_counter() - t0:.0f} s]", flush=True)
     marker_kalman.MarkerKalmanSolver._use_support = check
     marker_kalman.MarkerKalmanSolver._support = support
-    marker_kalman.SUPPORT_GROWTH = growth
+    marker_kalman.SUPPORT_GROWTH, marker_kalman.UNCHECKED_SPREAD = growth, spread
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": platform.node(), "date": time.strftime("%Y-%m-%d %H:%M"),
                                                "seconds": args.seconds, "rows": out}, indent=1))

@@ -53,14 +53,19 @@ class Support:
     noise_var: float  # mm^2, the noise the fit estimated with them
     iterations: int
     mean: np.ndarray  # m, the actor's mean the frames' evidence chose (the prior's where they say nothing)
+    mean_cov: np.ndarray | None = None  # m x m, that mean's posterior covariance in the axes' coordinates
 
     @property
     def cov(self) -> np.ndarray:
-        return (self.axes * self.after) @ self.axes.T
+        """The prior for this actor's next frame: its spread about its mean, plus what is not known of that mean."""
+        inner = np.diag(self.after) if self.mean_cov is None else np.diag(self.after) + self.mean_cov
+        return self.axes @ inner @ self.axes.T
 
     @property
     def precision(self) -> np.ndarray:
-        return (self.axes / self.after) @ self.axes.T
+        if self.mean_cov is None:
+            return (self.axes / self.after) @ self.axes.T
+        return self.axes @ np.linalg.inv(np.diag(self.after) + self.mean_cov) @ self.axes.T
 
     @property
     def widened(self) -> np.ndarray:
@@ -140,7 +145,8 @@ def widen_prior(basis: np.ndarray, mean: np.ndarray, cov: np.ndarray, targets: n
         v[:m] = new
         if change < tol:
             break
-    return Support(U, lam, np.where(v[:m] > outside * lam, v[:m], lam), s2, done, mu0 + U @ a)
+    mean_cov = np.linalg.inv(H) if recentre and done else None
+    return Support(U, lam, np.where(v[:m] > outside * lam, v[:m], lam), s2, done, mu0 + U @ a, mean_cov)
 
 
 def _independent_share(y: np.ndarray) -> np.ndarray:

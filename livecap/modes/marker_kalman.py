@@ -59,6 +59,7 @@ STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
 STRENGTH_TRIAL_EVERY = 2  # streaming: frames per held-out strength trial (4: demo take RMSE +13 %, see docs)
 POSE_PASSES = 2  # offline: joint solves, the pose undone on the raw markers between (3: no better, issue 15)
 SUPPORT_SECONDS = 1.0  # streaming: the first seconds a prior is checked against (solvers.prior_support)
+UNCHECKED_SPREAD = 2.0  # a prior not yet checked: its covariance times this (see MarkerKalmanSolver.__init__)
 SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
 SUPPORT_SWAP_SECONDS = 0.5  # streaming: the check runs in a thread meanwhile; its prior is used this much later
 SUPPORT_GROWTH = 2.0  # streaming: checked again on the take so far each time it is this many times the last window
@@ -93,6 +94,10 @@ class MarkerKalmanSolver:
         """``prior_cov``: an animation prior's covariance (``precision`` its inverse), checked against the take: its
         mean re-centred where the frames say the actor rests elsewhere (solvers.prior_support); None for the ridge,
         which is not checked."""
+        if prior_cov is not None:
+            # before any frame is checked this actor's mean is unknown, distributed as the prior itself (the check's
+            # hyperprior, solvers.prior_support): a frame's prior is N(mean, cov + cov); each check narrows it
+            precision = precision / UNCHECKED_SPREAD
         self.profile, self.mean, self.precision, self.settings = profile, mean, precision, settings
         self.motion = motion
         self.prior_cov, self._precision0, self._mean0 = prior_cov, precision, mean
