@@ -144,13 +144,13 @@ def test_streamed_check_is_used_at_a_fixed_frame_so_a_stream_is_reproducible():
     from livecap.modes import marker_kalman
     from livecap.modes.marker_kalman import kalman_mode
 
-    p, W, X = _tight_prior_take(T=360)
+    p, W, X = _tight_prior_take(T=400)
     runs = []
     for _ in range(2):
         solver = kalman_mode(p, {"rate": 60.0})
         runs.append(np.array([solver.step(X[t], np.ones(40, bool)) for t in range(len(X))]))
         assert solver.support is not None and solver._checking is None  # every check started was used
-        assert (4 + marker_kalman.SUPPORT_SWAP_SECONDS) * 60 < len(X) < solver._next_check * 60
+        assert 4 * (1 + marker_kalman.SUPPORT_SWAP) * 60 < len(X) < solver._next_check * 60
     np.testing.assert_array_equal(runs[0], runs[1])
 
 
@@ -197,12 +197,21 @@ def test_streamed_checks_grow_with_the_take_on_a_bounded_memory(monkeypatch):
         return support(self, targets, valid, noise_mm)
 
     monkeypatch.setattr(marker_kalman.MarkerKalmanSolver, "_support", counted)
+    use, used = marker_kalman.MarkerKalmanSolver._use_support, []
+
+    def swapped(self, s, frames, built=None):
+        used.append(self._frame)
+        use(self, s, frames, built)
+
+    monkeypatch.setattr(marker_kalman.MarkerKalmanSolver, "_use_support", swapped)
     p, W, X = _tight_prior_take(T=600)
     solver = kalman_mode(p, {"rate": 60.0})
     for t in range(len(X)):
         solver.step(X[t], np.ones(40, bool))
         assert len(solver._seen) <= 40
     assert [s[0] for s in seen] == [60, 120, 240, 480]  # checked at 1, 2, 4 and 8 s
+    # each used half its window later: a longer window's check costs no more frames' wait (a fixed 0.5 s did)
+    assert used == [89, 179, 359]  # frames counted from 0
     assert all(frames == 20 for _, frames, _ in seen)
     assert all(offered - 2 * solver._stride < kept <= offered for offered, _, kept in seen)  # the whole take so far
 
@@ -308,7 +317,7 @@ def test_kalman_recentres_a_prior_on_an_actor_resting_elsewhere_and_says_so(capl
                 p.basis, solver.mean, solver.prior_cov, x, ok, solver.lower, solver.upper,
                 extra=solver.pose.matrix, noise_var=noise**2, recentre=False, outside=10.0)
         out = np.array([solver.step(X[t], valid) for t in range(T)])
-        after = int((marker_kalman.SUPPORT_SECONDS + marker_kalman.SUPPORT_SWAP_SECONDS) * 60) + 30
+        after = int(marker_kalman.SUPPORT_SECONDS * (1 + marker_kalman.SUPPORT_SWAP) * 60) + 30
         stream = np.sqrt(np.mean((out[after:-1, :2] - W[after - 1:-2, :2]) ** 2))
         offline = solver.solve(X, np.ones((T, 40), bool))
         return stream, np.sqrt(np.mean((offline[:, :2] - W[:, :2]) ** 2))
