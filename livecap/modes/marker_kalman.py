@@ -62,6 +62,7 @@ SUPPORT_SECONDS = 1.0  # streaming: the first seconds a prior is checked against
 UNCHECKED_SPREAD = 2.0  # a prior not yet checked: its covariance times this (see MarkerKalmanSolver.__init__)
 SUPPORT_FRAMES = 120  # streaming and offline: at most this many frames, evenly spread, for the check (cost ~ frames)
 SUPPORT_SWAP = 0.5  # streaming: the check runs in a thread meanwhile; its prior is used this share of its window later
+SUPPORT_SWAP_MAX = 1.0  # streaming: ... or this many seconds later if sooner (a check costs the same on any window)
 SUPPORT_GROWTH = 2.0  # streaming: checked again on the take so far each time it is this many times the last window
 
 
@@ -183,9 +184,9 @@ class MarkerKalmanSolver:
         """Keep the take's frames (at most 2 x SUPPORT_FRAMES, thinned evenly as it grows), check them in a thread
         after SUPPORT_SECONDS and again each time the take is SUPPORT_GROWTH times as long (numpy's inverses
         release the GIL, so the frames keep coming), each check from the prior as given on the take so far; use
-        each result SUPPORT_SWAP x its window later (a check and its fits take ~0.5 s on a loaded 2-core VM: a
-        fixed 0.5 s made the step wait up to 98 ms for the 2 and 4 s checks), always at the same frame, so a
-        streamed solve is reproducible
+        each result SUPPORT_SWAP x its window later, at most SUPPORT_SWAP_MAX (a check of at most SUPPORT_FRAMES and
+        its fits take ~0.5-0.7 s on a loaded 2-core VM: a fixed 0.5 s made the step wait up to 98 ms for the 2 and
+        4 s checks), always at the same frame, so a streamed solve is reproducible
         (it waits there only if the check has not finished)."""
         if self._offered % self._stride == 0:
             self._seen.append((x.reshape(-1).copy(), ok.copy()))
@@ -194,7 +195,7 @@ class MarkerKalmanSolver:
         self._offered += 1
         if self._checking is None:
             if self._offered >= self._next_check * self.motion.rate:
-                later = max(1, int(SUPPORT_SWAP * self._next_check * self.motion.rate))
+                later = max(1, int(min(SUPPORT_SWAP * self._next_check, SUPPORT_SWAP_MAX) * self.motion.rate))
                 self._next_check *= SUPPORT_GROWTH
                 pick = _spread(len(self._seen), SUPPORT_FRAMES)
                 args = (np.stack([self._seen[i][0] for i in pick]), np.stack([self._seen[i][1] for i in pick]),
