@@ -5,7 +5,9 @@ a prior) several ways, streamed through the live pipeline and offline: with no p
 from the files of *other performers only* as given, the same prior checked against the take and widened where
 the actor leaves it (solvers.prior_support's variance only, on the first second streamed: the check before
 branch prior3), and checked with its mean re-centred on the actor instead, streamed again each time the take
-doubles (today's code).
+doubles (today's code). "As given" is the prior at its own covariance throughout; the checked variants start, as
+the solver does, from twice it until their first check (marker_kalman.UNCHECKED_SPREAD). Each row also gives its
+*pull*: the share of its squared error that is a constant per-shape bias.
 Performers are the sources' folders (../shared/realdata/performance/README.md): alexdjulin's anim/ (alex_rom_3,
 alex_rom_4, S07-001, S88-001), his csv/ (apfel), JMTechArt (MySlate).
 
