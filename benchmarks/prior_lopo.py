@@ -4,7 +4,10 @@ For each real performance, an ICT take (livecap.demo.curves_take) is solved by `
 a prior) several ways, streamed through the live pipeline and offline: with no prior (a ridge), with a prior built
 from the files of *other performers only* as given, the same prior checked against the take and widened where
 the actor leaves it (solvers.prior_support's variance only, on the first second streamed: the check before
-branch prior3), and checked with its mean re-centred on the actor instead, streamed again at 5 s (today's code).
+branch prior3), and checked with its mean re-centred on the actor instead, streamed again each time the take
+doubles (today's code). "As given" is the prior at its own covariance throughout; the checked variants start, as
+the solver does, from twice it until their first check (marker_kalman.UNCHECKED_SPREAD). Each row also gives its
+*pull*: the share of its squared error that is a constant per-shape bias.
 Performers are the sources' folders (../shared/realdata/performance/README.md): alexdjulin's anim/ (alex_rom_3,
 alex_rom_4, S07-001, S88-001), his csv/ (apfel), JMTechArt (MySlate).
 
@@ -19,6 +22,8 @@ import platform
 import time
 from pathlib import Path
 
+import numpy as np
+
 PERFORMERS = {"alex_rom_3": "anim", "alex_rom_4": "anim", "S07-001": "anim", "S88-001": "anim",
               "apfel": "csv", "MySlate_3_Jason_Millers_iPhone": "jmtechart"}
 
@@ -26,6 +31,17 @@ PERFORMERS = {"alex_rom_3": "anim", "alex_rom_4": "anim", "S07-001": "anim", "S8
 def _as_given(solver, support, frames, built=None) -> None:
     """The check's result set aside: the prior as given (the code before issue 41.2's check)."""
     solver.support = type(support)(support.axes, support.before, support.before, support.noise_var, 0, solver.mean)
+
+
+def _pull(row) -> float:
+    """The share of the squared weight error that is a constant per-shape bias (mean over shapes of the bias squared
+    over the RMSE squared): 1 = a constant pull, 0 = noise about the truth."""
+    b = np.array(list(row.bias.values()))
+    return float(np.mean(b**2) / max(row.rmse**2, 1e-300))
+
+
+def _top_bias(row, k: int = 4) -> dict[str, float]:
+    return dict(sorted(row.bias.items(), key=lambda kv: -abs(kv[1]))[:k])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--files", nargs="+", default=list(PERFORMERS))
     p.add_argument("--variants", nargs="+", default=["no prior", "prior as given", "prior widened",
                                                        "prior re-centred"],
-                   help="also: 'prior re-centred 1 s' (no 2nd check), 'prior re-centred, widened' (the variance too)")
+                   help="also: 'prior re-centred 1 s' (checked once), 'prior re-centred, widened' (the variance too)")
     p.add_argument("--json")
     args = p.parse_args(argv)
     rig, layout = _rig("ict")
@@ -50,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     out = []
     check = marker_kalman.MarkerKalmanSolver._use_support
     support = marker_kalman.MarkerKalmanSolver._support
-    recheck_s = marker_kalman.SUPPORT_RECHECK_SECONDS
+    growth, spread = marker_kalman.SUPPORT_GROWTH, marker_kalman.UNCHECKED_SPREAD
 
     def widen_only(solver, targets, valid, noise_mm):  # the check before branch prior3: the variance only
         from solvers.prior_support import widen_prior
@@ -79,7 +95,8 @@ def main(argv: list[str] | None = None) -> int:
                                             ("prior re-centred, widened", prior, recentre_widen, True)):
                 if label not in args.variants:
                     continue
-                marker_kalman.SUPPORT_RECHECK_SECONDS = recheck_s if recheck else float("inf")
+                marker_kalman.SUPPORT_GROWTH = growth if recheck else float("inf")
+                marker_kalman.UNCHECKED_SPREAD = spread if how is not None else 1.0
                 marker_kalman.MarkerKalmanSolver._use_support = _as_given if how is None else check
                 marker_kalman.MarkerKalmanSolver._support = how or support
                 t0 = time.perf_counter()
@@ -88,14 +105,15 @@ def main(argv: list[str] | None = None) -> int:
                 for r in rows[1:]:
                     rec = {"noise_mm": noise, "file": name, "prior": label, "mode": r.mode, "rmse": r.rmse,
                            "rmse_x": r.rmse / oracle.rmse, "p95_mm": r.p95_mm, "p95_x": r.p95_mm / oracle.p95_mm,
-                           "jitter_x": r.jitter_x, "blink": r.blink}
+                           "jitter_x": r.jitter_x, "blink": r.blink, "pull": _pull(r), "bias": _top_bias(r)}
                     out.append(rec)
                     print(f"{noise:g} mm {name:32s} {label:15s} {r.mode:15s} RMSE {r.rmse:.4f} ({rec['rmse_x']:.2f}x) "
                           f"p95 {r.p95_mm:.2f} ({rec['p95_x']:.2f}x) jitter {r.jitter_x:.2f} blink {r.blink:.2f} "
+                          f"pull {rec['pull']:.2f} "
                           f"[{time.perf_counter() - t0:.0f} s]", flush=True)
     marker_kalman.MarkerKalmanSolver._use_support = check
     marker_kalman.MarkerKalmanSolver._support = support
-    marker_kalman.SUPPORT_RECHECK_SECONDS = recheck_s
+    marker_kalman.SUPPORT_GROWTH, marker_kalman.UNCHECKED_SPREAD = growth, spread
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": platform.node(), "date": time.strftime("%Y-%m-%d %H:%M"),
                                                "seconds": args.seconds, "rows": out}, indent=1))

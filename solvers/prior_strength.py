@@ -46,6 +46,11 @@ class HeldOutStrength:
             qp.reset()
             qp.prepare_marker_space()
 
+    def carry(self, other: HeldOutStrength) -> None:
+        """Start from ``other``'s held-out errors and choice (the same grid and folds, under a prior moved by a check
+        against the actor): the strength chosen so far is kept rather than restarted at the grid's middle."""
+        self.err, self.count, self.t, self.best = other.err.copy(), other.count.copy(), other.t, other.best
+
     def _next(self, valid: np.ndarray) -> tuple[int, int, np.ndarray, np.ndarray]:
         """The next trial's strength, fold, held-out markers seen (of the fold's) and training pattern."""
         g = self.t % len(self.grid)

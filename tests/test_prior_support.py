@@ -85,17 +85,42 @@ def test_kalman_keeps_the_priors_variance():
     """Issue 41.2, measured: widening the prior's variance where the frames want 10 x more cost more than it saved
     (12 leave-one-performer-out cases: never worse than no prior 10 / 9 of 12 with it, 11 / 11 without), so the
     check keeps the variance, streamed and offline, even where the actor moves along a direction the prior holds
-    tight (the code before widened it here)."""
+    tight (the code before widened it here). What the prior gains is only its mean's own uncertainty."""
     from livecap.modes.marker_kalman import kalman_mode
 
     p, W, X = _tight_prior_take(T=240)
     solver = kalman_mode(p, {"rate": 60.0})
     for t in range(len(X)):
         solver.step(X[t], np.ones(40, bool))
-    assert solver.support is not None and len(solver.support.widened) == 0
-    np.testing.assert_allclose(solver.precision, np.linalg.inv(p.prior.cov))
+    s = solver.support
+    assert s is not None and len(s.widened) == 0
+    np.testing.assert_allclose(s.after, s.before)
+    np.testing.assert_allclose(np.linalg.inv(solver.precision), p.prior.cov + s.axes @ s.mean_cov @ s.axes.T)
     solver.solve(X, np.ones((len(X), 40), bool))
     assert len(solver.support.widened) == 0
+
+
+def test_the_prior_carries_its_means_uncertainty_until_the_frames_pin_it():
+    """Issue 41.2: the check's hyperprior says this actor's mean is unknown, distributed as the prior; a frame's prior
+    is then N(mean, cov + that mean's posterior covariance): twice the prior's before any frame is checked, back
+    towards the prior's own where many frames see a direction (a prior from other performers held S88-001's first
+    1.5 s streamed at +50 % over no prior with its own covariance)."""
+    from livecap.modes import marker_kalman
+    from livecap.modes.marker_kalman import kalman_mode
+
+    p, W, X = _tight_prior_take(T=120)
+    solver = kalman_mode(p, {"rate": 60.0})
+    np.testing.assert_allclose(solver.precision, np.linalg.inv(marker_kalman.UNCHECKED_SPREAD * p.prior.cov))
+    rng, B, cov = _problem(5)
+    lam, U = np.linalg.eigh(cov)
+    _, X, valid = _frames(rng, B, cov, 400, 0.3)
+    few = widen_prior(B, np.zeros(6), cov, X[:3], valid[:3], -np.ones(6), np.ones(6))
+    many = widen_prior(B, np.zeros(6), cov, X, valid, -np.ones(6), np.ones(6))
+    for s in (few, many):
+        extra = np.diag(s.mean_cov)
+        assert (extra > 0).all() and (extra < lam).all()  # never more than the hyperprior's own
+        np.testing.assert_allclose(np.linalg.inv(s.precision), s.cov, rtol=1e-8, atol=1e-12)
+    assert (np.diag(many.mean_cov) < np.diag(few.mean_cov)).all()
 
 
 def test_streamed_weights_the_markers_tell_apart_badly_are_smoothed_more():
@@ -115,17 +140,17 @@ def test_streamed_weights_the_markers_tell_apart_badly_are_smoothed_more():
 
 
 def test_streamed_check_is_used_at_a_fixed_frame_so_a_stream_is_reproducible():
-    """The checks (at 1 s and 5 s) run in a thread; each prior is used at the same frame however long it took."""
+    """The checks (at 1, 2 and 4 s) run in a thread; each prior is used at the same frame however long it took."""
     from livecap.modes import marker_kalman
     from livecap.modes.marker_kalman import kalman_mode
 
-    p, W, X = _tight_prior_take(T=360)
+    p, W, X = _tight_prior_take(T=400)
     runs = []
     for _ in range(2):
         solver = kalman_mode(p, {"rate": 60.0})
         runs.append(np.array([solver.step(X[t], np.ones(40, bool)) for t in range(len(X))]))
-        assert solver.support is not None and not solver._windows  # both checks used
-        assert (marker_kalman.SUPPORT_RECHECK_SECONDS + marker_kalman.SUPPORT_SWAP_SECONDS) * 60 < len(X)
+        assert solver.support is not None and solver._checking is None  # every check started was used
+        assert 4 * (1 + marker_kalman.SUPPORT_SWAP) * 60 < len(X) < solver._next_check * 60
     np.testing.assert_array_equal(runs[0], runs[1])
 
 
@@ -152,8 +177,68 @@ def test_streamed_check_builds_the_new_fits_in_its_thread_not_in_the_step(monkey
     solver_ready[0] = True
     for t in range(len(X)):
         solver.step(X[t], np.ones(40, bool))
-    assert solver.support is not None and not solver._windows
+    assert solver.support is not None and solver._checking is None
     assert not any(built_on_the_frame_thread)
+
+
+def test_streamed_checks_grow_with_the_take_on_a_bounded_memory(monkeypatch):
+    """Issue 41.2: one check on the first second and one on the first five left a long take judged by its start
+    (S88-001 at 0.2 mm: +7 % over no prior streamed). The take so far is checked each time it doubles, on frames
+    kept evenly over all of it, at most 2 x SUPPORT_FRAMES of them."""
+    from livecap.modes import marker_kalman
+    from livecap.modes.marker_kalman import kalman_mode
+
+    monkeypatch.setattr(marker_kalman, "SUPPORT_FRAMES", 20)
+    seen = []
+    support = marker_kalman.MarkerKalmanSolver._support
+
+    def counted(self, targets, valid, noise_mm):
+        seen.append((self._offered, len(targets), self._stride * len(self._seen)))
+        return support(self, targets, valid, noise_mm)
+
+    monkeypatch.setattr(marker_kalman.MarkerKalmanSolver, "_support", counted)
+    use, used = marker_kalman.MarkerKalmanSolver._use_support, []
+
+    def swapped(self, s, frames, built=None):
+        used.append(self._frame)
+        use(self, s, frames, built)
+
+    monkeypatch.setattr(marker_kalman.MarkerKalmanSolver, "_use_support", swapped)
+    p, W, X = _tight_prior_take(T=600)
+    solver = kalman_mode(p, {"rate": 60.0})
+    for t in range(len(X)):
+        solver.step(X[t], np.ones(40, bool))
+        assert len(solver._seen) <= 40
+    assert [s[0] for s in seen] == [60, 120, 240, 480]  # checked at 1, 2, 4 and 8 s
+    # each used half its window later, at most 1 s: the step does not wait for the 2 and 4 s checks (a fixed 0.5 s did)
+    assert used == [89, 179, 299, 539]  # frames counted from 0
+    assert all(frames == 20 for _, frames, _ in seen)
+    assert all(offered - 2 * solver._stride < kept <= offered for offered, _, kept in seen)  # the whole take so far
+
+
+def test_a_checked_priors_swap_keeps_the_strength_chosen_so_far(monkeypatch):
+    """The check's new fits came with a fresh held-out selector, which restarted at the grid's middle strength and
+    forgot the take's held-out errors at every swap (apfel 0.2 mm streamed: 0.0354 with it, 0.0313 carried)."""
+    from livecap.modes import marker_kalman
+    from livecap.modes.marker_kalman import kalman_mode
+
+    p, W, X = _tight_prior_take(T=240)
+    solver = kalman_mode(p, {"rate": 60.0})
+    use = marker_kalman.MarkerKalmanSolver._use_support
+    around = []
+
+    def swap(self, s, frames, built=None):
+        before = (self.selector.best, self.selector.err.copy(), self.selector.t)
+        use(self, s, frames, built)
+        around.append((before, (self.selector.best, self.selector.err.copy(), self.selector.t)))
+
+    monkeypatch.setattr(marker_kalman.MarkerKalmanSolver, "_use_support", swap)
+    for t in range(len(X)):
+        solver.step(X[t], np.ones(40, bool))
+    assert around
+    for (best0, err0, t0), (best1, err1, t1) in around:
+        assert t0 > 0 and t1 == t0 and best1 == best0
+        np.testing.assert_array_equal(err1, err0)
 
 
 def test_imm_noise_changes_without_losing_the_track():
@@ -232,7 +317,7 @@ def test_kalman_recentres_a_prior_on_an_actor_resting_elsewhere_and_says_so(capl
                 p.basis, solver.mean, solver.prior_cov, x, ok, solver.lower, solver.upper,
                 extra=solver.pose.matrix, noise_var=noise**2, recentre=False, outside=10.0)
         out = np.array([solver.step(X[t], valid) for t in range(T)])
-        after = int((marker_kalman.SUPPORT_SECONDS + marker_kalman.SUPPORT_SWAP_SECONDS) * 60) + 30
+        after = int(marker_kalman.SUPPORT_SECONDS * (1 + marker_kalman.SUPPORT_SWAP) * 60) + 30
         stream = np.sqrt(np.mean((out[after:-1, :2] - W[after - 1:-2, :2]) ** 2))
         offline = solver.solve(X, np.ones((T, 40), bool))
         return stream, np.sqrt(np.mean((offline[:, :2] - W[:, :2]) ** 2))
@@ -240,8 +325,7 @@ def test_kalman_recentres_a_prior_on_an_actor_resting_elsewhere_and_says_so(capl
     with caplog.at_level(logging.INFO, logger=marker_kalman.__name__):
         now = run(True)
     lines = [r.getMessage() for r in caplog.records if r.name == marker_kalman.__name__]
-    # streamed at 1 s and 5 s, offline (on 120 frames a third apart its evidence kept s0 within an sd: not said)
-    assert sum("re-centred" in line and "s0 0.10 ->" in line for line in lines) == 3, lines
+    assert sum("re-centred" in line and "s0 0.10 ->" in line for line in lines) >= 2, lines  # stream, offline
     before = run(False)
     assert now[0] < 0.7 * before[0] and now[1] < before[1], (now, before)  # 0.025 / 0.051, 0.0144 / 0.0149
 

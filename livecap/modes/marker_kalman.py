@@ -62,6 +62,7 @@ STRENGTH_TRIAL_EVERY = 2  # streaming: frames per held-out strength trial (4: de
 TRIAL_LATE_FRAMES = 2  # streaming: frames a trial part may wait while the fit meets new visibility patterns
 POSE_PASSES = 2  # offline: joint solves, the pose undone on the raw markers between (3: no better, issue 15)
 SUPPORT_SECONDS = 1.0  # streaming: the first seconds a prior is checked against (solvers.prior_support)
+UNCHECKED_SPREAD = 2.0  # a prior not yet checked: its covariance times this (see MarkerKalmanSolver.__init__)
 SUPPORT_FRAMES = 120  # streaming: at most this many frames, evenly spread, for the check (cost ~ frames)
 # offline: the same over the whole take (issue 39: 120 -> 60 halved the check, ~0.1 s of a 30 s take; realeval's
 # offline rows within 1 % either way, docs/performance.md)
@@ -71,8 +72,9 @@ SUPPORT_TAKE_FRAMES = 60
 # slowly: 0.01 -> 0.1 took 19 -> 6 / 7 iterations on S07-001 / apfel (0.12-0.13 -> 0.04-0.05 s) and moved the mean by
 # 0.006 / 0.001 sd at most (issue 39 item 2, docs/performance.md)
 SUPPORT_TAKE_TOL = 0.1
-SUPPORT_SWAP_SECONDS = 0.5  # streaming: the check runs in a thread meanwhile; its prior is used this much later
-SUPPORT_RECHECK_SECONDS = 5.0  # streaming: checked again on the first this many seconds (one second's mean is noisy)
+SUPPORT_SWAP = 0.5  # streaming: the check runs in a thread meanwhile; its prior is used this share of its window later
+SUPPORT_SWAP_MAX = 1.0  # streaming: ... or this many seconds later if sooner (a check costs the same on any window)
+SUPPORT_GROWTH = 2.0  # streaming: checked again on the take so far each time it is this many times the last window
 # streaming: half-life of the marker bank's likelihoods, so each marker's q follows a blink's onset as the offline
 # smoother's local choice does (issue 41, MakeHuman 0.5 mm: 10 s memory kept 0.84 of the blinks' peaks, 0.4 s 0.90)
 MARKER_MEMORY_SECONDS = 0.4
@@ -114,6 +116,10 @@ class MarkerKalmanSolver:
         """``prior_cov``: an animation prior's covariance (``precision`` its inverse), checked against the take: its
         mean re-centred where the frames say the actor rests elsewhere (solvers.prior_support); None for the ridge,
         which is not checked."""
+        if prior_cov is not None:
+            # before any frame is checked this actor's mean is unknown, distributed as the prior itself (the check's
+            # hyperprior, solvers.prior_support): a frame's prior is N(mean, cov + cov); each check narrows it
+            precision = precision / UNCHECKED_SPREAD
         self.profile, self.mean, self.precision, self.settings = profile, mean, precision, settings
         self.motion = motion
         self.prior_cov, self._precision0, self._mean0 = prior_cov, precision, mean
@@ -179,9 +185,12 @@ class MarkerKalmanSolver:
         if built is None:
             self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
             self._fits, self._spreads, self._along = {}, {}, {}
-            self.selector = self._selector(self.selector.decay)
+            old, self.selector = self.selector, self._selector(self.selector.decay)
+            self.selector.carry(old)
         else:
+            old = self.selector
             self.joint, self._fits, self._spreads, self.selector = built
+            self.selector.carry(old)
             self._along = {}
         self._noise_key = None
 
@@ -193,13 +202,22 @@ class MarkerKalmanSolver:
         return (joint, *_warmed_fits(joint, self.profile.n_markers, self.m), _selector(joint, decay))
 
     def _stream_support(self, x: np.ndarray, ok: np.ndarray) -> None:
-        """Collect the first SUPPORT_SECONDS, check them in a thread (numpy's inverses release the GIL, so the
-        frames keep coming), and use the result SUPPORT_SWAP_SECONDS later: always at the same frame, so a
-        streamed solve is reproducible; it waits there only if the check has not finished. Then the same again
-        on the first SUPPORT_RECHECK_SECONDS, from the prior as given."""
-        if self._checking is None:
+        """Keep the take's frames (at most 2 x SUPPORT_FRAMES, thinned evenly as it grows), check them in a thread
+        after SUPPORT_SECONDS and again each time the take is SUPPORT_GROWTH times as long (numpy's inverses
+        release the GIL, so the frames keep coming), each check from the prior as given on the take so far; use
+        each result SUPPORT_SWAP x its window later, at most SUPPORT_SWAP_MAX (a check of at most SUPPORT_FRAMES and
+        its fits take ~0.5-0.7 s on a loaded 2-core VM: a fixed 0.5 s made the step wait up to 98 ms for the 2 and
+        4 s checks), always at the same frame, so a streamed solve is reproducible
+        (it waits there only if the check has not finished)."""
+        if self._offered % self._stride == 0:
             self._seen.append((x.reshape(-1).copy(), ok.copy()))
-            if len(self._seen) >= self._windows[0] * self.motion.rate:
+            if len(self._seen) > 2 * SUPPORT_FRAMES:
+                self._seen, self._stride = self._seen[::2], 2 * self._stride
+        self._offered += 1
+        if self._checking is None:
+            if self._offered >= self._next_check * self.motion.rate:
+                later = max(1, int(min(SUPPORT_SWAP * self._next_check, SUPPORT_SWAP_MAX) * self.motion.rate))
+                self._next_check *= SUPPORT_GROWTH
                 pick = _spread(len(self._seen), SUPPORT_FRAMES)
                 args = (np.stack([self._seen[i][0] for i in pick]), np.stack([self._seen[i][1] for i in pick]),
                         self.filter.noise_mm)
@@ -216,20 +234,16 @@ class MarkerKalmanSolver:
 
                 thread = threading.Thread(target=check, daemon=True)
                 thread.start()
-                self._checking = (thread, out, self._frame + max(1, int(SUPPORT_SWAP_SECONDS * self.motion.rate)),
-                                  len(pick))
+                self._checking = (thread, out, self._frame + later, len(pick))
         elif self._frame >= self._checking[2]:
             thread, out, _, frames = self._checking
             thread.join()
             self._checking = None
-            self._windows = self._windows[1:]
-            if not self._windows:
-                self._seen = []
             if len(out) == 2 and isinstance(out[0], Support):
                 self._use_support(out[0], frames, out[1])
                 return
             log.warning("animation prior: its check against the actor failed (%s); kept as it is", out[:1])
-            self._windows, self._seen = (), []
+            self._next_check, self._seen = float("inf"), []
             if self.support is None:
                 lam, axes = np.linalg.eigh(self.prior_cov)
                 self.support = Support(axes, lam, lam, float("nan"), 0, self._mean0)
@@ -242,10 +256,10 @@ class MarkerKalmanSolver:
             self._fits, self._spreads, self._along = {}, {}, {}
             self._noise_key = None
         self.support = None
-        self._seen: list[tuple[np.ndarray, np.ndarray]] = []
+        self._seen: list[tuple[np.ndarray, np.ndarray]] = []  # streaming: every ``_stride``-th frame of the take
+        self._offered, self._stride = 0, 1
         self._checking: tuple | None = None  # streaming: the check's thread, its result, the frame to use it, frames
-        # streaming: the windows still to check (seconds from the take's start)
-        self._windows = (SUPPORT_SECONDS, SUPPORT_RECHECK_SECONDS)
+        self._next_check = SUPPORT_SECONDS  # streaming: the take's length (s) at which it is checked next
 
     def reset(self) -> None:
         self._prior_as_given()
@@ -265,7 +279,7 @@ class MarkerKalmanSolver:
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         x, ok = self.filter.step(target, valid)
-        if self.prior_cov is not None and self._windows:
+        if self.prior_cov is not None and self._next_check < float("inf"):
             self._stream_support(x, ok)
         self._frame += 1
         k = self.selector.best
