@@ -80,6 +80,7 @@ class MarkerSpaceQP:
         self._S_all.flat[:: self.r + 1] += 1.0
         # S of the free set _F (its lower triangle: what LAPACK reads) and its Cholesky factor _L
         self._S, self._F, self._L = self._S_all, np.ones(len(self.G), bool), None
+        self._begun: tuple | None = None  # f, x0 and the state of a solve begun (``begin``)
         self._wood: tuple | None = None  # a free set a few columns from _F: (F, U, S^-1 U, LU of the capacitance)
         self._updates = 0
 
@@ -133,13 +134,33 @@ class MarkerSpaceQP:
         x = np.where(F, -(fG + z) * self.dinv, xA)
         return x, self.d * x + z + fG
 
+    def begin(self, f: np.ndarray, x0: np.ndarray, passes: int) -> None:
+        """The first ``passes`` passes of ``solve(f, x0)`` now; a ``solve`` of the same f and x0 next continues
+        where they stopped (the same passes in the same order, so the same x): one solve spread over two frames."""
+        f, x0 = np.array(f, dtype=np.float64), np.array(x0, dtype=np.float64)
+        self._begun = None
+        self._begun = (f, x0, self._pivot(f, x0, min(int(passes), self.max_iter)))
+
     def solve(self, f: np.ndarray, x0: np.ndarray) -> np.ndarray | None:
-        f = np.asarray(f, dtype=np.float64)
+        f, x0 = np.asarray(f, dtype=np.float64), np.asarray(x0, dtype=np.float64)
+        begun, self._begun = self._begun, None
+        state = None
+        if begun is not None and np.array_equal(begun[0], f) and np.array_equal(begun[1], x0):
+            state = begun[2]
+        if state is None or not isinstance(state[0], str):
+            state = self._pivot(f, x0, self.max_iter, state)
+        return state[1]
+
+    def _pivot(self, f: np.ndarray, x0: np.ndarray, stop: int, state: tuple | None = None) -> tuple:
+        """Block-pivoting passes up to pass ``stop``: ("done", x or None) where they settled, handed over to the
+        primal method or ran out of ``max_iter``; else the state to continue from."""
         fG = f[self.G] if self._C is None else f[self.G] - self._A.T @ f[self.P]
-        x = np.asarray(x0, dtype=np.float64)[self.G]
-        at_lo, at_hi = x <= self.lo, x >= self.hi
-        best, budget = len(x) + 1, PIVOT_BUDGET
-        for it in range(1, self.max_iter + 1):
+        if state is None:
+            x = x0[self.G]
+            state = (x <= self.lo, x >= self.hi, len(x) + 1, PIVOT_BUDGET, 0)
+        at_lo, at_hi, best, budget, it = state
+        while it < stop:
+            it += 1
             x, g = self._subproblem(fG, at_lo, at_hi)
             F = ~(at_lo | at_hi)
             lo1 = np.where(F, x <= self.lo, at_lo & (g >= 0))
@@ -147,16 +168,18 @@ class MarkerSpaceQP:
             wrong = np.count_nonzero((lo1 != at_lo) | (hi1 != at_hi))
             if not wrong:
                 self.iterations = it
-                return self._full(x, f)
+                return "done", self._full(x, f)
             if wrong < best:
                 best, budget = wrong, PIVOT_BUDGET
             else:
                 budget -= 1
             if budget <= 0:
-                return self._primal(fG, f, np.minimum(np.maximum(x, self.lo), self.hi), it)
+                return "done", self._primal(fG, f, np.minimum(np.maximum(x, self.lo), self.hi), it)
             at_lo, at_hi = lo1, hi1
-        self.iterations = self.max_iter
-        return None
+        if it >= self.max_iter:
+            self.iterations = self.max_iter
+            return "done", None
+        return at_lo, at_hi, best, budget, it
 
     def _primal(self, fG: np.ndarray, f: np.ndarray, x: np.ndarray, it: int) -> np.ndarray | None:
         """The primal active-set method from the feasible ``x``: a step towards the subproblem's minimiser until

@@ -14,6 +14,8 @@ import numpy as np
 
 from solvers.qp import FrameQP
 
+BEGIN_PASSES = 2  # marker-space trials: passes run on the frame the trial is due, the rest on the next
+
 
 class HeldOutStrength:
     """``observe(target, valid)`` once per frame; ``best`` is the current choice (index into ``grid``)."""
@@ -46,16 +48,23 @@ class HeldOutStrength:
         f = (self.t // len(self.grid)) % self.folds
         return g, f, valid[self._fold_markers[f]], valid & self._outside[f]
 
-    def prepare(self, valid: np.ndarray) -> bool:
+    def prepare(self, valid: np.ndarray, target: np.ndarray | None = None, start: np.ndarray | None = None) -> bool:
         """Build the next trial's workspace if its training pattern is new to its QP (about half a trial's cost on
-        one) and say whether it did: a streamed caller then ``observe``s the same markers on the next frame, so that
-        no frame carries a whole trial on a new pattern (issue 39)."""
+        one), or, given the ``target`` and ``start`` of ``observe``, run the first passes of a marker-space trial
+        (solvers.marker_space_qp: each may refactor its 216 x 216 matrix) and say whether it did: a streamed caller
+        then ``observe``s the same markers from the same start on the next frame, so that no frame carries a whole
+        trial (issue 39)."""
         g, _, seen, train = self._next(np.asarray(valid, bool))
         qp = self.qps[g]
-        if not seen.any() or np.count_nonzero(train) < 3 or qp.knows(train):
+        if not seen.any() or np.count_nonzero(train) < 3:
             return False
-        qp.prepare(train)
-        return True
+        if not qp.knows(train):
+            qp.prepare(train)
+            return True
+        if target is None or start is None or not qp.marker_space:
+            return False
+        qp.warm(start)
+        return qp.begin(target, train, BEGIN_PASSES)
 
     def observe(self, target: np.ndarray, valid: np.ndarray, start: np.ndarray | None = None,
                 elapsed: float = 1.0) -> None:

@@ -276,7 +276,7 @@ class MarkerKalmanSolver:
             self._observe(*self._pending)
             self._pending = None
         elif self._frame >= self._due:
-            if self.selector.prepare(ok):
+            if self.selector.prepare(ok, x, z):
                 self._pending = (x.copy(), ok.copy(), z)
             else:
                 self._observe(x, ok, z)
