@@ -48,20 +48,25 @@ class HeldOutStrength:
         f = (self.t // len(self.grid)) % self.folds
         return g, f, valid[self._fold_markers[f]], valid & self._outside[f]
 
-    def prepare(self, valid: np.ndarray, target: np.ndarray | None = None, start: np.ndarray | None = None) -> bool:
+    def prepare(self, valid: np.ndarray) -> bool:
         """Build the next trial's workspace if its training pattern is new to its QP (about half a trial's cost on
-        one), or, given the ``target`` and ``start`` of ``observe``, run the first passes of a marker-space trial
-        (solvers.marker_space_qp: each may refactor its 216 x 216 matrix) and say whether it did: a streamed caller
-        then ``observe``s the same markers from the same start on the next frame, so that no frame carries a whole
-        trial (issue 39)."""
+        one) and say whether it did: a streamed caller then ``observe``s the same markers on the next frame, so that
+        no frame carries a whole trial on a new pattern (issue 39)."""
         g, _, seen, train = self._next(np.asarray(valid, bool))
         qp = self.qps[g]
-        if not seen.any() or np.count_nonzero(train) < 3:
+        if not seen.any() or np.count_nonzero(train) < 3 or qp.knows(train):
             return False
-        if not qp.knows(train):
-            qp.prepare(train)
-            return True
-        if target is None or start is None or not qp.marker_space:
+        qp.prepare(train)
+        return True
+
+    def begin(self, target: np.ndarray, valid: np.ndarray, start: np.ndarray) -> bool:
+        """Run the first BEGIN_PASSES passes of the next trial now where its QP takes the marker-space path
+        (solvers.marker_space_qp: each may refactor its 216 x 216 matrix) and say whether it did: the caller's
+        ``observe`` of the same markers from the same start then continues from them (the same score), so that a
+        trial's cost is shared by two frames (issue 39, 72 x 1000)."""
+        g, _, seen, train = self._next(np.asarray(valid, bool))
+        qp = self.qps[g]
+        if not qp.marker_space or not seen.any() or np.count_nonzero(train) < 3:
             return False
         qp.warm(start)
         return qp.begin(target, train, BEGIN_PASSES)

@@ -98,7 +98,7 @@ def test_a_marker_space_trial_begun_on_its_frame_scores_as_one():
         target = B[:, :80] @ w_true + rng.normal(0, 0.3, 24)
         valid = np.ones(8, bool)
         start = np.r_[w_true, np.zeros(6)]
-        begun += split.prepare(valid, target, start)
+        begun += split.begin(target, valid, start)
         split.observe(target, valid, start)
         whole.observe(target, valid, start)
     assert begun > 12

@@ -234,6 +234,7 @@ class MarkerKalmanSolver:
         self._frame = 0
         self._due = self._last_trial = 0  # the frame the next strength trial is due, the frame of the last
         self._pending: tuple | None = None  # a trial whose workspace is built: its markers, pattern and start
+        self._begun: tuple | None = None  # a marker-space trial begun: its markers, pattern, start and frame
         self._z: np.ndarray | None = None  # the last frame's weights and pose: where the fit's warm start comes from
         # every workspace (and the IMM's spread) built now, not on the first frames
         self._fits, self._spreads = _warmed_fits(self.joint, self.profile.n_markers, self.m)
@@ -247,6 +248,8 @@ class MarkerKalmanSolver:
         if self.prior_cov is not None and self._windows:
             self._stream_support(x, ok)
         self._frame += 1
+        if self._begun is not None:
+            self._finish()
         k = self.selector.best
         fit = self._fit(k)
         if fit.marker_space and self._fit_k != k and self._z is not None:
@@ -276,15 +279,25 @@ class MarkerKalmanSolver:
             self._observe(*self._pending)
             self._pending = None
         elif self._frame >= self._due:
-            if self.selector.prepare(ok, x, z):
+            if self.selector.prepare(ok):
                 self._pending = (x.copy(), ok.copy(), z)
+            elif self.selector.begin(x, ok, z):  # 72 x 1000: finished before the next frame's fit (``_finish``)
+                self._begun = (x.copy(), ok.copy(), z, self._frame)
             else:
                 self._observe(x, ok, z)
 
-    def _observe(self, x: np.ndarray, ok: np.ndarray, z: np.ndarray) -> None:
-        self.selector.observe(x, ok, z, elapsed=self._frame - self._last_trial)
-        self._last_trial = self._frame
-        self._due = self._frame + STRENGTH_TRIAL_EVERY
+    def _finish(self) -> None:
+        """A trial begun last frame, finished before this frame's fit reads the choice: the schedule and the
+        weights of a trial run whole on its frame."""
+        x, ok, z, frame = self._begun
+        self._begun = None
+        self._observe(x, ok, z, frame)
+
+    def _observe(self, x: np.ndarray, ok: np.ndarray, z: np.ndarray, frame: int | None = None) -> None:
+        frame = self._frame if frame is None else frame  # the frame of the markers
+        self.selector.observe(x, ok, z, elapsed=frame - self._last_trial)
+        self._last_trial = frame
+        self._due = frame + STRENGTH_TRIAL_EVERY
 
     def solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """RTS-smoothed markers -> joint pose and prior fit; POSE_PASSES times, the pose fitted on the
