@@ -24,10 +24,12 @@ solve a pass. It ends exactly: when a pass leaves the partition as it was, x sat
 falls back to DAQP.
 
 S is kept between solves with its free set: a pass on an unchanged free set reuses its factor (a frame whose
-partition did not move costs no factorisation); otherwise S is updated by the columns that changed sides (O(r^2)
-each) or, where fewer, formed from all columns' S less the bounded ones', and refactored (O(r^3 / 3)); formed
-afresh every ``REFRESH`` updates against drift. Warm from the last frame, the 72 x 1000 synthetic take's fit
-moves ~60-90 weights in the first pass and takes 3-5 passes.
+partition did not move costs no factorisation); where at most ``WOODBURY`` columns changed sides, S^-1 b goes
+through the kept factor and a k x k capacitance (Woodbury); otherwise S is updated by the columns that changed
+(a symmetric rank-k product on its lower triangle) or, where fewer, formed from all columns' S less the bounded
+ones', and refactored (O(r^3 / 3)); formed afresh every ``REFRESH`` updates against drift. Warm from the last
+frame, the 72 x 1000 synthetic take's fit moves ~60-90 weights in the first pass and takes 3-5 passes. ``begin``
+runs a solve's first passes ahead (kalman's held-out trial, split over two frames; docs/performance.md).
 """
 
 from __future__ import annotations
