@@ -24,18 +24,23 @@ solve a pass. It ends exactly: when a pass leaves the partition as it was, x sat
 falls back to DAQP.
 
 S is kept between solves with its free set: a pass on an unchanged free set reuses its factor (a frame whose
-partition did not move costs no factorisation); otherwise S is updated by the columns that changed sides (O(r^2)
-each) or, where fewer, formed from all columns' S less the bounded ones', and refactored (O(r^3 / 3)); formed
-afresh every ``REFRESH`` updates against drift. Warm from the last frame, the 72 x 1000 synthetic take's fit
-moves ~60-90 weights in the first pass and takes 3-5 passes.
+partition did not move costs no factorisation); where at most ``WOODBURY`` columns changed sides, S^-1 b goes
+through the kept factor and a k x k capacitance (Woodbury); otherwise S is updated by the columns that changed
+(a symmetric rank-k product on its lower triangle) or, where fewer, formed from all columns' S less the bounded
+ones', and refactored (O(r^3 / 3)); formed afresh every ``REFRESH`` updates against drift. Warm from the last
+frame, the 72 x 1000 synthetic take's fit moves ~60-90 weights in the first pass and takes 3-5 passes. ``begin``
+runs a solve's first passes ahead (kalman's held-out trial, split over two frames; docs/performance.md).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import scipy.linalg as sl
+from scipy.linalg.blas import dsyrk
+from scipy.linalg.lapack import dpotrf, dpotrs
 
 REFRESH = 64  # updates of the kept marker-space matrix before it is formed afresh
+WOODBURY = 8  # at most this many columns changed from the kept factor's free set: solved through it, no refactor
 PIVOT_BUDGET = 3  # block-pivoting passes without fewer wrong sides before the primal active-set method takes over
 
 
@@ -72,52 +77,92 @@ class MarkerSpaceQP:
         self.lo, self.hi = lower[self.G], upper[self.G]
         self.max_iter = int(max_iter)
         self.iterations = 0
-        W = self.J * np.sqrt(self.dinv)
-        self._S_all = W @ W.T  # every column free
+        self._Wt = self.J.T * np.sqrt(self.dinv)[:, None]  # rows: the columns of J D^-1/2 (W[:, idx] = _Wt[idx].T)
+        self._S_all = np.asfortranarray(self._Wt.T @ self._Wt)  # every column free
         self._S_all.flat[:: self.r + 1] += 1.0
+        # S of the free set _F (its lower triangle: what LAPACK reads) and its Cholesky factor _L
         self._S, self._F, self._L = self._S_all, np.ones(len(self.G), bool), None
+        self._begun: tuple | None = None  # f, x0 and the state of a solve begun (``begin``)
+        self._wood: tuple | None = None  # a free set a few columns from _F: (F, U, S^-1 U, LU of the capacitance)
         self._updates = 0
 
-    def _factor(self, F: np.ndarray) -> tuple:
-        """The Cholesky factor of S for free set F: the kept one, or the kept S updated, or formed."""
+    def _solve_S(self, F: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """S^-1 b for free set F. Within WOODBURY columns of the kept factor's free set, through that factor and a
+        k x k capacitance (Woodbury; the last passes of a solve change 0-3 columns, and a 216 x 216 refactor costs
+        ~0.2 ms); otherwise the kept S updated by the changed columns (or formed) and refactored."""
         changed = np.flatnonzero(F != self._F)
         if not len(changed) and self._L is not None:
-            return self._L
+            return dpotrs(self._L, b, lower=1)[0]
+        if len(changed) > WOODBURY or self._L is None:
+            self._refactor(F, changed)
+            return dpotrs(self._L, b, lower=1)[0]
+        if self._wood is None or not np.array_equal(self._wood[0], F):
+            U = self._Wt[changed].T  # S_F = S + U C U', C = diag(+1 freed, -1 bounded) = C^-1
+            Z = dpotrs(self._L, U, lower=1)[0]
+            self._wood = (F.copy(), U, Z, sl.lu_factor(np.diag(np.where(F[changed], 1.0, -1.0)) + U.T @ Z,
+                                                      check_finite=False))
+        _, U, Z, M = self._wood
+        y = dpotrs(self._L, b, lower=1)[0]
+        return y - Z @ sl.lu_solve(M, U.T @ y, check_finite=False)
+
+    def _refactor(self, F: np.ndarray, changed: np.ndarray) -> None:
+        """S of free set F from the kept one by the changed columns (symmetric rank-k products, lower triangle), or
+        formed from all columns' S less the bounded ones' (or the free ones' alone), and its Cholesky factor."""
         n_free = int(np.count_nonzero(F))
         n_bound = len(F) - n_free
         if len(changed) <= min(n_bound, n_free) and self._updates < REFRESH:
-            W = self.J[:, changed] * np.sqrt(self.dinv[changed])
-            S = self._S + (W * np.where(F[changed], 1.0, -1.0)) @ W.T
+            S = self._S.copy(order="F")
+            for idx, sign in ((changed[F[changed]], 1.0), (changed[~F[changed]], -1.0)):
+                if len(idx):
+                    S = dsyrk(sign, self._Wt[idx].T, beta=1.0, c=S, lower=1, overwrite_c=1)
             self._updates += 1
         else:
             if n_bound <= n_free:
-                W = self.J[:, ~F] * np.sqrt(self.dinv[~F])
-                S = self._S_all - W @ W.T
+                S = dsyrk(-1.0, self._Wt[~F].T, beta=1.0, c=self._S_all.copy(order="F"), lower=1, overwrite_c=1)
             else:
-                W = self.J[:, F] * np.sqrt(self.dinv[F])
-                S = W @ W.T
-                S.flat[:: self.r + 1] += 1.0
+                S = dsyrk(1.0, self._Wt[F].T, beta=1.0, c=np.eye(self.r, order="F"), lower=1, overwrite_c=1)
             self._updates = 0
-        self._S, self._F = S, F
-        self._L = sl.cho_factor(S, lower=True, check_finite=False)
-        return self._L
+        L, info = dpotrf(S, lower=1, clean=0)
+        if info:
+            raise np.linalg.LinAlgError(f"marker-space matrix not positive definite (dpotrf info {info})")
+        self._S, self._F, self._L, self._wood = S, F.copy(), L, None
 
     def _subproblem(self, fG: np.ndarray, at_lo: np.ndarray, at_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The minimiser with the bounded weights held at their limits (x) and the gradient there (0 on F)."""
         F = ~(at_lo | at_hi)
         xA = np.where(at_lo, self.lo, np.where(at_hi, self.hi, 0.0))
-        y = sl.cho_solve(self._factor(F), self.J @ np.where(F, -fG * self.dinv, xA), check_finite=False)
+        y = self._solve_S(F, self.J @ np.where(F, -fG * self.dinv, xA))
         z = self.J.T @ y
         x = np.where(F, -(fG + z) * self.dinv, xA)
         return x, self.d * x + z + fG
 
+    def begin(self, f: np.ndarray, x0: np.ndarray, passes: int) -> None:
+        """The first ``passes`` passes of ``solve(f, x0)`` now; a ``solve`` of the same f and x0 next continues
+        where they stopped (the same passes in the same order, so the same x): one solve spread over two frames."""
+        f, x0 = np.array(f, dtype=np.float64), np.array(x0, dtype=np.float64)
+        self._begun = None
+        self._begun = (f, x0, self._pivot(f, x0, min(int(passes), self.max_iter)))
+
     def solve(self, f: np.ndarray, x0: np.ndarray) -> np.ndarray | None:
-        f = np.asarray(f, dtype=np.float64)
+        f, x0 = np.asarray(f, dtype=np.float64), np.asarray(x0, dtype=np.float64)
+        begun, self._begun = self._begun, None
+        state = None
+        if begun is not None and np.array_equal(begun[0], f) and np.array_equal(begun[1], x0):
+            state = begun[2]
+        if state is None or not isinstance(state[0], str):
+            state = self._pivot(f, x0, self.max_iter, state)
+        return state[1]
+
+    def _pivot(self, f: np.ndarray, x0: np.ndarray, stop: int, state: tuple | None = None) -> tuple:
+        """Block-pivoting passes up to pass ``stop``: ("done", x or None) where they settled, handed over to the
+        primal method or ran out of ``max_iter``; else the state to continue from."""
         fG = f[self.G] if self._C is None else f[self.G] - self._A.T @ f[self.P]
-        x = np.asarray(x0, dtype=np.float64)[self.G]
-        at_lo, at_hi = x <= self.lo, x >= self.hi
-        best, budget = len(x) + 1, PIVOT_BUDGET
-        for it in range(1, self.max_iter + 1):
+        if state is None:
+            x = x0[self.G]
+            state = (x <= self.lo, x >= self.hi, len(x) + 1, PIVOT_BUDGET, 0)
+        at_lo, at_hi, best, budget, it = state
+        while it < stop:
+            it += 1
             x, g = self._subproblem(fG, at_lo, at_hi)
             F = ~(at_lo | at_hi)
             lo1 = np.where(F, x <= self.lo, at_lo & (g >= 0))
@@ -125,16 +170,18 @@ class MarkerSpaceQP:
             wrong = np.count_nonzero((lo1 != at_lo) | (hi1 != at_hi))
             if not wrong:
                 self.iterations = it
-                return self._full(x, f)
+                return "done", self._full(x, f)
             if wrong < best:
                 best, budget = wrong, PIVOT_BUDGET
             else:
                 budget -= 1
             if budget <= 0:
-                return self._primal(fG, f, np.minimum(np.maximum(x, self.lo), self.hi), it)
+                return "done", self._primal(fG, f, np.minimum(np.maximum(x, self.lo), self.hi), it)
             at_lo, at_hi = lo1, hi1
-        self.iterations = self.max_iter
-        return None
+        if it >= self.max_iter:
+            self.iterations = self.max_iter
+            return "done", None
+        return at_lo, at_hi, best, budget, it
 
     def _primal(self, fG: np.ndarray, f: np.ndarray, x: np.ndarray, it: int) -> np.ndarray | None:
         """The primal active-set method from the feasible ``x``: a step towards the subproblem's minimiser until

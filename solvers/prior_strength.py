@@ -16,6 +16,8 @@ import numpy as np
 from solvers.prior_strength_kernels import held_out_error, unbounded_trial
 from solvers.qp import FrameQP
 
+BEGIN_PASSES = 2  # marker-space trials: passes run on the frame the trial is due, the rest on the next
+
 
 class HeldOutStrength:
     """``observe(target, valid)`` once per frame; ``best`` is the current choice (index into ``grid``)."""
@@ -68,6 +70,18 @@ class HeldOutStrength:
                 Gh = np.linalg.solve(Bo.T @ Bo + a * precision, np.column_stack([Bo.T, a * precision @ mean]))
                 maps[g, f] = (rows, np.ascontiguousarray(Gh[:, :-1]), np.ascontiguousarray(Gh[:, -1]))
         return maps
+
+    def begin(self, target: np.ndarray, valid: np.ndarray, start: np.ndarray) -> bool:
+        """Run the first BEGIN_PASSES passes of the next trial now where its QP takes the marker-space path
+        (solvers.marker_space_qp: each may refactor its 216 x 216 matrix) and say whether it did: the caller's
+        ``observe`` of the same markers from the same start then continues from them (the same score), so that a
+        trial's cost is shared by two frames (issue 39, 72 x 1000)."""
+        g, _, seen, train = self._next(np.asarray(valid, bool))
+        qp = self.qps[g]
+        if not qp.marker_space or not seen.any() or np.count_nonzero(train) < 3:
+            return False
+        qp.warm(start)
+        return qp.begin(target, train, BEGIN_PASSES)
 
     def observe(self, target: np.ndarray, valid: np.ndarray, start: np.ndarray | None = None,
                 elapsed: float = 1.0) -> None:

@@ -406,6 +406,26 @@ class FrameQP:
         self.iterations = ws.marker_space.iterations
         return x, f
 
+    def begin(self, target: np.ndarray, valid: np.ndarray, passes: int) -> bool:
+        """The first ``passes`` passes of the marker-space solve that ``step(target, valid)`` would run next (from
+        the start ``warm`` set), now; that step continues from them. False where the step would not take that
+        path. A caller so spreads one solve over two frames (kalman's held-out trial at 72 x 1000, issue 39)."""
+        s = np.asarray(target, dtype=np.float64).reshape(-1)
+        seen = np.asarray(valid, dtype=bool).reshape(-1)
+        if (not self.marker_space or s.shape[0] != 3 * self.n or seen.shape[0] != self.n
+                or not math.isfinite(np.add.reduce(s))
+                or np.count_nonzero((self._prev > self.lower) & (self._prev < self.upper)) < 3 * self.n):
+            return False
+        ws = self._frame_workspace(seen.tobytes(), seen)
+        if ws is None:
+            return False
+        self._build_marker_space(ws)
+        if ws.marker_space is False:
+            return False
+        f = self._linear_term(ws, self._BtD @ (s if ws.rows is None else np.where(ws.rows, s, 0.0)))
+        ws.marker_space.begin(f, self._prev, passes)
+        return True
+
     def _build_marker_space(self, ws: _Workspace) -> None:
         if ws.marker_space is None:
             rows = self._all_rows if ws.rows is None else ws.rows

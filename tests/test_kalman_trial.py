@@ -141,3 +141,25 @@ def test_a_prepared_pattern_is_known_and_solves_as_an_unprepared_one():
     assert prepared.knows(seen) and prepared.cached_patterns == 1
     np.testing.assert_array_equal(prepared.step(target, seen), plain.step(target, seen))
     assert prepared.cached_patterns == 1  # the step built nothing more
+
+
+def test_a_marker_space_trial_begun_on_its_frame_scores_as_one():
+    """At many shapes (the marker-space path: 8 markers, 80 shapes and a pose) a known pattern's trial is begun
+    on the frame it is due (its first passes) and finished on the next, with the score of a whole trial."""
+    from tests.test_marker_space_qp import _rig
+
+    (B, lo, hi, mean, P), rng = _rig(8, 80)
+    args = (B, lo, hi, mean, P, np.array([1e-2, 1e-1]))
+    split, whole = (HeldOutStrength(*args, folds=4) for _ in range(2))
+    begun = 0
+    w_true = rng.uniform(0.2, 0.6, 80)
+    for _ in range(24):
+        w_true = np.clip(w_true + rng.normal(0, 0.05, 80), 0.0, 1.0)
+        target = B[:, :80] @ w_true + rng.normal(0, 0.3, 24)
+        valid = np.ones(8, bool)
+        start = np.r_[w_true, np.zeros(6)]
+        begun += split.begin(target, valid, start)
+        split.observe(target, valid, start)
+        whole.observe(target, valid, start)
+    assert begun > 12
+    np.testing.assert_array_equal(split.err, whole.err)

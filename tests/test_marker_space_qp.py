@@ -122,3 +122,70 @@ def test_prepare_builds_every_seen_patterns_marker_space_solver():
     assert all(ws.marker_space is None for ws in qp._models.values())  # zero weights free: not taken yet
     qp.prepare_marker_space()
     assert len(qp._models) == 3 and all(isinstance(ws.marker_space, MarkerSpaceQP) for ws in qp._models.values())
+
+
+def _counting(monkeypatch, name: str) -> list:
+    """Calls of the module's ``name`` (a LAPACK routine) counted."""
+    import solvers.marker_space_qp as msq
+
+    calls, fn = [], getattr(msq, name)
+    monkeypatch.setattr(msq, name, lambda *a, **k: calls.append(1) or fn(*a, **k))
+    return calls
+
+
+def test_a_few_changed_columns_are_solved_through_the_kept_factor(monkeypatch):
+    """S of a free set <= WOODBURY columns from the kept factor's: S^-1 b by Woodbury, equal to the dense solve,
+    and no refactor (a 216 x 216 Cholesky is ~0.2 ms, most of a late pass at 72 x 1000)."""
+    from solvers.marker_space_qp import WOODBURY
+
+    rng = np.random.default_rng(3)
+    J, d, lo, hi, _ = _problem(rng, 12, 60, 0, dmin=0.1)
+    q = MarkerSpaceQP(J, d, lo, hi)
+    F = rng.random(60) < 0.5
+    b = rng.normal(0, 1, 12)
+    q._solve_S(F, b)  # factor kept for F
+    refactors = _counting(monkeypatch, "dpotrf")
+    for k in (1, 3, WOODBURY):
+        G = F.copy()
+        G[rng.choice(60, k, replace=False)] ^= True
+        S = np.eye(12) + (J[:, G] / d[G]) @ J[:, G].T
+        np.testing.assert_allclose(q._solve_S(G, b), np.linalg.solve(S, b), rtol=1e-10, atol=1e-12)
+    assert not refactors
+    G = F.copy()
+    G[:WOODBURY + 1] ^= True
+    S = np.eye(12) + (J[:, G] / d[G]) @ J[:, G].T
+    np.testing.assert_allclose(q._solve_S(G, b), np.linalg.solve(S, b), rtol=1e-10, atol=1e-12)
+    assert len(refactors) == 1
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), passes=st.integers(0, 6), p=st.integers(0, 3))
+def test_a_begun_solve_continues_to_the_same_x(seed, passes, p):
+    """``begin`` runs the first passes, ``solve`` of the same f and x0 runs the rest: the x of one whole solve, bit
+    for bit, in as many passes; another f is solved from scratch."""
+    rng = np.random.default_rng(seed)
+    J, d, lo, hi, f = _problem(rng, 12, 50, p)
+    x0 = np.clip(rng.normal(0, 1, 50 + p), lo, hi)
+    whole, split = MarkerSpaceQP(J, d, lo, hi), MarkerSpaceQP(J, d, lo, hi)
+    x = whole.solve(f, x0)
+    split.begin(f, x0, passes)
+    np.testing.assert_array_equal(split.solve(f, x0), x)
+    assert split.iterations == whole.iterations
+    g = f + rng.normal(0, 1, 50 + p)
+    split.begin(f, x0, passes)
+    np.testing.assert_array_equal(split.solve(g, x0), MarkerSpaceQP(J, d, lo, hi).solve(g, x0))
+
+
+def test_frameqp_begin_then_step_equals_step():
+    """A trial begun on one frame (FrameQP.begin) and stepped on the next gives the weights of the step alone."""
+    (B, lo, hi, mean, P), rng = _rig(8, 80)
+    a, b = (FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1e-2) for _ in range(2))
+    begun = 0
+    w_true = rng.uniform(0.2, 0.6, 80)
+    for _ in range(30):
+        w_true = np.clip(w_true + rng.normal(0, 0.1, 80), -0.2, 1.2)
+        s = (B[:, :80] @ w_true + rng.normal(0, 0.3, 24)).reshape(8, 3)
+        seen = rng.random(8) > 0.15
+        begun += a.begin(s, seen, 1)
+        np.testing.assert_array_equal(a.step(s, seen), b.step(s, seen))
+    assert begun > 5

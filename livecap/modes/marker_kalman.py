@@ -269,6 +269,7 @@ class MarkerKalmanSolver:
         self._frame = 0
         self._due = self._last_trial = 0  # the frame the next strength trial is due, the frame of the last
         self._late = 0  # frames a due trial part has waited beside the fit's new patterns
+        self._begun: tuple | None = None  # a marker-space trial begun: its markers, pattern, start and frame
         self._z: np.ndarray | None = None  # the last frame's weights and pose: where the fit's warm start comes from
         # every workspace (and the IMM's spread) built now, not on the first frames
         self._fits, self._spreads = _warmed_fits(self.joint, self.profile.n_markers, self.m)
@@ -282,6 +283,8 @@ class MarkerKalmanSolver:
         if self.prior_cov is not None and self._next_check < float("inf"):
             self._stream_support(x, ok)
         self._frame += 1
+        if self._begun is not None:
+            self._finish()
         k = self.selector.best
         fit = self._fit(k)
         if fit.marker_space and self._fit_k != k and self._z is not None:
@@ -314,21 +317,35 @@ class MarkerKalmanSolver:
         visibility pattern (``busy``) unless it waited TRIAL_LATE_FRAMES. At rig sizes that stay in weight space the
         trial is the fit without bounds (HeldOutStrength.observe_unbounded, from this frame's fit ``z``): issue 39
         measured the bounded one on a new training pattern -- nearly every trial, with occlusion in bursts -- as
-        costly as two fits, most of kalman's streamed p99 (docs/performance.md). Its memory decays with the frames
-        between trials, so the choice's half-life stays STREAM_HALF_LIFE_FRAMES."""
+        costly as two fits, most of kalman's streamed p99 (docs/performance.md). In marker space (72 x 1000) the
+        bounded trial is begun on its frame and finished before the next frame's fit (``_finish``). Its memory
+        decays with the frames between trials, so the choice's half-life stays STREAM_HALF_LIFE_FRAMES."""
         if self._frame < self._due:
             return
         if busy and self._late < TRIAL_LATE_FRAMES:
             self._late += 1
             return
         self._late = 0
-        elapsed = self._frame - self._last_trial
-        if self.selector.unbounded:
-            self.selector.observe_unbounded(x, ok, z, elapsed=elapsed)
+        if not self.selector.unbounded and self.selector.begin(x, ok, z):
+            self._begun = (x.copy(), ok.copy(), z, self._frame)
         else:
-            self.selector.observe(x, ok, z, elapsed=elapsed)
-        self._last_trial = self._frame
-        self._due = self._frame + STRENGTH_TRIAL_EVERY
+            self._observe(x, ok, z)
+
+    def _finish(self) -> None:
+        """A trial begun last frame, finished before this frame's fit reads the choice: the schedule and the
+        weights of a trial run whole on its frame."""
+        x, ok, z, frame = self._begun
+        self._begun = None
+        self._observe(x, ok, z, frame)
+
+    def _observe(self, x: np.ndarray, ok: np.ndarray, z: np.ndarray, frame: int | None = None) -> None:
+        frame = self._frame if frame is None else frame  # the frame of the markers
+        if self.selector.unbounded:
+            self.selector.observe_unbounded(x, ok, z, elapsed=frame - self._last_trial)
+        else:
+            self.selector.observe(x, ok, z, elapsed=frame - self._last_trial)
+        self._last_trial = frame
+        self._due = frame + STRENGTH_TRIAL_EVERY
 
     def solve(self, targets: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """RTS-smoothed markers -> joint pose and prior fit; POSE_PASSES times, the pose fitted on the
