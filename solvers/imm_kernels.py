@@ -136,3 +136,18 @@ def share_move(st: np.ndarray, share: float, out: np.ndarray) -> None:
         mu = max(st[MU_MOVE, i], floor)
         st[MU_MOVE, i], st[MU_HOLD, i] = mu, 1.0 - mu
         out[i] = (1.0 - mu) * st[XH, i] + mu * st[XM, i]
+
+
+@numba.njit(cache=True, nogil=True)
+def shared_shrunk_step(st: np.ndarray, y: np.ndarray, ok: np.ndarray, transition: np.ndarray, share: float,
+                       shrink: np.ndarray, n: int, a: float, b: float, c: float, pull: bool, before: np.ndarray,
+                       out: np.ndarray) -> None:
+    """``imm_step``, then ``share_move`` (if ``share`` > 0), then ``shrink_step`` on its output, in one call: the
+    streamed weight stage's three kernels and the 'move' probabilities kept between them, the same numbers as the
+    three calls (``before``: scratch of C). One call a frame instead of three and their copies (issue 39)."""
+    for i in range(y.shape[0]):
+        before[i] = st[MU_MOVE, i]
+    imm_step(st, y, ok, transition, out)
+    if share > 0:
+        share_move(st, share, out)
+    shrink_step(shrink, y, out, before, st[MU_MOVE], n, a, b, c, pull, out)

@@ -251,13 +251,17 @@ class NoiseShrink:
 
             self._kernels = imm_kernels
             self._state = np.zeros((imm_kernels.N_SHRINK, u.size))
+        out = np.empty(u.size)
+        self._kernels.shrink_step(self._state, u, x, move_before, move_after, *self._advance(), out)
+        return out
+
+    def _advance(self) -> tuple[int, float, float, float, bool]:
+        """The next sample's count, averaging weights (mean and variance, frame noise), pull factor and whether it
+        pulls: the scalar arguments of the compiled step."""
         self.n += 1
         a = max(1.0 / self.n, self.floor)
         b = max(1.0 / max(self.n - 1, 1), self.floor)
-        out = np.empty(u.size)
-        self._kernels.shrink_step(self._state, u, x, move_before, move_after, self.n, a, b, self.c,
-                                  self.n > self.warm, out)
-        return out
+        return self.n, a, b, self.c, self.n > self.warm
 
 
 class RotatedIMM:
@@ -289,6 +293,7 @@ class RotatedIMM:
         self.imm = imm
         self.shrink = shrink
         self.share = float(share)
+        self._before: np.ndarray | None = None  # the compiled step's scratch: 'move' probabilities before it
 
     def reset(self) -> None:
         self.imm.reset()
@@ -312,7 +317,17 @@ class RotatedIMM:
     def step(self, y: np.ndarray) -> np.ndarray:
         y = np.asarray(y, dtype=np.float64)
         u = np.ascontiguousarray(y) if self.axes is None else self.axes.T @ y
-        started = self.imm.move_probability is not None
+        imm, shrink = self.imm, self.shrink
+        if shrink is not None and shrink._state is not None and imm._state is not None and u.size == imm._all.size:
+            # streamed kalman's every frame after the first: the IMM, the shared regime and the pull in one compiled
+            # call (solvers.imm_kernels.shared_shrunk_step; as three calls with their copies ~11 us at 53 directions)
+            if self._before is None or self._before.size != u.size:
+                self._before = np.empty(u.size)
+            x = np.empty(u.size)
+            imm._kernels.shared_shrunk_step(imm._state, u, imm._all, imm.transition, self.share, shrink._state,
+                                            *shrink._advance(), self._before, x)
+            return x if self.axes is None else self.axes @ x
+        started = imm.move_probability is not None
         before = self.imm.move_probability.copy() if started and self.shrink is not None else None
         x = self.imm.step(u)
         if started and self.share > 0:

@@ -284,3 +284,29 @@ def test_shared_move_lets_an_ill_seen_direction_follow_a_blink_the_well_seen_one
     np.testing.assert_allclose(shared[:onset - 10], alone[:onset - 10], atol=0.002)  # still face: as before
     with pytest.raises(ValueError, match="share"):
         RotatedIMM(np.eye(2), IMMFilter(q_hold, q_move, r), share=1.5)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.sampled_from([0.0, 0.3, 1.0]), st.integers(2, 12))
+def test_the_weight_stage_in_one_call_is_its_three_parts_bit_for_bit(seed, share, warm):
+    """Streamed, RotatedIMM's IMM step, shared regime and pull run as one compiled call (issue 39, the merged main's
+    p99); its output is the three parts' (IMMFilter.step, share_move, NoiseShrink.step) composed, bit for bit,
+    with the noise changed in mid-stream as kalman does when its strength moves."""
+    rng = np.random.default_rng(seed)
+    m, T = 5, 40
+    Y = rng.normal(size=(T, m)).cumsum(0) * rng.uniform(0.01, 1.0, m) + rng.normal(0, 0.2, (T, m))
+    axes = np.linalg.qr(rng.normal(size=(m, m)))[0]
+    r = rng.uniform(1e-4, 0.1, m)
+    fused = RotatedIMM(axes, IMMFilter(1e-4, 1e-2, r), NoiseShrink(c=4.0, warm_frames=warm), share)
+    imm, shrink = IMMFilter(1e-4, 1e-2, r), NoiseShrink(c=4.0, warm_frames=warm)
+    for t, y in enumerate(Y):
+        if t == T // 2:
+            fused.set_noise(2 * r)
+            imm.set_noise(2 * r)
+        u = axes.T @ y
+        before = np.zeros(m) if imm.move_probability is None else imm.move_probability.copy()
+        x = imm.step(u)
+        if t and share > 0:
+            imm.share_move(share, x)
+        want = axes @ shrink.step(u, before, x, imm.move_probability if t else np.zeros(m))
+        np.testing.assert_array_equal(fused.step(y), want)
