@@ -44,6 +44,23 @@ def _top_bias(row, k: int = 4) -> dict[str, float]:
     return dict(sorted(row.bias.items(), key=lambda kv: -abs(kv[1]))[:k])
 
 
+def _widen_only(solver, targets, valid, noise_mm, tol=1e-2):
+    """The check before branch prior3: the variance only (a stand-in for MarkerKalmanSolver._support)."""
+    from solvers.prior_support import widen_prior
+
+    return widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
+                       solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, recentre=False, outside=10.0,
+                       tol=tol)
+
+
+def _recentre_widen(solver, targets, valid, noise_mm, tol=1e-2):
+    """The mean re-centred, the variance widened as before (a stand-in for MarkerKalmanSolver._support)."""
+    from solvers.prior_support import widen_prior
+
+    return widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
+                       solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, outside=10.0, tol=tol)
+
+
 def main(argv: list[str] | None = None) -> int:
     from livecap.calibration.animation_prior import build_prior
     from livecap.cli.realeval import _realdata, _rig
@@ -68,18 +85,6 @@ def main(argv: list[str] | None = None) -> int:
     support = marker_kalman.MarkerKalmanSolver._support
     growth, spread = marker_kalman.SUPPORT_GROWTH, marker_kalman.UNCHECKED_SPREAD
 
-    def widen_only(solver, targets, valid, noise_mm):  # the check before branch prior3: the variance only
-        from solvers.prior_support import widen_prior
-
-        return widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
-                           solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, recentre=False, outside=10.0)
-
-    def recentre_widen(solver, targets, valid, noise_mm):  # the mean re-centred, the variance widened as before
-        from solvers.prior_support import widen_prior
-
-        return widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
-                           solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, outside=10.0)
-
     for noise in args.noise:
         for name in args.files:
             f = folder / f"{name}.csv"
@@ -89,10 +94,10 @@ def main(argv: list[str] | None = None) -> int:
             prior = build_prior(others, rig.names, rig.lower, rig.upper)
             opts = {"kalman": {"rate": ct.take.rate}}
             for label, pr, how, recheck in (("no prior", None, None, False), ("prior as given", prior, None, False),
-                                            ("prior widened", prior, widen_only, False),
+                                            ("prior widened", prior, _widen_only, False),
                                             ("prior re-centred", prior, support, True),
                                             ("prior re-centred 1 s", prior, support, False),
-                                            ("prior re-centred, widened", prior, recentre_widen, True)):
+                                            ("prior re-centred, widened", prior, _recentre_widen, True)):
                 if label not in args.variants:
                     continue
                 marker_kalman.SUPPORT_GROWTH = growth if recheck else float("inf")

@@ -84,6 +84,14 @@ def _rig(n_markers: int, m: int, seed: int = 0):
     pose = RigidColumns(neutral)
     return pose.augment(B, np.zeros(m), np.ones(m), np.zeros(m), np.eye(m)), rng
 
+def _moving_frames(B: np.ndarray, rng: np.random.Generator, n: int, low: float):
+    """n frames of 8 markers whose 80 weights wander (a random walk from U(low, 0.6)), ~15 % of markers hidden."""
+    w_true = rng.uniform(low, 0.6, 80)
+    for _ in range(n):
+        w_true = np.clip(w_true + rng.normal(0, 0.1, 80), -0.2, 1.2)
+        yield (B[:, :80] @ w_true + rng.normal(0, 0.3, 24)).reshape(8, 3), rng.random(8) > 0.15
+
+
 
 @pytest.mark.parametrize("strength", [1e-2, 1.0])
 def test_frameqp_marker_space_path_equals_weight_space(monkeypatch, strength):
@@ -95,11 +103,7 @@ def test_frameqp_marker_space_path_equals_weight_space(monkeypatch, strength):
     slow = FrameQP(B, lo, hi, prior=(mean, P), prior_weight=strength)
     assert fast.marker_space and not slow.marker_space
     used = 0
-    w_true = rng.uniform(0, 0.6, 80)
-    for _ in range(60):
-        w_true = np.clip(w_true + rng.normal(0, 0.1, 80), -0.2, 1.2)
-        s = (B[:, :80] @ w_true + rng.normal(0, 0.3, 24)).reshape(8, 3)
-        seen = rng.random(8) > 0.15
+    for s, seen in _moving_frames(B, rng, 60, 0.0):
         a, b = fast.step(s, seen), slow.step(s, seen)
         np.testing.assert_allclose(a, b, atol=1e-7)
         used += int(np.count_nonzero((a > lo) & (a < hi)) >= 24)
@@ -181,11 +185,7 @@ def test_frameqp_begin_then_step_equals_step():
     (B, lo, hi, mean, P), rng = _rig(8, 80)
     a, b = (FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1e-2) for _ in range(2))
     begun = 0
-    w_true = rng.uniform(0.2, 0.6, 80)
-    for _ in range(30):
-        w_true = np.clip(w_true + rng.normal(0, 0.1, 80), -0.2, 1.2)
-        s = (B[:, :80] @ w_true + rng.normal(0, 0.3, 24)).reshape(8, 3)
-        seen = rng.random(8) > 0.15
+    for s, seen in _moving_frames(B, rng, 30, 0.2):
         begun += a.begin(s, seen, 1)
         np.testing.assert_array_equal(a.step(s, seen), b.step(s, seen))
     assert begun > 5
