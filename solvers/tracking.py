@@ -328,12 +328,11 @@ class RotatedIMM:
                                             *shrink._advance(), self._before, x)
             return x if self.axes is None else self.axes @ x
         started = imm.move_probability is not None
-        before = self.imm.move_probability.copy() if started and self.shrink is not None else None
-        x = self.imm.step(u)
+        before = imm.move_probability.copy() if started and shrink is not None else None
+        x = imm.step(u)
         if started and self.share > 0:
-            self.imm.share_move(self.share, x)
-        if self.shrink is not None:  # the first sample starts both
-            moving = self.imm.move_probability
-            x = self.shrink.step(u, np.zeros(u.size) if before is None else before, x,
-                                 moving if started else np.zeros(u.size))
+            imm.share_move(self.share, x)
+        if shrink is not None:  # the first sample starts both
+            x = shrink.step(u, np.zeros(u.size) if before is None else before, x,
+                            imm.move_probability if started else np.zeros(u.size))
         return x if self.axes is None else self.axes @ x
