@@ -103,15 +103,13 @@ def test_frame_residual_is_the_rms_over_the_seen_markers(n, m, frames, seed):
 
 WARM_THEN_SOLVE = """
 import sys
-from numba.core.registry import CPUDispatcher
 from livecap.batch.jobs import Job
 from livecap.batch.runner import warm_kernels
 from livecap.batch.spec import SolveSpec
-from livecap.batch.worker import SolverCache, solve_job
+from livecap.batch.worker import SolverCache, kernels, solve_job
 
 def signatures():
-    return {(name, str(sig)) for name, mod in list(sys.modules.items()) if name.startswith("solvers")
-            for obj in vars(mod).values() if isinstance(obj, CPUDispatcher) for sig in obj.signatures}
+    return {(obj.py_func.__qualname__, str(sig)) for obj in kernels() for sig in obj.signatures}
 
 job = Job(sys.argv[1], SolveSpec(sys.argv[2], "robust", sys.argv[3]), sys.argv[4])
 cache = SolverCache()
@@ -130,7 +128,7 @@ def test_the_warm_up_loads_every_kernel_a_take_with_occlusions_needs(lib, tmp_pa
     import subprocess
     import sys
 
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
     out = subprocess.run([sys.executable, "-c", WARM_THEN_SOLVE, str(ROOT / "recordings" / "demo_take.c3d"),
                           lib["rig"], lib["profile"], str(tmp_path)], capture_output=True, text=True, env=env,
                          timeout=300)

@@ -155,15 +155,20 @@ def solve_spec(spec: SolveSpec, take: Take, take_path: str, cache: SolverCache):
     return solve_take(take, profile, solver), profile, rig
 
 
-def compiled_kernels() -> int:
-    """Numba kernels this process has compiled so far (cache misses; every kernel lives in solvers/): 0 in a
-    worker whose kernels all came from the on-disk cache the client warmed (runner.warm_kernels)."""
+def kernels() -> list:
+    """The numba kernels this process has imported (every kernel lives in solvers/)."""
     import sys
 
     from numba.core.registry import CPUDispatcher
 
-    return sum(sum(obj.stats.cache_misses.values()) for name, mod in list(sys.modules.items())
-               if name.startswith("solvers") for obj in vars(mod).values() if isinstance(obj, CPUDispatcher))
+    return [obj for name, mod in list(sys.modules.items()) if name.startswith("solvers")
+            for obj in vars(mod).values() if isinstance(obj, CPUDispatcher)]
+
+
+def compiled_kernels() -> int:
+    """Numba kernels this process has compiled so far (cache misses): 0 in a worker whose kernels all came from
+    the on-disk cache the client warmed (runner.warm_kernels)."""
+    return sum(sum(obj.stats.cache_misses.values()) for obj in kernels())
 
 
 def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
