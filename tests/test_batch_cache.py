@@ -134,3 +134,24 @@ def test_the_warm_up_loads_every_kernel_a_take_with_occlusions_needs(lib, tmp_pa
                          timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_two_writers_of_one_take_s_record_both_succeed(lib, tmp_path, monkeypatch):
+    """Dask may run one task twice at once: the second run finishing while the first is between writing its
+    record and renaming it must not make the first fail (a fixed temporary name did: FileNotFoundError)."""
+    import livecap.batch.worker as worker
+
+    job = Job(str(lib["takes"][0]), SolveSpec(lib["rig"], "robust", lib["profile"]), str(tmp_path))
+    real, nested = os.replace, []
+
+    def replace(src, dst):
+        if Path(dst) == Path(job.record) and not nested:
+            nested.append(None)
+            nested[0] = solve_job(job)  # the other run lands its record in between
+        real(src, dst)
+
+    monkeypatch.setattr(worker.os, "replace", replace)
+    row = solve_job(job)
+    assert nested[0]["status"] == "ok", nested[0]["error"]
+    assert row["status"] == "ok", row["error"]
+    assert Path(job.record).exists() and not list(Path(job.record).parent.glob("*.partial"))

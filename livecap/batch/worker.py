@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -205,10 +206,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     row["kernels_compiled"] = compiled_kernels() - compiled
     row["solvers_built"] = cache.built - built
     if row["status"] == "ok":
-        job.record.parent.mkdir(parents=True, exist_ok=True)
-        tmp = job.record.with_name(job.record.name + ".partial")
-        tmp.write_text(json.dumps(row))
-        os.replace(tmp, job.record)
+        _write_record(job.record, row)
     else:
         job.record.unlink(missing_ok=True)  # an old success must not stand in for this failure
     return row
@@ -218,3 +216,18 @@ def load_record(job: Job) -> dict:
     row = json.loads(Path(job.record).read_text())
     row["status"] = "skipped"
     return row
+
+
+def _write_record(record: Path, row: dict) -> None:
+    """The record replaced atomically through a temporary file of this call's own: Dask may run one task twice
+    at once (a worker presumed lost, its task resubmitted), and two writers of one fixed temporary name would make
+    the slower one's rename fail and report the take failed."""
+    record.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=record.name + ".", suffix=".partial", dir=record.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(json.dumps(row))
+        os.replace(tmp, record)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
