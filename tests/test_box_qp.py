@@ -242,29 +242,27 @@ def test_an_unregularised_churning_stream_matches_daqp_frame_by_frame():
 
 def test_a_weight_leaving_beside_a_nearly_collinear_one_keeps_the_factor_exact():
     """Shape 31 = shape 30 + 1e-7 noise: H is near singular (cond ~1e15) but H_FF after 30 leaves is not (~50).
-    The rank-1 deletion must not lose digits there (review: a rotation by r / a lost 1e-10 of the factor)."""
+    The rank-1 deletion (``_delete``) must not lose digits there (review: a rotation by r / a lost 1e-10 of the
+    factor). The kernel is called on the full factor directly: which of the two near twins a whole solve lets
+    leave is decided by rounding (a flat valley of the objective), and differed between machines in CI."""
+    import numba
+
+    from solvers.box_qp_kernels import _delete
+
+    @numba.njit
+    def delete(L, p, valid, w):
+        _delete(L, p, valid, w)
+
     rng = np.random.default_rng(1)
     m, p = 40, 30
     B = rng.normal(size=(60, m))
     B[:, p + 1] = B[:, p] + 1e-7 * rng.normal(size=60)
     H = B.T @ B
-    lo, hi = np.full(m, -10.0), np.full(m, 10.0)
-    x_in = rng.uniform(-1, 1, m)
-    qp = BoxQP(H, lo, hi)
-    qp.warm(x_in)
-    qp.solve(-H @ x_in)
-    x_out = x_in.copy()
-    x_out[p] = -11.0  # weight p now wants to go below its limit: it leaves F, the rest stay free
-    f = -H @ x_out
-    x = qp.solve(f)
-    F, valid = qp.F, int(qp._meta[1])
-    assert len(F) == m - 1 and p not in F and valid > p
-    exact = np.linalg.cholesky(H[np.ix_(F, F)])
-    assert np.abs(np.tril(qp._L[:valid, :valid]) - exact[:valid, :valid]).max() < 1e-13 * np.abs(exact).max()
+    L = np.linalg.cholesky(H)
+    delete(L, p, m, np.zeros(m))
     keep = np.arange(m) != p
-    want = np.full(m, lo[p])
-    want[keep] = np.linalg.solve(H[np.ix_(keep, keep)], -(f[keep] + H[keep, p] * lo[p]))
-    np.testing.assert_allclose(x, want, rtol=0, atol=1e-12)
+    exact = np.linalg.cholesky(H[np.ix_(keep, keep)])
+    assert np.abs(np.tril(L[: m - 1, : m - 1]) - exact).max() < 1e-13 * np.abs(exact).max()
 
 
 @settings(max_examples=40, deadline=None)
