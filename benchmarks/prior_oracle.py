@@ -68,11 +68,14 @@ def main(argv: list[str] | None = None) -> int:
                         "(offline, no truth); the take's true mean (a ceiling, not a criterion)")
     p.add_argument("--cov", choices=["checked", "truth"], default="checked",
                    help="the prior's covariance: today's; the take's true weights' (a ceiling for a Gaussian prior)")
+    p.add_argument("--extend", type=float, nargs="*", default=[],
+                   help="strengths added to the grid (also offered to today's criterion): is the grid's end the limit?")
     p.add_argument("--json")
     args = p.parse_args(argv)
     logging.getLogger("livecap").setLevel(logging.ERROR)  # the check's warnings, once per solve
 
-    grid = marker_kalman.STRENGTHS
+    grid0 = marker_kalman.STRENGTHS
+    grid = marker_kalman.STRENGTHS = np.unique(np.concatenate([grid0, args.extend]))
     unit = int(np.argmin(np.abs(grid - 1.0)))  # banded fits run at strength 1, the bands carrying the grid's values
     take_strength, use_support = marker_kalman.take_strength, marker_kalman.MarkerKalmanSolver._use_support
     state: dict = {"fixed": None, "scales": None, "chosen": None, "mean": None, "precision": None}
@@ -159,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"[{time.perf_counter() - t0:.0f} s]", flush=True)
     finally:
         marker_kalman.take_strength = take_strength
+        marker_kalman.STRENGTHS = grid0
         marker_kalman.MarkerKalmanSolver._use_support = use_support
     for noise in args.noise:
         rows = [r for r in out if r["noise_mm"] == noise]
