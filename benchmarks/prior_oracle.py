@@ -66,8 +66,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mean", choices=["checked", "self", "truth"], default="checked",
                    help="the prior's mean: today's check against the take; the take's own no-prior kalman fit's mean "
                         "(offline, no truth); the take's true mean (a ceiling, not a criterion)")
-    p.add_argument("--cov", choices=["checked", "truth"], default="checked",
-                   help="the prior's covariance: today's; the take's true weights' (a ceiling for a Gaussian prior)")
+    p.add_argument("--cov", choices=["checked", "self", "pooled", "truth"], default="checked",
+                   help="the prior's covariance: today's; the take's own no-prior kalman fit's (offline, no truth); "
+                        "the mean of that and the others' (pooled); the take's true weights' (a ceiling)")
     p.add_argument("--extend", type=float, nargs="*", default=[],
                    help="strengths added to the grid (also offered to today's criterion): is the grid's end the limit?")
     p.add_argument("--json")
@@ -118,13 +119,17 @@ def main(argv: list[str] | None = None) -> int:
                 profile.prior = build_prior([o for o in files if o != f], rig.names, rig.lower, rig.upper)
                 opts = {"rate": ct.take.rate}
                 state["mean"] = state["precision"] = state["scales"] = state["fixed"] = None
-                if args.mean == "self":
+                if "self" in (args.mean, args.cov) or args.cov == "pooled":
                     bare = plain_profile(rig, layout, ct)
-                    state["mean"] = solve_take(ct.take, bare, build_solver("kalman", bare, opts)).weights.mean(0)
+                    own = solve_take(ct.take, bare, build_solver("kalman", bare, opts)).weights
+                if args.mean == "self":
+                    state["mean"] = own.mean(0)
                 elif args.mean == "truth":
                     state["mean"] = ct.weights.mean(0)
-                if args.cov == "truth":
-                    C = np.cov(ct.weights.T)
+                if args.cov != "checked":
+                    C = np.cov((ct.weights if args.cov == "truth" else own).T)
+                    if args.cov == "pooled":
+                        C = 0.5 * (C + profile.prior.cov)
                     state["precision"] = np.linalg.inv(C + 1e-6 * np.trace(C) / len(C) * np.eye(len(C)))
 
                 def ratio(fixed, scales=None, profile=profile, opts=opts, ct=ct, oracle=oracle):
