@@ -44,6 +44,19 @@ def band_precisions(basis: np.ndarray, precision: np.ndarray, bands: int) -> tup
     return [Minv[idx].T @ (np.maximum(d[idx], 0.0)[:, None] * Minv[idx]) for idx in parts], d
 
 
+def denoised(C: np.ndarray, basis: np.ndarray, noise_mm: float, floor: float = 1e-2) -> np.ndarray:
+    """A fit's weight covariance less the per-frame fit noise N = noise^2 (B'B)^-1: in N's whitened coordinates
+    its eigenvalues minus 1, kept at least ``floor`` (the moment estimate of the signal's covariance)."""
+    G = basis.T @ basis
+    m = len(G)
+    N = noise_mm**2 * np.linalg.inv(G + 1e-9 * np.trace(G) / m * np.eye(m))
+    L = np.linalg.cholesky(N)
+    Li = np.linalg.solve(L, np.eye(m))
+    lam, V = np.linalg.eigh(Li @ C @ Li.T)
+    S = L @ V
+    return (S * np.maximum(lam - 1.0, floor)) @ S.T
+
+
 def main(argv: list[str] | None = None) -> int:
     from livecap.calibration.animation_prior import build_prior
     from livecap.cli.realeval import _realdata, _rig
@@ -66,9 +79,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mean", choices=["checked", "self", "truth"], default="checked",
                    help="the prior's mean: today's check against the take; the take's own no-prior kalman fit's mean "
                         "(offline, no truth); the take's true mean (a ceiling, not a criterion)")
-    p.add_argument("--cov", choices=["checked", "self", "pooled", "truth"], default="checked",
+    p.add_argument("--cov", choices=["checked", "self", "pooled", "denoised", "truth"], default="checked",
                    help="the prior's covariance: today's; the take's own no-prior kalman fit's (offline, no truth); "
-                        "the mean of that and the others' (pooled); the take's true weights' (a ceiling)")
+                        "the mean of that and the others' (pooled); the own fit's less its per-frame noise "
+                        "noise^2 (B'B)^-1 (denoised); the take's true weights' (a ceiling)")
     p.add_argument("--extend", type=float, nargs="*", default=[],
                    help="strengths added to the grid (also offered to today's criterion): is the grid's end the limit?")
     p.add_argument("--json")
@@ -119,9 +133,10 @@ def main(argv: list[str] | None = None) -> int:
                 profile.prior = build_prior([o for o in files if o != f], rig.names, rig.lower, rig.upper)
                 opts = {"rate": ct.take.rate}
                 state["mean"] = state["precision"] = state["scales"] = state["fixed"] = None
-                if "self" in (args.mean, args.cov) or args.cov == "pooled":
+                if "self" in (args.mean, args.cov) or args.cov in ("pooled", "denoised"):
                     bare = plain_profile(rig, layout, ct)
-                    own = solve_take(ct.take, bare, build_solver("kalman", bare, opts)).weights
+                    fit = build_solver("kalman", bare, opts)
+                    own = solve_take(ct.take, bare, fit).weights
                 if args.mean == "self":
                     state["mean"] = own.mean(0)
                 elif args.mean == "truth":
@@ -130,6 +145,8 @@ def main(argv: list[str] | None = None) -> int:
                     C = np.cov((ct.weights if args.cov == "truth" else own).T)
                     if args.cov == "pooled":
                         C = 0.5 * (C + profile.prior.cov)
+                    elif args.cov == "denoised":
+                        C = denoised(C, bare.basis, fit.chosen["noise_mm"])
                     state["precision"] = np.linalg.inv(C + 1e-6 * np.trace(C) / len(C) * np.eye(len(C)))
 
                 def ratio(fixed, scales=None, profile=profile, opts=opts, ct=ct, oracle=oracle):
