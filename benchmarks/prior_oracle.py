@@ -13,6 +13,8 @@ today. Rows per take, weight RMSE x the oracle's:
   each band's strength picked from the same grid in hindsight by coordinate descent from the best scalar
   (``--sweeps`` passes over the bands).
 
+``--mean`` / ``--cov`` swap the checked prior's mean / covariance for the take's own no-prior fit's (no truth), a
+pooled or noise-corrected form of it, or the take's true ones (ceilings); ``--extend`` adds strengths to the grid.
 The truth picks every hindsight choice: these rows bound what a criterion choosing that form could reach; they are
 not a mode.
 
