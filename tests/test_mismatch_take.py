@@ -31,6 +31,9 @@ def test_generate_actor_rig_writes_a_take_its_bound_markers_and_the_curves_as_tr
     take, neutral = read_take(tmp_path / "apfel.c3d"), read_take(tmp_path / "apfel_neutral.c3d")
     truth = np.load(tmp_path / "apfel.truth.npz")
     assert list(truth["names"]) == list(ict.names) and truth["weights"].shape == (take.n_frames, ict.n_shapes)
+    assert truth["curves"].shape == truth["weights"].shape and truth["performed"].sum() == 29
+    gaze = [i for i, n in enumerate(ict.names) if n.startswith("eyeLook")]  # no MakeHuman shape: at rest
+    assert not truth["weights"][:, gaze].any() and truth["curves"][:, gaze].any()
     assert 55 <= layout.n_markers <= 60 and 0.005 < (~take.valid).mean() < 0.05
     # the capture pipeline's smoothing: second differences far below the 0.3 mm raw noise
     acc = np.diff(neutral.positions, 2, axis=0)

@@ -71,7 +71,8 @@ class MismatchTake:
 
     def save_truth(self, path: str | Path) -> None:
         np.savez_compressed(path, weights=self.weights.astype(np.float32), names=np.array(self.names),
-                            labels=np.array(self.take.labels), rate=self.take.rate, source=self.source)
+                            labels=np.array(self.take.labels), rate=self.take.rate, source=self.source,
+                            curves=self.curves.astype(np.float32), performed=self.performed)
 
 
 def actor_layout(actor: Rig, target: Rig, target_layout: MarkerLayout) -> tuple[MarkerLayout, np.ndarray]:
