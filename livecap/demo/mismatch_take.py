@@ -6,7 +6,7 @@ MakeHuman head's sculpted expressions) driven by real Live Link Face curves thro
 its markers sit on the actor's anatomy where the target rig's marker sites are on the target's: the
 target bent onto the actor's face by the rig transfer's landmarks and deformable fit (Xiang 2008,
 :mod:`livecap.transfer`), each site taken at the closest point of the actor's skin whose normal agrees
-(never the inside of a nostril, lip or lid), moved by a placement error in the tangent plane and
+(never skin facing away, as the plain closest point gave at the lips, nose and lids), moved by a placement error in the tangent plane and
 lifted off the skin along the outward normal (skin offset, constant in the head frame); the head
 moves; white optical noise is then low-passed as a capture pipeline does (zero-phase Butterworth);
 markers drop out in bursts. The layout the solver gets is *not* the true one: it is bound to the
@@ -93,8 +93,8 @@ def actor_layout(actor: Rig, target: Rig, target_layout: MarkerLayout) -> tuple[
 def actor_sites(actor: Rig, anatomy: tuple[MarkerLayout, np.ndarray], s: MismatchSettings,
                 rng: np.random.Generator) -> tuple[MarkerLayout, np.ndarray]:
     """``anatomy`` (:func:`actor_layout`) with the placement error, and each marker's skin offset vector (n x 3,
-    mm, outward). Points are projected with the target's normals: the actor's closest point may otherwise be the
-    inside of a nostril or a lip (the MakeHuman head: 22 of ICT's 60 offsets pointed into the head)."""
+    mm, outward). Points are projected with the target's normals: the plain closest point took skin facing away on
+    the MakeHuman head (22 of ICT's 60 offsets pointed into the head: every lip site, 5 nose, 5 eye)."""
     sites, normal = anatomy
     surf = Surface(actor.neutral, actor.triangles)
     tangent = np.cross(normal, rng.normal(size=normal.shape))
