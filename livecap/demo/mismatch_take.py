@@ -6,11 +6,12 @@ MakeHuman head's sculpted expressions) driven by real Live Link Face curves thro
 its markers sit on the actor's anatomy where the target rig's marker sites are on the target's: the
 target bent onto the actor's face by the rig transfer's landmarks and deformable fit (Xiang 2008,
 :mod:`livecap.transfer`), each site taken at the closest point of the actor's skin whose normal agrees
-(never skin facing away, as the plain closest point gave at the lips, nose and lids), moved by a placement error in the tangent plane and
-lifted off the skin along the outward normal (skin offset, constant in the head frame); the head
-moves; white optical noise is then low-passed as a capture pipeline does (zero-phase Butterworth);
-markers drop out in bursts. The layout the solver gets is *not* the true one: it is bound to the
-target rig from the neutral take by :func:`livecap.transfer.bind.bind_capture`, as a user would.
+(never skin facing away, as the plain closest point gave at the lips, nose and lids), moved by a
+placement error in the tangent plane and lifted off the skin along the outward normal (skin offset,
+constant in the head frame); the head moves; white optical noise is then low-passed as a capture
+pipeline does (zero-phase Butterworth); markers drop out in bursts. The layout the solver gets is
+*not* the true one: it is bound to the target rig from the neutral take by
+:func:`livecap.transfer.bind.bind_capture`, as a user would.
 
 Truth is what the actor did, on the target rig's names: the ARKit curves the actor's weights determine
 (the minimum-norm ARKit vector reproducing them through the mapping), through the target's name match.
