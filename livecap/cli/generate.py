@@ -36,7 +36,8 @@ def register(sub) -> None:
     a = p.add_argument_group("model mismatch (--curves with --actor-rig)")
     a.add_argument("--actor-rig", metavar="RIG", help="the actor is this other rig (e.g. the MakeHuman head) driven by "
                    "--curves through --mapping; its markers, placed like --rig's and bound to --rig as "
-                   "'livecap markers bind' does, go to OUT/<curves>.markers.json; truth: the curves on --rig")
+                   "'livecap markers bind' does, go to OUT/<curves>.markers.json; truth: what the actor did on --rig's "
+                   "names (names its mapping has no shape for at rest), the curves beside it")
     a.add_argument("--skin-offset", default="2:5", metavar="MIN:MAX", help="markers off the actor's skin, mm (2:5)")
     a.add_argument("--placement-mm", type=float, default=2.0, help="marker placement error, +- mm (default 2)")
     a.add_argument("--smoothing-hz", type=float, default=6.0,

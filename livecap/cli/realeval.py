@@ -92,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
     out = []
     for rig_name in args.rig:
         rig, layout = _rig(rig_name, args.markers)
+        anatomy = {}  # the actor's marker sites, once per rig (livecap.demo.mismatch_take.actor_layout)
         for noise in args.noise:
             for f in files:
                 length = read_llf_csv(f).times[-1]
@@ -99,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
                 s = CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise, occlusion=args.occlusion)
                 t0 = time.perf_counter()
                 ct = curves_take(rig, layout, f, s, mapping) if not args.actor_rig else \
-                    _mismatch(args, rig, layout, f, start, noise)
+                    _mismatch(args, rig, layout, f, start, noise, anatomy)
                 options = {"kalman": {"rate": ct.take.rate}}  # the IMM's process noise is per second
                 others = [o for o in files if o != f]
                 prior = None
@@ -122,7 +123,8 @@ def run(args: argparse.Namespace) -> int:
                     out.append(rec)
                     print(f"  {r.mode:12s} RMSE {r.rmse:.3f} ({rec['rmse_x']:.2f}x)  p95 {r.p95_mm:.2f} mm "
                           f"({rec['p95_x']:.2f}x)  jitter {r.jitter_x:7.2f}x  blink {r.blink:.2f}  "
-                          f"phantom {r.phantom:.3f}")
+                          f"phantom {r.phantom:.3f}" + (f"  RMSE vs curves {r.rmse_curves:.3f}"
+                                                        if np.isfinite(r.rmse_curves) else ""))
                     if args.bias:
                         worst = sorted(r.bias.items(), key=lambda kv: -abs(kv[1]))[:5]
                         print(f"    active kept {r.active_kept:.1f} of {r.active_true:.1f}; bias "
@@ -136,15 +138,19 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _mismatch(args: argparse.Namespace, rig, layout, f: Path, start: float, noise: float):
-    from livecap.demo.mismatch_take import MismatchSettings, mismatch_take
+def _mismatch(args: argparse.Namespace, rig, layout, f: Path, start: float, noise: float, anatomy: dict):
+    """The model-mismatch take of ``f``; ``anatomy`` caches the actor's marker sites (the slow rig transfer)."""
+    from livecap.demo.mismatch_take import MismatchSettings, actor_layout, mismatch_take
     from transport.arkit import load_mapping
     from transport.rig_files import load_rig
 
-    actor = load_rig(args.actor_rig)
+    actor = anatomy.get("actor") or load_rig(args.actor_rig)
+    if "sites" not in anatomy:
+        anatomy.update(actor=actor, sites=actor_layout(actor, rig, layout))
     mapping = load_mapping(args.actor_mapping) if args.actor_mapping else None
     return mismatch_take(actor, rig, layout, f, mapping, MismatchSettings(start=start, seconds=args.seconds,
-                                                                          noise_mm=noise, occlusion=args.occlusion))
+                                                                          noise_mm=noise, occlusion=args.occlusion),
+                         anatomy["sites"])
 
 
 def summary_table(rows: list[dict], kept: bool = False) -> str:

@@ -3,13 +3,21 @@
 Every other generated take moves markers sitting exactly on the solved rig's vertices with the
 rig's own shapes. A real capture has none of that. Here the actor is a second rig (e.g. the
 MakeHuman head's sculpted expressions) driven by real Live Link Face curves through a name mapping;
-its markers sit where the target rig's marker sites fall on the actor's face (similarity ICP onto
-the actor's surface), moved by a placement error in the tangent plane and lifted off the skin
-along the normal (skin offset, constant in the head frame); the head moves; white optical noise is
-then low-passed as a capture pipeline does (zero-phase Butterworth); markers drop out in bursts.
-The layout the solver gets is *not* the true one: it is bound to the target rig from the neutral
-take by :func:`livecap.transfer.bind.bind_capture`, as a user would. Truth is the driving curves,
-by the target rig's names.
+its markers sit on the actor's anatomy where the target rig's marker sites are on the target's: the
+target bent onto the actor's face by the rig transfer's landmarks and deformable fit (Xiang 2008,
+:mod:`livecap.transfer`), each site taken at the closest point of the actor's skin whose normal agrees
+(never skin facing away, as the plain closest point gave at the lips, nose and lids), moved by a
+placement error in the tangent plane and lifted off the skin along the outward normal (skin offset,
+constant in the head frame); the head moves; white optical noise is then low-passed as a capture
+pipeline does (zero-phase Butterworth); markers drop out in bursts. The layout the solver gets is
+*not* the true one: it is bound to the target rig from the neutral take by
+:func:`livecap.transfer.bind.bind_capture`, as a user would.
+
+Truth is what the actor did, on the target rig's names: the ARKit curves the actor's weights determine
+(the minimum-norm ARKit vector reproducing them through the mapping), through the target's name match.
+A name the mapping gives the actor no shape for (eye gaze, jaw sideways, mouthRoll ... on the MakeHuman
+head) is truly at rest, and two ARKit names sharing one actor shape (mouthSmileLeft/Right on a symmetric
+corner puller) are performed as their mean. The driving curves themselves are kept as ``curves``.
 """
 
 from __future__ import annotations
@@ -26,7 +34,7 @@ from livecap.core.rig import Rig
 from livecap.core.take import Take
 from livecap.demo.curves_take import _bursts
 from livecap.demo.performance import head_motion
-from livecap.transfer.bind import BindResult, _icp, _starts, bind_capture
+from livecap.transfer.bind import BindResult, bind_capture
 from livecap.transfer.surface import Surface
 from transport.arkit import ARKIT_NAMES
 from transport.llf_csv import read_llf_csv
@@ -54,33 +62,66 @@ class MismatchTake:
     neutral: Take
     layout: MarkerLayout  # bound to the target rig by bind_capture (what a user gets)
     binding: BindResult
-    weights: np.ndarray  # T x m truth: the driving curves on the target rig's shapes
+    weights: np.ndarray  # T x m truth: what the actor did, on the target rig's shapes (module docstring)
     names: list[str]
     actor_weights: np.ndarray  # T x k the actor rig's weights
     source: str
     blinks: list[int]  # target shapes the ARKit blinks drive
+    curves: np.ndarray  # T x m the driving curves on the target's shapes (the truth before 2026-12-05)
+    performed: np.ndarray  # m, the target shapes the actor can show (others are at rest in ``weights``)
 
     def save_truth(self, path: str | Path) -> None:
         np.savez_compressed(path, weights=self.weights.astype(np.float32), names=np.array(self.names),
-                            labels=np.array(self.take.labels), rate=self.take.rate, source=self.source)
+                            labels=np.array(self.take.labels), rate=self.take.rate, source=self.source,
+                            curves=self.curves.astype(np.float32), performed=self.performed)
 
 
-def actor_sites(actor: Rig, target: Rig, target_layout: MarkerLayout, s: MismatchSettings,
+def actor_layout(actor: Rig, target: Rig, target_layout: MarkerLayout) -> tuple[MarkerLayout, np.ndarray]:
+    """The target layout's sites on the actor's anatomy, and the target's outward normal there (n x 3): the target
+    bent onto the actor by the rig transfer (Xiang 2008 landmarks and deformable fit), each site taken at the
+    closest normal-compatible point of the actor's skin. Slow (~30 s for ICT onto MakeHuman): compute once per pair."""
+    from livecap.transfer import transfer
+
+    fit = transfer(target, target_layout, actor.neutral, actor.triangles)
+    bent = Surface(fit.deformed.vertices, target.triangles)
+    S = target_layout.sampling_matrix(target.n_vertices)
+    normals = S @ bent.normals
+    _, tri, bary, _ = Surface(actor.neutral, actor.triangles).closest_compatible(S @ bent.vertices, normals)
+    layout = MarkerLayout(list(target_layout.labels), actor.triangles[tri], bary, target_layout.stable.copy())
+    return layout, normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def actor_sites(actor: Rig, anatomy: tuple[MarkerLayout, np.ndarray], s: MismatchSettings,
                 rng: np.random.Generator) -> tuple[MarkerLayout, np.ndarray]:
-    """The target layout's sites placed on the actor's face (placement error included), and each
-    marker's skin offset vector (n x 3, mm)."""
-    sites = target_layout.sampling_matrix(target.n_vertices) @ target.neutral
+    """``anatomy`` (:func:`actor_layout`) with the placement error, and each marker's skin offset vector (n x 3,
+    mm, outward). Points are projected with the target's normals: the plain closest point took skin facing away on
+    the MakeHuman head (22 of ICT's 60 offsets pointed into the head: every lip site, 5 nose, 5 eye)."""
+    sites, normal = anatomy
     surf = Surface(actor.neutral, actor.triangles)
-    best = min((_icp(sites, surf, start, 1.0) for start in _starts(sites, actor)), key=lambda r: r[1])[0]
-    _, tri, bary = surf.closest(best.apply(sites))
-    normal = surf.normal_at(tri, bary)
     tangent = np.cross(normal, rng.normal(size=normal.shape))
     tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-    moved = surf.point(tri, bary) + tangent * rng.uniform(-s.placement_mm, s.placement_mm, (len(tri), 1))
-    _, tri, bary = surf.closest(moved)
-    offset = surf.normal_at(tri, bary) * rng.uniform(*s.skin_offset_mm, (len(tri), 1))
-    layout = MarkerLayout(list(target_layout.labels), actor.triangles[tri], bary, target_layout.stable.copy())
+    moved = sites.marker_rig(actor).neutral + tangent * rng.uniform(-s.placement_mm, s.placement_mm,
+                                                                     (len(normal), 1))
+    _, tri, bary, _ = surf.closest_compatible(moved, normal)
+    skin = surf.normal_at(tri, bary)
+    skin *= np.sign(np.sum(skin * normal, axis=1, keepdims=True) + 1e-12)  # outward, whatever the winding
+    offset = skin * rng.uniform(*s.skin_offset_mm, (len(tri), 1))
+    layout = MarkerLayout(list(sites.labels), actor.triangles[tri], bary, sites.stable.copy())
     return layout, offset
+
+
+def performed_truth(arkit: np.ndarray, actor: Rig, target: Rig, actor_mapping: dict | None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(actor weights, truth, curves, performed): the actor's weights (T x k) for the ARKit ``arkit`` (T x 52); what
+    it did on the target's names (module docstring); the curves on the target's names; and which target shapes the
+    actor can show at all (the mapping gives a shape to one of their ARKit names)."""
+    M = arkit_to_rig(list(actor.names), actor_mapping)
+    A = arkit_to_rig(list(target.names))
+    W_actor = np.clip(arkit @ M.T, actor.lower, actor.upper)
+    did = W_actor @ np.linalg.pinv(M).T  # the least ARKit vector the actor's weights show
+    performed = (np.abs(A) @ (np.abs(M).sum(0) > 0)) > 0
+    return (W_actor, np.clip(did @ A.T, target.lower, target.upper), np.clip(arkit @ A.T, target.lower, target.upper),
+            performed)
 
 
 def _capture(markers: np.ndarray, s: MismatchSettings, rng: np.random.Generator,
@@ -101,9 +142,11 @@ def _capture(markers: np.ndarray, s: MismatchSettings, rng: np.random.Generator,
 
 
 def mismatch_take(actor: Rig, target: Rig, target_layout: MarkerLayout, csv_path: str | Path,
-                  actor_mapping: dict | None = None, settings: MismatchSettings | None = None) -> MismatchTake:
+                  actor_mapping: dict | None = None, settings: MismatchSettings | None = None,
+                  anatomy: tuple[MarkerLayout, np.ndarray] | None = None) -> MismatchTake:
     """``actor`` performs the curves of ``csv_path`` (``actor_mapping``: ARKit -> actor shapes) in front of
-    markers placed like ``target_layout``'s; the markers are then bound to ``target`` from the neutral take."""
+    markers placed like ``target_layout``'s (``anatomy``: :func:`actor_layout`'s, computed when not given); the
+    markers are then bound to ``target`` from the neutral take."""
     s = settings or MismatchSettings()
     rng = np.random.default_rng(s.seed)
     arkit, _ = read_llf_csv(csv_path).resample(s.rate)
@@ -112,12 +155,11 @@ def mismatch_take(actor: Rig, target: Rig, target_layout: MarkerLayout, csv_path
     if i0 >= len(arkit) - 2:
         raise ValueError(f"{csv_path}: start {s.start} s is past its end ({len(arkit) / s.rate:.1f} s)")
     arkit = arkit[i0:i1]
-    W_actor = np.clip(arkit @ arkit_to_rig(list(actor.names), actor_mapping).T, actor.lower, actor.upper)
+    W_actor, W_target, curves, performed = performed_truth(arkit, actor, target, actor_mapping)
     A = arkit_to_rig(list(target.names))
-    W_target = np.clip(arkit @ A.T, target.lower, target.upper)
     blinks = sorted(np.flatnonzero(A[:, [ARKIT_NAMES.index("eyeBlinkLeft"),
                                          ARKIT_NAMES.index("eyeBlinkRight")]].any(1)).tolist())
-    layout, offset = actor_sites(actor, target, target_layout, s, rng)
+    layout, offset = actor_sites(actor, anatomy or actor_layout(actor, target, target_layout), s, rng)
     mrig = layout.marker_rig(actor)
     labels = list(layout.labels)
     raw, valid = _capture(mrig.evaluate(W_actor) + offset, s, rng, s.occlusion)
@@ -128,4 +170,4 @@ def mismatch_take(actor: Rig, target: Rig, target_layout: MarkerLayout, csv_path
     both = Take(labels, np.concatenate([nraw, raw]), np.concatenate([nvalid, valid]), s.rate)
     binding = bind_capture(both, target, None, span=(0, n0))  # stability measured over the performance
     return MismatchTake(take, neutral, binding.layout(target), binding, W_target, list(target.names), W_actor,
-                        Path(csv_path).name, blinks)
+                        Path(csv_path).name, blinks, curves, performed)

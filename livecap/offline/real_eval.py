@@ -88,6 +88,7 @@ class Row:
     active_kept: float = float("nan")  # of those, active in the solve too
     bias: dict[str, float] | None = None  # per shape: mean solved - true weight
     phantom: float = float("nan")   # mean weight where the truth rests (< 0.01): activity never asked for
+    rmse_curves: float = float("nan")  # model-mismatch takes: weight RMSE against the driving curves (the old truth)
 
 
 def score(label: str, rig: Rig, ct: CurveTake, W: np.ndarray, seconds: float) -> Row:
@@ -97,7 +98,8 @@ def score(label: str, rig: Rig, ct: CurveTake, W: np.ndarray, seconds: float) ->
                jitter(W) / max(jitter(truth), 1e-12), blink_retention(ct.blinks, W, truth, ct.take.rate),
                seconds * 1e3 / max(len(W), 1), float(on.sum(1).mean()), float((on & (W > ACTIVE)).sum(1).mean()),
                dict(zip(rig.names, (W - truth).mean(0).tolist(), strict=True)),
-               float(np.asarray(W)[truth < 0.01].mean()) if (truth < 0.01).any() else float("nan"))
+               float(np.asarray(W)[truth < 0.01].mean()) if (truth < 0.01).any() else float("nan"),
+               weight_rmse(W, ct.curves) if hasattr(ct, "curves") else float("nan"))
 
 
 def streamed(solver, targets: np.ndarray, valid: np.ndarray, step_us: np.ndarray | None = None) -> np.ndarray:
