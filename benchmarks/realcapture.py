@@ -4,7 +4,8 @@ Per take and mode: ``livecap markers bind`` in process, calibration on the first
 neutral), tuning on the take (as ``livecap calibrate --tune TAKE``), a whole-take solve, then the
 metrics of :mod:`livecap.offline.plausibility`: weight sum over the first second, largest eye-gaze
 weight, mean mouthFrown, per-shape activity on frames where the shape's markers are still, the
-main shapes' correlation with the marker geometry, and the share of single-frame jumps > 0.1; the same,
+main shapes' correlation with the marker geometry (one-sided: its change from the neutral clipped at 0, as a
+weight is; the signed figure beside it), and the share of single-frame jumps > 0.1; the same,
 with the weight RMSE and phantom activity against the truth, on model-mismatch takes (the MakeHuman head
 acting real curves, its markers bound to ICT: ``livecap generate --actor-rig``). ``--streamed``: the weights as
 the live pipeline streams them (``livecap.offline.streamed.stream_take``: frame by frame, causal head pose, the
@@ -69,6 +70,8 @@ def metrics(profile, solved, signals, first: int) -> dict:
             "sum_first_s": pl.weight_sum(W, slice(0, first)), "gaze_max": pl.max_weight(W, names),
             "frown_mean": float(W[:, frown].mean()), "quiet_worst": [(names[j], float(quiet[j])) for j in worst],
             "corr": pl.signal_correlations(signals, names, W, profile.labels, solved.targets, profile.source_neutral),
+            "corr_signed": pl.signal_correlations(signals, names, W, profile.labels, solved.targets,
+                                                  profile.source_neutral, one_sided=False),
             "jumps": jumps, "jumpiest": names[int(np.argmax(per_shape))]}
 
 
@@ -184,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
         print("   moves with: " + "; ".join(f"{p} ~ " + ", ".join(f"{n} r={c:.2f}" for n, c in ps)
                                           for p, ps in r["partners"].items()))
         print("   still-marker activity, worst: " + ", ".join(f"{n} {v:.3f}" for n, v in r["quiet_worst"]))
-        print("   " + "; ".join(f"{k} r={v:.2f}" for k, v in r["corr"].items()))
+        print("   " + "; ".join(f"{k} r={v:.2f} (signed {r['corr_signed'][k]:.2f})" for k, v in r["corr"].items()))
     return 0
 
 

@@ -121,3 +121,16 @@ def test_an_edited_range_is_as_smooth_as_the_solve(take):
     assert np.array_equal(E[400], W[400]) and np.array_equal(E[:341], W[:341]) and np.array_equal(E[460:], W[460:])
     assert jitter(E[inside]) < 0.2 * jitter(raw[inside])  # measured 0.08 x
     assert jitter(E[inside]) < 1.5 * jitter(W[inside])  # measured 1.0 x
+
+
+def test_misfit_weights_count_markers_the_rig_cannot_follow_less_only_under_measured_mismatch():
+    """Issue 35: under model mismatch the position term weights a marker by min(1, (sigma / sigma_i)^2)."""
+    from types import SimpleNamespace
+
+    from livecap.modes.movement import misfit_weights
+
+    robust = {"noise_mm": 1.0, "marker_noise_mm": [0.5, 1.0, 2.0], "jitter_mm": 0.01, "residual_mm": 1.0}
+    prof = SimpleNamespace(labels=["a", "b", "c"], basis=np.zeros((9, 2)), settings={"robust": robust})
+    assert misfit_weights(prof) == {"a": 1.0, "b": 1.0, "c": pytest.approx(0.25)}
+    same_rig = {**robust, "jitter_mm": 0.9}  # jitter ~ residual: white noise, the rig fits
+    assert misfit_weights(SimpleNamespace(labels=prof.labels, basis=prof.basis, settings={"robust": same_rig})) is None

@@ -26,6 +26,7 @@ import numpy as np
 
 from livecap.calibration.animation_prior import AnimationPrior, prior_from_spec
 from livecap.calibration.profile import Profile
+from livecap.modes.quiet import marker_noise, mismatched
 from livecap.modes.robust import robust_settings, warn_untuned
 from livecap.modes.robust_movement import BOUND_TOL, RobustMovement, smoother_beta
 from solvers.blocks import IllPosedError
@@ -83,6 +84,7 @@ def movement_settings(profile: Profile, options: Mapping | None = None) -> Movem
             base = replace(base, prior="profile")
         if _animation_prior(given.get("prior", base.prior)):
             base = replace(base, alpha=prior_alpha(float(noise), base.lag))
+        base = replace(base, marker_weights=misfit_weights(profile))
     resolved = ("robust", "noise_mm", "lag", "trend")  # from the profile and robust_settings above
     return replace(base, **{k: v for k, v in given.items() if k in _FIELDS and k not in resolved})
 
@@ -98,6 +100,19 @@ def prior_alpha(noise_mm: float, lag: int) -> float:
     livecap.modes.robust_movement): the velocity residual's variance after the smoother, sigma^2 sum(diff(h)^2)."""
     h = savgol_weights(int(lag))
     return float(noise_mm**2 * np.sum(np.diff(np.r_[0.0, h, 0.0]) ** 2))
+
+
+def misfit_weights(profile: Profile) -> dict[str, float] | None:
+    """Under measured model mismatch (``livecap.modes.quiet.mismatched``), each marker's position term weighted by
+    its inverse variance, ``min(1, (sigma / sigma_i)^2)`` with sigma_i calibration's per-marker residual (issue 35.2):
+    a marker the rig cannot follow (the actor's mouth corners and chin) counts less, so its misfit is left as
+    residual instead of being explained by a frown; no marker counts more than the overall noise says. None
+    otherwise (same-rig takes with white noise)."""
+    per = marker_noise(profile)
+    if per is None or not mismatched(profile):
+        return None
+    sigma = float(profile.settings["robust"]["noise_mm"])
+    return {lab: float(min(1.0, (sigma / max(v, 1e-9)) ** 2)) for lab, v in zip(profile.labels, per, strict=True)}
 
 
 def marker_weights(labels: list[str], spec: Mapping[str, float] | None) -> np.ndarray | None:

@@ -82,25 +82,35 @@ class Signal:
     markers: tuple[str, ...]
 
 
-def signal_curve(signal: Signal, labels: Sequence[str], targets: np.ndarray, neutral: np.ndarray) -> np.ndarray:
+def signal_curve(signal: Signal, labels: Sequence[str], targets: np.ndarray, neutral: np.ndarray,
+                 one_sided: bool = True) -> np.ndarray:
+    """The signal's change from the neutral (mm), clipped at the neutral when ``one_sided``: a weight is >= 0, so
+    the geometry moving the other way (the corner pulled down by the jaw or a frown, the chin raised by a smile) is
+    another shape's motion, not a negative weight of this one. A weight active while its geometry is at or past the
+    neutral still counts against it."""
     idx = [list(labels).index(lab) for lab in signal.markers]
     if signal.kind == "distance":
-        return distance(targets, neutral, idx[0], idx[1])
-    if signal.kind == "rise":
-        return np.mean([rise(targets, i) for i in idx], axis=0)
-    raise ValueError(f"unknown signal kind {signal.kind!r} (distance or rise)")
+        i, j = idx
+        curve = distance(targets, neutral, i, j) - np.linalg.norm(neutral[i] - neutral[j])
+    elif signal.kind == "rise":
+        curve = np.mean([rise(targets, i) for i in idx], axis=0)
+    else:
+        raise ValueError(f"unknown signal kind {signal.kind!r} (distance or rise)")
+    return np.maximum(curve, 0.0) if one_sided else curve
 
 
 def signal_correlations(signals: Sequence[Signal], names: Sequence[str], weights: np.ndarray,
-                        labels: Sequence[str], targets: np.ndarray, neutral: np.ndarray) -> dict[str, float]:
+                        labels: Sequence[str], targets: np.ndarray, neutral: np.ndarray,
+                        one_sided: bool = True) -> dict[str, float]:
     """Correlation of each signal's shape weight with its marker geometry (signals whose shape or
-    markers are absent are left out)."""
+    markers are absent are left out); ``one_sided=False`` is the signed geometry of the first baseline (issue 35),
+    which mixes the other shapes' opposite motion into the criterion."""
     out = {}
     for s in signals:
         if s.shape not in names or not set(s.markers) <= set(labels):
             continue
         out[f"{s.shape}~{s.kind}({','.join(s.markers)})"] = correlation(
-            weights[:, list(names).index(s.shape)], signal_curve(s, labels, targets, neutral))
+            weights[:, list(names).index(s.shape)], signal_curve(s, labels, targets, neutral, one_sided))
     return out
 
 
