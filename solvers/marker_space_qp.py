@@ -39,6 +39,8 @@ import scipy.linalg as sl
 from scipy.linalg.blas import dsyrk
 from scipy.linalg.lapack import dpotrf, dpotrs
 
+from solvers.marker_space_kernels import repartition, rhs, x_and_gradient
+
 REFRESH = 64  # updates of the kept marker-space matrix before it is formed afresh
 WOODBURY = 8  # at most this many columns changed from the kept factor's free set: solved through it, no refactor
 PIVOT_BUDGET = 3  # block-pivoting passes without fewer wrong sides before the primal active-set method takes over
@@ -129,12 +131,8 @@ class MarkerSpaceQP:
 
     def _subproblem(self, fG: np.ndarray, at_lo: np.ndarray, at_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The minimiser with the bounded weights held at their limits (x) and the gradient there (0 on F)."""
-        F = ~(at_lo | at_hi)
-        xA = np.where(at_lo, self.lo, np.where(at_hi, self.hi, 0.0))
-        y = self._solve_S(F, self.J @ np.where(F, -fG * self.dinv, xA))
-        z = self.J.T @ y
-        x = np.where(F, -(fG + z) * self.dinv, xA)
-        return x, self.d * x + z + fG
+        y = self._solve_S(~(at_lo | at_hi), self.J @ rhs(fG, self.dinv, self.lo, self.hi, at_lo, at_hi))
+        return x_and_gradient(self.J.T @ y, fG, self.d, self.dinv, self.lo, self.hi, at_lo, at_hi)
 
     def begin(self, f: np.ndarray, x0: np.ndarray, passes: int) -> None:
         """The first ``passes`` passes of ``solve(f, x0)`` now; a ``solve`` of the same f and x0 next continues
@@ -164,10 +162,7 @@ class MarkerSpaceQP:
         while it < stop:
             it += 1
             x, g = self._subproblem(fG, at_lo, at_hi)
-            F = ~(at_lo | at_hi)
-            lo1 = np.where(F, x <= self.lo, at_lo & (g >= 0))
-            hi1 = np.where(F, x >= self.hi, at_hi & (g <= 0))
-            wrong = np.count_nonzero((lo1 != at_lo) | (hi1 != at_hi))
+            lo1, hi1, wrong = repartition(x, g, self.lo, self.hi, at_lo, at_hi)
             if not wrong:
                 self.iterations = it
                 return "done", self._full(x, f)
