@@ -135,7 +135,6 @@ class MarkerKalmanSolver:
         self.filter = StreamingMarkerKalman(profile.n_markers, settings, lag=self.latency_frames)
         self.chosen: dict = {}
         self._pool: ThreadPoolExecutor | None = None  # streaming: the prior check's thread
-        self._retired: list = []  # streaming: a swapped-out prior's fits and selector, freed a piece a frame
         self.reset()
 
     def _selector(self, decay: float) -> HeldOutStrength:
@@ -181,12 +180,11 @@ class MarkerKalmanSolver:
             old, self.selector = self.selector, self._selector(self.selector.decay)
             self.selector.carry(old)
         else:
-            old = self.selector
-            fits = self._fits
+            retired = [self._fits, self.selector]
             self.joint, self._fits, self._spreads, self.selector, self._along, self.precision = built[:6]
-            self.selector.carry(old)
-            # the old fits and selector freed a piece a frame (at_leisure), not all on this frame (~0.4 ms, issue 39)
-            self._retired += [*fits.values(), *old.qps, old]
+            self.selector.carry(retired[1])
+            # the old fits and selector freed in the check's thread: on this frame they cost ~0.4 ms (issue 39)
+            self._pool.submit(retired.clear)
         self._noise_key = None
 
     def _notes(self, s: Support, frames: int) -> tuple[bool, list[tuple[int, str]]]:
@@ -325,9 +323,7 @@ class MarkerKalmanSolver:
         # without a trial, so that no frame pays a trial and a new workspace, nor a new workspace and a cold solve
         ahead = self.filter.prev
         ahead = None if ahead is None or fit.knows(ahead) else ahead
-        tried = self.selector.t
         self._trial(x, ok, z, busy or ahead is not None)
-        tried = tried != self.selector.t
         w, self.head_correction = z[:self.m], z[self.m:]
         noise = max(self.filter.noise_mm, self.calibrated_noise)
         if self._imm is None:  # the axes: the first frame's fit's; later strengths' noise is read in them
@@ -347,13 +343,12 @@ class MarkerKalmanSolver:
         swapped = self._checking is not None and self._frame >= self._checking[1]
         if swapped:
             self._swap()
-        self._at_leisure(fit, ahead, tried, swapped)
+        self._at_leisure(fit, ahead, swapped)
         return out
 
-    def _at_leisure(self, fit: FrameQP, ahead: np.ndarray | None, tried: bool, swapped: bool) -> None:
+    def _at_leisure(self, fit: FrameQP, ahead: np.ndarray | None, swapped: bool) -> None:
         """After the frame's weights: the next frame's workspace (``ahead``), also where a swap or this frame's trial
-        changed the fit the next frame steps on (issue 39: those frames built it and paid ~100 µs over a known one);
-        else, on a frame without a trial, one piece of a swapped-out prior freed (all on the swap's frame ~0.4 ms).
+        changed the fit the next frame steps on (issue 39: those frames built it and paid ~100 µs over a known one).
         The trials come on the same frames as without these workspaces (``_fresh``)."""
         best = self._fit(self.selector.best)
         nxt = self.filter.prev
@@ -363,8 +358,6 @@ class MarkerKalmanSolver:
                 self._fresh = best
         elif ahead is not None:
             best.prepare(ahead)
-        elif self._retired and not tried:
-            self._retired.pop()
 
     def _trial(self, x: np.ndarray, ok: np.ndarray, z: np.ndarray, busy: bool) -> None:
         """The held-out strength trial, due every STRENGTH_TRIAL_EVERY-th frame, never on a frame whose fit met a new
