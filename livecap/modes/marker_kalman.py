@@ -352,8 +352,8 @@ class MarkerKalmanSolver:
         The trials come on the same frames as without these workspaces (``_fresh``)."""
         best = self._fit(self.selector.best)
         nxt = self.filter.prev
-        if (swapped or (ahead is None and best is not fit)) and not best.marker_space:
-            if nxt is not None and not best.knows(nxt):
+        if swapped or (ahead is None and best is not fit):  # (before a swap, ``ahead`` went to the old fits)
+            if not best.marker_space and nxt is not None and not best.knows(nxt):
                 best.prepare(nxt)
                 self._fresh = best
         elif ahead is not None:
