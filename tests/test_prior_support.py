@@ -1,6 +1,11 @@
 """The prior's support check (solvers.prior_support): widened where the actor leaves it, never narrowed."""
 
+import os
+import signal
+import time
+
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -351,3 +356,34 @@ def test_one_slow_expression_counts_as_a_few_frames():
                     noise_var=0.0025, outside=np.inf)
     moved = U.T @ s.mean / np.sqrt(lam)
     assert np.all((moved > 0.5) & (moved < 1.5)), moved
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork only")
+def test_a_forked_stream_still_checks_its_prior():
+    """The check runs on the solver's pool thread (issue 39): a process forked from one that streamed has the pool
+    but not its thread, and its next check waited for ever; it starts a pool of its own."""
+    from livecap.modes.marker_kalman import kalman_mode
+
+    p, W, X = _tight_prior_take(T=400)
+    solver = kalman_mode(p, {"rate": 60.0})
+    for t in range(100):  # the pool's thread started, the first check used
+        solver.step(X[t], np.ones(40, bool))
+    pid = os.fork()
+    if pid == 0:
+        try:
+            for t in range(100, 400):
+                solver.step(X[t], np.ones(40, bool))
+            os._exit(0 if solver.support is not None and solver._checking is None else 1)
+        finally:
+            os._exit(2)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            break
+        time.sleep(0.05)
+    else:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        pytest.fail("the forked stream waited for a check that never ran")
+    assert os.waitstatus_to_exitcode(status) == 0

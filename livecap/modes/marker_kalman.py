@@ -40,6 +40,7 @@ solve a frame plus half a trial (docs/robustness.md, "`kalman` streamed cost", "
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -237,9 +238,12 @@ class MarkerKalmanSolver:
         if self._pool is None:  # its thread started now, not on the frame of the first check (~0.15 ms, issue 39)
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="livecap-prior-check")
             self._pool.submit(int)
+            self._pool_pid = os.getpid()
         if self._checking is None and self._offered >= self._next_check * self.motion.rate:
             later = max(1, int(min(SUPPORT_SWAP * self._next_check, SUPPORT_SWAP_MAX) * self.motion.rate))
             self._next_check *= SUPPORT_GROWTH
+            if self._pool_pid != os.getpid():  # a forked process has the pool but not its thread
+                self._pool, self._pool_pid = ThreadPoolExecutor(max_workers=1), os.getpid()
             # the frames kept so far (never changed once kept): picked and stacked in the check's thread
             job = self._pool.submit(self._check, self._seen[:], self.filter.noise_mm, self.selector.decay, self._imm)
             self._checking = (job, self._frame + later)
