@@ -74,6 +74,102 @@ def streamed(profile, targets, valid, options, floor: bool = True) -> tuple[dict
     return out, weights
 
 
+def frame_profile(profile, targets, valid, options, top: float = 1.0, raw: dict | None = None) -> dict:
+    """kalman's streamed step with each part wrapped in a thread-CPU clock, frame by frame (issue 39 item 1: what
+    the p99 frames contain): per part its p50 / p99 / mean over all frames after WARMUP and its mean and share of
+    frames (where it ran) among the slowest ``top`` %; and how often the slowest frames carry a fit on a new
+    visibility pattern, a next pattern's workspace, a trial, a prior check's start or swap."""
+    import threading
+
+    from solvers.prior_strength import HeldOutStrength
+    from solvers.qp import FrameQP
+    from solvers.tracking import RotatedIMM
+
+    solver = _build(profile, options, "kalman")
+    thread = time.thread_time_ns
+    spent: dict[str, float] = {}
+    flags: dict[str, bool] = {}
+
+    main = threading.get_ident()  # the prior check's thread builds fits too: not clocked
+
+    def clocked(label, fn):
+        def run(*a, **k):
+            if threading.get_ident() != main:
+                return fn(*a, **k)
+            c0 = thread()
+            try:
+                return fn(*a, **k)
+            finally:
+                spent[label] = spent.get(label, 0.0) + (thread() - c0) / 1e3
+        return run
+
+    def fit_step(self, x, ok, _step=FrameQP.step):
+        if threading.get_ident() != main:
+            return _step(self, x, ok)
+        flags["new fit pattern"] = flags.get("new fit pattern", False) or not self.knows(ok)
+        label = "fit, new pattern" if flags["new fit pattern"] else "fit, known pattern"
+        return clocked(label, _step)(self, x, ok)
+
+    def use_support(*a, _use=solver._use_support, **k):
+        flags["prior swap"] = True
+        return _use(*a, **k)
+
+    saved = [(FrameQP, "step", FrameQP.step), (FrameQP, "prepare", FrameQP.prepare),
+             (HeldOutStrength, "observe_unbounded", HeldOutStrength.observe_unbounded),
+             (HeldOutStrength, "observe", HeldOutStrength.observe), (RotatedIMM, "step", RotatedIMM.step),
+             (RotatedIMM, "along", RotatedIMM.along), (RotatedIMM, "set_noise", RotatedIMM.set_noise)]
+    FrameQP.step = fit_step
+    FrameQP.prepare = clocked("next pattern's workspace", FrameQP.prepare)
+    HeldOutStrength.observe_unbounded = clocked("strength trial", HeldOutStrength.observe_unbounded)
+    HeldOutStrength.observe = clocked("strength trial", HeldOutStrength.observe)
+    RotatedIMM.step = clocked("weight IMM", RotatedIMM.step)
+    RotatedIMM.along = clocked("IMM noise (along, set)", RotatedIMM.along)
+    RotatedIMM.set_noise = clocked("IMM noise (along, set)", RotatedIMM.set_noise)
+    solver.filter.step = clocked("marker filter", solver.filter.step)
+    solver._stream_support = clocked("prior check (frames, start, swap)", solver._stream_support)
+    if hasattr(solver, "_swap"):  # the swap at the end of the step before its frame (main: in _stream_support)
+        solver._swap = clocked("prior check (frames, start, swap)", solver._swap)
+    solver._use_support = use_support
+    labels = ["marker filter", "prior check (frames, start, swap)", "fit, known pattern", "fit, new pattern",
+              "next pattern's workspace", "strength trial", "weight IMM", "IMM noise (along, set)"]
+    kinds = ["new fit pattern", "next pattern's workspace", "strength trial", "prior check start", "prior swap"]
+    T = len(targets)
+    cost = {k: np.zeros(T) for k in [*labels, "rest", "total"]}
+    has = {k: np.zeros(T, bool) for k in kinds}
+    try:
+        for i in range(T):
+            spent.clear()
+            flags.clear()
+            checking = solver._checking
+            c0 = thread()
+            solver.step(targets[i], valid[i])
+            total = (thread() - c0) / 1e3
+            for k in labels:
+                cost[k][i] = spent.get(k, 0.0)
+            cost["total"][i] = total
+            cost["rest"][i] = total - sum(spent.get(k, 0.0) for k in labels)
+            has["new fit pattern"][i] = flags.get("new fit pattern", False)
+            has["next pattern's workspace"][i] = "next pattern's workspace" in spent
+            has["strength trial"][i] = "strength trial" in spent
+            has["prior check start"][i] = checking is None and solver._checking is not None
+            has["prior swap"][i] = flags.get("prior swap", False)
+    finally:
+        for owner, attr, fn in saved:
+            setattr(owner, attr, fn)
+    if raw is not None:
+        raw.update(cost=cost, has=has)
+    total = cost["total"][WARMUP:]
+    worst = np.argsort(-total)[:max(1, int(round(len(total) * top / 100)))] + WARMUP
+    return {"frames": T, "top_percent": top, "top_frames": len(worst), "top_min_us": float(cost["total"][worst].min()),
+            "parts": {k: {**_stats(v[WARMUP:]), "top_mean": float(v[worst].mean()),
+                          "top_share_ran": float(np.mean(v[worst] > 0))} for k, v in cost.items()},
+            "frames_with": {k: {"all": float(v[WARMUP:].mean()), "top": float(v[worst].mean()),
+                                "p50_us_with": float(np.median(total[v[WARMUP:]])) if v[WARMUP:].any() else None,
+                                "p50_us_without": float(np.median(total[~v[WARMUP:]]))}
+                            for k, v in has.items()},
+            "top_frames_list": [int(i) for i in np.sort(worst)]}
+
+
 def offline(name: str, seconds: float) -> dict:
     """Wall and process CPU seconds (the machine is shared: CPU is the steadier) and x real time of ``solve_take``
     over the first ``seconds`` of performance ``name``."""
@@ -238,7 +334,7 @@ def marker_space(free: int = 530, rows: int = 216, m: int = 1006, reps: int = 20
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="20 s of each real take, 60 frames at 72x1000")
-    parts = ["streamed", "72x1000", "offline", "numba", "marker-space"]
+    parts = ["streamed", "72x1000", "offline", "numba", "marker-space", "profile"]
     p.add_argument("--skip", nargs="*", default=[], choices=parts)
     p.add_argument("--only", nargs="*", default=[], choices=parts, help="run these parts alone (e.g. 72x1000)")
     p.add_argument("--frames", type=int, default=400, help="frames of the 72x1000 take (default 400)")
@@ -255,6 +351,9 @@ def main() -> int:
         for name in REAL:
             label = f"ict {name}"
             res[label], saved[label] = streamed(*real_case(name, 20.0 if a.quick else 0.0))
+    if "profile" in a.only:  # not in a default run: it wraps the solver's parts
+        for name in REAL:
+            res[f"profile ict {name}"] = frame_profile(*real_case(name, 20.0 if a.quick else 0.0))
     if "72x1000" not in a.skip:
         res["synthetic 72x1000"], saved["synthetic 72x1000"] = streamed(
             *synthetic_case(72, 1000, 60 + WARMUP if a.quick else a.frames))

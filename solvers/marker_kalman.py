@@ -155,7 +155,7 @@ class StreamingMarkerKalman:
     q / r the grids allow) serves every r: 21 filters instead of 7 x 15 (Bar-Shalom et al. 2001
     §6.2.2 for the filter; the steady state's dependence on q / r alone is their §6.2.3 tracking
     index). Each r may choose the lambdas whose q = lambda r lies in the q grid's range. A frame is
-    three compiled calls (solvers.marker_kalman_kernels)."""
+    one compiled call (solvers.marker_kalman_kernels.frame)."""
 
     def __init__(self, n_markers: int, settings: KalmanSettings | None = None, lag: int = 1) -> None:
         self.s = settings or KalmanSettings()
@@ -170,6 +170,7 @@ class StreamingMarkerKalman:
         self.excluded = np.where(allowed, 0.0, np.inf)[:, None, :]  # r x 1 x lambda
         self._excluded = np.ascontiguousarray(self.excluded[:, 0])
         self.log_r, self.inv_r = np.log(r), 1.0 / r
+        self._noise_of = [float(np.sqrt(v)) for v in self.s.r_grid]  # noise_mm per r
         self.p11_start = 1e2 / float(np.median(r))  # 1e2 mm^2/frame^2 at the middle r
         self.decay = 0.5 ** (1.0 / self.s.half_life_frames)
         self.reset()
@@ -196,17 +197,15 @@ class StreamingMarkerKalman:
         """Filtered (lag 0) or one-frame-smoothed (lag 1) markers n x 3 and their validity."""
         valid = np.ascontiguousarray(valid, bool)
         z = np.ascontiguousarray(target, float).reshape(self.n, 3)
-        kern.step(self._xv, self._p, self._cur, self.lam, self.p11_start, self.started, self.sightings,
-                  self.unseen, self.count, self.log_s, self.energy, z, valid, self.t > 0, self.decay)
-        self._cur = 1 - self._cur
         every_r = self.t < R_SETTLE_FRAMES or self.t % R_EVERY == 0  # the shared r follows the take, not the frame
-        self._ri = kern.choose(self.log_s, self.energy, self.count, self.inv_r, self.log_r, self._excluded,
-                               self._ri, every_r, self._pick)
-        self.noise_mm = float(np.sqrt(self.s.r_grid[self._ri]))
-        ok = self.started & (self.unseen <= self.s.stream_max_gap_frames)
         smooth = self.lag != 0 and self.t > 0
-        out = np.empty((self.n, 3))
-        kern.output(self._xv, self._p, self._cur, self.lam, self._pick, smooth, out)
+        out, ok = np.empty((self.n, 3)), np.empty(self.n, bool)
+        self._ri = kern.frame(self._xv, self._p, self._cur, self.lam, self.p11_start, self.started, self.sightings,
+                              self.unseen, self.count, self.log_s, self.energy, z, valid, self.t > 0, self.decay,
+                              self.inv_r, self.log_r, self._excluded, self._ri, every_r, self._pick, smooth,
+                              self.s.stream_max_gap_frames, out, ok)
+        self._cur = 1 - self._cur
+        self.noise_mm = self._noise_of[self._ri]
         self.t += 1
         if not smooth:
             return out, ok

@@ -36,3 +36,17 @@ def test_offline_parts_split_kalmans_cpu_by_stage():
     assert set(out) == {"total", *kalman_speed.PARTS}
     assert 0 < out["marker smoother"] < out["total"] and out["fit"] > 0 and out["strength in closed form"] > 0
     assert out["held-out strength trials"] == 0  # a whole take runs no trial QP (issue 39 item 2)
+
+
+def test_the_frame_profile_splits_a_step_into_its_parts():
+    from tests.test_prior_support import _tight_prior_take
+
+    p, _, X = _tight_prior_take(T=200)
+    valid = np.ones((len(X), X.shape[1]), bool)
+    valid[100:, 3] = False  # a new visibility pattern half way
+    out = kalman_speed.frame_profile(p, X.reshape(len(X), -1), valid, {"rate": 60.0})
+    parts = out["parts"]
+    assert parts["marker filter"]["mean"] > 0 and parts["weight IMM"]["mean"] > 0
+    assert out["frames_with"]["prior check start"]["all"] > 0 and out["frames_with"]["prior swap"]["all"] > 0
+    assert out["frames_with"]["next pattern's workspace"]["all"] > 0
+    assert parts["prior check (frames, start, swap)"]["top_mean"] > 0 and out["top_frames"] == 2  # 1 % of 150

@@ -1,6 +1,11 @@
 """The prior's support check (solvers.prior_support): widened where the actor leaves it, never narrowed."""
 
+import os
+import signal
+import time
+
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -189,14 +194,21 @@ def test_streamed_checks_grow_with_the_take_on_a_bounded_memory(monkeypatch):
     from livecap.modes.marker_kalman import kalman_mode
 
     monkeypatch.setattr(marker_kalman, "SUPPORT_FRAMES", 20)
-    seen = []
-    support = marker_kalman.MarkerKalmanSolver._support
+    seen, started = [], []
+    support, stream = marker_kalman.MarkerKalmanSolver._support, marker_kalman.MarkerKalmanSolver._stream_support
 
-    def counted(self, targets, valid, noise_mm):
-        seen.append((self._offered, len(targets), self._stride * len(self._seen)))
+    def counted(self, targets, valid, noise_mm):  # the check's thread: how many frames it checks
+        seen.append(len(targets))
         return support(self, targets, valid, noise_mm)
 
+    def start(self, x, ok):  # the frame thread: when a check starts and how much of the take it keeps
+        before = self._checking
+        stream(self, x, ok)
+        if before is None and self._checking is not None:
+            started.append((self._offered, self._stride * len(self._seen)))
+
     monkeypatch.setattr(marker_kalman.MarkerKalmanSolver, "_support", counted)
+    monkeypatch.setattr(marker_kalman.MarkerKalmanSolver, "_stream_support", start)
     use, used = marker_kalman.MarkerKalmanSolver._use_support, []
 
     def swapped(self, s, frames, built=None):
@@ -209,11 +221,11 @@ def test_streamed_checks_grow_with_the_take_on_a_bounded_memory(monkeypatch):
     for t in range(len(X)):
         solver.step(X[t], np.ones(40, bool))
         assert len(solver._seen) <= 40
-    assert [s[0] for s in seen] == [60, 120, 240, 480]  # checked at 1, 2, 4 and 8 s
+    assert [s[0] for s in started] == [60, 120, 240, 480]  # checked at 1, 2, 4 and 8 s
     # each used half its window later, at most 1 s: the step does not wait for the 2 and 4 s checks (a fixed 0.5 s did)
     assert used == [89, 179, 299, 539]  # frames counted from 0
-    assert all(frames == 20 for _, frames, _ in seen)
-    assert all(offered - 2 * solver._stride < kept <= offered for offered, _, kept in seen)  # the whole take so far
+    assert seen == [20] * 4
+    assert all(offered - 2 * solver._stride < kept <= offered for offered, kept in started)  # the whole take so far
 
 
 def test_a_checked_priors_swap_keeps_the_strength_chosen_so_far(monkeypatch):
@@ -344,3 +356,34 @@ def test_one_slow_expression_counts_as_a_few_frames():
                     noise_var=0.0025, outside=np.inf)
     moved = U.T @ s.mean / np.sqrt(lam)
     assert np.all((moved > 0.5) & (moved < 1.5)), moved
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork only")
+def test_a_forked_stream_still_checks_its_prior():
+    """The check runs on the solver's pool thread (issue 39): a process forked from one that streamed has the pool
+    but not its thread, and its next check waited for ever; it starts a pool of its own."""
+    from livecap.modes.marker_kalman import kalman_mode
+
+    p, W, X = _tight_prior_take(T=400)
+    solver = kalman_mode(p, {"rate": 60.0})
+    for t in range(100):  # the pool's thread started, the first check used
+        solver.step(X[t], np.ones(40, bool))
+    pid = os.fork()
+    if pid == 0:
+        try:
+            for t in range(100, 400):
+                solver.step(X[t], np.ones(40, bool))
+            os._exit(0 if solver.support is not None and solver._checking is None else 1)
+        finally:
+            os._exit(2)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            break
+        time.sleep(0.05)
+    else:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        pytest.fail("the forked stream waited for a check that never ran")
+    assert os.waitstatus_to_exitcode(status) == 0

@@ -40,8 +40,9 @@ solve a frame plus half a trial (docs/robustness.md, "`kalman` streamed cost", "
 from __future__ import annotations
 
 import logging
-import threading
+import os
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -134,6 +135,7 @@ class MarkerKalmanSolver:
         self.joint = self.pose.augment(profile.basis, profile.lower, profile.upper, mean, precision)  # B, limits, prior
         self.filter = StreamingMarkerKalman(profile.n_markers, settings, lag=self.latency_frames)
         self.chosen: dict = {}
+        self._pool: ThreadPoolExecutor | None = None  # streaming: the prior check's thread
         self.reset()
 
     def _selector(self, decay: float) -> HeldOutStrength:
@@ -163,43 +165,62 @@ class MarkerKalmanSolver:
                            extra=self.pose.matrix, noise_var=noise_mm**2, tol=tol)
 
     def _use_support(self, s: Support, frames: int, built: tuple | None = None) -> None:
+        """Use the checked prior ``s`` (of ``frames`` frames); ``built``: what :meth:`_build` made of it in the check's
+        thread, so that the step only swaps references (the rest is built here)."""
         self.support = s
-        wide = s.widened
-        moved = s.mean - self._mean0
-        sd = np.sqrt(np.diag(self.prior_cov))
-        far = np.flatnonzero(np.abs(moved) > sd)  # said only where it is news: beyond one of the prior's sds
-        if not len(wide) and not np.any(moved):
-            log.info("animation prior: the actor's activity lies inside it (%d frames)", frames)
-            if self.precision is self._precision0 and self.mean is self._mean0:
-                return
-        if len(wide):
-            top = np.argsort(-s.added_per_shape())[:3]
-            log.warning("animation prior widened along %d of %d directions, most in %s: the actor's activity lies "
-                        "outside it", len(wide), len(s.before), ", ".join(self.profile.names[i] for i in top))
-        if len(far):
-            top = far[np.argsort(-np.abs(moved[far]) / sd[far])][:3]
-            log.warning("animation prior re-centred on the actor (%d frames): %s", frames, ", ".join(
-                f"{self.profile.names[i]} {self._mean0[i]:.2f} -> {s.mean[i]:.2f}" for i in top))
-        self.precision = s.precision
+        unchanged, notes = self._notes(s, frames) if built is None else built[-1]
+        for level, text in notes:
+            log.log(level, text)
+        if unchanged and self.precision is self._precision0 and self.mean is self._mean0:
+            return
         self.mean = s.mean
         if built is None:
+            self.precision = s.precision
             self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
             self._fits, self._spreads, self._along = {}, {}, {}
             old, self.selector = self.selector, self._selector(self.selector.decay)
             self.selector.carry(old)
         else:
-            old = self.selector
-            self.joint, self._fits, self._spreads, self.selector = built
-            self.selector.carry(old)
-            self._along = {}
+            retired = [self._fits, self.selector]
+            self.joint, self._fits, self._spreads, self.selector, self._along, self.precision = built[:6]
+            self.selector.carry(retired[1])
+            # the old fits and selector freed in the check's thread: on this frame they cost ~0.4 ms (issue 39)
+            self._pool.submit(retired.clear)
         self._noise_key = None
 
-    def _build(self, s: Support, decay: float) -> tuple:
+    def _notes(self, s: Support, frames: int) -> tuple[bool, list[tuple[int, str]]]:
+        """Whether the check left the prior as it was, and what to log of it (streamed: worded in the check's
+        thread, logged at the swap)."""
+        wide = s.widened
+        moved = s.mean - self._mean0
+        sd = np.sqrt(np.diag(self.prior_cov))
+        far = np.flatnonzero(np.abs(moved) > sd)  # said only where it is news: beyond one of the prior's sds
+        unchanged = not len(wide) and not np.any(moved)
+        notes = []
+        if unchanged:
+            notes.append((logging.INFO, f"animation prior: the actor's activity lies inside it ({frames} frames)"))
+        if len(wide):
+            top = np.argsort(-s.added_per_shape())[:3]
+            notes.append((logging.WARNING, f"animation prior widened along {len(wide)} of {len(s.before)} directions, "
+                          f"most in {', '.join(self.profile.names[i] for i in top)}: the actor's activity lies "
+                          "outside it"))
+        if len(far):
+            top = far[np.argsort(-np.abs(moved[far]) / sd[far])][:3]
+            notes.append((logging.WARNING, f"animation prior re-centred on the actor ({frames} frames): " + ", ".join(
+                f"{self.profile.names[i]} {self._mean0[i]:.2f} -> {s.mean[i]:.2f}" for i in top)))
+        return unchanged, notes
+
+    def _build(self, s: Support, decay: float, frames: int, imm: RotatedIMM | None) -> tuple:
         """The joint prior, every strength's fit (its all-seen workspace warmed, as ``reset`` does), the weights'
-        spreads and a fresh selector for the checked prior ``s``, built without touching the solver: streamed, the
-        check's thread builds them, so the swap costs the step nothing (built at the swap they took 10-23 ms)."""
-        joint = self.pose.augment(self.profile.basis, self.lower, self.upper, s.mean, s.precision)
-        return (joint, *_warmed_fits(joint, self.profile.n_markers, self.m), _selector(joint, decay))
+        spreads (and along ``imm``'s axes), a fresh selector, the precision and the log's notes for the checked
+        prior ``s``, built without touching the solver: streamed, the check's thread builds them, so the swap costs
+        the step nothing (built at the swap they took 10-23 ms; the precision, the notes and the spreads along the
+        axes another ~0.2 ms, issue 39)."""
+        precision = s.precision
+        joint = self.pose.augment(self.profile.basis, self.lower, self.upper, s.mean, precision)
+        fits, spreads = _warmed_fits(joint, self.profile.n_markers, self.m)
+        along = {} if imm is None else {k: imm.along(c) for k, c in spreads.items()}
+        return joint, fits, spreads, _selector(joint, decay), along, precision, self._notes(s, frames)
 
     def _stream_support(self, x: np.ndarray, ok: np.ndarray) -> None:
         """Keep the take's frames (at most 2 x SUPPORT_FRAMES, thinned evenly as it grows), check them in a thread
@@ -214,39 +235,46 @@ class MarkerKalmanSolver:
             if len(self._seen) > 2 * SUPPORT_FRAMES:
                 self._seen, self._stride = self._seen[::2], 2 * self._stride
         self._offered += 1
-        if self._checking is None:
-            if self._offered >= self._next_check * self.motion.rate:
-                later = max(1, int(min(SUPPORT_SWAP * self._next_check, SUPPORT_SWAP_MAX) * self.motion.rate))
-                self._next_check *= SUPPORT_GROWTH
-                pick = _spread(len(self._seen), SUPPORT_FRAMES)
-                args = (np.stack([self._seen[i][0] for i in pick]), np.stack([self._seen[i][1] for i in pick]),
-                        self.filter.noise_mm)
-                out: list = []
-                decay = self.selector.decay
+        if self._pool is None:  # its thread started now, not on the frame of the first check (~0.15 ms, issue 39)
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="livecap-prior-check")
+            self._pool.submit(int)
+            self._pool_pid = os.getpid()
+        if self._checking is None and self._offered >= self._next_check * self.motion.rate:
+            later = max(1, int(min(SUPPORT_SWAP * self._next_check, SUPPORT_SWAP_MAX) * self.motion.rate))
+            self._next_check *= SUPPORT_GROWTH
+            if self._pool_pid != os.getpid():  # a forked process has the pool but not its thread
+                self._pool, self._pool_pid = ThreadPoolExecutor(max_workers=1), os.getpid()
+            # the frames kept so far (never changed once kept): picked and stacked in the check's thread
+            job = self._pool.submit(self._check, self._seen[:], self.filter.noise_mm, self.selector.decay, self._imm)
+            self._checking = (job, self._frame + later)
 
-                def check() -> None:
-                    try:
-                        s = self._support(*args)
-                        out.append(s)
-                        out.append(self._build(s, decay))
-                    except (np.linalg.LinAlgError, ValueError) as e:
-                        out[:] = [e]
+    def _check(self, seen: list, noise_mm: float, decay: float, imm: RotatedIMM | None) -> list:
+        """The check's thread: at most SUPPORT_FRAMES of the frames ``seen``, evenly spread, checked; the checked
+        prior, what :meth:`_build` makes of it, and the frames' number (or the error that stopped it)."""
+        try:
+            pick = _spread(len(seen), SUPPORT_FRAMES)
+            s = self._support(np.stack([seen[i][0] for i in pick]), np.stack([seen[i][1] for i in pick]), noise_mm)
+            return [s, self._build(s, decay, len(pick), imm), len(pick)]
+        except (np.linalg.LinAlgError, ValueError) as e:
+            return [e]
 
-                thread = threading.Thread(target=check, daemon=True)
-                thread.start()
-                self._checking = (thread, out, self._frame + later, len(pick))
-        elif self._frame >= self._checking[2]:
-            thread, out, _, frames = self._checking
-            thread.join()
-            self._checking = None
-            if len(out) == 2 and isinstance(out[0], Support):
-                self._use_support(out[0], frames, out[1])
-                return
-            log.warning("animation prior: its check against the actor failed (%s); kept as it is", out[:1])
-            self._next_check, self._seen = float("inf"), []
-            if self.support is None:
-                lam, axes = np.linalg.eigh(self.prior_cov)
-                self.support = Support(axes, lam, lam, float("nan"), 0, self._mean0)
+    def _swap(self) -> None:
+        """At the end of the step before the frame a check's prior is due (the same weights as swapping it at the
+        start of that frame): it is used, its thread joined if not done."""
+        job, _ = self._checking
+        self._checking = None
+        try:
+            out = job.result()
+        except Exception as e:  # noqa: BLE001 - a stream must survive its check's failure
+            out = [e]
+        if len(out) == 3 and isinstance(out[0], Support):
+            self._use_support(out[0], out[2], out[1])
+            return
+        log.warning("animation prior: its check against the actor failed (%s); kept as it is", out[:1])
+        self._next_check, self._seen = float("inf"), []
+        if self.support is None:
+            lam, axes = np.linalg.eigh(self.prior_cov)
+            self.support = Support(axes, lam, lam, float("nan"), 0, self._mean0)
 
     def _prior_as_given(self) -> None:
         """A new take: the prior as given, to be checked against this take."""
@@ -258,7 +286,7 @@ class MarkerKalmanSolver:
         self.support = None
         self._seen: list[tuple[np.ndarray, np.ndarray]] = []  # streaming: every ``_stride``-th frame of the take
         self._offered, self._stride = 0, 1
-        self._checking: tuple | None = None  # streaming: the check's thread, its result, the frame to use it, frames
+        self._checking: tuple | None = None  # streaming: the check's job and the frame to use its prior
         self._next_check = SUPPORT_SECONDS  # streaming: the take's length (s) at which it is checked next
 
     def reset(self) -> None:
@@ -277,6 +305,7 @@ class MarkerKalmanSolver:
         self._imm: RotatedIMM | None = None
         self._noise_key: tuple | None = None  # (noise, strength) the IMM's noise was last set for
         self._fit_k: int | None = None  # the strength fitted last frame
+        self._fresh: FrameQP | None = None  # the fit whose next workspace was built ahead where it would not have been
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
         x, ok = self.filter.step(target, valid)
@@ -290,20 +319,22 @@ class MarkerKalmanSolver:
         if fit.marker_space and self._fit_k != k and self._z is not None:
             fit.warm(self._z)  # a strength not fitted last frame: from the last fit, not from its own old frame
         self._fit_k = k
-        busy = not fit.knows(ok)  # a workspace built in this step (the first frame, a new strength or prior)
+        # a workspace built in this step (the first frame, a new strength or prior), or one built for it last frame
+        busy = not fit.knows(ok) or fit is self._fresh
+        self._fresh = None
         z = self._z = fit.step(x, ok)
         # the next frame's pattern, known a frame ahead (the filter's lag): its workspace built now, on a frame
         # without a trial, so that no frame pays a trial and a new workspace, nor a new workspace and a cold solve
         ahead = self.filter.prev
-        ahead = None if ahead is None or self._fit(self.selector.best).knows(ahead) else ahead
+        ahead = None if ahead is None or fit.knows(ahead) else ahead
         self._trial(x, ok, z, busy or ahead is not None)
-        if ahead is not None:
-            self._fit(self.selector.best).prepare(ahead)
         w, self.head_correction = z[:self.m], z[self.m:]
         noise = max(self.filter.noise_mm, self.calibrated_noise)
         if self._imm is None:  # the axes: the first frame's fit's; later strengths' noise is read in them
             axes = None if fit.marker_space else np.linalg.eigh(self._spread_of(k))[1]
             self._imm = RotatedIMM(axes, self.motion.imm(noise, self.norms), self.motion.shrink(), SHARED_MOVE)
+            # every strength's, now: on the frame a strength first changed they cost ~30-90 µs (issue 39)
+            self._along = {j: self._imm.along(self._spread_of(j)) for j in range(len(STRENGTHS))}
         if (noise, k) != self._noise_key:  # the noise settles in the first frames; the strength changes now and then
             if k not in self._along:
                 self._along[k] = self._imm.along(self._spread_of(k))
@@ -312,7 +343,25 @@ class MarkerKalmanSolver:
         # the IMM's constant-velocity models overshoot a weight resting on its limit: back within the rig's limits
         # (in place, np.clip's numbers at a third of its cost)
         out = self._imm.step(w)
-        return np.minimum(np.maximum(out, self.lower, out=out), self.upper, out=out)
+        out = np.minimum(np.maximum(out, self.lower, out=out), self.upper, out=out)
+        swapped = self._checking is not None and self._frame >= self._checking[1]
+        if swapped:
+            self._swap()
+        self._at_leisure(fit, ahead, swapped)
+        return out
+
+    def _at_leisure(self, fit: FrameQP, ahead: np.ndarray | None, swapped: bool) -> None:
+        """After the frame's weights: the next frame's workspace (``ahead``), also where a swap or this frame's trial
+        changed the fit the next frame steps on (issue 39: those frames built it and paid ~100 µs over a known one).
+        The trials come on the same frames as without these workspaces (``_fresh``)."""
+        best = self._fit(self.selector.best)
+        nxt = self.filter.prev
+        if swapped or (ahead is None and best is not fit):  # (before a swap, ``ahead`` went to the old fits)
+            if not best.marker_space and nxt is not None and not best.knows(nxt):
+                best.prepare(nxt)
+                self._fresh = best
+        elif ahead is not None:
+            best.prepare(ahead)
 
     def _trial(self, x: np.ndarray, ok: np.ndarray, z: np.ndarray, busy: bool) -> None:
         """The held-out strength trial, due every STRENGTH_TRIAL_EVERY-th frame, never on a frame whose fit met a new
