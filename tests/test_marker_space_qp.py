@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 import solvers.qp as qp_module
@@ -164,9 +164,11 @@ def test_a_few_changed_columns_are_solved_through_the_kept_factor(monkeypatch):
 
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), passes=st.integers(0, 6), p=st.integers(0, 3))
+@example(seed=307227873, passes=0, p=0)  # the kept factor's rounding differs from a fresh solver's by 1.2e-14
 def test_a_begun_solve_continues_to_the_same_x(seed, passes, p):
     """``begin`` runs the first passes, ``solve`` of the same f and x0 runs the rest: the x of one whole solve, bit
-    for bit, in as many passes; another f is solved from scratch."""
+    for bit, in as many passes; another f is solved from scratch (its x equal to a fresh solver's up to rounding:
+    the solver keeps the factor of its last free set, updated by rank-k products, so the digits may differ)."""
     rng = np.random.default_rng(seed)
     J, d, lo, hi, f = _problem(rng, 12, 50, p)
     x0 = np.clip(rng.normal(0, 1, 50 + p), lo, hi)
@@ -177,7 +179,7 @@ def test_a_begun_solve_continues_to_the_same_x(seed, passes, p):
     assert split.iterations == whole.iterations
     g = f + rng.normal(0, 1, 50 + p)
     split.begin(f, x0, passes)
-    np.testing.assert_array_equal(split.solve(g, x0), MarkerSpaceQP(J, d, lo, hi).solve(g, x0))
+    np.testing.assert_allclose(split.solve(g, x0), MarkerSpaceQP(J, d, lo, hi).solve(g, x0), rtol=0, atol=1e-10)
 
 
 def test_frameqp_begin_then_step_equals_step():
