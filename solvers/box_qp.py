@@ -64,6 +64,20 @@ class BoxQP:
         self.max_iter = 3 * self.m + 10 if max_iter is None else int(max_iter)
         self.iterations = 0
 
+    @classmethod
+    def from_state(cls, H: np.ndarray, V: np.ndarray, I: np.ndarray, meta: np.ndarray, L: np.ndarray,
+                   tol: float) -> BoxQP:
+        """A solver on the state ``box_qp_kernels.state(H, limit rows)`` returned (made by a caller's compiled
+        call, e.g. ``solvers.qp_kernels.pattern_workspace``), as ``BoxQP(H, lower, upper, limit_rows=...)``."""
+        self = cls.__new__(cls)
+        self.H, self.m = H, H.shape[0]
+        self._V, self._I, self._meta, self._L, self.tol = V, I, meta, L, tol
+        k = self._k
+        self.lo, self.hi = V[k.LO], V[k.HI]
+        self.max_iter = 3 * self.m + 10
+        self.iterations = 0
+        return self
+
     @staticmethod
     def limit_rows(lower: np.ndarray, upper: np.ndarray, m: int) -> np.ndarray:
         """The solver's per-variable state rows that depend on the limits alone (the kernels' V; H ref left 0)."""

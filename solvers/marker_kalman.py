@@ -177,14 +177,15 @@ class StreamingMarkerKalman:
 
     def reset(self) -> None:
         K, n = len(self.lam), self.n
-        self._xv = np.zeros((2, 2, K, n, 3))  # (buffer, position / velocity, filter, marker, coordinate)
+        self._xv = np.zeros((2, 2, K, 3, n))  # (buffer, position / velocity, filter, coordinate, marker)
         self._p = np.empty((2, 3, K, n))  # (buffer, p00 / p01 / p11, filter, marker)
         self._p[:, kern.P00], self._p[:, kern.P01], self._p[:, kern.P11] = 1e6, 0.0, self.p11_start
         self._cur = 0
         self.started = np.zeros(n, dtype=bool)
         self.count = np.zeros(n)  # discounted updated coordinates
-        self.log_s = np.zeros((n, K))  # discounted sum of log s over coordinates
-        self.energy = np.zeros((n, K))  # discounted sum of e^2 / s
+        self.log_s = np.zeros((K, n))  # discounted sum of log s over coordinates
+        self.energy = np.zeros((K, n))  # discounted sum of e^2 / s
+        self._slog = np.full((2, K, n), np.nan)  # each filter's last s and its log
         self.unseen = np.zeros(n, dtype=np.int64)
         self.sightings = np.zeros(n, dtype=np.int64)
         self._pick = np.zeros(n, dtype=np.int64)
@@ -201,8 +202,8 @@ class StreamingMarkerKalman:
         smooth = self.lag != 0 and self.t > 0
         out, ok = np.empty((self.n, 3)), np.empty(self.n, bool)
         self._ri = kern.frame(self._xv, self._p, self._cur, self.lam, self.p11_start, self.started, self.sightings,
-                              self.unseen, self.count, self.log_s, self.energy, z, valid, self.t > 0, self.decay,
-                              self.inv_r, self.log_r, self._excluded, self._ri, every_r, self._pick, smooth,
+                              self.unseen, self.count, self.log_s, self.energy, self._slog, z, valid, self.t > 0,
+                              self.decay, self.inv_r, self.log_r, self._excluded, self._ri, every_r, self._pick, smooth,
                               self.s.stream_max_gap_frames, out, ok)
         self._cur = 1 - self._cur
         self.noise_mm = self._noise_of[self._ri]

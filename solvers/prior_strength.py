@@ -61,14 +61,15 @@ class HeldOutStrength:
 
     def _unbounded_maps(self, mean: np.ndarray, precision: np.ndarray) -> dict:
         """Per strength and fold: the training rows (every marker outside the fold) and the fit without bounds on
-        them, w = G x + h (G = H^-1 B_o', h = H^-1 a P mu, H = B_o'B_o + a P): one solve each, here, once."""
+        them, w = G x + h (G = H^-1 B_o', h = H^-1 a P mu, H = B_o'B_o + a P): one solve each, here, once; G kept
+        transposed (rows x m, the compiled trial's order)."""
         maps = {}
         for g, a in enumerate(self.grid):
             for f in range(self.folds):
                 rows = np.flatnonzero(np.repeat(self._outside[f], 3))
                 Bo = self.basis[rows]
                 Gh = np.linalg.solve(Bo.T @ Bo + a * precision, np.column_stack([Bo.T, a * precision @ mean]))
-                maps[g, f] = (rows, np.ascontiguousarray(Gh[:, :-1]), np.ascontiguousarray(Gh[:, -1]))
+                maps[g, f] = (rows, np.ascontiguousarray(Gh[:, :-1].T), np.ascontiguousarray(Gh[:, -1]))
         return maps
 
     def begin(self, target: np.ndarray, valid: np.ndarray, start: np.ndarray) -> bool:
@@ -111,12 +112,12 @@ class HeldOutStrength:
         g = self.t % len(self.grid)
         f = (self.t // len(self.grid)) % self.folds
         self.t += 1
-        rows, G, h = self._maps[g, f]
-        err, n_held = unbounded_trial(np.asarray(target, dtype=np.float64).reshape(-1), np.asarray(valid, bool),
-                                      self.basis, np.asarray(fill, dtype=np.float64), rows, G, h, self.lower,
-                                      self.upper, self._fold_markers[f])
-        if n_held:
-            self._score(g, err, n_held, elapsed)
+        rows, GT, h = self._maps[g, f]
+        best = unbounded_trial(target.reshape(-1), valid, self.basis, fill, rows, GT, h, self.lower, self.upper,
+                               self._fold_markers[f], g, self.decay ** elapsed, self.err, self.count, self._counted)
+        if best >= 0:
+            self._counted = True
+            self.best = best
 
     def _score(self, g: int, err: float, n_held: int, elapsed: float) -> None:
         d = self.decay ** elapsed

@@ -31,12 +31,16 @@ def held_out_error(basis: np.ndarray, markers: np.ndarray, seen: np.ndarray, w: 
 
 @numba.njit(cache=True, nogil=True)
 def unbounded_trial(target: np.ndarray, valid: np.ndarray, basis: np.ndarray, fill: np.ndarray, rows: np.ndarray,
-                    G: np.ndarray, h: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                    markers: np.ndarray) -> tuple[float, int]:
-    """A streamed held-out trial (``HeldOutStrength.observe_unbounded``): the training ``rows``' targets, those of
-    markers not ``valid`` predicted by ``fill`` (B fill), through the fit without bounds w = G x + h, clipped to
-    [lower, upper]; returns :func:`held_out_error` of w on the held-out ``markers`` that are valid, and their
-    number (0, and no fit, when none is valid or fewer than 3 training markers are)."""
+                    GT: np.ndarray, h: np.ndarray, lower: np.ndarray, upper: np.ndarray, markers: np.ndarray,
+                    g: int, d: float, err: np.ndarray, count: np.ndarray, counted: bool) -> int:
+    """A streamed held-out trial (``HeldOutStrength.observe_unbounded``) and its score: the training ``rows``'
+    targets, those of markers not ``valid`` predicted by ``fill`` (B fill), through the fit without bounds
+    w = G x + h (``GT`` = G', rows x m: each weight's sum in the same order, the rows' loop vectorised), clipped to
+    [lower, upper]; :func:`held_out_error` of w on the held-out ``markers`` that are valid added to ``err[g]`` and
+    their number to ``count[g]``, both decayed by ``d`` first (``HeldOutStrength._score``). Returns the strength
+    with the least mean error where every count is > 0 (or ``counted``), else -1; -2 (nothing scored, nothing
+    decayed) when no held-out marker is valid or fewer than 3 training markers are. Why one call: the score's six
+    numpy calls on nine numbers cost ~3 µs of a ~11 µs trial (issue 39)."""
     seen = np.empty(markers.shape[0], np.bool_)
     held = 0
     for q in range(markers.shape[0]):
@@ -46,24 +50,39 @@ def unbounded_trial(target: np.ndarray, valid: np.ndarray, basis: np.ndarray, fi
     for i in range(0, rows.shape[0], 3):
         train += valid[rows[i] // 3]
     if held == 0 or train < 3:
-        return 0.0, 0
-    x = np.empty(rows.shape[0])
+        return -2
+    m = GT.shape[1]
+    w = h.copy()
     for i in range(rows.shape[0]):
         r = rows[i]
         if valid[r // 3]:
-            x[i] = target[r]
+            xi = target[r]
         else:
             b = basis[r]
-            acc = 0.0
+            xi = 0.0
             for j in range(fill.shape[0]):
-                acc += b[j] * fill[j]
-            x[i] = acc
-    m = G.shape[0]
-    w = np.empty(m)
+                xi += b[j] * fill[j]
+        gi = GT[i]
+        for j in range(m):
+            w[j] += gi[j] * xi
     for j in range(m):
-        g = G[j]
-        acc = h[j]
-        for i in range(x.shape[0]):
-            acc += g[i] * x[i]
-        w[j] = min(max(acc, lower[j]), upper[j])
-    return held_out_error(basis, markers, seen, w, target), held
+        w[j] = min(max(w[j], lower[j]), upper[j])
+    e = held_out_error(basis, markers, seen, w, target)
+    K = err.shape[0]
+    for k in range(K):
+        err[k] *= d
+        count[k] *= d
+    err[g] += e
+    count[g] += held
+    if not counted:
+        for k in range(K):
+            if not count[k] > 0:
+                return -1
+    best, arg = np.inf, 0
+    for k in range(K):
+        v = err[k] / count[k]
+        if v != v:  # as np.argmin: the first NaN
+            return k
+        if v < best:
+            best, arg = v, k
+    return arg

@@ -31,7 +31,7 @@ import numpy as np
 
 from solvers.box_qp import BoxQP
 from solvers.marker_space_qp import MarkerSpaceQP
-from solvers.qp_kernels import pattern_hessian, smallest_eigenvalue
+from solvers.qp_kernels import pattern_hessian, pattern_workspace, smallest_eigenvalue
 
 log = logging.getLogger(__name__)
 
@@ -233,10 +233,14 @@ class FrameQP:
         if ws is not None:
             self._models.move_to_end(key)
             return ws
-        rows = np.repeat(seen, 3)
         if self._H_all is None:
             self._H_all = self.basis.T @ (self.basis * self._row_w[:, None]) + self._const
+        if self._limits is None:
+            self._limits = (self.lower, self.upper, BoxQP.limit_rows(self.lower, self.upper, self.m))
         n_miss = 3 * (self.n - int(np.count_nonzero(seen)))
+        if 0 < n_miss <= 3 * self.n // 2 and self._cond.span is not None and not self.marker_space:
+            return self._downdated(key, seen)
+        rows = np.repeat(seen, 3)
         bound = None
         if n_miss == 0:
             H = self._H_all
@@ -253,22 +257,36 @@ class FrameQP:
             H = Bv.T @ (Bv * self._row_w[rows, None]) + self._const
         if bound is None:
             trace, bound = np.trace(H), self._cond.lambda_min(H)
-        floor = 0.0
+        H, floor = self._floored(H, trace, bound)
+        return self._cached(key, _Workspace(H, floor, None if n_miss == 0 else rows, self._limits))
+
+    def _floored(self, H: np.ndarray, trace: float, bound: float) -> tuple[np.ndarray, float]:
+        """H with the floor it needs, and that floor (0 where its condition is fine)."""
         if trace > 1e12 * bound:
             try:  # (max / min Cholesky diagonal)^2 bounds cond(H) from below: no SVD per new pattern
                 d = np.diagonal(np.linalg.cholesky(H))
                 if d.min() <= 0 or (d.max() / d.min()) ** 2 > 1e12:
                     raise np.linalg.LinAlgError
             except np.linalg.LinAlgError:
-                floor = self._floor
-                H = H + floor * np.eye(self.m)
-        if self._limits is None:
-            self._limits = (self.lower, self.upper, BoxQP.limit_rows(self.lower, self.upper, self.m))
-        ws = _Workspace(H, floor, None if n_miss == 0 else rows, self._limits)
+                return H + self._floor * np.eye(self.m), self._floor
+        return H, 0.0
+
+    def _cached(self, key: bytes, ws: _Workspace) -> _Workspace:
         self._models[key] = ws
         if len(self._models) > self.cache_size:
             self._models.popitem(last=False)
         return ws
+
+    def _downdated(self, key: bytes, seen: np.ndarray) -> _Workspace:
+        """A pattern missing a few markers, in weight space: H downdated, its condition's numbers and the box QP's
+        state in one compiled call (solvers.qp_kernels.pattern_workspace; issue 39)."""
+        rows, H, trace, s2, *box = pattern_workspace(self._H_all, self.basis, self._row_w, seen, *self._cond.span,
+                                                     self._limits[2])
+        H, floor = self._floored(H, trace, self._cond.from_block(s2))
+        ws = _Workspace(H, floor, rows, self._limits)
+        if not floor:  # (a floored H: its solver built on first use, for H as floored)
+            ws._box = BoxQP.from_state(H, *box)
+        return self._cached(key, ws)
 
     # ------------------------------------------------------------------ per frame
     def _update_linear(self) -> None:

@@ -1,5 +1,6 @@
-"""Compiled (numba) helper of ``solvers.qp``'s workspace building: the smallest eigenvalue of a small symmetric
-block (the unpenalised pose columns' 6 x 6), once per new visibility pattern.
+"""Compiled (numba) helpers of ``solvers.qp``'s workspace building: the smallest eigenvalue of a small symmetric
+block (the unpenalised pose columns' 6 x 6), once per new visibility pattern; a pattern's H by a downdate; its whole
+workspace (H, the check's numbers and the box QP's state) in one call.
 
 Why compiled: numpy's ``eigvalsh`` costs 10-50 µs of call overhead on a 6 x 6 (docs/performance.md,
 "kalman's streamed step"); cyclic Jacobi rotations (Golub & Van Loan 2013 §8.5.2) in a loop take a few.
@@ -11,6 +12,8 @@ import math
 
 import numba
 import numpy as np
+
+from solvers.box_qp_kernels import state as box_state
 
 
 @numba.njit(cache=True, nogil=True)
@@ -92,3 +95,21 @@ def pattern_hessian(H_all: np.ndarray, basis: np.ndarray, row_w: np.ndarray, see
     if u1 > u0:
         s2 = smallest_eigenvalue(H[u0:u1, u0:u1].copy())
     return trace, s2
+
+
+@numba.njit(cache=True, nogil=True)
+def pattern_workspace(H_all: np.ndarray, basis: np.ndarray, row_w: np.ndarray, seen: np.ndarray, u0: int, u1: int,
+                      limit_rows: np.ndarray) -> tuple:
+    """A new visibility pattern's whole workspace in one call: its rows (``seen`` per coordinate), H and what
+    :func:`pattern_hessian` returns of it, and the box QP's state for H (``solvers.box_qp_kernels.state``). Why:
+    as separate calls a new pattern cost ~17 µs, ~6 of them Python between the compiled parts, on the 16-18 % of
+    kalman's streamed frames whose next pattern is new (issue 39)."""
+    n = seen.shape[0]
+    rows = np.empty(3 * n, np.bool_)
+    for i in range(n):
+        rows[3 * i] = rows[3 * i + 1] = rows[3 * i + 2] = seen[i]
+    m = H_all.shape[0]
+    H = np.empty((m, m))
+    trace, s2 = pattern_hessian(H_all, basis, row_w, seen, u0, u1, H)
+    V, I, meta, L, tol = box_state(H, limit_rows)
+    return rows, H, trace, s2, V, I, meta, L, tol

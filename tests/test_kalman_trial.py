@@ -208,3 +208,35 @@ def test_workspaces_built_ahead_for_a_changed_strength_keep_the_weights_bit_for_
     plain, trials_plain = run()
     assert trials_ahead == trials_plain
     np.testing.assert_array_equal(ahead, plain)
+
+
+def test_the_compiled_trial_scores_as_the_numpy_fit_and_score_it_replaced():
+    """observe_unbounded's kernel fits, clips, scores, decays and picks the strength in one call (issue 39): the same
+    errors, counts and choice, bit for bit, as the fit w = G x + h and HeldOutStrength._score in numpy."""
+    B, rng, n, m = _problem(5, n=15, m=6)
+    lo, hi, mu, P = np.zeros(m), np.full(m, 0.7), rng.uniform(0, 1, m), np.eye(m) + 0.3
+    grid = np.logspace(-2, 1, 3)
+    fast = HeldOutStrength(B, lo, hi, mu, P, grid, decay=0.97, unbounded=True)
+    ref = HeldOutStrength(B, lo, hi, mu, P, grid, decay=0.97, unbounded=True)
+    for t in range(40):
+        valid = rng.uniform(size=n) > 0.15
+        target = B @ rng.uniform(0, 1, m) + rng.normal(0, 0.05, 3 * n)
+        fill = rng.uniform(0, 1, m)
+        elapsed = 1 + t % 3
+        g, f = ref.t % len(grid), (ref.t // len(grid)) % ref.folds
+        ref.t += 1
+        rows, GT, h = ref._maps[g, f]
+        x = np.array([target[r] if valid[r // 3] else sum(B[r, j] * fill[j] for j in range(m)) for r in rows])
+        w = h.copy()
+        for i in range(len(rows)):
+            w += GT[i] * x[i]
+        w = np.clip(w, lo, hi)
+        held = ref._fold_markers[f][valid[ref._fold_markers[f]]]
+        if len(held) and np.count_nonzero(valid & ref._outside[f]) >= 3:
+            r = np.repeat(3 * held, 3) + np.tile(np.arange(3), len(held))
+            ref._score(g, float(np.sum((B[r] @ w - target[r]) ** 2)), len(held), elapsed)
+        fast.observe_unbounded(target, valid, fill, elapsed=elapsed)
+        np.testing.assert_allclose(fast.err, ref.err, rtol=1e-13, atol=0)
+        np.testing.assert_array_equal(fast.count, ref.count)
+        assert fast.best == ref.best
+    assert ref._counted

@@ -268,6 +268,9 @@ def test_compiled_stream_step_equals_the_numpy_reference(seed, n, noise, missing
         np.testing.assert_array_equal(ok, ok_ref)
         np.testing.assert_allclose(x, x_ref, rtol=0, atol=1e-12 * (1 + np.abs(x_ref).max()))
         assert f.noise_mm == ref.noise_mm
+        # the likelihood sums (filters x markers; each filter's log s kept while its s holds, issue 39)
+        np.testing.assert_allclose(f.log_s.T, ref.log_s, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(f.energy.T, ref.energy, rtol=1e-12, atol=1e-12)
     f.reset()
     assert np.array_equal(f.step(noisy[0], valid[0])[0][valid[0]], noisy[0][valid[0]])
 

@@ -209,3 +209,37 @@ def test_a_patterns_compiled_hessian_is_the_downdate_of_the_all_seen_one(seed, n
         assert s2 == pytest.approx(np.linalg.eigvalsh(ref[m:, m:])[0], abs=1e-9 * np.abs(H_all).max())
     else:
         assert s2 == np.inf
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(3, 12), m=st.integers(1, 10), free=st.integers(1, 4),
+       missing=st.integers(1, 3))
+def test_a_patterns_workspace_in_one_call_is_the_one_built_call_by_call(seed, n, m, free, missing):
+    """pattern_workspace (a new visibility pattern's rows, H, its check's numbers and the box QP's state in one call,
+    issue 39) against pattern_hessian and BoxQP built as before: equal bit for bit, and FrameQP's workspaces (a few
+    markers missing, weight space) are built by it and solve as a solver built from H does."""
+    from solvers.box_qp import BoxQP
+    from solvers.qp_kernels import pattern_hessian, pattern_workspace
+
+    rng = np.random.default_rng(seed)
+    B = rng.normal(0, 3, (3 * n, m + free))
+    lo, hi = np.r_[np.zeros(m), np.full(free, -np.inf)], np.r_[np.ones(m), np.full(free, np.inf)]
+    P = np.diag(np.r_[rng.uniform(0.5, 2, m), np.zeros(free)])
+    qp = FrameQP(B, lo, hi, prior=(rng.uniform(0, 1, m + free), P), prior_weight=0.3)
+    qp.step(B @ rng.uniform(0, 1, m + free), np.ones(n, bool))
+    seen = np.ones(n, bool)
+    seen[rng.choice(n, min(missing, n // 2), replace=False)] = False
+    rows, H, trace, s2, *state = pattern_workspace(qp._H_all, qp.basis, qp._row_w, seen, *qp._cond.span,
+                                                   qp._limits[2])
+    H_ref = np.empty_like(qp._H_all)
+    ref = pattern_hessian(qp._H_all, qp.basis, qp._row_w, seen, *qp._cond.span, H_ref)
+    box = BoxQP(H_ref, lo, hi, limit_rows=qp._limits[2])
+    assert np.array_equal(rows, np.repeat(seen, 3)) and np.array_equal(H, H_ref) and (trace, s2) == ref
+    for a, b in zip(state, (box._V, box._I, box._meta), strict=False):
+        assert np.array_equal(a, b)
+    assert state[-1] == box.tol
+    ws = qp._workspace(seen.tobytes(), seen)
+    assert ws._box is not None and np.array_equal(ws.rows, rows)
+    f = rng.normal(0, 1, m + free)
+    x = ws.box.solve(f)
+    assert x is not None and np.array_equal(x, BoxQP(ws.H, lo, hi).solve(f))
