@@ -177,8 +177,43 @@ def build_movement(profile: Profile, options: Mapping | MovementSettings | None 
     if not s.robust:
         return inner
     # with a prior from animation, that prior is the plausibility term; the L1 (a sparse prior) would count twice
-    return RobustMovement(inner, float(s.noise_mm), lag=s.lag, trend=s.trend, reweight=int(s.reweight),
-                          l1=inner.blocks.alpha == 0)
+    rm = RobustMovement(inner, float(s.noise_mm), lag=s.lag, trend=s.trend, reweight=int(s.reweight),
+                        l1=inner.blocks.alpha == 0)
+    rm.live = _live(profile, s)
+    return rm
+
+
+def _live(profile: Profile, s: MovementSettings):
+    import json
+    import os
+
+    from livecap.modes.robust import marker_filter, sparse_fit, weight_filter
+    from livecap.modes.robust_movement import StreamedMovement
+    from solvers.marker_kalman import StreamingMarkerKalman
+
+    e = json.loads(os.environ.get("LIVE_EXP", "{}"))
+    rs = robust_settings(profile, {})
+    n = len(profile.labels)
+    if e.get("filter", "kalman") == "kalman":
+        markers = StreamingMarkerKalman(n, lag=int(e.get("lag", 0)))
+        gain = float(e.get("gain", 0.3))
+    else:
+        pf = marker_filter(float(rs.rate), float(e.get("window", rs.marker_window)))
+
+        class _P:
+            lag = 0
+
+            def reset(self):
+                pf.reset()
+
+            def step(self, x, ok):
+                return pf.step(x, None if ok.all() else np.broadcast_to(ok[:, None], x.shape)), ok
+        markers = _P()
+        gain = pf.noise_gain
+    beta = float(e.get("beta", s.beta))
+    fit = sparse_fit(profile, rs, gain / (1.0 + max(beta, 0.0)) ** 2 * float(e.get("l1", 1.0)) ** 2)
+    wf = weight_filter(profile, rs, gain) if e.get("imm") else None
+    return StreamedMovement(profile.basis, markers, fit, beta, wf)
 
 
 def _build(profile: Profile, s: MovementSettings):

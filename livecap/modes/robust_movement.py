@@ -135,12 +135,54 @@ class RobustMovement:
         return E
 
     @property
-    def lookahead(self) -> int:
-        """Frames ``step`` trails its input: the inner solver's (a live session pairs each frame by it)."""
-        return int(self.inner.lookahead)
+    def latency_frames(self) -> int:
+        return self.live.latency_frames
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
-        return self.inner.step(target, valid)
+        return self.live.step(target, valid)
 
     def reset(self) -> None:
         self.inner.reset()
+        self.live.reset()
+
+
+class StreamedMovement:
+    """Live movement: filtered markers -> one movement step a frame against the published previous frame.
+
+    Seol's window with a free right end publishes, with no prior term (alpha 0), the per-frame least-squares fit
+    of the raw markers: velocity and position residuals are both zero there, so the movement term smooths nothing
+    (issues 35 / 41). The noise is removed before the solve instead, by a causal marker filter; each frame then
+    minimises Seol's objective with the previous published frame as the fixed boundary (§4, K = 1),
+    ``|B (w - w') - (x - x')|^2 + beta |B w - x|^2 + mu^T w`` within the limits, which is the bounded sparse fit
+    to ``y = (B w' + (x - x') + beta x) / (1 + beta)`` (the L1 scaled by 1 / (1 + beta)).
+    """
+
+    def __init__(self, basis: np.ndarray, markers, fit, beta: float, weight_filter=None) -> None:
+        self.B = np.asarray(basis, dtype=np.float64)
+        self.markers, self.fit, self.beta, self.weight_filter = markers, fit, float(beta), weight_filter
+        self.lower, self.upper = fit.lower, fit.upper
+        self.reset()
+
+    @property
+    def latency_frames(self) -> int:
+        return int(getattr(self.markers, "lag", 0))
+
+    def reset(self) -> None:
+        self.markers.reset()
+        self.fit.reset()
+        if self.weight_filter is not None:
+            self.weight_filter.reset()
+        self._x = self._ok = self._w = None
+
+    def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        x, ok = self.markers.step(np.asarray(target, dtype=np.float64).reshape(-1, 3), np.asarray(valid, bool))
+        x = x.reshape(-1)
+        y = x
+        if self._w is not None and self.beta >= 0:
+            both = np.repeat(ok & self._ok, 3)
+            y = np.where(both, (self.B @ self._w + (x - self._x) + self.beta * x) / (1.0 + self.beta), x)
+        w = self.fit.step(y, ok)
+        self._x, self._ok, self._w = x, ok, w.copy()
+        if self.weight_filter is not None:
+            w = np.clip(self.weight_filter.step(w), self.lower, self.upper)
+        return w
