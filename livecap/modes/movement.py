@@ -27,10 +27,11 @@ import numpy as np
 from livecap.calibration.animation_prior import AnimationPrior, prior_from_spec
 from livecap.calibration.profile import Profile
 from livecap.modes.quiet import marker_noise, mismatched
-from livecap.modes.robust import robust_settings, warn_untuned
-from livecap.modes.robust_movement import BOUND_TOL, RobustMovement, smoother_beta
+from livecap.modes.robust import robust_settings, sparse_fit, warn_untuned, weight_filter
+from livecap.modes.robust_movement import BOUND_TOL, RobustMovement, StreamedMovement, smoother_beta
 from solvers.blocks import IllPosedError
 from solvers.filters import savgol_weights
+from solvers.marker_kalman import StreamingMarkerKalman
 from solvers.movement import MovementMatching
 from solvers.prior import PCAPrior
 from solvers.streaming import StreamingMovement
@@ -63,6 +64,11 @@ class MovementSettings:
     lag: int = 4  # noise-robust solve: marker smoother half-width, frames (RobustSettings.lag)
     trend: float = 10.0  # noise-robust solve: weight trend filter penalty, weight-noise sds (0: none)
     reweight: int = 0  # noise-robust solve: reweighted-L1 re-solves (Candes et al. 2008)
+    # noise-robust solve streamed (``step``, livecap.modes.robust_movement.StreamedMovement; issues 35 / 41, chosen on
+    # the ICT takes of S07-001 and apfel and the AnimFace takes, docs/robustness.md "Streamed movement"):
+    live_beta: float = 5.0  # position (Sobolev) weight against the movement term normalised to 1
+    live_gain: float = 0.3  # marker noise variance left by the marker filter (the L1 threshold's noise)
+    live_weight_gain: float = 3.0  # IMM measurement variance per shape, in sigma^2 / |b_k|^2
 
 
 _FIELDS = frozenset(f.name for f in fields(MovementSettings))
@@ -177,43 +183,18 @@ def build_movement(profile: Profile, options: Mapping | MovementSettings | None 
     if not s.robust:
         return inner
     # with a prior from animation, that prior is the plausibility term; the L1 (a sparse prior) would count twice
-    rm = RobustMovement(inner, float(s.noise_mm), lag=s.lag, trend=s.trend, reweight=int(s.reweight),
-                        l1=inner.blocks.alpha == 0)
-    rm.live = _live(profile, s)
-    return rm
+    return RobustMovement(inner, float(s.noise_mm), lag=s.lag, trend=s.trend, reweight=int(s.reweight),
+                          l1=inner.blocks.alpha == 0, live=_live(profile, s))
 
 
-def _live(profile: Profile, s: MovementSettings):
-    import json
-    import os
-
-    from livecap.modes.robust import marker_filter, sparse_fit, weight_filter
-    from livecap.modes.robust_movement import StreamedMovement
-    from solvers.marker_kalman import StreamingMarkerKalman
-
-    e = json.loads(os.environ.get("LIVE_EXP", "{}"))
+def _live(profile: Profile, s: MovementSettings) -> StreamedMovement:
+    """The streamed form of the noise-robust solve (issues 35 / 41): the ``kalman`` mode's marker filter (one frame
+    of latency), a movement step a frame with the sparse fit's L1 at the filtered noise, the robust modes' IMM."""
     rs = robust_settings(profile, {})
-    n = len(profile.labels)
-    if e.get("filter", "kalman") == "kalman":
-        markers = StreamingMarkerKalman(n, lag=int(e.get("lag", 0)))
-        gain = float(e.get("gain", 0.3))
-    else:
-        pf = marker_filter(float(rs.rate), float(e.get("window", rs.marker_window)))
-
-        class _P:
-            lag = 0
-
-            def reset(self):
-                pf.reset()
-
-            def step(self, x, ok):
-                return pf.step(x, None if ok.all() else np.broadcast_to(ok[:, None], x.shape)), ok
-        markers = _P()
-        gain = pf.noise_gain
-    beta = float(e.get("beta", s.beta))
-    fit = sparse_fit(profile, rs, gain / (1.0 + max(beta, 0.0)) ** 2 * float(e.get("l1", 1.0)) ** 2)
-    wf = weight_filter(profile, rs, gain) if e.get("imm") else None
-    return StreamedMovement(profile.basis, markers, fit, beta, wf)
+    markers = StreamingMarkerKalman(len(profile.labels), lag=1)
+    fit = sparse_fit(profile, rs, float(s.live_gain))
+    return StreamedMovement(profile.basis, markers, fit, float(s.live_beta),
+                            weight_filter(profile, rs, float(s.live_weight_gain)))
 
 
 def _build(profile: Profile, s: MovementSettings):
