@@ -134,3 +134,27 @@ def test_misfit_weights_count_markers_the_rig_cannot_follow_less_only_under_meas
     assert misfit_weights(prof) == {"a": 1.0, "b": 1.0, "c": pytest.approx(0.25)}
     same_rig = {**robust, "jitter_mm": 0.9}  # jitter ~ residual: white noise, the rig fits
     assert misfit_weights(SimpleNamespace(labels=prof.labels, basis=prof.basis, settings={"robust": same_rig})) is None
+
+
+def test_streamed_step_is_causal_and_smooth(take):
+    """Issues 35 / 41: ``step`` (what ``livecap run --mode movement`` streams) was the plain sliding window on the
+    raw markers, i.e. the per-frame least-squares fit (jitter hundreds of times the truth's); now the marker filter,
+    the movement step and the IMM keep it near the offline solve, causal with one frame of latency."""
+    from livecap.offline.real_eval import streamed
+
+    profile, targets, valid, truth, _ = take
+    solver = build_movement(profile, {})
+    assert solver.latency_frames == 1
+    offline = solver.solve(targets, valid)
+    solver.reset()
+    live = streamed(solver, targets, valid)
+    solver.inner.reset()
+    window = streamed(solver.inner, targets, valid)  # the plain sliding window (main's streamed movement)
+    tj = jitter(truth)
+    assert jitter(live) / tj < 0.05 * jitter(window) / tj
+    assert jitter(live) / tj < 10.0
+    assert weight_rmse(live, truth) < 1.5 * weight_rmse(offline, truth)
+    assert weight_rmse(live, truth) < 0.6 * weight_rmse(window, truth)
+    assert live.min() >= profile.lower.min() - 1e-9 and live.max() <= profile.upper.max() + 1e-9
+    solver.reset()  # reset forgets the stream: the same weights again (the last frame is the helper's padding)
+    assert np.allclose(streamed(solver, targets[:120], valid[:120])[:119], live[:119])

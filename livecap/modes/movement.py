@@ -11,7 +11,10 @@ Offline on a profile that carries a noise estimate (``settings["robust"]``, stor
 smoother, L1 at the noise threshold, bounded limits, smoothed weights); explicit options still
 override its alpha/beta/limits/...; option ``robust: false`` gives the plain Seol solve. An animation prior
 (the profile's, stored by ``calibrate --prior``, by default; or ``prior``) replaces its L1 term there, weighted
-by :func:`prior_alpha` (issue 41.3: it was silently weighted 0).
+by :func:`prior_alpha` (issue 41.3: it was silently weighted 0). Streamed (``step``, ``livecap run``) the same
+profile gives :class:`livecap.modes.robust_movement.StreamedMovement` (the ``kalman`` mode's marker filter, one
+movement step a frame, the robust modes' IMM; the ``live_*`` settings); ``stream: true`` / ``movement-stream`` is
+Seol's sliding window with prefactored matrices.
 """
 
 from __future__ import annotations
