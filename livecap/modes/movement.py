@@ -69,7 +69,7 @@ class MovementSettings:
     reweight: int = 0  # noise-robust solve: reweighted-L1 re-solves (Candes et al. 2008)
     # noise-robust solve streamed (``step``, livecap.modes.robust_movement.StreamedMovement; issues 35 / 41, chosen on
     # the ICT takes of S07-001 and apfel and the AnimFace takes, docs/robustness.md "Streamed movement"):
-    live_beta: float = 5.0  # position (Sobolev) weight against the movement term normalised to 1
+    live_beta: float = 5.0  # position (Sobolev) weight against the movement term 1, on white noise (streamed_beta)
     live_gain: float = 0.3  # marker noise variance left by the marker filter (the L1 threshold's noise)
     live_weight_gain: float = 3.0  # IMM measurement variance per shape, in sigma^2 / |b_k|^2
 
@@ -196,8 +196,19 @@ def _live(profile: Profile, s: MovementSettings) -> StreamedMovement:
     rs = robust_settings(profile, {})
     markers = StreamingMarkerKalman(len(profile.labels), lag=1)
     fit = sparse_fit(profile, rs, float(s.live_gain))
-    return StreamedMovement(profile.basis, markers, fit, float(s.live_beta),
+    return StreamedMovement(profile.basis, markers, fit, streamed_beta(profile, s),
                             weight_filter(profile, rs, float(s.live_weight_gain)))
+
+
+def streamed_beta(profile: Profile, s: MovementSettings) -> float:
+    """The streamed step's position weight: ``live_beta`` scaled by the share of calibration's noise variance that is
+    frame-to-frame jitter, never below the offline solve's ``beta``. Under model mismatch the position residual is
+    mostly what the rig cannot explain (issue 35.2), which changes little from frame to frame, so by inverse-variance
+    weighting the position term counts less and the movement term matches the markers' motion."""
+    tuned = profile.settings.get("robust", {})
+    noise, jitter = tuned.get("noise_mm"), tuned.get("jitter_mm")
+    share = 1.0 if not noise or jitter is None else min(1.0, (float(jitter) / float(noise)) ** 2)
+    return max(float(s.beta), float(s.live_beta) * share)
 
 
 def _build(profile: Profile, s: MovementSettings):
