@@ -144,17 +144,17 @@ def test_streamed_step_is_causal_and_smooth(take):
 
     profile, targets, valid, truth, _ = take
     solver = build_movement(profile, {})
-    assert solver.latency_frames == 1
     offline = solver.solve(targets, valid)
     solver.reset()
     live = streamed(solver, targets, valid)
     solver.inner.reset()
     window = streamed(solver.inner, targets, valid)  # the plain sliding window (main's streamed movement)
-    tj = jitter(truth)
+    tj = jitter(truth)  # measured on this 8 s take: live 5.0 x truth, window 5818 x, offline 2.4 x
     assert jitter(live) / tj < 0.05 * jitter(window) / tj
     assert jitter(live) / tj < 10.0
-    assert weight_rmse(live, truth) < 1.5 * weight_rmse(offline, truth)
+    assert weight_rmse(live, truth) < 1.25 * weight_rmse(offline, truth)  # 0.057 vs 0.055 (window 0.35)
     assert weight_rmse(live, truth) < 0.6 * weight_rmse(window, truth)
     assert live.min() >= profile.lower.min() - 1e-9 and live.max() <= profile.upper.max() + 1e-9
+    assert solver.latency_frames == 1  # the marker filter's fixed lag; the live pipeline pairs frames by it
     solver.reset()  # reset forgets the stream: the same weights again (the last frame is the helper's padding)
     assert np.allclose(streamed(solver, targets[:120], valid[:120])[:119], live[:119])
