@@ -56,8 +56,8 @@ class MovementSettings:
     start: str = "neutral"  # boundary at the first frame: neutral, free or fit
     end: str = "neutral"  # boundary at the last frame
     missing: str = "fill"  # offline missing markers: fill from the rig's fit, or drop their rows exactly
-    window: int = 24  # streaming window K, frames
-    lookahead: int = 0  # streaming lookahead L < K, frames
+    window: int = 24  # sliding window K, frames (``stream`` and the plain solve's ``step``)
+    lookahead: int = 0  # sliding window lookahead L < K, frames (likewise)
     limits: str | None = None  # none, clip or bound (None: clip; streaming clips the published frame)
     bound_options: Mapping | None = None  # ADMM settings of limits="bound"
     marker_weights: Mapping[str, float] | None = None  # {label or glob: weight} of the position term
