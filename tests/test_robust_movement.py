@@ -158,3 +158,21 @@ def test_streamed_step_is_causal_and_smooth(take):
     assert solver.latency_frames == 1  # the marker filter's fixed lag; the live pipeline pairs frames by it
     solver.reset()  # reset forgets the stream: the same weights again (the last frame is the helper's padding)
     assert np.allclose(streamed(solver, targets[:120], valid[:120])[:119], live[:119])
+
+
+def test_streamed_beta_follows_the_jitter_share_of_the_noise():
+    """White noise (jitter ~ calibration's noise): live_beta; model mismatch (the noise is the rig's misfit, the
+    AnimFace takes' 0.005 mm jitter against 1.39 mm): the offline beta, so the movement term leads; never below it."""
+    from types import SimpleNamespace
+
+    from livecap.modes.movement import MovementSettings, streamed_beta
+
+    s = MovementSettings(beta=0.373, live_beta=5.0)
+
+    def beta(**tuned):
+        return streamed_beta(SimpleNamespace(settings={"robust": tuned}), s)
+
+    assert beta(noise_mm=0.5, jitter_mm=0.5) == pytest.approx(5.0)
+    assert beta(noise_mm=0.51, jitter_mm=0.498) == pytest.approx(5.0 * (0.498 / 0.51) ** 2)
+    assert beta(noise_mm=1.386, jitter_mm=0.005) == pytest.approx(0.373)
+    assert beta(noise_mm=0.5) == pytest.approx(5.0)  # profiles tuned before the jitter was stored
