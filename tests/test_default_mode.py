@@ -117,15 +117,16 @@ def test_prior_options_of_kalman_and_auto(tmp_path, short_csv):  # noqa: F811
         with pytest.raises(ValueError, match=f"not {what} \\(that is a movement prior\\)"):
             kalman_prior(with_prior, {"prior": movement_prior})
 
-    # the noise-robust movement wrapper (a tuned profile) streams through its inner solver, which trails
-    # by its lookahead: the live pipeline pairs frames by it
+    # the noise-robust movement wrapper (a tuned profile) streams through its marker filter's one frame of lag
+    # (issues 35 / 41), the plain sliding window (``stream``) by its lookahead: the live pipeline pairs frames by it
     from livecap.live.pipeline import solver_latency
     from livecap.modes.movement import build_movement
     from livecap.modes.robust_movement import RobustMovement
 
     assert isinstance(build_movement(plain, {}), RobustMovement)
-    assert solver_latency(build_movement(plain, {"lookahead": 4})) == 4
-    assert solver_latency(build_movement(plain, {})) == 0
+    assert solver_latency(build_movement(plain, {})) == 1
+    assert solver_latency(build_movement(plain, {"stream": True, "lookahead": 4})) == 4
+    assert solver_latency(build_movement(plain, {"stream": True})) == 0
 
 
 def test_the_acting_decides_the_default_without_a_prior(tmp_path):

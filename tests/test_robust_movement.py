@@ -134,3 +134,45 @@ def test_misfit_weights_count_markers_the_rig_cannot_follow_less_only_under_meas
     assert misfit_weights(prof) == {"a": 1.0, "b": 1.0, "c": pytest.approx(0.25)}
     same_rig = {**robust, "jitter_mm": 0.9}  # jitter ~ residual: white noise, the rig fits
     assert misfit_weights(SimpleNamespace(labels=prof.labels, basis=prof.basis, settings={"robust": same_rig})) is None
+
+
+def test_streamed_step_is_causal_and_smooth(take):
+    """Issues 35 / 41: ``step`` (what ``livecap run --mode movement`` streams) was the plain sliding window on the
+    raw markers, i.e. the per-frame least-squares fit (jitter hundreds of times the truth's); now the marker filter,
+    the movement step and the IMM keep it near the offline solve, causal with one frame of latency."""
+    from livecap.offline.real_eval import streamed
+
+    profile, targets, valid, truth, _ = take
+    solver = build_movement(profile, {})
+    offline = solver.solve(targets, valid)
+    solver.reset()
+    live = streamed(solver, targets, valid)
+    solver.inner.reset()
+    window = streamed(solver.inner, targets, valid)  # the plain sliding window (main's streamed movement)
+    tj = jitter(truth)  # measured on this 8 s take: live 5.0 x truth, window 5818 x, offline 2.4 x
+    assert jitter(live) / tj < 0.05 * jitter(window) / tj
+    assert jitter(live) / tj < 10.0
+    assert weight_rmse(live, truth) < 1.25 * weight_rmse(offline, truth)  # 0.057 vs 0.055 (window 0.35)
+    assert weight_rmse(live, truth) < 0.6 * weight_rmse(window, truth)
+    assert live.min() >= profile.lower.min() - 1e-9 and live.max() <= profile.upper.max() + 1e-9
+    assert solver.latency_frames == 1  # the marker filter's fixed lag; the live pipeline pairs frames by it
+    solver.reset()  # reset forgets the stream: the same weights again (the last frame is the helper's padding)
+    assert np.allclose(streamed(solver, targets[:120], valid[:120])[:119], live[:119])
+
+
+def test_streamed_beta_follows_the_jitter_share_of_the_noise():
+    """White noise (jitter ~ calibration's noise): live_beta; model mismatch (the noise is the rig's misfit, the
+    AnimFace takes' 0.005 mm jitter against 1.39 mm): the offline beta, so the movement term leads; never below it."""
+    from types import SimpleNamespace
+
+    from livecap.modes.movement import MovementSettings, streamed_beta
+
+    s = MovementSettings(beta=0.373, live_beta=5.0)
+
+    def beta(**tuned):
+        return streamed_beta(SimpleNamespace(settings={"robust": tuned}), s)
+
+    assert beta(noise_mm=0.5, jitter_mm=0.5) == pytest.approx(5.0)
+    assert beta(noise_mm=0.51, jitter_mm=0.498) == pytest.approx(5.0 * (0.498 / 0.51) ** 2)
+    assert beta(noise_mm=1.386, jitter_mm=0.005) == pytest.approx(0.373)
+    assert beta(noise_mm=0.5) == pytest.approx(5.0)  # profiles tuned before the jitter was stored

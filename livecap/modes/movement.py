@@ -11,7 +11,10 @@ Offline on a profile that carries a noise estimate (``settings["robust"]``, stor
 smoother, L1 at the noise threshold, bounded limits, smoothed weights); explicit options still
 override its alpha/beta/limits/...; option ``robust: false`` gives the plain Seol solve. An animation prior
 (the profile's, stored by ``calibrate --prior``, by default; or ``prior``) replaces its L1 term there, weighted
-by :func:`prior_alpha` (issue 41.3: it was silently weighted 0).
+by :func:`prior_alpha` (issue 41.3: it was silently weighted 0). Streamed (``step``, ``livecap run``) the same
+profile gives :class:`livecap.modes.robust_movement.StreamedMovement` (the ``kalman`` mode's marker filter, one
+movement step a frame, the robust modes' IMM; the ``live_*`` settings); ``stream: true`` / ``movement-stream`` is
+Seol's sliding window with prefactored matrices.
 """
 
 from __future__ import annotations
@@ -27,10 +30,11 @@ import numpy as np
 from livecap.calibration.animation_prior import AnimationPrior, prior_from_spec
 from livecap.calibration.profile import Profile
 from livecap.modes.quiet import marker_noise, mismatched
-from livecap.modes.robust import robust_settings, warn_untuned
-from livecap.modes.robust_movement import BOUND_TOL, RobustMovement, smoother_beta
+from livecap.modes.robust import robust_settings, sparse_fit, warn_untuned, weight_filter
+from livecap.modes.robust_movement import BOUND_TOL, RobustMovement, StreamedMovement, smoother_beta
 from solvers.blocks import IllPosedError
 from solvers.filters import savgol_weights
+from solvers.marker_kalman import StreamingMarkerKalman
 from solvers.movement import MovementMatching
 from solvers.prior import PCAPrior
 from solvers.streaming import StreamingMovement
@@ -52,8 +56,8 @@ class MovementSettings:
     start: str = "neutral"  # boundary at the first frame: neutral, free or fit
     end: str = "neutral"  # boundary at the last frame
     missing: str = "fill"  # offline missing markers: fill from the rig's fit, or drop their rows exactly
-    window: int = 24  # streaming window K, frames
-    lookahead: int = 0  # streaming lookahead L < K, frames
+    window: int = 24  # sliding window K, frames (``stream`` and the plain solve's ``step``)
+    lookahead: int = 0  # sliding window lookahead L < K, frames (likewise)
     limits: str | None = None  # none, clip or bound (None: clip; streaming clips the published frame)
     bound_options: Mapping | None = None  # ADMM settings of limits="bound"
     marker_weights: Mapping[str, float] | None = None  # {label or glob: weight} of the position term
@@ -63,6 +67,11 @@ class MovementSettings:
     lag: int = 4  # noise-robust solve: marker smoother half-width, frames (RobustSettings.lag)
     trend: float = 10.0  # noise-robust solve: weight trend filter penalty, weight-noise sds (0: none)
     reweight: int = 0  # noise-robust solve: reweighted-L1 re-solves (Candes et al. 2008)
+    # noise-robust solve streamed (``step``, livecap.modes.robust_movement.StreamedMovement; issues 35 / 41, chosen on
+    # the ICT takes of S07-001 and apfel and the AnimFace takes, docs/robustness.md "Streamed movement"):
+    live_beta: float = 5.0  # position (Sobolev) weight against the movement term 1, on white noise (streamed_beta)
+    live_gain: float = 0.3  # marker noise variance left by the marker filter (the L1 threshold's noise)
+    live_weight_gain: float = 3.0  # IMM measurement variance per shape, in sigma^2 / |b_k|^2
 
 
 _FIELDS = frozenset(f.name for f in fields(MovementSettings))
@@ -178,7 +187,28 @@ def build_movement(profile: Profile, options: Mapping | MovementSettings | None 
         return inner
     # with a prior from animation, that prior is the plausibility term; the L1 (a sparse prior) would count twice
     return RobustMovement(inner, float(s.noise_mm), lag=s.lag, trend=s.trend, reweight=int(s.reweight),
-                          l1=inner.blocks.alpha == 0)
+                          l1=inner.blocks.alpha == 0, live=_live(profile, s))
+
+
+def _live(profile: Profile, s: MovementSettings) -> StreamedMovement:
+    """The streamed form of the noise-robust solve (issues 35 / 41): the ``kalman`` mode's marker filter (one frame
+    of latency), a movement step a frame with the sparse fit's L1 at the filtered noise, the robust modes' IMM."""
+    rs = robust_settings(profile, {})
+    markers = StreamingMarkerKalman(len(profile.labels), lag=1)
+    fit = sparse_fit(profile, rs, float(s.live_gain))
+    return StreamedMovement(profile.basis, markers, fit, streamed_beta(profile, s),
+                            weight_filter(profile, rs, float(s.live_weight_gain)))
+
+
+def streamed_beta(profile: Profile, s: MovementSettings) -> float:
+    """The streamed step's position weight: ``live_beta`` scaled by the share of calibration's noise variance that is
+    frame-to-frame jitter, never below the offline solve's ``beta``. Under model mismatch the position residual is
+    mostly what the rig cannot explain (issue 35.2), which changes little from frame to frame, so by inverse-variance
+    weighting the position term counts less and the movement term matches the markers' motion."""
+    tuned = profile.settings.get("robust", {})
+    noise, jitter = tuned.get("noise_mm"), tuned.get("jitter_mm")
+    share = 1.0 if not noise or jitter is None else min(1.0, (float(jitter) / float(noise)) ** 2)
+    return max(float(s.beta), float(s.live_beta) * share)
 
 
 def _build(profile: Profile, s: MovementSettings):

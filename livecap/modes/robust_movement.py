@@ -67,14 +67,14 @@ class RobustMovement:
     limits); ``noise_mm`` the raw marker noise sigma; ``lag`` the smoother half-width (frames);
     ``trend`` the weight trend filter's penalty in weight noise sds (0: none); ``reweight`` the number of
     reweighted-L1 re-solves; ``l1`` False drops the L1 term (when ``inner`` carries an animation prior instead).
-    ``step``/``reset`` are the inner solver's (live use is the plain
-    streaming solver).
+    ``step`` is ``live`` (:class:`StreamedMovement`), or without one the inner solver's plain sliding window.
     """
 
     def __init__(self, inner: MovementMatching, noise_mm: float, lag: int = RobustSettings.lag,
                  trend: float = RobustSettings.trend, z: float | None = None, reweight: int = 0,
-                 l1: bool = True) -> None:
+                 l1: bool = True, live=None) -> None:
         self.inner = inner
+        self.live = live
         self.lower, self.upper = inner.lower, inner.upper
         self.lag = int(lag)
         self.smoother = FixedLagSmoother(self.lag)
@@ -135,12 +135,64 @@ class RobustMovement:
         return E
 
     @property
-    def lookahead(self) -> int:
-        """Frames ``step`` trails its input: the inner solver's (a live session pairs each frame by it)."""
-        return int(self.inner.lookahead)
+    def latency_frames(self) -> int:
+        """Frames ``step`` trails its input (a live session pairs each frame by it)."""
+        return int(self.inner.lookahead if self.live is None else self.live.latency_frames)
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
-        return self.inner.step(target, valid)
+        return (self.inner if self.live is None else self.live).step(target, valid)
 
     def reset(self) -> None:
         self.inner.reset()
+        if self.live is not None:
+            self.live.reset()
+
+
+class StreamedMovement:
+    """Live movement: filtered markers -> one movement step a frame against the previous frame (issues 35 / 41).
+
+    Seol's sliding window (§4-5, ``solvers.streaming``) with a free right end and no prior term (the noise-robust
+    solve's alpha 0) publishes the per-frame least-squares fit of the raw markers: there the velocity and position
+    residuals are both at their minimum, so the movement term removes no noise, and the limits are a clip of that
+    fit (docs/robustness.md "Streamed movement": jitter 140-415 x truth). Here the noise goes first, in a causal
+    marker filter (``markers``: ``step(x, valid) -> (x', valid')``, its ``lag`` the latency); each frame then
+    minimises Seol's objective with the previous frame's solve w' as the fixed left boundary (K = 1),
+
+        |B (w - w') - (x - x')|^2 + beta |B w - x|^2 + mu^T w,   lower <= w <= upper,
+
+    i.e. ``(1 + beta) |B w - y|^2 + mu^T w`` with ``y = (B w' + (x - x') + beta x) / (1 + beta)``: the bounded
+    sparse fit (``fit``, hysteresis L1 of ``solvers.sparse_fit`` at the filtered noise) of y. A marker missing in
+    either frame has no movement: its row of y is x. ``weight_filter`` (the robust modes' IMM) smooths the output.
+    """
+
+    def __init__(self, basis: np.ndarray, markers, fit, beta: float, weight_filter=None) -> None:
+        self.B = np.asarray(basis, dtype=np.float64)
+        self.markers, self.fit, self.beta, self.weight_filter = markers, fit, float(beta), weight_filter
+        self.lower, self.upper = fit.lower, fit.upper
+        self.reset()
+
+    @property
+    def latency_frames(self) -> int:
+        return int(getattr(self.markers, "lag", 0))
+
+    def reset(self) -> None:
+        self.markers.reset()
+        self.fit.reset()
+        if self.weight_filter is not None:
+            self.weight_filter.reset()
+        self._x: np.ndarray | None = None
+        self._ok: np.ndarray | None = None
+        self._w: np.ndarray | None = None
+
+    def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        x, ok = self.markers.step(np.asarray(target, dtype=np.float64).reshape(-1, 3), np.asarray(valid, bool))
+        x = x.reshape(-1)
+        y = x
+        if self._w is not None:
+            both = np.repeat(ok & self._ok, 3)
+            y = np.where(both, (self.B @ self._w + (x - self._x) + self.beta * x) / (1.0 + self.beta), x)
+        w = self.fit.step(y, ok)
+        self._x, self._ok, self._w = x, ok, w.copy()
+        if self.weight_filter is not None:
+            w = np.clip(self.weight_filter.step(w), self.lower, self.upper)
+        return w
