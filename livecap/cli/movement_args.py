@@ -34,10 +34,12 @@ def add_movement_arguments(p: argparse.ArgumentParser, stream: bool = True) -> N
     g.add_argument("--marker-weight", action="append", metavar="LABEL=W", default=[],
                    help="per-marker weight of the position term (glob patterns allowed; repeatable)")
     if stream:
-        g.add_argument("--stream", action="store_true", help="run the take through the sliding-window "
-                       "streaming solver instead of the offline solve")
-        g.add_argument("--window", type=int, help=f"streaming window K in frames (default {D.window})")
-        g.add_argument("--lookahead", type=int, help=f"streaming lookahead L < K in frames (default {D.lookahead})")
+        g.add_argument("--stream", action="store_true", help="run the take through the paper's sliding-window "
+                       "streaming solver (Seol et al. 2012) instead of the offline solve (the live pipeline's "
+                       "movement on a tuned profile is the filtered per-frame step: docs/modes.md)")
+        g.add_argument("--window", type=int, help=f"with --stream: window K in frames (default {D.window})")
+        g.add_argument("--lookahead", type=int,
+                       help=f"with --stream: lookahead L < K in frames (default {D.lookahead})")
 
 
 def movement_options(args: argparse.Namespace) -> dict:
