@@ -9,6 +9,18 @@ from solvers.prior_strength import HeldOutStrength
 from tests.test_marker_kalman import _face
 
 
+def _bursty_take(p, seed: int, T: int, amplitude: float, fastest: float, noise_mm: float):
+    """Slow sines about 0.4 with occlusion in bursts: 60 bursts of 5-20 frames, one marker each (not the first 6)."""
+    rng = np.random.default_rng(seed)
+    n = p.n_markers
+    W = np.clip(0.4 + amplitude * np.sin(np.arange(T)[:, None] / rng.uniform(fastest, 30, p.basis.shape[1])), 0, 1)
+    X = (W @ p.basis.T).reshape(T, n, 3) + rng.normal(0, noise_mm, (T, n, 3))
+    valid = np.ones((T, n), bool)
+    for start in rng.integers(0, T, 60):
+        valid[start:start + rng.integers(5, 20), rng.integers(6, n)] = False
+    return X, valid
+
+
 def _problem(seed: int = 0, n: int = 12, m: int = 5):
     rng = np.random.default_rng(seed)
     B = rng.normal(0, 1, (3 * n, m))
@@ -68,13 +80,8 @@ def test_streamed_trials_solve_no_qp_and_none_falls_beside_a_new_fit_pattern():
     from livecap.modes import marker_kalman as mk
 
     p = _face()
-    rng = np.random.default_rng(4)
-    T, n = 360, p.n_markers
-    W = np.clip(0.4 + 0.2 * np.sin(np.arange(T)[:, None] / rng.uniform(5, 30, p.basis.shape[1])), 0, 1)
-    X = (W @ p.basis.T).reshape(T, n, 3) + rng.normal(0, 0.3, (T, n, 3))
-    valid = np.ones((T, n), bool)
-    for start in rng.integers(0, T, 60):  # 60 bursts of 5-20 frames, one marker each
-        valid[start:start + rng.integers(5, 20), rng.integers(6, n)] = False
+    T = 360
+    X, valid = _bursty_take(p, 4, T, 0.2, 5, 0.3)
     solver = mk.kalman_mode(p, {"rate": 60.0})
     assert solver.selector.unbounded
     events: list[set] = [set() for _ in range(T)]
@@ -178,13 +185,8 @@ def test_workspaces_built_ahead_for_a_changed_strength_keep_the_weights_bit_for_
     from livecap.modes import marker_kalman as mk
 
     p = _face()
-    rng = np.random.default_rng(5)
-    T, n = 300, p.n_markers
-    W = np.clip(0.4 + 0.3 * np.sin(np.arange(T)[:, None] / rng.uniform(3, 30, p.basis.shape[1])), 0, 1)
-    X = (W @ p.basis.T).reshape(T, n, 3) + rng.normal(0, 0.5, (T, n, 3))
-    valid = np.ones((T, n), bool)
-    for start in rng.integers(0, T, 60):
-        valid[start:start + rng.integers(5, 20), rng.integers(6, n)] = False
+    T = 300
+    X, valid = _bursty_take(p, 5, T, 0.3, 3, 0.5)
     built = []
 
     def run():
