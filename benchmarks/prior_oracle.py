@@ -167,11 +167,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mean", choices=["checked", "self", "truth"], default="checked",
                    help="the prior's mean: today's check against the take; the take's own no-prior kalman fit's mean "
                         "(offline, no truth); the take's true mean (a ceiling, not a criterion)")
-    p.add_argument("--cov", choices=["checked", "self", "pooled", "denoised", "truth", "em", "mix"], default="checked",
+    p.add_argument("--cov", choices=["checked", "self", "pooled", "denoised", "truth", "em", "mix", "mixem"],
+                   default="checked",
                    help="the prior's covariance: today's; the take's own no-prior kalman fit's (offline, no truth); "
                         "the mean of that and the others' (pooled); the own fit's less its per-frame noise "
                         "noise^2 (B'B)^-1 (denoised); the take's true weights' (a ceiling); by the markers' evidence "
-                        "on the check's frames: EM about the checked mean (em), per-performer priors mixed (mix)")
+                        "on the check's frames: EM about the checked mean (em), per-performer priors mixed (mix), "
+                        "EM from the mixed prior (mixem)")
+    p.add_argument("--mix-by", choices=["performer", "file"], default="performer",
+                   help="mix: one component per performer of the other files, or per file")
+    p.add_argument("--mix-pooled", action="store_true",
+                   help="mix: the prior from all other files as one more component")
     p.add_argument("--em-prior", type=float, default=1.0,
                    help="em: the others' covariance's weight in frames, x the frames the covariance is fitted on")
     p.add_argument("--em-frames", type=int, default=0,
@@ -203,19 +209,21 @@ def main(argv: list[str] | None = None) -> int:
         pick = marker_kalman._spread(len(x), args.em_frames)
         return x[pick].reshape(len(pick), -1), ok[pick]
 
+    def with_em(self, s, prior_cov, targets, valid):
+        """The checked prior ``s`` with its covariance by EM from ``prior_cov`` about its mean."""
+        if "cov" not in evidence:
+            x, ok = frames_of(targets, valid)
+            C, s2, it = evidence_cov(self.profile.basis, s.mean, prior_cov, x, ok, self.pose.matrix, s.noise_var,
+                                     args.em_prior * len(x))
+            evidence.update(cov=C, noise_var=s2, iterations=it)
+        C = evidence["cov"] + (0 if s.mean_cov is None else s.axes @ s.mean_cov @ s.axes.T)
+        lam, axes = np.linalg.eigh(C)
+        return type(s)(axes, lam, lam, s.noise_var, s.iterations, s.mean)
+
     def evidence_support(self, targets, valid, noise_mm, tol=1e-2):
-        if args.cov != "mix":
+        if args.cov not in ("mix", "mixem"):
             s = support(self, targets, valid, noise_mm, tol)
-            if args.cov == "em":
-                if "cov" not in evidence:
-                    x, ok = frames_of(targets, valid)
-                    C, s2, it = evidence_cov(self.profile.basis, s.mean, self.prior_cov, x, ok, self.pose.matrix,
-                                             s.noise_var, args.em_prior * len(x))
-                    evidence.update(cov=C, noise_var=s2, iterations=it)
-                C = evidence["cov"] + (0 if s.mean_cov is None else s.axes @ s.mean_cov @ s.axes.T)
-                lam, axes = np.linalg.eigh(C)
-                s = type(s)(axes, lam, lam, s.noise_var, s.iterations, s.mean)
-            return s
+            return with_em(self, s, self.prior_cov, targets, valid) if args.cov == "em" else s
         if "mix" not in evidence:
             x, ok = frames_of(targets, valid)
             base = support(self, targets, valid, noise_mm, tol)
@@ -227,8 +235,9 @@ def main(argv: list[str] | None = None) -> int:
         mu, C, _ = evidence["mix"]
         from solvers.prior_support import widen_prior
 
-        return widen_prior(self.profile.basis, mu, C, targets, valid, self.lower, self.upper, extra=self.pose.matrix,
-                           noise_var=noise_mm**2, tol=tol)
+        s = widen_prior(self.profile.basis, mu, C, targets, valid, self.lower, self.upper, extra=self.pose.matrix,
+                        noise_var=noise_mm**2, tol=tol)
+        return with_em(self, s, C, targets, valid) if args.cov == "mixem" else s
 
     def fixed_strength(*a, **k):
         best, err, used = take_strength(*a, **k)
@@ -271,12 +280,16 @@ def main(argv: list[str] | None = None) -> int:
                 opts = {"rate": ct.take.rate}
                 state["mean"] = state["precision"] = state["scales"] = state["fixed"] = None
                 evidence.clear()
-                if args.cov == "mix":
+                if args.cov in ("mix", "mixem"):
                     from benchmarks.prior_lopo import PERFORMERS
 
-                    groups = sorted({PERFORMERS[o.stem] for o in files if o != f})
-                    state["components"] = [build_prior([o for o in files if o != f and PERFORMERS[o.stem] == g],
+                    group = PERFORMERS if args.mix_by == "performer" else {o.stem: o.stem for o in files}
+                    groups = sorted({group[o.stem] for o in files if o != f})
+                    state["components"] = [build_prior([o for o in files if o != f and group[o.stem] == g],
                                                        rig.names, rig.lower, rig.upper) for g in groups]
+                    if args.mix_pooled:
+                        groups.append("pooled")
+                        state["components"].append(profile.prior)
                 if "self" in (args.mean, args.cov) or args.cov in ("pooled", "denoised"):
                     bare = plain_profile(rig, layout, ct)
                     fit = build_solver("kalman", bare, opts)
@@ -321,9 +334,9 @@ def main(argv: list[str] | None = None) -> int:
                        "best_scalar_x": scalar[k_best], "best_scalar": float(grid[k_best]), "bands_x": best,
                        "band_strengths": [float(grid[j]) for j in ks],
                        "d_quantiles": np.quantile(d, [0, 0.25, 0.5, 0.75, 1]).tolist()}
-                if args.cov == "em":
+                if args.cov in ("em", "mixem"):
                     rec.update(em_iterations=evidence["iterations"], em_noise_var=evidence["noise_var"])
-                elif args.cov == "mix":
+                if args.cov in ("mix", "mixem"):
                     rec.update(groups=groups, mix_logp=evidence["logp"].tolist(), mix_r=evidence["mix"][2].tolist())
                 out.append(rec)
                 print(f"{noise:g} mm {f.stem:32s} chosen {chosen:.3f} ({grid[k_chosen]:.3g})  "
