@@ -298,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
                     state["mean"] = own.mean(0)
                 elif args.mean == "truth":
                     state["mean"] = ct.weights.mean(0)
-                if args.cov not in ("checked", "em", "mix"):
+                if args.cov not in ("checked", "em", "mix", "mixem"):
                     C = np.cov((ct.weights if args.cov == "truth" else own).T)
                     if args.cov == "pooled":
                         C = 0.5 * (C + profile.prior.cov)
