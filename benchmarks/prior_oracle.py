@@ -145,6 +145,14 @@ def mixture(means: list[np.ndarray], covs: list[np.ndarray], logp: np.ndarray) -
     return mu, C, r
 
 
+def nll(weights: np.ndarray, mean: np.ndarray, precision: np.ndarray) -> float:
+    """The true weights' mean negative log density per frame (nats) under the prior N(mean, precision^-1) the solver
+    used: how well the prior's form describes this take's acting, its strength aside."""
+    d = weights - mean
+    return float(0.5 * (np.einsum("ti,ij,tj->t", d, precision, d).mean() - np.linalg.slogdet(precision)[1]
+                        + len(mean) * np.log(2 * np.pi)))
+
+
 def main(argv: list[str] | None = None) -> int:
     from livecap.calibration.animation_prior import build_prior
     from livecap.cli.realeval import _realdata, _rig
@@ -256,6 +264,7 @@ def main(argv: list[str] | None = None) -> int:
         if any(state[k] is not None for k in ("mean", "precision", "scales")):
             self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
             self._fits, self._spreads, self._along = {}, {}, {}
+        state["used"] = (self.mean, self.precision)
 
     files = sorted((_realdata() / "performance").glob("*.csv"))
     rig, layout = _rig("ict")
@@ -313,6 +322,7 @@ def main(argv: list[str] | None = None) -> int:
 
                 chosen = ratio(None)
                 k_chosen = state["chosen"]
+                truth_nll = nll(ct.weights, *state["used"])
                 scalar = [ratio(k) for k in range(len(grid))]
                 k_best = int(np.argmin(scalar))
                 _, d = band_precisions(profile.basis, np.linalg.inv(profile.prior.cov), args.bands)
@@ -329,7 +339,7 @@ def main(argv: list[str] | None = None) -> int:
                             if r < best:
                                 best, ks = r, trial
                 rec = {"noise_mm": noise, "mean": args.mean, "cov": args.cov, "file": f.stem, "oracle_rmse": oracle,
-                       "chosen_x": chosen,
+                       "chosen_x": chosen, "truth_nll": truth_nll,
                        "chosen_strength": float(grid[k_chosen]), "scalar_x": scalar,
                        "best_scalar_x": scalar[k_best], "best_scalar": float(grid[k_best]), "bands_x": best,
                        "band_strengths": [float(grid[j]) for j in ks],
