@@ -114,6 +114,23 @@ def evidence_cov(basis: np.ndarray, mean: np.ndarray, cov: np.ndarray, targets: 
     return C, s2, done
 
 
+def held_out_ratio(basis: np.ndarray, mean: np.ndarray, cov: np.ndarray, targets: np.ndarray, valid: np.ndarray,
+                   extra: np.ndarray, noise_var: float, ratios: list[float]) -> tuple[float, list[float]]:
+    """The hyperprior's weight (x the frames) whose EM covariance, fitted on one half of the take (in time), gives
+    the other half the highest marginal likelihood, both ways round; and each ratio's held-out log evidence."""
+    half = len(targets) // 2
+    parts = [(slice(0, half), slice(half, None)), (slice(half, None), slice(0, half))]
+    scores = []
+    for r in ratios:
+        score = 0.0
+        for fit, test in parts:
+            C, s2, _ = evidence_cov(basis, mean, cov, targets[fit], valid[fit], extra, noise_var,
+                                    min(r, 1e9) * len(targets[fit]))
+            score += log_evidence(basis, mean, C, targets[test], valid[test], extra, s2)
+        scores.append(score)
+    return ratios[int(np.argmax(scores))], scores
+
+
 def log_evidence(basis: np.ndarray, mean: np.ndarray, cov: np.ndarray, targets: np.ndarray, valid: np.ndarray,
                  extra: np.ndarray, noise_var: float) -> float:
     """log p(frames | mean, cov): each frame's marker displacement x_t ~ N(B mean, D V D' + s2 I), V = the weights'
@@ -186,8 +203,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="mix: one component per performer of the other files, or per file")
     p.add_argument("--mix-pooled", action="store_true",
                    help="mix: the prior from all other files as one more component")
-    p.add_argument("--em-prior", type=float, default=1.0,
-                   help="em: the others' covariance's weight in frames, x the frames the covariance is fitted on")
+    p.add_argument("--em-prior", type=float, nargs="+", default=[1.0],
+                   help="em: the others' covariance's weight in frames, x the frames the covariance is fitted on; "
+                        "several (inf: the others' covariance): chosen per take by the held-out half's evidence")
     p.add_argument("--em-frames", type=int, default=0,
                    help="em / mix: fit on this many of the take's smoothed frames, evenly spread (0: the check's own)")
     p.add_argument("--extend", type=float, nargs="*", default=[],
@@ -221,9 +239,13 @@ def main(argv: list[str] | None = None) -> int:
         """The checked prior ``s`` with its covariance by EM from ``prior_cov`` about its mean."""
         if "cov" not in evidence:
             x, ok = frames_of(targets, valid)
+            ratio, scores = args.em_prior[0], []
+            if len(args.em_prior) > 1:
+                ratio, scores = held_out_ratio(self.profile.basis, s.mean, prior_cov, x, ok, self.pose.matrix,
+                                               s.noise_var, args.em_prior)
             C, s2, it = evidence_cov(self.profile.basis, s.mean, prior_cov, x, ok, self.pose.matrix, s.noise_var,
-                                     args.em_prior * len(x))
-            evidence.update(cov=C, noise_var=s2, iterations=it)
+                                     min(ratio, 1e9) * len(x))
+            evidence.update(cov=C, noise_var=s2, iterations=it, ratio=ratio, scores=scores)
         C = evidence["cov"] + (0 if s.mean_cov is None else s.axes @ s.mean_cov @ s.axes.T)
         lam, axes = np.linalg.eigh(C)
         return type(s)(axes, lam, lam, s.noise_var, s.iterations, s.mean)
@@ -345,7 +367,8 @@ def main(argv: list[str] | None = None) -> int:
                        "band_strengths": [float(grid[j]) for j in ks],
                        "d_quantiles": np.quantile(d, [0, 0.25, 0.5, 0.75, 1]).tolist()}
                 if args.cov in ("em", "mixem"):
-                    rec.update(em_iterations=evidence["iterations"], em_noise_var=evidence["noise_var"])
+                    rec.update(em_iterations=evidence["iterations"], em_noise_var=evidence["noise_var"],
+                               em_ratio=evidence["ratio"], em_scores=evidence["scores"])
                 if args.cov in ("mix", "mixem"):
                     rec.update(groups=groups, mix_logp=evidence["logp"].tolist(), mix_r=evidence["mix"][2].tolist())
                 out.append(rec)

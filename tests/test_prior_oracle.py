@@ -4,7 +4,7 @@ Gaussian, EM's covariance against the one that drew the frames, the mixture's pi
 import numpy as np
 from scipy.stats import multivariate_normal
 
-from benchmarks.prior_oracle import evidence_cov, log_evidence, mixture
+from benchmarks.prior_oracle import evidence_cov, held_out_ratio, log_evidence, mixture
 from solvers.prior_support import POSE_VARIANCE
 
 
@@ -52,3 +52,11 @@ def test_mixture_takes_the_component_that_drew_the_frames_and_its_moments():
     mu, C, r = mixture([mean, mean + 0.1], [a, b], np.zeros(2))
     assert np.allclose(r, 0.5) and np.allclose(mu, mean + 0.05)
     assert np.allclose(C, 0.5 * (a + b) + 0.0025)
+
+
+def test_held_out_half_picks_the_frames_covariance_only_where_the_others_do_not_fit():
+    true = np.array([[0.04, 0.03, 0.0], [0.03, 0.04, 0.0], [0.0, 0.0, 0.01]])
+    B, E, mean, X, valid = _scene(3, 400, true)
+    ratios = [0.1, 1.0, np.inf]
+    assert held_out_ratio(B, mean, np.diag([0.01, 0.01, 0.04]), X, valid, E, 0.01, ratios)[0] == 0.1
+    assert held_out_ratio(B, mean, true, X, valid, E, 0.01, ratios)[0] == np.inf
