@@ -18,7 +18,8 @@ pooled or noise-corrected form of it, or the take's true ones (ceilings); ``--ex
 Two covariances by the markers' evidence (no truth): ``--cov em``, the covariance that maximises the marginal
 likelihood of the check's frames about the checked mean (EM, regularised toward the others' covariance by an
 inverse-Wishart hyperprior of ``--em-prior`` x the frames' number), and ``--cov mix``, the others' files grouped by
-performer, one prior each, mixed by each one's marginal likelihood on the check's frames (then checked as today).
+performer, one prior each, mixed by each one's marginal likelihood on the check's frames (then checked as today);
+``mixem`` both. Each row also gives ``truth_nll``, the true weights' negative log density under the prior used.
 The truth picks every hindsight choice: these rows bound what a criterion choosing that form could reach; they are
 not a mode.
 
