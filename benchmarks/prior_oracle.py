@@ -172,7 +172,7 @@ def nll(weights: np.ndarray, mean: np.ndarray, precision: np.ndarray) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from livecap.calibration.animation_prior import build_prior
+    from livecap.calibration.animation_prior import VARIANCE_FLOOR, build_prior
     from livecap.cli.realeval import _realdata, _rig
     from livecap.demo.curves_take import CurveTakeSettings, curves_take
     from livecap.modes import marker_kalman
@@ -193,11 +193,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mean", choices=["checked", "self", "truth"], default="checked",
                    help="the prior's mean: today's check against the take; the take's own no-prior kalman fit's mean "
                         "(offline, no truth); the take's true mean (a ceiling, not a criterion)")
-    p.add_argument("--cov", choices=["checked", "self", "pooled", "denoised", "truth", "em", "mix", "mixem"],
+    p.add_argument("--cov", choices=["checked", "self", "pooled", "denoised", "truth", "truthdiag", "em", "mix", "mixem"],
                    default="checked",
                    help="the prior's covariance: today's; the take's own no-prior kalman fit's (offline, no truth); "
                         "the mean of that and the others' (pooled); the own fit's less its per-frame noise "
-                        "noise^2 (B'B)^-1 (denoised); the take's true weights' (a ceiling); by the markers' evidence "
+                        "noise^2 (B'B)^-1 (denoised); the take's true weights' (a ceiling), its diagonal only (truthdiag); by the markers' evidence "
                         "on the check's frames: EM about the checked mean (em), per-performer priors mixed (mix), "
                         "EM from the mixed prior (mixem)")
     p.add_argument("--mix-by", choices=["performer", "file"], default="performer",
@@ -331,7 +331,9 @@ def main(argv: list[str] | None = None) -> int:
                 elif args.mean == "truth":
                     state["mean"] = ct.weights.mean(0)
                 if args.cov not in ("checked", "em", "mix", "mixem"):
-                    C = np.cov((ct.weights if args.cov == "truth" else own).T)
+                    C = np.cov((ct.weights if args.cov.startswith("truth") else own).T)
+                    if args.cov == "truthdiag":  # which shapes this actor moves and how far, not how they co-move
+                        C = np.diag(np.diag(C) + VARIANCE_FLOOR)
                     if args.cov == "pooled":
                         C = 0.5 * (C + profile.prior.cov)
                     elif args.cov == "denoised":
