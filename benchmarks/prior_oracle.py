@@ -193,12 +193,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mean", choices=["checked", "self", "truth"], default="checked",
                    help="the prior's mean: today's check against the take; the take's own no-prior kalman fit's mean "
                         "(offline, no truth); the take's true mean (a ceiling, not a criterion)")
-    p.add_argument("--cov", choices=["checked", "self", "pooled", "denoised", "truth", "truthdiag", "em", "mix", "mixem"],
-                   default="checked",
+    p.add_argument("--cov", default="checked",
+                   choices=["checked", "self", "pooled", "denoised", "truth", "truthdiag", "em", "mix", "mixem"],
                    help="the prior's covariance: today's; the take's own no-prior kalman fit's (offline, no truth); "
                         "the mean of that and the others' (pooled); the own fit's less its per-frame noise "
-                        "noise^2 (B'B)^-1 (denoised); the take's true weights' (a ceiling), its diagonal only (truthdiag); by the markers' evidence "
-                        "on the check's frames: EM about the checked mean (em), per-performer priors mixed (mix), "
+                        "noise^2 (B'B)^-1 (denoised); the take's true weights' (a ceiling), its diagonal only "
+                        "(truthdiag); by the markers' evidence on the check's frames: EM about the checked mean (em), "
+                        "per-performer priors mixed (mix), "
                         "EM from the mixed prior (mixem)")
     p.add_argument("--mix-by", choices=["performer", "file"], default="performer",
                    help="mix: one component per performer of the other files, or per file")
