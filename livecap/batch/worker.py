@@ -156,13 +156,28 @@ def solve_spec(spec: SolveSpec, take: Take, take_path: str, cache: SolverCache):
     return solve_take(take, profile, solver), profile, rig
 
 
+def solve_and_write(job: Job, take: Take, cache: SolverCache) -> tuple[list[str], dict]:
+    """The take solved, its statistics and its output written: the whole of a take's work, which the forkserver's
+    warm-up (runner.warm_kernels) also does on a short take so that a worker's first take loads nothing new (the
+    CSV writer's kernel, ``transport.fixed_point``, was left to it). The label notes and the statistics."""
+    notes = _check_labels(job.take, take.labels, cache.rig(job.spec)[1].labels)
+    solved, profile, rig = solve_spec(job.spec, take, job.take, cache)
+    stats = take_stats(take, solved, profile)
+    write_output(job, solved, stats.pop("frame_residual_mm"), rig)
+    return notes, stats
+
+
+KERNEL_PACKAGES = ("solvers", "transport", "livecap")  # where livecap's numba kernels live
+
+
 def kernels() -> list:
-    """The numba kernels this process has imported (every kernel lives in solvers/)."""
+    """The numba kernels this process has imported from livecap's packages (solvers/, and the CSV writer's in
+    transport/)."""
     import sys
 
     from numba.core.registry import CPUDispatcher
 
-    return [obj for name, mod in list(sys.modules.items()) if name.startswith("solvers")
+    return [obj for name, mod in list(sys.modules.items()) if name.split(".")[0] in KERNEL_PACKAGES
             for obj in vars(mod).values() if isinstance(obj, CPUDispatcher)]
 
 
@@ -188,11 +203,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     handler = _Warnings()
     logging.getLogger().addHandler(handler)
     try:
-        take = read_take(job.take)
-        notes = _check_labels(job.take, take.labels, cache.rig(job.spec)[1].labels)
-        solved, profile, rig = solve_spec(job.spec, take, job.take, cache)
-        stats = take_stats(take, solved, profile)
-        write_output(job, solved, stats.pop("frame_residual_mm"), rig)
+        notes, stats = solve_and_write(job, read_take(job.take), cache)
         row["warnings"] = notes + stats.pop("flags") + handler.lines
         row.update(stats)
         row["status"] = "ok"
