@@ -308,12 +308,20 @@ def _end_to_end(workers: int, profile: str, out: Path, takes: list[Path]) -> dic
     gaps = [b[0] - a[1] for s in spans.values() for a, b in pairwise(sorted(s))]
     firsts = {min((r for r in rows if r["worker"] == w), key=lambda r: r["started"])["take"] for w in spans}
     rest = [r["cpu_seconds"] for r in rows if r["take"] not in firsts]
+
+    def mean(key: str, first: bool) -> float:  # over each worker's first take, or over the others
+        values = [r.get(key, np.nan) for r in rows if (r["take"] in firsts) == first]
+        return float(np.mean(values)) if values else float("nan")
     n, solve = len(takes), meta["wall_seconds"]
     return {"workers": workers, "takes": n, "start_s": t1 - t0, "solve_s": solve,
             "first_task_s": min(r["started"] for r in rows) - sent,  # run_batch called to the first take begun
             "idle_between_takes_s": float(np.mean(gaps)) if gaps else 0.0,  # a worker's, result out to next in
             "first_take_cpu_s": float(np.mean([r["cpu_seconds"] for r in rows if r["take"] in firsts])),
             "rest_cpu_per_take_s": float(np.mean(rest)) if rest else float("nan"),  # each worker's first aside
+            "first_take_thread_cpu_s": mean("thread_cpu_seconds", True),
+            "rest_thread_cpu_per_take_s": mean("thread_cpu_seconds", False),
+            "first_take_page_faults": mean("page_faults", True),
+            "rest_page_faults_per_take": mean("page_faults", False),
             "summary_s": t2 - t1 - solve, "close_s": t3 - t2, "total_s": t3 - t0, "per_take_s": solve * workers / n,
             "cpu_per_take_s": sum(r["cpu_seconds"] for r in rows) / n, "client_cpu_per_take_s": client_cpu / n,
             "kernels_compiled": sum(r["kernels_compiled"] for r in rows),
@@ -495,7 +503,10 @@ def _print_scale(res: dict) -> None:
         e = run["batch"]
         if "first_take_cpu_s" in e:
             print(f"{e['takes']:>5} takes: a worker's first take {e['first_take_cpu_s']:.3f} CPU s, the others "
-                  f"{e['rest_cpu_per_take_s']:.3f}")
+                  f"{e['rest_cpu_per_take_s']:.3f}" + (
+                      f"; solving thread {e['first_take_thread_cpu_s']:.3f} / {e['rest_thread_cpu_per_take_s']:.3f} s, "
+                      f"page faults {e['first_take_page_faults']:.0f} / {e['rest_page_faults_per_take']:.0f}"
+                      if "first_take_page_faults" in e else ""))
 
 
 def _real_takes(work: Path, n: int) -> tuple[Path, list[Path]]:

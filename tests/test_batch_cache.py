@@ -5,7 +5,9 @@ definitions."""
 from __future__ import annotations
 
 import os
+import platform
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -114,17 +116,18 @@ def signatures():
 job = Job(sys.argv[1], SolveSpec(sys.argv[2], "robust", sys.argv[3]), sys.argv[4])
 cache = SolverCache()
 warm_kernels([job], cache)
-before = signatures()
+before, modules = signatures(), set(sys.modules)
 row = solve_job(job, cache)
 assert row["status"] == "ok", row["error"]
-print(sorted(signatures() - before))
+print(sorted(signatures() - before), sorted(set(sys.modules) - modules))
 """
 
 
 def test_the_warm_up_loads_every_kernel_a_take_with_occlusions_needs(lib, tmp_path):
-    """A worker's first take must load no numba kernel the forkserver's warm-up left out (each ~14 ms from the
-    on-disk cache); the demo take hides markers, the warm-up's first frames do not. A fresh process, so the
-    kernels other tests loaded do not hide the gap."""
+    """A worker's first take must load no numba kernel and import no module the forkserver's warm-up left out
+    (each kernel ~14 ms from the on-disk cache, compiled by every worker on a cold one): the demo take hides
+    markers, the warm-up's first frames do not; the CSV writer has a kernel of its own. A fresh process, so the
+    kernels and modules other tests loaded do not hide the gap."""
     import subprocess
     import sys
 
@@ -133,7 +136,7 @@ def test_the_warm_up_loads_every_kernel_a_take_with_occlusions_needs(lib, tmp_pa
                           lib["rig"], lib["profile"], str(tmp_path)], capture_output=True, text=True, env=env,
                          timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.strip() == "[]", out.stdout
+    assert out.stdout.strip() == "[] []", out.stdout
 
 
 def test_two_writers_of_one_take_s_record_both_succeed(lib, tmp_path, monkeypatch):
@@ -155,3 +158,35 @@ def test_two_writers_of_one_take_s_record_both_succeed(lib, tmp_path, monkeypatc
     assert nested[0]["status"] == "ok", nested[0]["error"]
     assert row["status"] == "ok", row["error"]
     assert Path(job.record).exists() and not list(Path(job.record).parent.glob("*.partial"))
+
+
+KEEP_HEAP_THEN_SOLVE = """
+import sys
+from livecap.batch.jobs import Job
+from livecap.batch.spec import SolveSpec
+from livecap.batch.worker import SolverCache, keep_heap, solve_job
+
+if sys.argv[5] == "keep":
+    assert keep_heap()
+job, cache = Job(sys.argv[1], SolveSpec(sys.argv[2], "robust", sys.argv[3]), sys.argv[4]), SolverCache()
+rows = [solve_job(job, cache) for _ in range(3)]
+assert all(r["status"] == "ok" for r in rows), rows
+print(rows[-1]["page_faults"])
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc", reason="glibc's mallopt")
+def test_a_worker_keeps_its_heap_between_takes(lib, tmp_path):
+    """A worker (``SolverCache.setup`` calls ``keep_heap``) takes no page faults for the memory its previous take freed:
+    without it glibc gave the heap back after each take and every 20 s take faulted ~3 k pages in again."""
+    import subprocess
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    faults = {}
+    for how in ("keep", "default"):
+        out = subprocess.run([sys.executable, "-c", KEEP_HEAP_THEN_SOLVE, str(ROOT / "recordings" / "demo_take.c3d"),
+                              lib["rig"], lib["profile"], str(tmp_path / how), how], capture_output=True, text=True,
+                             env=env, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        faults[how] = int(out.stdout.split()[-1])
+    assert faults["keep"] * 4 < faults["default"], faults

@@ -11,6 +11,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 
 from livecap.batch.jobs import Job
@@ -41,8 +42,8 @@ FORKSERVER_PRELOAD = ["distributed", "livecap.batch.forkserver"]
 WARM_ENV = "LIVECAP_BATCH_WARM"  # a pickle of the jobs whose kernels the forkserver loads
 # "spawn" is Dask's default (benchmarks.batch compares the two); Windows has no forkserver
 START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
-WARM_FRAMES = 120  # frames of a take solved per spec to load (or, on a cold cache, compile) its kernels
-WARM_TRIES = 3  # takes of a spec tried before its kernels are left to the workers (its takes may all be bad)
+WARM_FRAMES = 120  # frames of a take solved per spec and format to load (or, on a cold cache, compile) its kernels
+WARM_TRIES = 3  # takes of a spec and format tried before its kernels are left to the workers (they may all be bad)
 _forkserver: dict = {}  # the forkserver outlives a cluster: it is started, and loads kernels, once a process
 
 
@@ -51,31 +52,32 @@ def default_workers() -> int:
 
 
 def _few_per_spec(jobs: Sequence[Job]) -> list[Job]:
-    """What warm_kernels may try: WARM_TRIES takes of each spec (the forkserver gets them pickled)."""
+    """What warm_kernels may try: WARM_TRIES takes of each spec and format (the forkserver gets them pickled)."""
     count: Counter = Counter()
-    return [j for j in jobs if not j.error and (count.update([j.spec]) or count[j.spec] <= WARM_TRIES)]
+    return [j for j in jobs if not j.error and (count.update([(j.spec, j.fmt)]) or count[j.spec, j.fmt] <= WARM_TRIES)]
 
 
 def warm_kernels(jobs: Sequence[Job], cache: SolverCache | None = None) -> float:
-    """Solve the first frames of one take per spec in this process, which loads the numba kernels they need,
-    compiling them into the on-disk cache (numba's ``cache=True``, shared by every process of this user and
-    install) only if they are not there yet; the rigs, profiles and solvers it prepares stay in ``cache``.
-    Seconds taken."""
-    from livecap.batch.worker import solve_spec
+    """Solve the first frames of one take per spec and output format in this process, and write their output (to a
+    temporary folder) as a worker would, which loads the numba kernels and modules a take needs, compiling the
+    kernels into the on-disk cache (numba's ``cache=True``, shared by every process of this user and install) only
+    if they are not there yet; the rigs, profiles and solvers it prepares stay in ``cache``. Seconds taken."""
+    from livecap.batch.worker import solve_and_write
     from transport.takefile import read_take
 
     start = time.perf_counter()
     cache, done, tries = SolverCache() if cache is None else cache, set(), Counter()
-    for job in jobs:
-        if job.error or job.spec in done or tries[job.spec] >= WARM_TRIES:
-            continue
-        tries[job.spec] += 1
-        try:
-            take = read_take(job.take)
-            solve_spec(job.spec, _warm_take(take), job.take, cache)
-            done.add(job.spec)
-        except Exception as exc:  # the take's own solve will report it; another take of the spec may warm
-            log.debug("warm-up on %s: %s", job.take, exc)
+    with tempfile.TemporaryDirectory(prefix="livecap-warm-") as out:
+        for job in jobs:
+            key = (job.spec, job.fmt)
+            if job.error or key in done or tries[key] >= WARM_TRIES:
+                continue
+            tries[key] += 1
+            try:
+                solve_and_write(replace(job, out_dir=out), _warm_take(read_take(job.take)), cache)
+                done.add(key)
+            except Exception as exc:  # the take's own solve will report it; another take of the spec may warm
+                log.debug("warm-up on %s: %s", job.take, exc)
     return time.perf_counter() - start
 
 

@@ -25,6 +25,13 @@ from transport.takefile import read_take
 
 PLUGIN_NAME = "livecap-batch-cache"
 MAX_ERROR_CHARS = 300
+# glibc gives a freed heap top back to the kernel once it passes the trim threshold, so a worker faulted in again,
+# every take, the ~13 MB that reading a C3D take allocates in small pieces (3.2 k page faults, ~6 % of a 20 s
+# take's CPU; docs/batch.md "the first take"). Fixed thresholds keep the freed heap for the next take; arrays of
+# 32 MB and more (glibc's own ceiling for its moving mmap threshold) are still mapped and unmapped on their own.
+HEAP_TRIM_BYTES = 1 << 29
+HEAP_MMAP_BYTES = 1 << 25
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)
 
 
 class SolverCache(WorkerPlugin):
@@ -47,6 +54,7 @@ class SolverCache(WorkerPlugin):
         """Start from what the forkserver prepared before forking this worker (``PRELOADED``; empty in a
         spawned worker or on a user's cluster): its first take then loads and builds nothing (keys hold the
         files' mtimes, so nothing stale is adopted)."""
+        keep_heap()
         self.rigs = dict(PRELOADED.rigs)
         self.profiles = dict(PRELOADED.profiles)
         self.solvers.clear()
@@ -92,6 +100,26 @@ class SolverCache(WorkerPlugin):
         else:
             solver.reset()
         return solver
+
+
+def keep_heap() -> bool:
+    """This process keeps its freed heap for the next take (glibc's ``mallopt``; elsewhere nothing): True if set."""
+    import ctypes
+    import platform
+    import sys
+
+    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
+        return False
+    libc = ctypes.CDLL(None)
+    return bool(libc.mallopt(_M_TRIM_THRESHOLD, HEAP_TRIM_BYTES) and libc.mallopt(_M_MMAP_THRESHOLD, HEAP_MMAP_BYTES))
+
+
+def _faults() -> int:
+    """Minor page faults of the calling thread so far (Linux; 0 elsewhere)."""
+    import resource
+
+    who = getattr(resource, "RUSAGE_THREAD", None)
+    return resource.getrusage(who).ru_minflt if who is not None else 0
 
 
 def _stamp(paths: list[Path]) -> tuple:
@@ -156,13 +184,28 @@ def solve_spec(spec: SolveSpec, take: Take, take_path: str, cache: SolverCache):
     return solve_take(take, profile, solver), profile, rig
 
 
+def solve_and_write(job: Job, take: Take, cache: SolverCache) -> tuple[list[str], dict]:
+    """The take solved, its statistics and its output written: the whole of a take's work, which the forkserver's
+    warm-up (runner.warm_kernels) also does on a short take so that a worker's first take loads nothing new (the
+    CSV writer's kernel, ``transport.fixed_point``, was left to it). The label notes and the statistics."""
+    notes = _check_labels(job.take, take.labels, cache.rig(job.spec)[1].labels)
+    solved, profile, rig = solve_spec(job.spec, take, job.take, cache)
+    stats = take_stats(take, solved, profile)
+    write_output(job, solved, stats.pop("frame_residual_mm"), rig)
+    return notes, stats
+
+
+KERNEL_PACKAGES = ("solvers", "transport", "livecap")  # where livecap's numba kernels live
+
+
 def kernels() -> list:
-    """The numba kernels this process has imported (every kernel lives in solvers/)."""
+    """The numba kernels this process has imported from livecap's packages (solvers/, and the CSV writer's in
+    transport/)."""
     import sys
 
     from numba.core.registry import CPUDispatcher
 
-    return [obj for name, mod in list(sys.modules.items()) if name.startswith("solvers")
+    return [obj for name, mod in list(sys.modules.items()) if name.split(".")[0] in KERNEL_PACKAGES
             for obj in vars(mod).values() if isinstance(obj, CPUDispatcher)]
 
 
@@ -177,7 +220,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     a failure comes back as a row with ``status`` "failed" and a one-line ``error``."""
     cache = cache or _cache()
     start, cpu, compiled, built = time.perf_counter(), time.process_time(), compiled_kernels(), cache.built
-    thread_cpu = time.thread_time()
+    thread_cpu, faults = time.thread_time(), _faults()
     row: dict = {"take": job.take, "stem": job.stem, "actor": job.actor, "mode": job.spec.mode,
                  "profile": job.spec.profile or "", "output": str(job.output), "status": "failed", "error": "",
                  "worker": os.getpid(), "started": time.time(), "spec": repr(job.spec)}
@@ -188,11 +231,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     handler = _Warnings()
     logging.getLogger().addHandler(handler)
     try:
-        take = read_take(job.take)
-        notes = _check_labels(job.take, take.labels, cache.rig(job.spec)[1].labels)
-        solved, profile, rig = solve_spec(job.spec, take, job.take, cache)
-        stats = take_stats(take, solved, profile)
-        write_output(job, solved, stats.pop("frame_residual_mm"), rig)
+        notes, stats = solve_and_write(job, read_take(job.take), cache)
         row["warnings"] = notes + stats.pop("flags") + handler.lines
         row.update(stats)
         row["status"] = "ok"
@@ -203,6 +242,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     row["seconds"] = time.perf_counter() - start
     row["cpu_seconds"] = time.process_time() - cpu  # the worker process's CPU: load on a shared machine aside
     row["thread_cpu_seconds"] = time.thread_time() - thread_cpu  # the solving thread's alone (no event loop)
+    row["page_faults"] = _faults() - faults  # the solving thread's minor faults: memory given back and taken again
     row["kernels_compiled"] = compiled_kernels() - compiled
     row["solvers_built"] = cache.built - built
     if row["status"] == "ok":
