@@ -6,6 +6,7 @@ evidence gate (``livecap.modes.quiet.EvidenceGate``) off, the frames where the c
 mouthSmile < 0.1, the gate's mean factor there, and the shapes that carry the corner's rise. For movement, on chosen
 frames: the solve against the per-frame bounded fit with the same position weights and L1 term (its steady state:
 Seol's velocity term is zero on a still pose), the same fit without the L1 term, and without the misfit weights.
+The streamed figures likewise (``livecap.offline.streamed.stream_take``, the gate off by replacing its call).
 
     python -m benchmarks.movement_smile [--take CheeksMoCap] [--frames 200,420,450,500]
 """
@@ -83,6 +84,19 @@ def main(argv: list[str] | None = None) -> int:
                   f"weight < 0.1 on {(W[up, j] < 0.1).sum()} (gate off {(U[up, j] < 0.1).sum()}), gate keeps "
                   f"{factor:.2f} of it; corner rise {Y[up, i, 1].mean():.1f} mm carried by "
                   + ", ".join(f"{names[k]} {carry[:, k].mean():.1f}" for k in top))
+        from livecap.modes.quiet import EvidenceGate
+        from livecap.offline.streamed import stream_take
+
+        streamed = stream_take(take, profile, mode).weights
+        call, EvidenceGate.__call__ = EvidenceGate.__call__, lambda self, W, targets, valid: W
+        try:
+            streamed_open = stream_take(take, profile, mode).weights
+        finally:
+            EvidenceGate.__call__ = call
+        st = pl.signal_correlations(smiles, names, streamed, labels, Y, profile.source_neutral)
+        st_open = pl.signal_correlations(smiles, names, streamed_open, labels, Y, profile.source_neutral)
+        print("   streamed: " + "; ".join(f"{sig.shape} r {st[k]:.3f} (gate off {st_open[k]:.3f})"
+                                        for sig, k in zip(smiles, st, strict=True)))
         if mode != "movement":
             continue
         robust = solver.inner
