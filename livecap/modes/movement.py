@@ -112,11 +112,14 @@ def prior_alpha(noise_mm: float, lag: int) -> float:
 
 
 def misfit_weights(profile: Profile) -> dict[str, float] | None:
-    """Under measured model mismatch (``livecap.modes.quiet.mismatched``), each marker's position term weighted by
-    its inverse variance, ``min(1, (sigma / sigma_i)^2)`` with sigma_i calibration's per-marker residual (issue 35.2):
-    a marker the rig cannot follow (the actor's mouth corners and chin) counts less, so its misfit is left as
-    residual instead of being explained by a frown; no marker counts more than the overall noise says. None
-    otherwise (same-rig takes with white noise)."""
+    """Under measured model mismatch (``livecap.modes.quiet.mismatched``), each marker's position-term weight
+    ``min(1, (sigma / sigma_i)^2)`` with sigma_i calibration's per-marker residual (issue 35.2): a marker the rig
+    cannot follow (the actor's mouth corners and chin) counts less, so its misfit is left as residual instead of
+    being explained by a frown; no marker counts more than the overall noise says. None otherwise (same-rig takes
+    with white noise). The value is M's diagonal, which ``solvers.blocks.MovementBlocks`` squares: a squared residual
+    counts ``(sigma / sigma_i)^4``, the square of its inverse variance. The inverse variance itself (M = sigma /
+    sigma_i) was measured and not kept: smile r +0.03 on the cheek take, but mouthFrown up on the jaw take and the
+    model-mismatch takes (docs/robustness.md "Movement's right smile on the cheek take")."""
     per = marker_noise(profile)
     if per is None or not mismatched(profile):
         return None
