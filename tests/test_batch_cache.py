@@ -160,6 +160,15 @@ def test_two_writers_of_one_take_s_record_both_succeed(lib, tmp_path, monkeypatc
     assert Path(job.record).exists() and not list(Path(job.record).parent.glob("*.partial"))
 
 
+def test_a_record_has_the_mode_a_plain_write_gives(tmp_path):
+    """The record's temporary file is mkstemp's (0600); renamed, it keeps the user's umask like the outputs."""
+    from livecap.batch.worker import _write_record
+
+    (tmp_path / "plain").write_text("{}")
+    _write_record(tmp_path / "take.json", {"status": "ok"})
+    assert (tmp_path / "take.json").stat().st_mode & 0o777 == (tmp_path / "plain").stat().st_mode & 0o777
+
+
 KEEP_HEAP_THEN_SOLVE = """
 import sys
 from livecap.batch.jobs import Job

@@ -32,6 +32,8 @@ MAX_ERROR_CHARS = 300
 HEAP_TRIM_BYTES = 1 << 29
 HEAP_MMAP_BYTES = 1 << 25
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
 
 
 class SolverCache(WorkerPlugin):
@@ -265,6 +267,7 @@ def _write_record(record: Path, row: dict) -> None:
     record.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=record.name + ".", suffix=".partial", dir=record.parent)
     try:
+        os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp's 0600 would survive the rename: the mode a plain write gives
         with os.fdopen(fd, "w") as f:
             f.write(json.dumps(row))
         os.replace(tmp, record)
