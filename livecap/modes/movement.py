@@ -23,6 +23,7 @@ import fnmatch
 import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -190,14 +191,15 @@ def build_movement(profile: Profile, options: Mapping | MovementSettings | None 
         return inner
     # with a prior from animation, that prior is the plausibility term; the L1 (a sparse prior) would count twice
     return RobustMovement(inner, float(s.noise_mm), lag=s.lag, trend=s.trend, reweight=int(s.reweight),
-                          l1=inner.blocks.alpha == 0, live=_live(profile, s))
+                          l1=inner.blocks.alpha == 0, live=partial(_live, profile, s))
 
 
 def _live(profile: Profile, s: MovementSettings) -> StreamedMovement:
-    """The streamed form of the noise-robust solve (issues 35 / 41): the ``kalman`` mode's marker filter (one frame
-    of latency), a movement step a frame with the sparse fit's L1 at the filtered noise, the robust modes' IMM."""
+    """The streamed form of the noise-robust solve (issues 35 / 41): the ``kalman`` mode's marker filter (its default
+    settings, one frame of latency), a movement step a frame with the sparse fit's L1 at the filtered noise, the
+    robust modes' IMM."""
     rs = robust_settings(profile, {})
-    markers = StreamingMarkerKalman(len(profile.labels), lag=1)
+    markers = StreamingMarkerKalman(profile.n_markers, lag=1)
     fit = sparse_fit(profile, rs, float(s.live_gain))
     return StreamedMovement(profile.basis, markers, fit, streamed_beta(profile, s),
                             weight_filter(profile, rs, float(s.live_weight_gain)))

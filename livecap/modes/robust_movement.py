@@ -40,7 +40,7 @@ stores in ``profile.settings["robust"]`` (sigma per coordinate, mm):
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -67,14 +67,15 @@ class RobustMovement:
     limits); ``noise_mm`` the raw marker noise sigma; ``lag`` the smoother half-width (frames);
     ``trend`` the weight trend filter's penalty in weight noise sds (0: none); ``reweight`` the number of
     reweighted-L1 re-solves; ``l1`` False drops the L1 term (when ``inner`` carries an animation prior instead).
-    ``step`` is ``live`` (:class:`StreamedMovement`), or without one the inner solver's plain sliding window.
+    ``live`` makes the streamed form ``step`` runs (:class:`StreamedMovement`), on its first use: an offline
+    solve never steps, so it does not build the marker filter, the fit and the weight filter.
     """
 
     def __init__(self, inner: MovementMatching, noise_mm: float, lag: int = RobustSettings.lag,
                  trend: float = RobustSettings.trend, z: float | None = None, reweight: int = 0,
-                 l1: bool = True, live=None) -> None:
+                 l1: bool = True, *, live: Callable[[], StreamedMovement]) -> None:
         self.inner = inner
-        self.live = live
+        self._make_live, self._live = live, None
         self.lower, self.upper = inner.lower, inner.upper
         self.lag = int(lag)
         self.smoother = FixedLagSmoother(self.lag)
@@ -135,17 +136,23 @@ class RobustMovement:
         return E
 
     @property
+    def live(self) -> StreamedMovement:
+        if self._live is None:
+            self._live = self._make_live()
+        return self._live
+
+    @property
     def latency_frames(self) -> int:
         """Frames ``step`` trails its input (a live session pairs each frame by it)."""
-        return int(self.inner.lookahead if self.live is None else self.live.latency_frames)
+        return self.live.latency_frames
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
-        return (self.inner if self.live is None else self.live).step(target, valid)
+        return self.live.step(target, valid)
 
     def reset(self) -> None:
         self.inner.reset()
-        if self.live is not None:
-            self.live.reset()
+        if self._live is not None:
+            self._live.reset()
 
 
 class StreamedMovement:
@@ -183,16 +190,26 @@ class StreamedMovement:
         self._x: np.ndarray | None = None
         self._ok: np.ndarray | None = None
         self._w: np.ndarray | None = None
+        self._y = np.empty(self.B.shape[0])
+        self._d = np.empty(self.B.shape[0])
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
-        x, ok = self.markers.step(np.asarray(target, dtype=np.float64).reshape(-1, 3), np.asarray(valid, bool))
+        x, ok = self.markers.step(target, valid)
         x = x.reshape(-1)
         y = x
         if self._w is not None:
-            both = np.repeat(ok & self._ok, 3)
-            y = np.where(both, (self.B @ self._w + (x - self._x) + self.beta * x) / (1.0 + self.beta), x)
-        w = self.fit.step(y, ok)
-        self._x, self._ok, self._w = x, ok, w.copy()
+            y, d = self._y, self._d
+            np.dot(self.B, self._w, out=y)
+            y += np.subtract(x, self._x, out=d)
+            y += np.multiply(self.beta, x, out=d)
+            y /= 1.0 + self.beta
+            moved = ok & self._ok
+            if not moved.all():
+                gone = np.repeat(~moved, 3)
+                y[gone] = x[gone]
+        w = self.fit.step(y, ok)  # a new array: kept as w' as it is
+        self._x, self._ok, self._w = x, ok, w
         if self.weight_filter is not None:
-            w = np.clip(self.weight_filter.step(w), self.lower, self.upper)
+            w = self.weight_filter.step(w)
+            np.clip(w, self.lower, self.upper, out=w)
         return w
