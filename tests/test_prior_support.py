@@ -211,7 +211,7 @@ def test_streamed_checks_grow_with_the_take_on_a_bounded_memory(monkeypatch):
     monkeypatch.setattr(marker_kalman.MarkerKalmanSolver, "_stream_support", start)
     use, used = marker_kalman.MarkerKalmanSolver._use_support, []
 
-    def swapped(self, s, frames, built=None):
+    def swapped(self, s, frames=0, built=None):
         used.append(self._frame)
         use(self, s, frames, built)
 
@@ -239,7 +239,7 @@ def test_a_checked_priors_swap_keeps_the_strength_chosen_so_far(monkeypatch):
     use = marker_kalman.MarkerKalmanSolver._use_support
     around = []
 
-    def swap(self, s, frames, built=None):
+    def swap(self, s, frames=0, built=None):
         before = (self.selector.best, self.selector.err.copy(), self.selector.t)
         use(self, s, frames, built)
         around.append((before, (self.selector.best, self.selector.err.copy(), self.selector.t)))

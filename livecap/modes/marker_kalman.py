@@ -135,7 +135,8 @@ class MarkerKalmanSolver:
         self.joint = self.pose.augment(profile.basis, profile.lower, profile.upper, mean, precision)  # B, limits, prior
         self.filter = StreamingMarkerKalman(profile.n_markers, settings, lag=self.latency_frames)
         self.chosen: dict = {}
-        self._pool: ThreadPoolExecutor | None = None  # streaming: the prior check's thread
+        self._pool: ThreadPoolExecutor | None = None  # streaming: the prior check's thread (``_pool_here``)
+        self._pool_pid = 0
         self.reset()
 
     def _selector(self, decay: float) -> HeldOutStrength:
@@ -164,9 +165,9 @@ class MarkerKalmanSolver:
         return widen_prior(self.profile.basis, self._mean0, self.prior_cov, targets, valid, self.lower, self.upper,
                            extra=self.pose.matrix, noise_var=noise_mm**2, tol=tol)
 
-    def _use_support(self, s: Support, frames: int, built: tuple | None = None) -> None:
+    def _use_support(self, s: Support, frames: int = 0, built: tuple | None = None) -> None:
         """Use the checked prior ``s`` (of ``frames`` frames); ``built``: what :meth:`_build` made of it in the check's
-        thread, so that the step only swaps references (the rest is built here)."""
+        thread (its notes worded there), so that the step only swaps references (the rest is built here)."""
         self.support = s
         unchanged, notes = self._notes(s, frames) if built is None else built[-1]
         for level, text in notes:
@@ -181,11 +182,11 @@ class MarkerKalmanSolver:
             old, self.selector = self.selector, self._selector(self.selector.decay)
             self.selector.carry(old)
         else:
-            retired = [self._fits, self.selector]
+            old_fits, old_selector = self._fits, self.selector
             self.joint, self._fits, self._spreads, self.selector, self._along, self.precision = built[:6]
-            self.selector.carry(retired[1])
+            self.selector.carry(old_selector)
             # the old fits and selector freed in the check's thread: on this frame they cost ~0.4 ms (issue 39)
-            self._pool.submit(retired.clear)
+            self._pool_here().submit([old_fits, old_selector].clear)
         self._noise_key = None
 
     def _notes(self, s: Support, frames: int) -> tuple[bool, list[tuple[int, str]]]:
@@ -235,40 +236,46 @@ class MarkerKalmanSolver:
             if len(self._seen) > 2 * SUPPORT_FRAMES:
                 self._seen, self._stride = self._seen[::2], 2 * self._stride
         self._offered += 1
-        if self._pool is None:  # its thread started now, not on the frame of the first check (~0.15 ms, issue 39)
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="livecap-prior-check")
-            self._pool.submit(int)
-            self._pool_pid = os.getpid()
+        if self._pool is None:
+            self._pool_here()
         if self._checking is None and self._offered >= self._next_check * self.motion.rate:
             later = max(1, int(min(SUPPORT_SWAP * self._next_check, SUPPORT_SWAP_MAX) * self.motion.rate))
             self._next_check *= SUPPORT_GROWTH
-            if self._pool_pid != os.getpid():  # a forked process has the pool but not its thread
-                self._pool, self._pool_pid = ThreadPoolExecutor(max_workers=1), os.getpid()
             # the frames kept so far (never changed once kept): picked and stacked in the check's thread
-            job = self._pool.submit(self._check, self._seen[:], self.filter.noise_mm, self.selector.decay, self._imm)
+            job = self._pool_here().submit(self._check, self._seen[:], self.filter.noise_mm, self.selector.decay,
+                                           self._imm)
             self._checking = (job, self._frame + later)
+
+    def _pool_here(self) -> ThreadPoolExecutor:
+        """The check's pool of this process, its thread started before the frame of the first check (~0.15 ms, issue
+        39); a forked process has its parent's pool but not its thread, and starts its own."""
+        if self._pool is None or self._pool_pid != os.getpid():
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="livecap-prior-check")
+            self._pool.submit(int)
+            self._pool_pid = os.getpid()
+        return self._pool
 
     def _check(self, seen: list, noise_mm: float, decay: float, imm: RotatedIMM | None) -> list:
         """The check's thread: at most SUPPORT_FRAMES of the frames ``seen``, evenly spread, checked; the checked
-        prior, what :meth:`_build` makes of it, and the frames' number (or the error that stopped it)."""
-        try:
-            pick = _spread(len(seen), SUPPORT_FRAMES)
-            s = self._support(np.stack([seen[i][0] for i in pick]), np.stack([seen[i][1] for i in pick]), noise_mm)
-            return [s, self._build(s, decay, len(pick), imm), len(pick)]
-        except (np.linalg.LinAlgError, ValueError) as e:
-            return [e]
+        prior and what :meth:`_build` makes of it (its errors reach ``_swap`` through the job)."""
+        pick = _spread(len(seen), SUPPORT_FRAMES)
+        s = self._support(np.stack([seen[i][0] for i in pick]), np.stack([seen[i][1] for i in pick]), noise_mm)
+        return [s, self._build(s, decay, len(pick), imm)]
 
     def _swap(self) -> None:
         """At the end of the step before the frame a check's prior is due (the same weights as swapping it at the
-        start of that frame): it is used, its thread joined if not done."""
+        start of that frame): it is used, its thread joined if not done. A check begun by the process this one was
+        forked from never finishes here (its thread is not here): it counts as failed."""
         job, _ = self._checking
         self._checking = None
         try:
+            if self._pool_pid != os.getpid():
+                raise RuntimeError("the process was forked while its prior was being checked")
             out = job.result()
         except Exception as e:  # noqa: BLE001 - a stream must survive its check's failure
             out = [e]
-        if len(out) == 3 and isinstance(out[0], Support):
-            self._use_support(out[0], out[2], out[1])
+        if len(out) == 2 and isinstance(out[0], Support):
+            self._use_support(out[0], built=out[1])
             return
         log.warning("animation prior: its check against the actor failed (%s); kept as it is", out[:1])
         self._next_check, self._seen = float("inf"), []
