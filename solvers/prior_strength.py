@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from solvers.prior_strength_kernels import held_out_error, unbounded_trial
+from solvers.prior_strength_kernels import held_out_error, score, unbounded_trial
 from solvers.qp import FrameQP
 
 BEGIN_PASSES = 2  # marker-space trials: passes run on the frame the trial is due, the rest on the next
@@ -120,14 +120,10 @@ class HeldOutStrength:
             self.best = best
 
     def _score(self, g: int, err: float, n_held: int, elapsed: float) -> None:
-        d = self.decay ** elapsed
-        self.err *= d
-        self.count *= d
-        self.err[g] += err
-        self.count[g] += n_held
-        if self._counted or (self.count > 0).all():  # (decayed counts stay > 0: checked until they are)
+        best = score(self.err, self.count, g, float(err), float(n_held), self.decay ** elapsed, self._counted)
+        if best >= 0:  # (decayed counts stay > 0: checked until they are)
             self._counted = True
-            self.best = int(np.argmin(self.err / self.count))
+            self.best = best
 
 
 

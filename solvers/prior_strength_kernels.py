@@ -38,9 +38,9 @@ def unbounded_trial(target: np.ndarray, valid: np.ndarray, basis: np.ndarray, fi
     w = G x + h (``GT`` = G', rows x m: each weight's sum in the same order, the rows' loop vectorised), clipped to
     [lower, upper]; :func:`held_out_error` of w on the held-out ``markers`` that are valid added to ``err[g]`` and
     their number to ``count[g]``, both decayed by ``d`` first (``HeldOutStrength._score``). Returns the strength
-    with the least mean error where every count is > 0 (or ``counted``), else -1; -2 (nothing scored, nothing
-    decayed) when no held-out marker is valid or fewer than 3 training markers are. Why one call: the score's six
-    numpy calls on nine numbers cost ~3 µs of a ~11 µs trial (issue 39)."""
+    with the least mean error where every count is > 0 (or ``counted``) (:func:`score`), else -1 (also when nothing
+    is scored and nothing decayed: no held-out marker valid, or fewer than 3 training markers). Why one call: the
+    score's six numpy calls on nine numbers cost ~3 µs of a ~11 µs trial (issue 39)."""
     seen = np.empty(markers.shape[0], np.bool_)
     held = 0
     for q in range(markers.shape[0]):
@@ -50,7 +50,7 @@ def unbounded_trial(target: np.ndarray, valid: np.ndarray, basis: np.ndarray, fi
     for i in range(0, rows.shape[0], 3):
         train += valid[rows[i] // 3]
     if held == 0 or train < 3:
-        return -2
+        return -1
     m = GT.shape[1]
     w = h.copy()
     for i in range(rows.shape[0]):
@@ -67,7 +67,14 @@ def unbounded_trial(target: np.ndarray, valid: np.ndarray, basis: np.ndarray, fi
             w[j] += gi[j] * xi
     for j in range(m):
         w[j] = min(max(w[j], lower[j]), upper[j])
-    e = held_out_error(basis, markers, seen, w, target)
+    return score(err, count, g, held_out_error(basis, markers, seen, w, target), held, d, counted)
+
+
+@numba.njit(cache=True, nogil=True)
+def score(err: np.ndarray, count: np.ndarray, g: int, e: float, held: float, d: float, counted: bool) -> int:
+    """A trial's score (every trial's, ``HeldOutStrength._score``): ``err`` and ``count`` decayed by ``d``, the
+    trial's error ``e`` and its ``held`` markers added to strength ``g``'s. Returns the strength with the least mean
+    error where every count is > 0 (or ``counted``), else -1."""
     K = err.shape[0]
     for k in range(K):
         err[k] *= d
