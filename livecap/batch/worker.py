@@ -197,7 +197,7 @@ def solve_and_write(job: Job, take: Take, cache: SolverCache) -> tuple[list[str]
     return notes, stats
 
 
-KERNEL_PACKAGES = ("solvers", "transport", "livecap")  # where livecap's numba kernels live
+KERNEL_PACKAGES = ("solvers", "transport")  # where livecap's numba kernels live (livecap/ only imports them)
 
 
 def kernels() -> list:
@@ -207,8 +207,9 @@ def kernels() -> list:
 
     from numba.core.registry import CPUDispatcher
 
-    return [obj for name, mod in list(sys.modules.items()) if name.split(".")[0] in KERNEL_PACKAGES
-            for obj in vars(mod).values() if isinstance(obj, CPUDispatcher)]
+    found = {id(obj): obj for name, mod in list(sys.modules.items()) if name.split(".")[0] in KERNEL_PACKAGES
+             for obj in vars(mod).values() if isinstance(obj, CPUDispatcher)}  # one each, wherever imported
+    return list(found.values())
 
 
 def compiled_kernels() -> int:
