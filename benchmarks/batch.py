@@ -307,7 +307,6 @@ def _end_to_end(workers: int, profile: str, out: Path, takes: list[Path]) -> dic
         spans.setdefault(r["worker"], []).append((r["started"], r["started"] + r["seconds"]))
     gaps = [b[0] - a[1] for s in spans.values() for a, b in pairwise(sorted(s))]
     firsts = {min((r for r in rows if r["worker"] == w), key=lambda r: r["started"])["take"] for w in spans}
-    rest = [r["cpu_seconds"] for r in rows if r["take"] not in firsts]
 
     def mean(key: str, first: bool) -> float:  # over each worker's first take, or over the others
         values = [r.get(key, np.nan) for r in rows if (r["take"] in firsts) == first]
@@ -316,8 +315,8 @@ def _end_to_end(workers: int, profile: str, out: Path, takes: list[Path]) -> dic
     return {"workers": workers, "takes": n, "start_s": t1 - t0, "solve_s": solve,
             "first_task_s": min(r["started"] for r in rows) - sent,  # run_batch called to the first take begun
             "idle_between_takes_s": float(np.mean(gaps)) if gaps else 0.0,  # a worker's, result out to next in
-            "first_take_cpu_s": float(np.mean([r["cpu_seconds"] for r in rows if r["take"] in firsts])),
-            "rest_cpu_per_take_s": float(np.mean(rest)) if rest else float("nan"),  # each worker's first aside
+            "first_take_cpu_s": mean("cpu_seconds", True),
+            "rest_cpu_per_take_s": mean("cpu_seconds", False),  # each worker's first aside
             "first_take_thread_cpu_s": mean("thread_cpu_seconds", True),
             "rest_thread_cpu_per_take_s": mean("thread_cpu_seconds", False),
             "first_take_page_faults": mean("page_faults", True),
