@@ -57,12 +57,8 @@ class BoxQP:
         self.m = self.H.shape[0]
         if self.H.shape != (self.m, self.m):
             raise ValueError(f"H must be square, got {self.H.shape}")
-        k = self._k
         V = self.limit_rows(lower, upper, self.m) if limit_rows is None else limit_rows
-        self._V, self._I, self._meta, self._L, self.tol = k.state(self.H, V)
-        self.lo, self.hi = self._V[k.LO], self._V[k.HI]
-        self.max_iter = 3 * self.m + 10 if max_iter is None else int(max_iter)
-        self.iterations = 0
+        self._adopt(*self._k.state(self.H, V), max_iter)
 
     @classmethod
     def from_state(cls, H: np.ndarray, V: np.ndarray, I: np.ndarray, meta: np.ndarray, L: np.ndarray,
@@ -71,12 +67,15 @@ class BoxQP:
         call, e.g. ``solvers.qp_kernels.pattern_workspace``), as ``BoxQP(H, lower, upper, limit_rows=...)``."""
         self = cls.__new__(cls)
         self.H, self.m = H, H.shape[0]
-        self._V, self._I, self._meta, self._L, self.tol = V, I, meta, L, tol
-        k = self._k
-        self.lo, self.hi = V[k.LO], V[k.HI]
-        self.max_iter = 3 * self.m + 10
-        self.iterations = 0
+        self._adopt(V, I, meta, L, tol)
         return self
+
+    def _adopt(self, V: np.ndarray, I: np.ndarray, meta: np.ndarray, L: np.ndarray, tol: float,
+               max_iter: int | None = None) -> None:
+        self._V, self._I, self._meta, self._L, self.tol = V, I, meta, L, tol
+        self.lo, self.hi = V[self._k.LO], V[self._k.HI]
+        self.max_iter = 3 * self.m + 10 if max_iter is None else int(max_iter)
+        self.iterations = 0
 
     @staticmethod
     def limit_rows(lower: np.ndarray, upper: np.ndarray, m: int) -> np.ndarray:
