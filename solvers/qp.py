@@ -239,13 +239,13 @@ class FrameQP:
             self._limits = (self.lower, self.upper, BoxQP.limit_rows(self.lower, self.upper, self.m))
         n_miss = 3 * (self.n - int(np.count_nonzero(seen)))
         if 0 < n_miss <= 3 * self.n // 2 and self._cond.span is not None and not self.marker_space:
-            return self._downdated(key, seen)
+            return self._downdated(key, seen)  # the whole workspace in one compiled call
         rows = np.repeat(seen, 3)
         bound = None
         if n_miss == 0:
             H = self._H_all
-        elif n_miss <= len(rows) // 2 and self._cond.span is not None:  # a few markers missing: a rank-3k
-            H = np.empty_like(self._H_all)  # downdate, O(k m^2) not O(n m^2), in one compiled call
+        elif n_miss <= len(rows) // 2 and self._cond.span is not None:  # marker space, a few markers missing: a
+            H = np.empty_like(self._H_all)  # rank-3k downdate, O(k m^2) not O(n m^2), in one compiled call
             trace, s2 = pattern_hessian(self._H_all, self.basis, self._row_w, seen, *self._cond.span, H)
             bound = self._cond.from_block(s2)
         elif n_miss <= len(rows) // 2:

@@ -83,8 +83,8 @@ def warm_kernels(jobs: Sequence[Job], cache: SolverCache | None = None) -> float
 
 def _warm_take(take: Take) -> Take:
     """The take's first frames with one marker hidden from half way on: a visibility pattern new to the solver
-    loads the kernels of a take's occluded frames (qp_kernels.pattern_hessian, ~14 ms from numba's cache),
-    which a fully visible warm-up left to each worker's first take."""
+    loads the kernels of a take's occluded frames (qp_kernels.pattern_workspace in weight space, pattern_hessian
+    in marker space; ~14 ms from numba's cache), which a fully visible warm-up left to each worker's first take."""
     warm = take.slice(0, min(take.n_frames, WARM_FRAMES))
     valid = warm.valid.copy()
     valid[warm.n_frames // 2:, -1] = False
