@@ -141,7 +141,10 @@ class FrameQP:
     def __init__(self, basis: np.ndarray, lower: np.ndarray, upper: np.ndarray, ridge: float = 0.0,
                  temporal: float = 0.0, marker_weights: np.ndarray | None = None,
                  prior: tuple[np.ndarray, np.ndarray] | None = None, prior_weight: float = 0.0,
-                 cache_size: int = 32) -> None:
+                 cache_size: int = 32, like: FrameQP | None = None) -> None:
+        """``like``: a FrameQP on the same basis and marker weights (kalman's fit at another prior strength) whose
+        B'M^2 this one reads instead of a copy of its own: a frame reads all of it, and a fit that takes over from
+        another found its copy out of the caches (issue 39)."""
         self.basis = np.asarray(basis, dtype=np.float64)
         if self.basis.ndim != 2 or self.basis.shape[0] % 3:
             raise ValueError(f"basis must be 3n x m, got {self.basis.shape}")
@@ -157,7 +160,10 @@ class FrameQP:
         if mw.shape != (self.n,) or np.any(mw < 0) or not np.isfinite(mw).all():
             raise ValueError(f"marker_weights must be {self.n} finite values >= 0")
         self._row_w = np.repeat(mw**2, 3)  # M^2 on the rows x0 y0 z0 x1 ...
-        self._BtD = (self.basis * self._row_w[:, None]).T.copy()  # m x 3n, B'M^2
+        if like is not None and like.basis is self.basis and np.array_equal(like._row_w, self._row_w):
+            self._BtD = like._BtD
+        else:
+            self._BtD = (self.basis * self._row_w[:, None]).T.copy()  # m x 3n, B'M^2
         self._const = (self.ridge + self.temporal) * np.eye(self.m)
         self._prior_f = None
         if prior is not None and prior_weight > 0:

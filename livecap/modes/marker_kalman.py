@@ -145,7 +145,8 @@ class MarkerKalmanSolver:
     def _fit(self, k: int) -> FrameQP:
         if k not in self._fits:
             B, lower, upper, mean, precision = self.joint
-            self._fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(STRENGTHS[k]))
+            self._fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(STRENGTHS[k]),
+                                    like=next(iter(self._fits.values()), None))
         return self._fits[k]
 
     def _spread_of(self, k: int) -> np.ndarray:
@@ -323,7 +324,7 @@ class MarkerKalmanSolver:
             self._finish()
         k = self.selector.best
         fit = self._fit(k)
-        if fit.marker_space and self._fit_k != k and self._z is not None:
+        if self._fit_k != k and self._z is not None:
             fit.warm(self._z)  # a strength not fitted last frame: from the last fit, not from its own old frame
         self._fit_k = k
         # a workspace built in this step (the first frame, a new strength or prior), or one built for it last frame
@@ -480,7 +481,7 @@ def _warmed_fits(joint: tuple, n_markers: int, m: int) -> tuple[dict[int, FrameQ
     B, lower, upper, mean, precision = joint
     fits, spreads = {}, {}
     for k, a in enumerate(STRENGTHS):
-        fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(a))
+        fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(a), like=fits.get(0))
         fits[k].step(np.zeros(3 * n_markers), np.ones(n_markers, bool))
         fits[k].reset()
         fits[k].prepare_marker_space()
