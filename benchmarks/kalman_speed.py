@@ -107,6 +107,7 @@ def frame_profile(profile, targets, valid, options, top: float = 1.0, raw: dict 
         if threading.get_ident() != main:
             return _step(self, x, ok)
         flags["new fit pattern"] = flags.get("new fit pattern", False) or not self.knows(ok)
+        flags["fit restart"] = np.asarray(ok, bool).tobytes() != self._last_key  # another pattern (or fit) than last
         label = "fit, new pattern" if flags["new fit pattern"] else "fit, known pattern"
         return clocked(label, _step)(self, x, ok)
 
@@ -132,7 +133,8 @@ def frame_profile(profile, targets, valid, options, top: float = 1.0, raw: dict 
     solver._use_support = use_support
     labels = ["marker filter", "prior check (frames, start, swap)", "fit, known pattern", "fit, new pattern",
               "next pattern's workspace", "strength trial", "weight IMM", "IMM noise (along, set)"]
-    kinds = ["new fit pattern", "next pattern's workspace", "strength trial", "prior check start", "prior swap"]
+    kinds = ["new fit pattern", "next pattern's workspace", "strength trial", "prior check start", "prior swap",
+             "fit restart", "strength changed", "after a prior swap"]
     T = len(targets)
     cost = {k: np.zeros(T) for k in [*labels, "rest", "total"]}
     has = {k: np.zeros(T, bool) for k in kinds}
@@ -140,7 +142,7 @@ def frame_profile(profile, targets, valid, options, top: float = 1.0, raw: dict 
         for i in range(T):
             spent.clear()
             flags.clear()
-            checking = solver._checking
+            checking, fitted = solver._checking, solver._fit_k
             c0 = thread()
             solver.step(targets[i], valid[i])
             total = (thread() - c0) / 1e3
@@ -153,6 +155,9 @@ def frame_profile(profile, targets, valid, options, top: float = 1.0, raw: dict 
             has["strength trial"][i] = "strength trial" in spent
             has["prior check start"][i] = checking is None and solver._checking is not None
             has["prior swap"][i] = flags.get("prior swap", False)
+            has["fit restart"][i] = flags.get("fit restart", False)
+            has["strength changed"][i] = fitted is not None and solver._fit_k != fitted
+            has["after a prior swap"][i] = i > 0 and has["prior swap"][i - 1]
     finally:
         for owner, attr, fn in saved:
             setattr(owner, attr, fn)
@@ -160,7 +165,13 @@ def frame_profile(profile, targets, valid, options, top: float = 1.0, raw: dict 
         raw.update(cost=cost, has=has)
     total = cost["total"][WARMUP:]
     worst = np.argsort(-total)[:max(1, int(round(len(total) * top / 100)))] + WARMUP
+    check = (has["prior check start"] | has["prior swap"] | has["after a prior swap"])[WARMUP:]
     return {"frames": T, "top_percent": top, "top_frames": len(worst), "top_min_us": float(cost["total"][worst].min()),
+            # the prior check's frames (its start, its swap, the frame after) left out: what the rest of the step sets
+            "p99_without_check_frames": float(np.percentile(total[~check], 99)) if (~check).any() else None,
+            "fit_p50_us_on": {k: float(np.median(cost["fit, known pattern"][WARMUP:][v[WARMUP:]]
+                                                 + cost["fit, new pattern"][WARMUP:][v[WARMUP:]]))
+                              for k, v in has.items() if v[WARMUP:].any()},
             "parts": {k: {**_stats(v[WARMUP:]), "top_mean": float(v[worst].mean()),
                           "top_share_ran": float(np.mean(v[worst] > 0))} for k, v in cost.items()},
             "frames_with": {k: {"all": float(v[WARMUP:].mean()), "top": float(v[worst].mean()),

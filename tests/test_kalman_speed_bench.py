@@ -50,3 +50,7 @@ def test_the_frame_profile_splits_a_step_into_its_parts():
     assert out["frames_with"]["prior check start"]["all"] > 0 and out["frames_with"]["prior swap"]["all"] > 0
     assert out["frames_with"]["next pattern's workspace"]["all"] > 0
     assert parts["prior check (frames, start, swap)"]["top_mean"] > 0 and out["top_frames"] == 2  # 1 % of 150
+    # the frame after each swap, and the fit's restart on the new pattern (and on the first frames after a swap)
+    assert out["frames_with"]["after a prior swap"]["all"] == out["frames_with"]["prior swap"]["all"]
+    assert 0 < out["frames_with"]["fit restart"]["all"] < 0.1
+    assert out["fit_p50_us_on"]["fit restart"] > 0 and out["p99_without_check_frames"] > 0
