@@ -325,7 +325,9 @@ class MarkerKalmanSolver:
         k = self.selector.best
         fit = self._fit(k)
         if self._fit_k != k and self._z is not None:
-            fit.warm(self._z)  # a strength not fitted last frame: from the last fit, not from its own old frame
+            # a strength not fitted last frame: from the last fit, not from its own old frame (issue 39, ICT: its passes
+            # 10 -> 2.5, the weights within 2e-14)
+            fit.warm(self._z)
         self._fit_k = k
         # a workspace built in this step (the first frame, a new strength or prior), or one built for it last frame
         busy = not fit.knows(ok) or fit is self._fresh
