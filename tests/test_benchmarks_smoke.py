@@ -128,3 +128,26 @@ def test_prior_lopo_stands_in_for_the_prior_check_with_its_signature():
     support = inspect.signature(MarkerKalmanSolver._support).parameters
     for stand_in in (_widen_only, _recentre_widen):  # the offline check passes its tolerance (branch koff3)
         assert list(inspect.signature(stand_in).parameters)[1:] == list(support)[1:], stand_in
+
+
+def test_prior_blink_records_a_stream_and_puts_the_solver_back():
+    """benchmarks.prior_blink wraps the streamed solver's step, its weight stage's step and the held-out choice for
+    its run: a short stream is recorded step by step (the strength held where asked) and the classes are as before."""
+    from benchmarks.prior_blink import _lagged, _recorded
+    from livecap.modes import marker_kalman
+    from livecap.modes.marker_kalman import kalman_mode
+    from solvers import tracking
+    from solvers.prior_strength import HeldOutStrength
+    from tests.test_prior_support import _tight_prior_take
+
+    before = (marker_kalman.MarkerKalmanSolver.step, tracking.RotatedIMM.step, HeldOutStrength.__dict__.get("best"))
+    p, W, X = _tight_prior_take(T=20)
+    rec = {"fit": [], "move": [], "chosen": []}
+    with _recorded(rec, 3):
+        solver = kalman_mode(p, {"rate": 60.0})
+        for t in range(len(X)):
+            solver.step(X[t], np.ones(40, bool))
+    assert len(rec["fit"]) == len(rec["chosen"]) == len(X) and set(rec["chosen"]) == {3}
+    assert len(_lagged(rec["move"])) == len(X)
+    after = (marker_kalman.MarkerKalmanSolver.step, tracking.RotatedIMM.step, HeldOutStrength.__dict__.get("best"))
+    assert after == before
