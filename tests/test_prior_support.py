@@ -387,3 +387,32 @@ def test_a_forked_stream_still_checks_its_prior():
         os.waitpid(pid, 0)
         pytest.fail("the forked stream waited for a check that never ran")
     assert os.waitstatus_to_exitcode(status) == 0
+
+
+def test_a_prior_not_yet_checked_is_fitted_at_the_weakest_strength():
+    """Issue 41: before its first check a prior from other performers holds the actor where they rest (S88-001's
+    squint, the first 1.5 s streamed) and the held-out choice, on a few frames, wanders to strong priors that take the
+    blinks' peaks (MakeHuman 0.5 mm); until the check's prior is used the fit is at the grid's weakest strength, then
+    at the held-out choice."""
+    from livecap.modes import marker_kalman
+    from livecap.modes.marker_kalman import kalman_mode
+
+    p, W, X = _tight_prior_take(T=150)
+    solver = kalman_mode(p, {"rate": 60.0})
+    used, chosen = [], []
+    for t in range(len(X)):
+        solver.step(X[t], np.ones(40, bool))
+        used.append(solver._fit_k)
+        chosen.append(solver.selector.best if solver.support is not None else -1)
+    first = int(np.argmax(np.array(chosen) >= 0))  # the step that swapped in the checked prior
+    assert 0 < first < len(X) - 10
+    assert set(used[:first + 1]) == {0}  # (the swap comes at the end of its step)
+    assert used[first + 1:] == chosen[first:-1]
+    assert max(chosen[first:]) > 0  # the held-out choice is not the weakest here: the test sees the switch
+    p.prior = None
+    ridge = kalman_mode(p, {"rate": 60.0})
+    for t in range(30):
+        before = ridge.selector.best  # (a trial after the fit may change it)
+        ridge.step(X[t], np.ones(40, bool))
+        assert ridge._fit_k == before  # a ridge is never checked: the held-out choice throughout
+    assert marker_kalman.STRENGTHS[0] == marker_kalman.STRENGTHS.min()

@@ -322,7 +322,7 @@ class MarkerKalmanSolver:
         self._frame += 1
         if self._begun is not None:
             self._finish()
-        k = self.selector.best
+        k = self._strength()
         fit = self._fit(k)
         if self._fit_k != k and self._z is not None:
             # a strength not fitted last frame: from the last fit, not from its own old frame (issue 39, ICT: its passes
@@ -360,11 +360,16 @@ class MarkerKalmanSolver:
         self._at_leisure(fit, ahead, swapped)
         return out
 
+    def _strength(self) -> int:
+        """The fit's strength: the held-out choice, but the grid's weakest while the prior is not yet checked against
+        this actor (issue 41: docs/robustness.md, "the blink with a prior, S88-001's first seconds")."""
+        return 0 if self.prior_cov is not None and self.support is None else self.selector.best
+
     def _at_leisure(self, fit: FrameQP, ahead: np.ndarray | None, swapped: bool) -> None:
         """After the frame's weights: the next frame's workspace (``ahead``), also where a swap or this frame's trial
         changed the fit the next frame steps on (issue 39: those frames built it and paid ~100 µs over a known one).
         The trials come on the same frames as without these workspaces (``_fresh``)."""
-        best = self._fit(self.selector.best)
+        best = self._fit(self._strength())
         nxt = self.filter.prev
         if swapped or (ahead is None and best is not fit):  # (before a swap, ``ahead`` went to the old fits)
             if not best.marker_space and nxt is not None and not best.knows(nxt):
