@@ -1,0 +1,176 @@
+"""kalman's marker-space QPs at 72 x 1000 recorded and replayed (issue 39 item 1): where a frame's fit and trial go.
+
+``record``: kalman streamed over the synthetic 72 x 1000 take (``benchmarks.synthetic``, every marker seen), every
+``MarkerSpaceQP`` built (J, D, limits) and every ``begin`` / ``solve`` call on it (f, start), tagged with the frame
+and whether the fit or a held-out trial made it, saved to an .npz. ``replay``: the same calls in the same order on
+solvers built by the tree on PYTHONPATH (thread CPU per call and per frame, passes and refactors counted, the
+solutions beside the recorded ones): the solver's own cost, without the rest of kalman's step, so that variants of
+solvers/marker_space_qp.py can be alternated with main's in one process-free loop.
+
+    PYTHONPATH=$PWD python benchmarks/marker_space_fit.py record /tmp/ms.npz
+    PYTHONPATH=<tree> python benchmarks/marker_space_fit.py replay /tmp/ms.npz [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.append(str(ROOT))
+
+WARMUP = 50
+
+
+def record(path: str, frames: int = 400) -> dict:
+    """Stream kalman over the synthetic take with MarkerSpaceQP's constructor, ``begin`` and ``solve`` wrapped."""
+    import solvers.marker_space_qp as msq
+    from benchmarks.kalman_step import _build, synthetic_case
+    from solvers.prior_strength import HeldOutStrength
+
+    profile, targets, valid, options = synthetic_case(72, 1000, frames)
+    built: list[tuple] = []
+    calls: list[tuple] = []
+    ids: dict[int, int] = {}
+    state = {"frame": -1, "trial": False}
+    cls = msq.MarkerSpaceQP
+    init, begin, solve = cls.__init__, cls.begin, cls.solve
+
+    def w_init(self, J, d, lower, upper, max_iter=200):
+        ids[id(self)] = len(built)
+        built.append((np.array(J, float), np.array(d, float), np.array(lower, float), np.array(upper, float)))
+        init(self, J, d, lower, upper, max_iter)
+
+    def w_begin(self, f, x0, passes):
+        calls.append((state["frame"], ids[id(self)], 1, int(state["trial"]), int(passes), np.array(f), np.array(x0)))
+        return begin(self, f, x0, passes)
+
+    def w_solve(self, f, x0):
+        calls.append((state["frame"], ids[id(self)], 0, int(state["trial"]), 0, np.array(f), np.array(x0)))
+        return solve(self, f, x0)
+
+    observe, hs_begin = HeldOutStrength.observe, HeldOutStrength.begin
+
+    def in_trial(fn):
+        def run(*a, **k):
+            state["trial"] = True
+            try:
+                return fn(*a, **k)
+            finally:
+                state["trial"] = False
+        return run
+
+    cls.__init__, cls.begin, cls.solve = w_init, w_begin, w_solve
+    HeldOutStrength.observe, HeldOutStrength.begin = in_trial(observe), in_trial(hs_begin)
+    try:
+        solver = _build(profile, options, "kalman")
+        W = []
+        for i in range(len(targets)):
+            state["frame"] = i
+            W.append(solver.step(targets[i], valid[i]))
+    finally:
+        cls.__init__, cls.begin, cls.solve = init, begin, solve
+        HeldOutStrength.observe, HeldOutStrength.begin = observe, hs_begin
+    np.savez(path, **{f"{k}{i}": a for i, b in enumerate(built) for k, a in zip(("J", "d", "lower", "upper"), b)},
+             built=len(built), frame=np.array([c[0] for c in calls]), qp=np.array([c[1] for c in calls]),
+             begin=np.array([c[2] for c in calls]), trial=np.array([c[3] for c in calls]),
+             passes=np.array([c[4] for c in calls]), f=np.array([c[5] for c in calls]),
+             x0=np.array([c[6] for c in calls]))
+    return {"qps": len(built), "calls": len(calls), "frames": len(targets)}
+
+
+def replay(path: str) -> dict:
+    """The recorded calls on this tree's MarkerSpaceQP, in order: thread CPU per frame (fit and trial apart), passes
+    and refactors per call, the largest difference from a fresh exact solve is not computed here (see ``exact``)."""
+    import solvers.marker_space_qp as msq
+
+    z = dict(np.load(path))  # (an NpzFile reads an array anew at every lookup)
+    qps = [msq.MarkerSpaceQP(z[f"J{i}"], z[f"d{i}"], z[f"lower{i}"], z[f"upper{i}"]) for i in range(int(z["built"]))]
+    counts = {"refactor": 0, "changed": 0}
+    refactor = msq.MarkerSpaceQP._refactor
+
+    def counted(self, F, changed, *a):
+        counts["refactor"] += 1
+        counts["changed"] += len(changed)
+        return refactor(self, F, changed, *a)
+
+    msq.MarkerSpaceQP._refactor = counted
+    T = int(z["frame"].max()) + 1
+    cost = {"fit": np.zeros(T), "trial": np.zeros(T)}
+    refactors = {"fit": np.zeros(T), "trial": np.zeros(T)}
+    passes = {"fit": np.zeros(T), "trial": np.zeros(T)}
+    X = np.full(z["x0"].shape, np.nan)
+    thread = time.thread_time_ns
+    try:
+        for c in range(len(z["frame"])):
+            q, fr, kind = qps[z["qp"][c]], z["frame"][c], "trial" if z["trial"][c] else "fit"
+            counts["refactor"] = 0
+            c0 = thread()
+            if z["begin"][c]:
+                q.begin(z["f"][c], z["x0"][c], int(z["passes"][c]))
+            else:
+                x = q.solve(z["f"][c], z["x0"][c])
+            cost[kind][fr] += (thread() - c0) / 1e3
+            refactors[kind][fr] += counts["refactor"]
+            if not z["begin"][c]:
+                passes[kind][fr] += q.iterations
+                if x is not None:
+                    X[c] = x
+    finally:
+        msq.MarkerSpaceQP._refactor = refactor
+    total = cost["fit"] + cost["trial"]
+
+    def stats(a):
+        a = a[WARMUP:]
+        return {"p50": float(np.median(a)), "p99": float(np.percentile(a, 99)), "mean": float(a.mean())}
+
+    worst = np.argsort(total[WARMUP:])[-4:] + WARMUP
+    return {"fit": stats(cost["fit"]), "trial": stats(cost["trial"]), "fit + trial": stats(total),
+            "fit passes (solves) mean": float(passes["fit"][WARMUP:].mean()),
+            "fit refactors mean": float(refactors["fit"][WARMUP:].mean()),
+            "trial refactors mean": float(refactors["trial"][WARMUP:].mean()),
+            "worst frames": [{"frame": int(i), "fit": float(cost["fit"][i]), "trial": float(cost["trial"][i]),
+                              "fit refactors": int(refactors["fit"][i]),
+                              "trial refactors": int(refactors["trial"][i])} for i in worst],
+            "_X": X}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("what", choices=["record", "replay"])
+    p.add_argument("path")
+    p.add_argument("--frames", type=int, default=400)
+    p.add_argument("--json")
+    p.add_argument("--solutions", help="replay: save the solutions (.npy) / compare with ones saved so")
+    a = p.parse_args()
+    meta = {"utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()), "load": os.getloadavg()}
+    if a.what == "record":
+        out = record(a.path, a.frames)
+    else:
+        out = replay(a.path)
+        X = out.pop("_X")
+        if a.solutions and Path(a.solutions).exists():
+            Y = np.load(a.solutions)
+            both = ~np.isnan(X).any(1) & ~np.isnan(Y).any(1)
+            out["max |dx| vs saved"] = float(np.abs(X[both] - Y[both]).max())
+        elif a.solutions:
+            np.save(a.solutions, X)
+    out = {"start": meta, "result": out, "end_load": os.getloadavg()}
+    print(json.dumps(out, indent=1))
+    if a.json:
+        Path(a.json).write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
