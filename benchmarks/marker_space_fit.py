@@ -81,7 +81,7 @@ def record(path: str, frames: int = 400) -> dict:
     finally:
         cls.__init__, cls.begin, cls.solve = init, begin, solve
         HeldOutStrength.observe, HeldOutStrength.begin = observe, hs_begin
-    np.savez(path, **{f"{k}{i}": a for i, b in enumerate(built) for k, a in zip(("J", "d", "lower", "upper"), b)},
+    np.savez(path, **{f"{k}{i}": a for i, b in enumerate(built) for k, a in zip(("J", "d", "lower", "upper"), b, strict=True)},
              built=len(built), frame=np.array([c[0] for c in calls]), qp=np.array([c[1] for c in calls]),
              begin=np.array([c[2] for c in calls]), trial=np.array([c[3] for c in calls]),
              passes=np.array([c[4] for c in calls]), f=np.array([c[5] for c in calls]),
@@ -145,17 +145,49 @@ def replay(path: str) -> dict:
             "_X": X}
 
 
+def stream(frames: int = 400, no_trial: bool = False, seed: int = 1, noise_mm: float = 0.3) -> dict:
+    """kalman streamed over the synthetic take (its noise ``seed`` and level): thread CPU per ``step`` after WARMUP
+    frames and the weights' RMSE against the take's truth (the same frames); the weights under ``_W``."""
+    from benchmarks.kalman_step import _build
+    from benchmarks.synthetic import synthetic_profile, synthetic_stream
+
+    profile = synthetic_profile(72, 1000)
+    targets, valid, truth = synthetic_stream(profile, frames, noise_mm=noise_mm, seed=seed)
+    solver = _build(profile, {}, "kalman")
+    if no_trial:
+        solver._trial = lambda *a, **k: None
+    W, cpu = np.empty((frames, truth.shape[1])), np.empty(frames)
+    thread = time.thread_time_ns
+    for i in range(frames):
+        c0 = thread()
+        W[i] = solver.step(targets[i], valid[i])
+        cpu[i] = (thread() - c0) / 1e3
+    c = cpu[WARMUP:]
+    return {"p50": float(np.median(c)), "p99": float(np.percentile(c, 99)), "mean": float(c.mean()),
+            "rmse": float(np.sqrt(np.mean((W[WARMUP:] - truth[WARMUP:]) ** 2))), "_W": W}
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("what", choices=["record", "replay"])
+    p.add_argument("what", choices=["record", "replay", "stream"])
     p.add_argument("path")
     p.add_argument("--frames", type=int, default=400)
     p.add_argument("--json")
     p.add_argument("--solutions", help="replay: save the solutions (.npy) / compare with ones saved so")
+    p.add_argument("--seed", type=int, default=1, help="stream: the take's noise seed (default 1)")
+    p.add_argument("--noise", type=float, default=0.3, help="stream: marker noise, mm (default 0.3)")
+    p.add_argument("--no-trial", action="store_true", help="stream: kalman with its strength trial switched off")
     a = p.parse_args()
     meta = {"utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()), "load": os.getloadavg()}
     if a.what == "record":
         out = record(a.path, a.frames)
+    elif a.what == "stream":  # path: the weights (.npy), saved, or compared with where it exists
+        out = stream(a.frames, a.no_trial, a.seed, a.noise)
+        W = out.pop("_W")
+        if Path(a.path).exists():
+            out["max |dw| vs saved"] = float(np.abs(W - np.load(a.path)).max())
+        else:
+            np.save(a.path, W)
     else:
         out = replay(a.path)
         X = out.pop("_X")

@@ -43,6 +43,7 @@ from solvers.marker_space_kernels import repartition, rhs, x_and_gradient
 
 REFRESH = 64  # updates of the kept marker-space matrix before it is formed afresh
 WOODBURY = 8  # at most this many columns changed from the kept factor's free set: solved through it, no refactor
+FRAME_PASSES = 1  # passes a call runs before it stops unsettled (clipped, its partition carried to the next); 0: exact
 PIVOT_BUDGET = 3  # block-pivoting passes without fewer wrong sides before the primal active-set method takes over
 
 
@@ -87,6 +88,7 @@ class MarkerSpaceQP:
         self._begun: tuple | None = None  # f, x0 and the state of a solve begun (``begin``)
         self._wood: tuple | None = None  # a free set a few columns from _F: (F, U, S^-1 U, LU of the capacitance)
         self._updates = 0
+        self._carry: tuple | None = None  # an unsettled solve's x and the partition it stopped at
 
     def _solve_S(self, F: np.ndarray, b: np.ndarray) -> np.ndarray:
         """S^-1 b for free set F. Within WOODBURY columns of the kept factor's free set, through that factor and a
@@ -158,6 +160,10 @@ class MarkerSpaceQP:
         if state is None:
             x = x0[self.G]
             state = (x <= self.lo, x >= self.hi, len(x) + 1, PIVOT_BUDGET, 0)
+            if self._carry is not None and np.array_equal(self._carry[0], x0):
+                state = (self._carry[1], self._carry[2], len(x) + 1, PIVOT_BUDGET, 0)
+        self._carry = None
+        limit = state[4] + FRAME_PASSES if FRAME_PASSES and stop == self.max_iter else self.max_iter
         at_lo, at_hi, best, budget, it = state
         while it < stop:
             it += 1
@@ -173,6 +179,10 @@ class MarkerSpaceQP:
             if budget <= 0:
                 return "done", self._primal(fG, f, np.minimum(np.maximum(x, self.lo), self.hi), it)
             at_lo, at_hi = lo1, hi1
+            if it >= limit:  # unsettled: the clipped point now, the next solve from this partition
+                x = self._full(np.minimum(np.maximum(x, self.lo), self.hi), f)
+                self._carry, self.iterations = (x, at_lo, at_hi), it
+                return "done", x
         if it >= self.max_iter:
             self.iterations = self.max_iter
             return "done", None

@@ -15,6 +15,12 @@ from solvers.pose_refine import RigidColumns
 from solvers.qp import FrameQP
 
 
+@pytest.fixture(autouse=True)
+def _exact(monkeypatch):
+    """The tests below are of the exact solve (every pass to the optimum); those of the bounded one set it."""
+    monkeypatch.setattr("solvers.marker_space_qp.FRAME_PASSES", 0)
+
+
 def _problem(rng, r: int, n: int, p: int, dmin: float = 1e-3):
     """r rows, n bounded weights (some limits infinite), p unpenalised unbounded columns (a pose)."""
     J = rng.normal(0, 2, (r, n + p))
@@ -191,3 +197,51 @@ def test_frameqp_begin_then_step_equals_step():
         begun += a.begin(s, seen, 1)
         np.testing.assert_array_equal(a.step(s, seen), b.step(s, seen))
     assert begun > 5
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), r=st.integers(3, 24), n=st.integers(1, 60), p=st.integers(0, 3),
+       passes=st.integers(1, 3))
+def test_bounded_solves_carry_their_partition_to_the_optimum(seed, r, n, p, passes):
+    """FRAME_PASSES: a solve stops after that many passes at a feasible point and the next solve from it goes on
+    from the partition it stopped at, so that solving the same QP again and again (a still actor) reaches the
+    exact solve's optimum, KKT and all; a settled solve is the exact one."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("solvers.marker_space_qp.FRAME_PASSES", passes)
+        _bounded_solves(seed, r, n, p, passes)
+
+
+def _bounded_solves(seed, r, n, p, passes):
+    rng = np.random.default_rng(seed)
+    J, d, lo, hi, f = _problem(rng, r, n, p, dmin=0.05)
+    H = np.diag(d) + J.T @ J
+    try:
+        q = MarkerSpaceQP(J, d, lo, hi, max_iter=5000)
+    except np.linalg.LinAlgError:
+        return
+    exact = BoxQP(H, lo, hi).solve(f)
+    x = np.clip(np.zeros(n + p), lo, hi)
+    for _ in range(400):
+        x = q.solve(f, x)
+        assert q._carry is None or q.iterations == passes  # unsettled: stopped after ``passes``
+        assert np.all(x >= lo) and np.all(x <= hi)
+        if q._carry is None:  # settled (or handed to the primal method): the optimum
+            break
+    else:
+        pytest.fail("400 bounded solves did not settle")
+    _kkt(H, f, lo, hi, x, 1e-9)
+    np.testing.assert_allclose(x, exact, atol=1e-7)
+
+
+def test_a_bounded_solve_from_another_start_does_not_take_the_carried_partition(monkeypatch):
+    """The carried partition belongs to the x the solve returned: from any other start (a strength switch warms
+    the fit from another QP's x) the partition is the start's own, as in the exact solve."""
+    monkeypatch.setattr("solvers.marker_space_qp.FRAME_PASSES", 1)
+    rng = np.random.default_rng(5)
+    J, d, lo, hi, f = _problem(rng, 12, 60, 0, dmin=0.1)
+    a, b = MarkerSpaceQP(J, d, lo, hi), MarkerSpaceQP(J, d, lo, hi)
+    x = a.solve(f, np.clip(np.zeros(60), lo, hi))
+    assert a._carry is not None
+    start = np.clip(rng.normal(0, 1, 60), lo, hi)
+    np.testing.assert_allclose(a.solve(f, start), b.solve(f, start), rtol=0, atol=1e-10)
+    assert not np.array_equal(x, start)
