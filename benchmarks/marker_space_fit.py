@@ -81,7 +81,8 @@ def record(path: str, frames: int = 400) -> dict:
     finally:
         cls.__init__, cls.begin, cls.solve = init, begin, solve
         HeldOutStrength.observe, HeldOutStrength.begin = observe, hs_begin
-    np.savez(path, **{f"{k}{i}": a for i, b in enumerate(built) for k, a in zip(("J", "d", "lower", "upper"), b, strict=True)},
+    names = ("J", "d", "lower", "upper")
+    np.savez(path, **{f"{k}{i}": a for i, b in enumerate(built) for k, a in zip(names, b, strict=True)},
              built=len(built), frame=np.array([c[0] for c in calls]), qp=np.array([c[1] for c in calls]),
              begin=np.array([c[2] for c in calls]), trial=np.array([c[3] for c in calls]),
              passes=np.array([c[4] for c in calls]), f=np.array([c[5] for c in calls]),
