@@ -9,6 +9,11 @@ solvers/marker_space_qp.py can be alternated with main's in one process-free loo
 
     PYTHONPATH=$PWD python benchmarks/marker_space_fit.py record /tmp/ms.npz
     PYTHONPATH=<tree> python benchmarks/marker_space_fit.py replay /tmp/ms.npz [--json out.json]
+
+``stream``: kalman over the synthetic take (``--seed``, ``--noise``), thread CPU per step and the weights' RMSE
+against its truth; the weights saved to PATH, or compared with those saved there by another run:
+
+    PYTHONPATH=$PWD python benchmarks/marker_space_fit.py stream /tmp/w.npy [--set FRAME_PASSES=0] [--no-trial]
 """
 
 from __future__ import annotations
@@ -177,8 +182,15 @@ def main() -> int:
     p.add_argument("--solutions", help="replay: save the solutions (.npy) / compare with ones saved so")
     p.add_argument("--seed", type=int, default=1, help="stream: the take's noise seed (default 1)")
     p.add_argument("--noise", type=float, default=0.3, help="stream: marker noise, mm (default 0.3)")
+    p.add_argument("--set", nargs="*", default=[], metavar="NAME=INT",
+                   help="solvers.marker_space_qp constants for this run (e.g. FRAME_PASSES=0: the exact solve)")
     p.add_argument("--no-trial", action="store_true", help="stream: kalman with its strength trial switched off")
     a = p.parse_args()
+    import solvers.marker_space_qp as msq
+
+    for item in a.set:
+        name, value = item.split("=")
+        setattr(msq, name, int(value))
     meta = {"utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()), "load": os.getloadavg()}
     if a.what == "record":
         out = record(a.path, a.frames)
@@ -198,7 +210,7 @@ def main() -> int:
             out["max |dx| vs saved"] = float(np.abs(X[both] - Y[both]).max())
         elif a.solutions:
             np.save(a.solutions, X)
-    out = {"start": meta, "result": out, "end_load": os.getloadavg()}
+    out = {"start": meta, "set": a.set, "result": out, "end_load": os.getloadavg()}
     print(json.dumps(out, indent=1))
     if a.json:
         Path(a.json).write_text(json.dumps(out, indent=1))
