@@ -37,13 +37,13 @@ if str(ROOT) not in sys.path:
 WARMUP = 50
 
 
-def record(path: str, frames: int = 400) -> dict:
+def record(path: str, frames: int = 400, size: tuple[int, int] = (72, 1000)) -> dict:
     """Stream kalman over the synthetic take with MarkerSpaceQP's constructor, ``begin`` and ``solve`` wrapped."""
     import solvers.marker_space_qp as msq
     from benchmarks.kalman_step import _build, synthetic_case
     from solvers.prior_strength import HeldOutStrength
 
-    profile, targets, valid, options = synthetic_case(72, 1000, frames)
+    profile, targets, valid, options = synthetic_case(*size, frames)
     built: list[tuple] = []
     calls: list[tuple] = []
     ids: dict[int, int] = {}
@@ -151,13 +151,14 @@ def replay(path: str) -> dict:
             "_X": X}
 
 
-def stream(frames: int = 400, no_trial: bool = False, seed: int = 1, noise_mm: float = 0.3) -> dict:
-    """kalman streamed over the synthetic take (its noise ``seed`` and level): thread CPU per ``step`` after WARMUP
+def stream(frames: int = 400, no_trial: bool = False, seed: int = 1, noise_mm: float = 0.3,
+           size: tuple[int, int] = (72, 1000)) -> dict:
+    """kalman streamed over the synthetic take (``size``: markers, shapes; its noise ``seed`` and level): thread CPU per ``step`` after WARMUP
     frames and the weights' RMSE against the take's truth (the same frames); the weights under ``_W``."""
     from benchmarks.kalman_step import _build
     from benchmarks.synthetic import synthetic_profile, synthetic_stream
 
-    profile = synthetic_profile(72, 1000)
+    profile = synthetic_profile(*size)
     targets, valid, truth = synthetic_stream(profile, frames, noise_mm=noise_mm, seed=seed)
     solver = _build(profile, {}, "kalman")
     if no_trial:
