@@ -153,8 +153,9 @@ def replay(path: str) -> dict:
 
 def stream(frames: int = 400, no_trial: bool = False, seed: int = 1, noise_mm: float = 0.3,
            size: tuple[int, int] = (72, 1000)) -> dict:
-    """kalman streamed over the synthetic take (``size``: markers, shapes; its noise ``seed`` and level): thread CPU per ``step`` after WARMUP
-    frames and the weights' RMSE against the take's truth (the same frames); the weights under ``_W``."""
+    """kalman streamed over the synthetic take (``size``: markers, shapes; its noise ``seed`` and level): thread CPU
+    per ``step`` after WARMUP frames and the weights' RMSE against the take's truth (the same frames); the weights
+    under ``_W``."""
     from benchmarks.kalman_step import _build
     from benchmarks.synthetic import synthetic_profile, synthetic_stream
 
