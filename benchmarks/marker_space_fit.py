@@ -152,15 +152,20 @@ def replay(path: str) -> dict:
 
 
 def stream(frames: int = 400, no_trial: bool = False, seed: int = 1, noise_mm: float = 0.3,
-           size: tuple[int, int] = (72, 1000)) -> dict:
+           size: tuple[int, int] = (72, 1000), hidden: int = 0) -> dict:
     """kalman streamed over the synthetic take (``size``: markers, shapes; its noise ``seed`` and level): thread CPU
     per ``step`` after WARMUP frames and the weights' RMSE against the take's truth (the same frames); the weights
-    under ``_W``."""
+    under ``_W``. ``hidden``: that many markers hidden at a time, another set every 20 frames (the visibility
+    pattern changes and comes back: a fit on a pattern new to its QP, or on one it left frames ago)."""
     from benchmarks.kalman_step import _build
     from benchmarks.synthetic import synthetic_profile, synthetic_stream
 
     profile = synthetic_profile(*size)
     targets, valid, truth = synthetic_stream(profile, frames, noise_mm=noise_mm, seed=seed)
+    if hidden:
+        n = valid.shape[1]
+        for t in range(frames):
+            valid[t, (np.arange(hidden) * (n // hidden) + t // 20) % n] = False
     solver = _build(profile, {}, "kalman")
     if no_trial:
         solver._trial = lambda *a, **k: None
@@ -186,6 +191,7 @@ def main() -> int:
     p.add_argument("--noise", type=float, default=0.3, help="stream: marker noise, mm (default 0.3)")
     p.add_argument("--set", nargs="*", default=[], metavar="NAME=INT",
                    help="solvers.marker_space_qp constants for this run (e.g. FRAME_PASSES=0: the exact solve)")
+    p.add_argument("--hidden", type=int, default=0, help="stream: markers hidden at a time, moved every 20 frames")
     p.add_argument("--no-trial", action="store_true", help="stream: kalman with its strength trial switched off")
     a = p.parse_args()
     import solvers.marker_space_qp as msq
@@ -197,7 +203,7 @@ def main() -> int:
     if a.what == "record":
         out = record(a.path, a.frames)
     elif a.what == "stream":  # path: the weights (.npy), saved, or compared with where it exists
-        out = stream(a.frames, a.no_trial, a.seed, a.noise)
+        out = stream(a.frames, a.no_trial, a.seed, a.noise, hidden=a.hidden)
         W = out.pop("_W")
         if Path(a.path).exists():
             out["max |dw| vs saved"] = float(np.abs(W - np.load(a.path)).max())

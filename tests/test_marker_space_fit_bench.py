@@ -17,6 +17,6 @@ def test_record_replay_and_stream(tmp_path, monkeypatch):
     z = np.load(path)
     solved = ~z["begin"].astype(bool)
     assert np.isfinite(X[solved]).all() and np.isnan(X[~solved]).all()
-    assert out["fit passes (solves) mean"] >= 1 and out["fit + trial"]["p99"] > 0
+    assert out["fit passes (solves) mean"] > 0 and out["fit + trial"]["p99"] > 0
     s = msf.stream(frames=30, size=(12, 80))
     assert s.pop("_W").shape == (30, 80) and 0 < s["rmse"] < 1 and s["p99"] >= s["p50"] > 0
