@@ -174,7 +174,7 @@ class MarkerSpaceQP:
             x = x0[self.G]
             state = (x <= self.lo, x >= self.hi, len(x) + 1, PIVOT_BUDGET, 0)
             c = self._carry
-            if c is not None and np.array_equal(c[0], x0):
+            if passes and c is not None and np.array_equal(c[0], x0):
                 # the same QP again (a still take): its count of wrong sides goes on, so that a block-pivoting
                 # cycle is handed to the primal method as in one solve; new data: counted afresh
                 same = np.array_equal(c[3], f)
