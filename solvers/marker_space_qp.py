@@ -30,6 +30,16 @@ through the kept factor and a k x k capacitance (Woodbury); otherwise S is updat
 ones', and refactored (O(r^3 / 3)); formed afresh every ``REFRESH`` updates against drift. Warm from the last
 frame, the 72 x 1000 synthetic take's fit moves ~60-90 weights in the first pass and takes 3-5 passes. ``begin``
 runs a solve's first passes ahead (kalman's held-out trial, split over two frames; docs/performance.md).
+
+A solve call runs at most FRAME_PASSES passes (0: to the optimum; FRESH_PASSES from a start that is not this QP's
+own last stop). Where they did not settle it returns the clipped point and keeps the partition its last pass chose,
+and the next solve that starts from that very point goes on from it (on the same f, with its count of wrong sides,
+so that a cycle still goes to the primal method). Streamed, a frame's QP barely moves from the last, so each frame is
+one semismooth Newton step (block pivoting is one: Hintermueller, Ito & Kunisch 2003) on the current data from the
+last iterate -- the real-time iteration of Diehl, Bock & Schloeder 2005 (SIAM J. Control Optim. 43(5)): inexact on a
+frame, it tracks the optimum over frames, and on a QP that stays the same it reaches the exact optimum
+(tests/test_marker_space_qp.py). At 72 x 1000 it cut kalman's step by a quarter, the weights' RMSE against the
+synthetic takes' truth no worse (docs/performance.md, "`kalman` at 72 x 1000: one block-pivoting pass a frame").
 """
 
 from __future__ import annotations
@@ -43,6 +53,8 @@ from solvers.marker_space_kernels import repartition, rhs, x_and_gradient
 
 REFRESH = 64  # updates of the kept marker-space matrix before it is formed afresh
 WOODBURY = 8  # at most this many columns changed from the kept factor's free set: solved through it, no refactor
+FRAME_PASSES = 1  # passes a call runs before it stops unsettled (clipped, its partition carried to the next); 0: exact
+FRESH_PASSES = 2  # the same from a start that is not this QP's own last stop (FRAME_PASSES > 0)
 PIVOT_BUDGET = 3  # block-pivoting passes without fewer wrong sides before the primal active-set method takes over
 
 
@@ -87,6 +99,8 @@ class MarkerSpaceQP:
         self._begun: tuple | None = None  # f, x0 and the state of a solve begun (``begin``)
         self._wood: tuple | None = None  # a free set a few columns from _F: (F, U, S^-1 U, LU of the capacitance)
         self._updates = 0
+        # the last solve's x, the partition it stopped at, its f and its count of wrong sides (best, budget)
+        self._carry: tuple | None = None
 
     def _solve_S(self, F: np.ndarray, b: np.ndarray) -> np.ndarray:
         """S^-1 b for free set F. Within WOODBURY columns of the kept factor's free set, through that factor and a
@@ -155,17 +169,31 @@ class MarkerSpaceQP:
         """Block-pivoting passes up to pass ``stop``: ("done", x or None) where they settled, handed over to the
         primal method or ran out of ``max_iter``; else the state to continue from."""
         fG = f[self.G] if self._C is None else f[self.G] - self._A.T @ f[self.P]
+        passes = FRAME_PASSES
         if state is None:
             x = x0[self.G]
             state = (x <= self.lo, x >= self.hi, len(x) + 1, PIVOT_BUDGET, 0)
+            c = self._carry
+            if passes and c is not None and np.array_equal(c[0], x0):
+                # the same QP again (a still take): its count of wrong sides goes on, so that a block-pivoting
+                # cycle is handed to the primal method as in one solve; new data: counted afresh
+                same = np.array_equal(c[3], f)
+                state = (c[1], c[2], c[4] if same else len(x) + 1, c[5] if same else PIVOT_BUDGET, 0)
+            elif passes:
+                # another start (another visibility pattern's or strength's x): its clipped point holds the weights
+                # its last pass freed at their limits; one more pass frees them again, so they are not lost
+                passes = max(passes, FRESH_PASSES)
+        self._carry = None
+        limit = state[4] + passes if passes and stop == self.max_iter else self.max_iter
         at_lo, at_hi, best, budget, it = state
         while it < stop:
             it += 1
             x, g = self._subproblem(fG, at_lo, at_hi)
             lo1, hi1, wrong = repartition(x, g, self.lo, self.hi, at_lo, at_hi)
-            if not wrong:
-                self.iterations = it
-                return "done", self._full(x, f)
+            if not wrong:  # settled: the optimum, and the partition the next frame's solve goes on from
+                x = self._full(x, f)
+                self._carry, self.iterations = (x, at_lo, at_hi, f.copy(), 0, PIVOT_BUDGET), it
+                return "done", x
             if wrong < best:
                 best, budget = wrong, PIVOT_BUDGET
             else:
@@ -173,6 +201,10 @@ class MarkerSpaceQP:
             if budget <= 0:
                 return "done", self._primal(fG, f, np.minimum(np.maximum(x, self.lo), self.hi), it)
             at_lo, at_hi = lo1, hi1
+            if it >= limit:  # unsettled: the clipped point now, the next solve from this partition
+                x = self._full(np.minimum(np.maximum(x, self.lo), self.hi), f)
+                self._carry, self.iterations = (x, at_lo, at_hi, f.copy(), best, budget), it
+                return "done", x
         if it >= self.max_iter:
             self.iterations = self.max_iter
             return "done", None
@@ -201,8 +233,9 @@ class MarkerSpaceQP:
             push = np.where(at_lo, -g, np.where(at_hi, g, 0.0)) * np.sqrt(self.dinv)  # > 0: wants inside
             j = int(np.argmax(push))
             if push[j] <= 0:
-                self.iterations = it
-                return self._full(x, f)
+                x = self._full(x, f)
+                self._carry, self.iterations = (x, at_lo, at_hi, f.copy(), 0, PIVOT_BUDGET), it
+                return x
             at_lo[j] = at_hi[j] = False
         self.iterations = self.max_iter
         return None
