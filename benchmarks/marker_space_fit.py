@@ -13,7 +13,7 @@ solvers/marker_space_qp.py can be alternated with main's in one process-free loo
 ``stream``: kalman over the synthetic take (``--seed``, ``--noise``), thread CPU per step and the weights' RMSE
 against its truth; the weights saved to PATH, or compared with those saved there by another run:
 
-    PYTHONPATH=$PWD python benchmarks/marker_space_fit.py stream /tmp/w.npy [--set FRAME_PASSES=0] [--no-trial]
+    PYTHONPATH=$PWD python benchmarks/marker_space_fit.py stream /tmp/w.npy [--set STREAM_PASSES=0] [--no-trial]
 """
 
 from __future__ import annotations
@@ -56,13 +56,15 @@ def record(path: str, frames: int = 400, size: tuple[int, int] = (72, 1000)) -> 
         built.append((np.array(J, float), np.array(d, float), np.array(lower, float), np.array(upper, float)))
         init(self, J, d, lower, upper, max_iter)
 
-    def w_begin(self, f, x0, passes):
-        calls.append((state["frame"], ids[id(self)], 1, int(state["trial"]), int(passes), np.array(f), np.array(x0)))
-        return begin(self, f, x0, passes)
+    def w_begin(self, f, x0, passes, frame_passes=0):
+        calls.append((state["frame"], ids[id(self)], 1, int(state["trial"]), int(passes), np.array(f), np.array(x0),
+                      frame_passes))
+        return begin(self, f, x0, passes, frame_passes)
 
-    def w_solve(self, f, x0):
-        calls.append((state["frame"], ids[id(self)], 0, int(state["trial"]), 0, np.array(f), np.array(x0)))
-        return solve(self, f, x0)
+    def w_solve(self, f, x0, frame_passes=0):
+        calls.append((state["frame"], ids[id(self)], 0, int(state["trial"]), 0, np.array(f), np.array(x0),
+                      frame_passes))
+        return solve(self, f, x0, frame_passes)
 
     observe, hs_begin = HeldOutStrength.observe, HeldOutStrength.begin
 
@@ -91,7 +93,7 @@ def record(path: str, frames: int = 400, size: tuple[int, int] = (72, 1000)) -> 
              built=len(built), frame=np.array([c[0] for c in calls]), qp=np.array([c[1] for c in calls]),
              begin=np.array([c[2] for c in calls]), trial=np.array([c[3] for c in calls]),
              passes=np.array([c[4] for c in calls]), f=np.array([c[5] for c in calls]),
-             x0=np.array([c[6] for c in calls]))
+             x0=np.array([c[6] for c in calls]), frame_passes=np.array([c[7] for c in calls]))
     return {"qps": len(built), "calls": len(calls), "frames": len(targets)}
 
 
@@ -123,9 +125,9 @@ def replay(path: str) -> dict:
             counts["refactor"] = 0
             c0 = thread()
             if z["begin"][c]:
-                q.begin(z["f"][c], z["x0"][c], int(z["passes"][c]))
+                q.begin(z["f"][c], z["x0"][c], int(z["passes"][c]), int(z["frame_passes"][c]))
             else:
-                x = q.solve(z["f"][c], z["x0"][c])
+                x = q.solve(z["f"][c], z["x0"][c], int(z["frame_passes"][c]))
             cost[kind][fr] += (thread() - c0) / 1e3
             refactors[kind][fr] += counts["refactor"]
             if not z["begin"][c]:
@@ -190,15 +192,20 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=1, help="stream: the take's noise seed (default 1)")
     p.add_argument("--noise", type=float, default=0.3, help="stream: marker noise, mm (default 0.3)")
     p.add_argument("--set", nargs="*", default=[], metavar="NAME=INT",
-                   help="solvers.marker_space_qp constants for this run (e.g. FRAME_PASSES=0: the exact solve)")
+                   help="constants of solvers.marker_space_qp or livecap.modes.marker_kalman for this run (e.g. "
+                        "STREAM_PASSES=0: the exact solve)")
     p.add_argument("--hidden", type=int, default=0, help="stream: markers hidden at a time, moved every 20 frames")
     p.add_argument("--no-trial", action="store_true", help="stream: kalman with its strength trial switched off")
     a = p.parse_args()
+    import livecap.modes.marker_kalman as mk
     import solvers.marker_space_qp as msq
 
     for item in a.set:
         name, value = item.split("=")
-        setattr(msq, name, int(value))
+        module = msq if hasattr(msq, name) else mk
+        if not hasattr(module, name):
+            p.error(f"--set: no constant {name} in solvers.marker_space_qp or livecap.modes.marker_kalman")
+        setattr(module, name, int(value))
     meta = {"utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()), "load": os.getloadavg()}
     if a.what == "record":
         out = record(a.path, a.frames)

@@ -31,15 +31,16 @@ ones', and refactored (O(r^3 / 3)); formed afresh every ``REFRESH`` updates agai
 frame, the 72 x 1000 synthetic take's fit moves ~60-90 weights in the first pass and takes 3-5 passes. ``begin``
 runs a solve's first passes ahead (kalman's held-out trial, split over two frames; docs/performance.md).
 
-A solve call runs at most FRAME_PASSES passes (0: to the optimum; FRESH_PASSES from a start that is not this QP's
-own last stop). Where they did not settle it returns the clipped point and keeps the partition its last pass chose,
-and the next solve that starts from that very point goes on from it (on the same f, with its count of wrong sides,
-so that a cycle still goes to the primal method). Streamed, a frame's QP barely moves from the last, so each frame is
-one semismooth Newton step (block pivoting is one: Hintermueller, Ito & Kunisch 2003) on the current data from the
-last iterate -- the real-time iteration of Diehl, Bock & Schloeder 2005 (SIAM J. Control Optim. 43(5)): inexact on a
-frame, it tracks the optimum over frames, and on a QP that stays the same it reaches the exact optimum
-(tests/test_marker_space_qp.py). At 72 x 1000 it cut kalman's step by a quarter, the weights' RMSE against the
-synthetic takes' truth no worse (docs/performance.md, "`kalman` at 72 x 1000: one block-pivoting pass a frame").
+A solve call given ``frame_passes`` runs at most that many passes (0, the default: to the optimum; FRESH_PASSES from
+a start that is not this QP's own last stop). Where they did not settle it returns the clipped point and keeps the
+partition its last pass chose, and the next solve that starts from that very point goes on from it (on the same f,
+with its count of wrong sides, so that a cycle still goes to the primal method). Streamed, a frame's QP barely moves
+from the last, so each frame is one semismooth Newton step (block pivoting is one: Hintermueller, Ito & Kunisch 2003)
+on the current data from the last iterate -- the real-time iteration of Diehl, Bock & Schloeder 2005 (SIAM J. Control
+Optim. 43(5)): inexact on a frame, it tracks the optimum over frames, and on a QP that stays the same it reaches the
+exact optimum (tests/test_marker_space_qp.py). kalman's stream asks for one pass (at 72 x 1000 its step a quarter
+cheaper, the weights' RMSE against the synthetic takes' truth no worse: docs/performance.md, "`kalman` at 72 x 1000:
+one block-pivoting pass a frame"); the qp mode and every offline solve stay exact.
 """
 
 from __future__ import annotations
@@ -53,8 +54,7 @@ from solvers.marker_space_kernels import repartition, rhs, x_and_gradient
 
 REFRESH = 64  # updates of the kept marker-space matrix before it is formed afresh
 WOODBURY = 8  # at most this many columns changed from the kept factor's free set: solved through it, no refactor
-FRAME_PASSES = 1  # passes a call runs before it stops unsettled (clipped, its partition carried to the next); 0: exact
-FRESH_PASSES = 2  # the same from a start that is not this QP's own last stop (FRAME_PASSES > 0)
+FRESH_PASSES = 2  # a bounded solve's passes (frame_passes > 0) from a start that is not this QP's own last stop
 PIVOT_BUDGET = 3  # block-pivoting passes without fewer wrong sides before the primal active-set method takes over
 
 
@@ -148,28 +148,32 @@ class MarkerSpaceQP:
         y = self._solve_S(~(at_lo | at_hi), self.J @ rhs(fG, self.dinv, self.lo, self.hi, at_lo, at_hi))
         return x_and_gradient(self.J.T @ y, fG, self.d, self.dinv, self.lo, self.hi, at_lo, at_hi)
 
-    def begin(self, f: np.ndarray, x0: np.ndarray, passes: int) -> None:
-        """The first ``passes`` passes of ``solve(f, x0)`` now; a ``solve`` of the same f and x0 next continues
-        where they stopped (the same passes in the same order, so the same x): one solve spread over two frames."""
+    def begin(self, f: np.ndarray, x0: np.ndarray, passes: int, frame_passes: int = 0) -> None:
+        """The first ``passes`` passes of ``solve(f, x0, frame_passes)`` now; that solve next continues where they
+        stopped (the same passes in the same order, so the same x): one solve spread over two frames."""
         f, x0 = np.array(f, dtype=np.float64), np.array(x0, dtype=np.float64)
         self._begun = None
-        self._begun = (f, x0, self._pivot(f, x0, min(int(passes), self.max_iter)))
+        self._begun = (f, x0, self._pivot(f, x0, min(int(passes), self.max_iter), frame_passes=frame_passes))
 
-    def solve(self, f: np.ndarray, x0: np.ndarray) -> np.ndarray | None:
+    def solve(self, f: np.ndarray, x0: np.ndarray, frame_passes: int = 0) -> np.ndarray | None:
+        """The optimum from ``x0`` (None where ``max_iter`` passes did not settle); with ``frame_passes`` > 0 at most
+        that many passes, the clipped point where they did not settle, the next solve from it going on (the
+        real-time iteration above)."""
         f, x0 = np.asarray(f, dtype=np.float64), np.asarray(x0, dtype=np.float64)
         begun, self._begun = self._begun, None
         state = None
         if begun is not None and np.array_equal(begun[0], f) and np.array_equal(begun[1], x0):
             state = begun[2]
         if state is None or not isinstance(state[0], str):
-            state = self._pivot(f, x0, self.max_iter, state)
+            state = self._pivot(f, x0, self.max_iter, state, frame_passes)
         return state[1]
 
-    def _pivot(self, f: np.ndarray, x0: np.ndarray, stop: int, state: tuple | None = None) -> tuple:
+    def _pivot(self, f: np.ndarray, x0: np.ndarray, stop: int, state: tuple | None = None,
+               frame_passes: int = 0) -> tuple:
         """Block-pivoting passes up to pass ``stop``: ("done", x or None) where they settled, handed over to the
         primal method or ran out of ``max_iter``; else the state to continue from."""
         fG = f[self.G] if self._C is None else f[self.G] - self._A.T @ f[self.P]
-        passes = FRAME_PASSES
+        passes = int(frame_passes)
         if state is None:
             x = x0[self.G]
             state = (x <= self.lo, x >= self.hi, len(x) + 1, PIVOT_BUDGET, 0)

@@ -24,13 +24,15 @@ class HeldOutStrength:
 
     def __init__(self, basis: np.ndarray, lower: np.ndarray, upper: np.ndarray, mean: np.ndarray,
                  precision: np.ndarray, grid: np.ndarray, folds: int = 5, decay: float = 1.0, seed: int = 0,
-                 unbounded: bool = False) -> None:
-        """``unbounded``: also build the maps of :meth:`observe_unbounded` (a streamed selector's trials)."""
+                 unbounded: bool = False, frame_passes: int = 0) -> None:
+        """``unbounded``: also build the maps of :meth:`observe_unbounded` (a streamed selector's trials);
+        ``frame_passes``: the trial fits' passes a frame in marker space (``solvers.qp.FrameQP``)."""
         self.basis = np.asarray(basis, float)
         self.lower, self.upper = np.asarray(lower, float), np.asarray(upper, float)
         n = self.basis.shape[0] // 3
         self.grid = np.asarray(grid, float)
-        self.qps = [FrameQP(basis, lower, upper, prior=(mean, precision), prior_weight=float(a)) for a in self.grid]
+        self.qps = [FrameQP(basis, lower, upper, prior=(mean, precision), prior_weight=float(a),
+                            frame_passes=frame_passes) for a in self.grid]
         self.fold_of = np.random.default_rng(seed).permutation(n) % folds
         self.folds, self.decay = folds, decay
         self._fold_markers = [np.flatnonzero(self.fold_of == f) for f in range(folds)]

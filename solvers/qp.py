@@ -141,10 +141,12 @@ class FrameQP:
     def __init__(self, basis: np.ndarray, lower: np.ndarray, upper: np.ndarray, ridge: float = 0.0,
                  temporal: float = 0.0, marker_weights: np.ndarray | None = None,
                  prior: tuple[np.ndarray, np.ndarray] | None = None, prior_weight: float = 0.0,
-                 cache_size: int = 32, like: FrameQP | None = None) -> None:
+                 cache_size: int = 32, like: FrameQP | None = None, frame_passes: int = 0) -> None:
         """``like``: a FrameQP on the same basis and marker weights (kalman's fit at another prior strength) whose
         B'M^2 this one reads instead of a copy of its own: a frame reads all of it, and a fit that takes over from
-        another found its copy out of the caches (issue 39)."""
+        another found its copy out of the caches (issue 39). ``frame_passes``: where a frame is solved in marker
+        space, at most that many block-pivoting passes a ``step`` (the real-time iteration of
+        solvers.marker_space_qp; 0: every frame to its optimum); ``step_take`` always solves to the optimum."""
         self.basis = np.asarray(basis, dtype=np.float64)
         if self.basis.ndim != 2 or self.basis.shape[0] % 3:
             raise ValueError(f"basis must be 3n x m, got {self.basis.shape}")
@@ -179,6 +181,7 @@ class FrameQP:
         self._limits: tuple | None = None
         self.linear = np.zeros(self.m)  # a linear term callers may change per frame (e.g. an L1 penalty)
         self.cache_size = int(cache_size)
+        self.frame_passes = int(frame_passes)
         self._models: OrderedDict[bytes, _Workspace] = OrderedDict()
         self._all_seen = np.ones(self.n, bool).tobytes()
         self._all_rows = np.ones(3 * self.n, bool)
@@ -327,6 +330,15 @@ class FrameQP:
                 W[t] = self.step(S[t], seen_all[t])
             return W
         keys = [row.tobytes() for row in seen_all]
+        passes, self.frame_passes = self.frame_passes, 0  # offline: no frame deadline, every frame to its optimum
+        try:
+            self._step_blocks(S, seen_all, keys, W, block)
+        finally:
+            self.frame_passes = passes
+        return W
+
+    def _step_blocks(self, S: np.ndarray, seen_all: np.ndarray, keys: list[bytes], W: np.ndarray, block: int) -> None:
+        T = len(S)
         for b in range(0, T, block):
             e = min(T, b + block)
             D = np.where(np.repeat(seen_all[b:e], 3, axis=1), S[b:e], 0.0) @ self._BtD.T
@@ -338,7 +350,6 @@ class FrameQP:
                 self._update_linear()
                 ws = self._frame_workspace(keys[t], seen_all[t])
                 W[t] = self._prev if ws is None else self._advance(keys[t], ws, D[t - b])
-        return W
 
     def _frame_workspace(self, key: bytes, seen: np.ndarray) -> _Workspace | None:
         """The workspace of this frame's pattern (None when no marker is seen: hold the weights)."""
@@ -426,7 +437,7 @@ class FrameQP:
             f = self._linear_term(ws, self._BtD @ (s if ws.rows is None else np.where(ws.rows, s, 0.0)))
         if ws.marker_space is False:
             return None, f
-        x = ws.marker_space.solve(f, self._prev)
+        x = ws.marker_space.solve(f, self._prev, self.frame_passes)
         self.iterations = ws.marker_space.iterations
         return x, f
 
@@ -447,7 +458,7 @@ class FrameQP:
         if ws.marker_space is False:
             return False
         f = self._linear_term(ws, self._BtD @ (s if ws.rows is None else np.where(ws.rows, s, 0.0)))
-        ws.marker_space.begin(f, self._prev, passes)
+        ws.marker_space.begin(f, self._prev, passes, self.frame_passes)
         return True
 
     def _build_marker_space(self, ws: _Workspace) -> None:

@@ -156,14 +156,13 @@ def test_a_prepared_pattern_is_known_and_solves_as_an_unprepared_one():
     assert prepared.cached_patterns == 1  # the step built nothing more
 
 
-def test_a_marker_space_trial_begun_on_its_frame_scores_as_one(monkeypatch):
+def test_a_marker_space_trial_begun_on_its_frame_scores_as_one():
     """At many shapes (the marker-space path: 8 markers, 80 shapes and a pose) a known pattern's trial is begun
     on the frame it is due (its first passes) and finished on the next, with the score of a whole trial (solved
-    exactly: with solvers.marker_space_qp.FRAME_PASSES each frame's call is bounded, so a split trial runs more
-    passes than a whole one)."""
+    exactly, the default: with ``frame_passes`` each frame's call is bounded, so a split trial runs more passes
+    than a whole one)."""
     from tests.test_marker_space_qp import _rig
 
-    monkeypatch.setattr("solvers.marker_space_qp.FRAME_PASSES", 0)
     (B, lo, hi, mean, P), rng = _rig(8, 80)
     args = (B, lo, hi, mean, P, np.array([1e-2, 1e-1]))
     split, whole = (HeldOutStrength(*args, folds=4) for _ in range(2))

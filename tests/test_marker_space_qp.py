@@ -15,12 +15,6 @@ from solvers.pose_refine import RigidColumns
 from solvers.qp import FrameQP
 
 
-@pytest.fixture(autouse=True)
-def _exact(monkeypatch):
-    """The tests below are of the exact solve (every pass to the optimum); those of the bounded one set it."""
-    monkeypatch.setattr("solvers.marker_space_qp.FRAME_PASSES", 0)
-
-
 def _problem(rng, r: int, n: int, p: int, dmin: float = 1e-3):
     """r rows, n bounded weights (some limits infinite), p unpenalised unbounded columns (a pose)."""
     J = rng.normal(0, 2, (r, n + p))
@@ -203,12 +197,10 @@ def test_frameqp_begin_then_step_equals_step():
 @given(seed=st.integers(0, 2**32 - 1), r=st.integers(3, 24), n=st.integers(1, 60), p=st.integers(0, 3),
        passes=st.integers(1, 3))
 def test_bounded_solves_carry_their_partition_to_the_optimum(seed, r, n, p, passes):
-    """FRAME_PASSES: a solve stops after that many passes at a feasible point and the next solve from it goes on
+    """frame_passes: a solve stops after that many passes at a feasible point and the next solve from it goes on
     from the partition it stopped at, so that solving the same QP again and again (a still actor) reaches the
     exact solve's optimum, KKT and all; a settled solve is the exact one."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("solvers.marker_space_qp.FRAME_PASSES", passes)
-        _bounded_solves(seed, r, n, p, passes)
+    _bounded_solves(seed, r, n, p, passes)
 
 
 def _settle(q, H, f, x, passes):
@@ -217,7 +209,7 @@ def _settle(q, H, f, x, passes):
     from solvers.marker_space_qp import FRESH_PASSES
 
     for call in range(300):
-        x = q.solve(f, x)
+        x = q.solve(f, x, passes)
         assert np.all(x >= q.limits[0]) and np.all(x <= q.limits[1])
         try:
             _kkt(H, f, *q.limits, x, 1e-9)
@@ -246,34 +238,32 @@ def _bounded_solves(seed, r, n, p, passes):
 def test_a_bounded_solve_from_another_start_does_not_take_the_carried_partition(monkeypatch):
     """The carried partition belongs to the x the solve returned: from any other start (a strength switch warms
     the fit from another QP's x) the partition is the start's own and the solve the exact one."""
-    monkeypatch.setattr("solvers.marker_space_qp.FRAME_PASSES", 1)
     rng = np.random.default_rng(5)
     J, d, lo, hi, f = _problem(rng, 12, 60, 0, dmin=0.1)
     a, b = MarkerSpaceQP(J, d, lo, hi), MarkerSpaceQP(J, d, lo, hi)
-    x = a.solve(f + rng.normal(0, 3, 60), a.solve(f, np.clip(np.zeros(60), lo, hi)))
+    x = a.solve(f + rng.normal(0, 3, 60), a.solve(f, np.clip(np.zeros(60), lo, hi), 1), 1)
     assert a.iterations == 1 and a._carry is not None  # one pass from its own stop
     start = np.clip(rng.normal(0, 1, 60), lo, hi)
-    np.testing.assert_allclose(a.solve(f, start), b.solve(f, start), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(a.solve(f, start, 1), b.solve(f, start, 1), rtol=0, atol=1e-10)
     assert not np.array_equal(x, start)
 
 
 def test_a_bounded_solve_runs_fresh_passes_from_another_start_and_frame_passes_from_its_own_stop(monkeypatch):
     """From a start that is not its own last stop (another pattern's or strength's x: its clipped point holds the
     weights its last pass freed at their limits) a solve runs FRESH_PASSES; the next frame's from the x it returned,
-    FRAME_PASSES, from the partition that stop chose (not the clipped point's)."""
+    frame_passes, from the partition that stop chose (not the clipped point's)."""
     import solvers.marker_space_qp as msq
 
-    monkeypatch.setattr(msq, "FRAME_PASSES", 1)
     rng = np.random.default_rng(11)
     J, d, lo, hi, f = _problem(rng, 12, 60, 0, dmin=0.1)
     q = MarkerSpaceQP(J, d, lo, hi)
-    x = q.solve(f, np.clip(np.zeros(60), lo, hi))
+    x = q.solve(f, np.clip(np.zeros(60), lo, hi), 1)
     assert q.iterations == msq.FRESH_PASSES
     calls = []
     sub = q._subproblem
     monkeypatch.setattr(q, "_subproblem", lambda fG, a, b: calls.append((a.copy(), b.copy())) or sub(fG, a, b))
     g = f + rng.normal(0, 3, 60)  # the next frame's data
-    y = q.solve(g, x)
+    y = q.solve(g, x, 1)
     assert q.iterations == 1 and q._carry is not None and q._carry[0] is y
     xG = x[q.G]
     assert not (np.array_equal(calls[0][0], xG <= lo) and np.array_equal(calls[0][1], xG >= hi))  # the stop's own

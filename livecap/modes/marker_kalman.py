@@ -58,6 +58,8 @@ from solvers.qp import MARKER_SPACE_RATIO, FrameQP
 from solvers.tracking import IMMFilter, NoiseShrink, RotatedIMM, dwna_variance, variances_along
 
 STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it balances)
+STREAM_PASSES = 1  # streaming, marker-space fits and trials (72 x 1000): block-pivoting passes a frame (0: exact;
+# docs/performance.md, "`kalman` at 72 x 1000: one block-pivoting pass a frame"); offline solves are exact
 STREAM_HALF_LIFE_FRAMES = 600.0  # memory of the streaming held-out choice
 STRENGTH_TRIAL_EVERY = 2  # streaming: frames per held-out strength trial (4: demo take RMSE +13 %, see docs)
 TRIAL_LATE_FRAMES = 2  # streaming: frames a trial part may wait while the fit meets new visibility patterns
@@ -146,7 +148,7 @@ class MarkerKalmanSolver:
         if k not in self._fits:
             B, lower, upper, mean, precision = self.joint
             self._fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(STRENGTHS[k]),
-                                    like=next(iter(self._fits.values()), None))
+                                    like=next(iter(self._fits.values()), None), frame_passes=STREAM_PASSES)
         return self._fits[k]
 
     def _spread_of(self, k: int) -> np.ndarray:
@@ -472,7 +474,7 @@ def _selector(joint: tuple, decay: float) -> HeldOutStrength:
     space (fewer shapes than MARKER_SPACE_RATIO x the marker coordinates: ICT, 72 x 150), with its trials' unbounded
     maps."""
     B = joint[0]
-    return HeldOutStrength(*joint, STRENGTHS, decay=decay,
+    return HeldOutStrength(*joint, STRENGTHS, decay=decay, frame_passes=STREAM_PASSES,
                            unbounded=B.shape[1] < MARKER_SPACE_RATIO * B.shape[0])
 
 
@@ -488,7 +490,8 @@ def _warmed_fits(joint: tuple, n_markers: int, m: int) -> tuple[dict[int, FrameQ
     B, lower, upper, mean, precision = joint
     fits, spreads = {}, {}
     for k, a in enumerate(STRENGTHS):
-        fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(a), like=fits.get(0))
+        fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(a), like=fits.get(0),
+                          frame_passes=STREAM_PASSES)
         fits[k].step(np.zeros(3 * n_markers), np.ones(n_markers, bool))
         fits[k].reset()
         fits[k].prepare_marker_space()
