@@ -4,6 +4,9 @@
   ``benchmarks.kalman_step``: 0.5 mm, 5 % occlusion, the prior from the other files), thread CPU per ``step``
   p50 / p99 / mean after 50 frames, for robust, kalman, and kalman with its held-out strength trial switched
   off (not a mode: the floor the rest of its step sets);
+* paced (``--only paced``, not in a default run): the same, each frame handed over at its time in the take's
+  60 Hz stream as ``livecap run`` receives it, so the prior check's thread works between frames (unpaced, the
+  benchmark steps ~200x faster than real time and the frame thread waits for every check at its swap);
 * 72x1000: the synthetic rig of ``benchmarks.synthetic`` (every marker seen, a ridge), robust, kalman and kalman
   without its trial (``--only 72x1000`` runs it alone; kalman's fit there is solved in marker space,
   solvers/marker_space_qp.py);
@@ -43,12 +46,19 @@ if str(ROOT) not in sys.path:  # run as a file: PYTHONPATH's packages first (an 
 from benchmarks.kalman_step import REAL, WARMUP, _build, _stats, real_case, synthetic_case  # noqa: E402
 
 
-def _stream(solver, targets, valid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weights, thread CPU and wall (µs) of every ``step``."""
+def _stream(solver, targets, valid, pace_hz: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weights, thread CPU and wall (µs) of every ``step``; with ``pace_hz`` each frame is handed over at its time
+    in a stream of that rate, as a live source delivers it (the prior check's thread then runs between frames, as it
+    does live, instead of the frame thread waiting for it at a swap)."""
     W = []
     cpu, wall = np.empty(len(targets)), np.empty(len(targets))
     thread, clock = time.thread_time_ns, time.perf_counter_ns
+    start = clock()
     for i in range(len(targets)):
+        if pace_hz > 0:
+            late = (clock() - start) / 1e9 - i / pace_hz
+            if late < 0:
+                time.sleep(-late)
         c0, t0 = thread(), clock()
         W.append(solver.step(targets[i], valid[i]))
         t1, c1 = clock(), thread()
@@ -56,15 +66,15 @@ def _stream(solver, targets, valid) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return np.array(W), cpu, wall
 
 
-def streamed(profile, targets, valid, options, floor: bool = True) -> tuple[dict, np.ndarray]:
+def streamed(profile, targets, valid, options, floor: bool = True, pace_hz: float = 0.0) -> tuple[dict, np.ndarray]:
     """robust, kalman (and kalman without its strength trial) over the same frames, thread CPU (µs; wall beside)
-    and the ratios to robust; kalman's weights."""
+    and the ratios to robust; kalman's weights. ``pace_hz``: frames handed over at that rate (:func:`_stream`)."""
     out, weights = {}, None
     for label in ("robust", "kalman", "kalman, no strength trial") if floor else ("robust", "kalman"):
         solver = _build(profile, options, label.split(",")[0])
         if label.endswith("trial"):
             solver._trial = lambda *a, **k: None  # on the solver: a widened prior replaces its selector
-        W, cpu, wall = _stream(solver, targets, valid)
+        W, cpu, wall = _stream(solver, targets, valid, pace_hz)
         out[label] = {**_stats(cpu[WARMUP:]), "wall": _stats(wall[WARMUP:])}
         if label == "kalman":
             weights = W
@@ -345,7 +355,7 @@ def marker_space(free: int = 530, rows: int = 216, m: int = 1006, reps: int = 20
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="20 s of each real take, 60 frames at 72x1000")
-    parts = ["streamed", "72x1000", "offline", "numba", "marker-space", "profile"]
+    parts = ["streamed", "paced", "72x1000", "offline", "numba", "marker-space", "profile"]
     p.add_argument("--skip", nargs="*", default=[], choices=parts)
     p.add_argument("--only", nargs="*", default=[], choices=parts, help="run these parts alone (e.g. 72x1000)")
     p.add_argument("--frames", type=int, default=400, help="frames of the 72x1000 take (default 400)")
@@ -362,6 +372,11 @@ def main() -> int:
         for name in REAL:
             label = f"ict {name}"
             res[label], saved[label] = streamed(*real_case(name, 20.0 if a.quick else 0.0))
+    if "paced" in a.only:  # not in a default run: it takes the takes' own duration
+        for name in REAL:
+            case = real_case(name, 20.0 if a.quick else 0.0)
+            res[f"ict {name}, paced"] = {**streamed(*case, floor=False, pace_hz=case[3]["rate"])[0],
+                                         "rate_hz": case[3]["rate"]}
     if "profile" in a.only:  # not in a default run: it wraps the solver's parts
         for name in REAL:
             res[f"profile ict {name}"] = frame_profile(*real_case(name, 20.0 if a.quick else 0.0))
