@@ -17,6 +17,31 @@ def test_streamed_sets_kalman_beside_robust_and_returns_its_weights():
     assert res["kalman / robust"]["p50"] == res["kalman"]["p50"] / res["robust"]["p50"]
 
 
+def test_a_paced_stream_hands_each_frame_over_at_its_time():
+    """``--only paced``: frame i is stepped no sooner than i / rate after the first (as a live source delivers it),
+    with the same weights as unpaced."""
+    import time
+
+    profile, targets, valid, options = synthetic_case(12, 8, 12)
+    handed = []
+
+    class Clocked:
+        def __init__(self, solver):
+            self.solver = solver
+
+        def step(self, target, seen):
+            handed.append(time.perf_counter())
+            return self.solver.step(target, seen)
+
+    from benchmarks.kalman_step import _build
+
+    W, cpu, wall = kalman_speed._stream(Clocked(_build(profile, options, "robust")), targets, valid, pace_hz=100.0)
+    late = np.array(handed) - handed[0] - np.arange(12) / 100.0
+    assert late.min() > -1e-3 and cpu.shape == wall.shape == (12,)
+    W0, _, _ = kalman_speed._stream(_build(profile, options, "robust"), targets, valid)
+    np.testing.assert_array_equal(W, W0)
+
+
 def test_marker_space_primitives_are_timed():
     out = kalman_speed.marker_space(free=20, rows=12, m=40, reps=2)
     assert set(out["median_us"]) == {"weight-space Cholesky of H_FF", "marker-space factor, fresh",
