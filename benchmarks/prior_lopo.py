@@ -8,10 +8,17 @@ branch prior3), and checked with its mean re-centred on the actor instead, strea
 doubles (today's code). "As given" is the prior at its own covariance throughout; the checked variants start, as
 the solver does, from twice it until their first check (marker_kalman.UNCHECKED_SPREAD). Each row also gives its
 *pull*: the share of its squared error that is a constant per-shape bias.
+``--offline``: the offline solve only (as ``livecap solve``), with the diagnoses of S88-001's offline loss
+(docs/robustness.md, "Issue 41: S88-001 offline with another performers' prior"): the variants "prior, mean as
+given" (checked, its mean not moved) and "prior, no mean spread" (re-centred, the mean's posterior covariance left
+out of the precision); ``--strength K`` holds a prior's strength at ``marker_kalman.STRENGTHS[K]``, ``--evidence``
+picks it by the frames' marginal likelihood instead of the held-out markers, ``--true-mean NAMES`` sets the checked
+mean of those shapes to the take's true mean (a ceiling, not a method).
 Performers are the sources' folders (../shared/realdata/performance/README.md): alexdjulin's anim/ (alex_rom_3,
 alex_rom_4, S07-001, S88-001), his csv/ (apfel), JMTechArt (MySlate).
 
     python -m benchmarks.prior_lopo [--noise 0.5] [--seconds 10] [--json out.json]
+    python -m benchmarks.prior_lopo --offline --variants "no prior" "prior re-centred" [--strength K | --evidence]
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -61,6 +69,91 @@ def _recentre_widen(solver, targets, valid, noise_mm, tol=1e-2):
                        solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, outside=10.0, tol=tol)
 
 
+def _mean_as_given(solver, targets, valid, noise_mm, tol=1e-2):
+    """Checked as today, the prior's own mean kept (the mean's posterior spread kept too)."""
+    from solvers.prior_support import widen_prior
+
+    s = widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
+                    solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, tol=tol)
+    return type(s)(s.axes, s.before, s.after, s.noise_var, s.iterations, solver._mean0.copy(), s.mean_cov)
+
+
+def _no_mean_spread(solver, targets, valid, noise_mm, tol=1e-2):
+    """Re-centred as today, the precision the prior's own (the mean's posterior covariance left out)."""
+    from solvers.prior_support import widen_prior
+
+    s = widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
+                    solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, tol=tol)
+    return type(s)(s.axes, s.before, s.after, s.noise_var, s.iterations, s.mean, None)
+
+
+def evidence_strength(basis: np.ndarray, mean: np.ndarray, precision: np.ndarray, grid: np.ndarray,
+                      targets: np.ndarray, valid: np.ndarray, m: int) -> np.ndarray:
+    """Log marginal likelihood of the frames per strength a, up to a constant (type-II ML, Bishop 2006 §3.5):
+    w ~ N(mean, s2 / a P^-1) on the first m columns, the rest (the pose) flat, x_t = B w_t + e_t, e_t ~ N(0, s2 I)
+    on each frame's visible markers, s2 at its maximum for each a."""
+    B = np.asarray(basis, float)
+    n3 = B.shape[0]
+    ok = np.asarray(valid, bool).reshape(len(valid), n3 // 3)
+    Z = np.where(np.repeat(ok, 3, axis=1), np.asarray(targets, float).reshape(len(ok), n3) - B @ mean, 0.0)
+    keep = ok.sum(1) >= 3
+    Z, ok = Z[keep], ok[keep]
+    Bm = B.reshape(n3 // 3, 3, -1)
+    G = np.einsum("tn,nik,nil->tkl", ok.astype(float), Bm, Bm, optimize=True)
+    b, c = Z @ B, (Z**2).sum(1)
+    dof = 3 * ok.sum() - (B.shape[1] - m) * len(Z)
+    logdet_p = np.linalg.slogdet(precision[:m, :m])[1]
+    out = []
+    for a in grid:
+        H = G + a * precision[None]
+        q = (c - (b * np.linalg.solve(H, b[..., None])[..., 0]).sum(1)).sum()
+        out.append(-0.5 * (dof * np.log(q / dof) + np.linalg.slogdet(H)[1].sum() - len(Z) * (m * np.log(a) + logdet_p)))
+    return np.array(out)
+
+
+def _offline_rows(rig, layout, ct, prior, opts, strength: int | None, evidence: bool, true_mean: list[str]) -> list:
+    """The oracle and ``kalman``'s offline row; a prior's strength held (``strength``) or by the evidence, the checked
+    mean of the ``true_mean`` shapes set to the take's (the held-out markers' choice and the one used in
+    ``.picks``)."""
+    from livecap.modes import marker_kalman
+    from livecap.offline.real_eval import oracle_weights, plain_profile, score
+    from livecap.offline.solve import solve_take
+
+    chosen, support = marker_kalman.take_strength, marker_kalman.MarkerKalmanSolver._support
+    picks: dict = {}
+
+    def take_strength(B, mean, precision, grid, targets, valid, **kw):
+        best, err, used = chosen(B, mean, precision, grid, targets, valid, **kw)
+        picks["held-out"] = best
+        if prior is not None and evidence:
+            best = int(np.argmax(evidence_strength(B, mean, precision, grid, targets, valid, len(rig.names))))
+        elif prior is not None and strength is not None:
+            best = strength
+        picks["used"] = best
+        return best, err, used
+
+    idx = [rig.names.index(n) for n in true_mean]
+
+    def truth_in(solver, *a, **kw):
+        s = support(solver, *a, **kw)
+        mu = s.mean.copy()
+        mu[idx] = ct.weights[:, idx].mean(0)
+        return type(s)(s.axes, s.before, s.after, s.noise_var, s.iterations, mu, s.mean_cov)
+
+    profile = plain_profile(rig, layout, ct)
+    profile.prior = prior
+    marker_kalman.take_strength = take_strength
+    marker_kalman.MarkerKalmanSolver._support = truth_in
+    try:
+        t0 = time.perf_counter()
+        solved = solve_take(ct.take, profile, marker_kalman.kalman_mode(profile, opts["kalman"]))
+        row = score("kalman offline", rig, ct, solved.weights, time.perf_counter() - t0)
+    finally:
+        marker_kalman.take_strength, marker_kalman.MarkerKalmanSolver._support = chosen, support
+    row.picks = dict(picks)
+    return [score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), 0.0), row]
+
+
 def main(argv: list[str] | None = None) -> int:
     from livecap.calibration.animation_prior import build_prior
     from livecap.cli.realeval import _realdata, _rig
@@ -76,6 +169,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--variants", nargs="+", default=["no prior", "prior as given", "prior widened",
                                                        "prior re-centred"],
                    help="also: 'prior re-centred 1 s' (checked once), 'prior re-centred, widened' (the variance too)")
+    p.add_argument("--offline", action="store_true", help="the offline solve only (and the diagnoses below)")
+    p.add_argument("--strength", type=int, help="--offline: a prior's strength held at STRENGTHS[K]")
+    p.add_argument("--evidence", action="store_true", help="--offline: a prior's strength by the frames' evidence")
+    p.add_argument("--true-mean", nargs="+", default=[], help="--offline: these shapes' checked mean set to the truth")
     p.add_argument("--json")
     args = p.parse_args(argv)
     rig, layout = _rig("ict")
@@ -97,7 +194,9 @@ def main(argv: list[str] | None = None) -> int:
                                             ("prior widened", prior, _widen_only, False),
                                             ("prior re-centred", prior, support, True),
                                             ("prior re-centred 1 s", prior, support, False),
-                                            ("prior re-centred, widened", prior, _recentre_widen, True)):
+                                            ("prior re-centred, widened", prior, _recentre_widen, True),
+                                            ("prior, mean as given", prior, _mean_as_given, True),
+                                            ("prior, no mean spread", prior, _no_mean_spread, True)):
                 if label not in args.variants:
                     continue
                 marker_kalman.SUPPORT_GROWTH = growth if recheck else float("inf")
@@ -105,23 +204,29 @@ def main(argv: list[str] | None = None) -> int:
                 marker_kalman.MarkerKalmanSolver._use_support = _as_given if how is None else check
                 marker_kalman.MarkerKalmanSolver._support = how or support
                 t0 = time.perf_counter()
-                rows = evaluate_curve_take(rig, layout, ct, ["kalman"], opts, pr)
+                if args.offline:
+                    rows = _offline_rows(rig, layout, ct, pr, opts, args.strength, args.evidence, args.true_mean)
+                else:
+                    rows = evaluate_curve_take(rig, layout, ct, ["kalman"], opts, pr)
                 oracle = rows[0]
                 for r in rows[1:]:
                     rec = {"noise_mm": noise, "file": name, "prior": label, "mode": r.mode, "rmse": r.rmse,
                            "rmse_x": r.rmse / oracle.rmse, "p95_mm": r.p95_mm, "p95_x": r.p95_mm / oracle.p95_mm,
-                           "jitter_x": r.jitter_x, "blink": r.blink, "pull": _pull(r), "bias": _top_bias(r)}
+                           "jitter_x": r.jitter_x, "blink": r.blink, "pull": _pull(r), "bias": _top_bias(r),
+                           "strength": getattr(r, "picks", None)}
                     out.append(rec)
                     print(f"{noise:g} mm {name:32s} {label:15s} {r.mode:15s} RMSE {r.rmse:.4f} ({rec['rmse_x']:.2f}x) "
                           f"p95 {r.p95_mm:.2f} ({rec['p95_x']:.2f}x) jitter {r.jitter_x:.2f} blink {r.blink:.2f} "
-                          f"pull {rec['pull']:.2f} "
+                          f"pull {rec['pull']:.2f} {rec['strength'] or ''} "
                           f"[{time.perf_counter() - t0:.0f} s]", flush=True)
     marker_kalman.MarkerKalmanSolver._use_support = check
     marker_kalman.MarkerKalmanSolver._support = support
     marker_kalman.SUPPORT_GROWTH, marker_kalman.UNCHECKED_SPREAD = growth, spread
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": platform.node(), "date": time.strftime("%Y-%m-%d %H:%M"),
-                                               "seconds": args.seconds, "rows": out}, indent=1))
+                                               "load": Path("/proc/loadavg").read_text().split()[:3],
+                                               "seconds": args.seconds, "argv": sys.argv[1:] if argv is None else argv,
+                                               "rows": out}, indent=1))
     return 0
 
 
