@@ -120,14 +120,37 @@ def test_prior_lopo_stands_in_for_the_prior_check_with_its_signature():
     check's signature grew, the stand-in raised on every streamed take (counted solver errors, rows still printed)."""
     import inspect
 
-    from benchmarks.prior_lopo import _as_given, _recentre_widen, _widen_only
+    from benchmarks.prior_lopo import _as_given, _mean_as_given, _no_mean_spread, _recentre_widen, _widen_only
     from livecap.modes.marker_kalman import MarkerKalmanSolver
 
     check = inspect.signature(MarkerKalmanSolver._use_support)
     assert len(inspect.signature(_as_given).parameters) == len(check.parameters)
     support = inspect.signature(MarkerKalmanSolver._support).parameters
-    for stand_in in (_widen_only, _recentre_widen):  # the offline check passes its tolerance (branch koff3)
+    # the offline check passes its tolerance (branch koff3)
+    for stand_in in (_widen_only, _recentre_widen, _mean_as_given, _no_mean_spread):
         assert list(inspect.signature(stand_in).parameters)[1:] == list(support)[1:], stand_in
+
+
+def test_prior_lopo_evidence_peaks_at_the_strength_the_frames_were_drawn_with():
+    """benchmarks.prior_lopo --evidence: w ~ N(mean, s2 / a P^-1), x = B w + pose + noise s2, some markers hidden;
+    the log evidence over the grid is highest at the a the frames were drawn with (a flat pose column beside the
+    shapes, 10 % of the markers hidden)."""
+    from benchmarks.prior_lopo import evidence_strength
+
+    rng = np.random.default_rng(3)
+    n, m, T, s2 = 12, 4, 1500, 0.25
+    grid = np.logspace(-3, 1, 9)
+    B = np.hstack([rng.normal(size=(3 * n, m)), np.tile(np.eye(3), (n, 1))[:, :1]])  # the shapes, one pose column
+    A = rng.normal(size=(m, m))
+    P = np.zeros((m + 1, m + 1))
+    P[:m, :m] = A @ A.T + m * np.eye(m)
+    mean = np.r_[rng.normal(size=m), 0.0]
+    for true in (1, 4, 7):
+        W = mean[:m] + rng.multivariate_normal(np.zeros(m), s2 / grid[true] * np.linalg.inv(P[:m, :m]), T)
+        X = np.hstack([W, rng.normal(0, 5, (T, 1))]) @ B.T + rng.normal(0, np.sqrt(s2), (T, 3 * n))
+        ok = rng.random((T, n)) > 0.1
+        ev = evidence_strength(B, mean, P, grid, X, ok, m)
+        assert int(np.argmax(ev)) == true, (true, ev)
 
 
 def test_prior_blink_records_a_stream_and_puts_the_solver_back():
