@@ -369,8 +369,8 @@ def _wall_parts(spans: dict, sent: float, last_in: float, solve: float, cpu: dic
     its idle gaps between takes, and its idle tail (its last take ended to the last result in); with every
     process's CPU over the same span (``_cpu_now``)."""
     parts = []
-    for w, s in spans.items():
-        s = sorted(s)
+    for worker_spans in spans.values():
+        s = sorted(worker_spans)
         parts.append({"takes": len(s), "to_first_s": s[0][0] - sent, "busy_s": sum(b - a for a, b in s),
                       "gaps_s": sum(b[0] - a[1] for a, b in pairwise(s)), "tail_s": last_in - s[-1][1]})
     return {"per_worker": parts, "process_cpu_s": cpu, "last_result_s": last_in - sent, "solve_wall_s": solve}
