@@ -150,8 +150,6 @@ def _written_row(job: Job) -> dict | None:
     """A solved take's row as its worker wrote it (the record, complete before the task ends), read here instead
     of fetched from the worker: no gather round trip (client, scheduler, worker and back) per take; None if there
     is no record (a failed take), and the row is then fetched."""
-    if os.environ.get("LIVECAP_BATCH_GATHER"):
-        return None
     try:
         return json.loads(job.record.read_text())
     except (OSError, ValueError):
