@@ -537,6 +537,19 @@ def _print_scale(res: dict) -> None:
               f"(CPU {b['two_loops_cpu_per_take_s']:.3f}, run {'before' if b['two_loops_first'] else 'after'} the "
               f"batch), batch {e['per_take_s']:.3f} (CPU {e['cpu_per_take_s']:.3f}): overhead wall "
               f"{e['overhead_vs_two_loops']:+.1%}, CPU {e['cpu_overhead_vs_two_loops']:+.1%} (goal <= 10%)")
+    print("the solving wall per worker (s): tasks sent to its first take begun / its takes' own wall / "
+          "idle between its takes / idle after its last take; CPU s per take of the livecap batch process")
+    for run in res["runs"]:
+        e = run["batch"]
+        if "per_worker" not in e:
+            continue
+        workers = sorted(e["per_worker"], key=lambda p: -p["takes"])
+        cpu = e["process_cpu_s"]
+        own = sum(v for k, v in cpu.items() if k.startswith("worker"))
+        print(f"{e['takes']:>5} takes, solving {e['solve_s']:.3f} s: " + "; ".join(
+            f"{p['takes']} takes: {p['to_first_s']:.3f} / {p['busy_s']:.3f} / {p['gaps_s']:.3f} / {p['tail_s']:.3f}"
+            for p in workers) + f"; workers' CPU {own:.2f} s; livecap batch process "
+            f"{(cpu['client_main'] + cpu['cluster_loop'] + cpu['other_threads']) / e['takes'] * 1000:.1f} ms/take")
     print("fixed costs against the take count N: c = a + b N, and c ~ N^p")
     fits = dict(res["fits"])
     ratio = fits.pop("per_take_cpu_ratio")
