@@ -550,6 +550,12 @@ def _print_scale(res: dict) -> None:
             f"{p['takes']} takes: {p['to_first_s']:.3f} / {p['busy_s']:.3f} / {p['gaps_s']:.3f} / {p['tail_s']:.3f}"
             for p in workers) + f"; workers' CPU {own:.2f} s; livecap batch process "
             f"{(cpu['client_main'] + cpu['cluster_loop'] + cpu['other_threads']) / e['takes'] * 1000:.1f} ms/take")
+        two = run["loop"]["two_loops_per_take_s"] * e["takes"] / 2  # the two loops' wall: each loop's share of takes
+        idle = sum(p["to_first_s"] + p["gaps_s"] + p["tail_s"] for p in workers) / len(workers)
+        busy = sum(p["busy_s"] for p in workers) / len(workers)
+        print(f"{'':>6}wall over two loops {e['overhead_vs_two_loops']:+.1%} = workers idle {idle / two:+.1%} "
+              f"(first task, gaps, tail) + takes' own wall {busy / two - 1:+.1%} "
+              f"(their CPU {e['cpu_overhead_vs_two_loops']:+.1%})")
     print("fixed costs against the take count N: c = a + b N, and c ~ N^p")
     fits = dict(res["fits"])
     ratio = fits.pop("per_take_cpu_ratio")
