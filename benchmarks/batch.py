@@ -88,10 +88,10 @@ def loop(profile: str, out: str, warm: str, takes: list[str], start_at: float | 
         fn(warm)
     if start_at is not None:
         time.sleep(max(0.0, start_at - time.time()))
-        cpu = time.process_time()
+        began, cpu = time.time(), time.process_time()
         for t in takes:
             one(t)
-        return {"ended": time.time(), "cpu": time.process_time() - cpu}
+        return {"ended": time.time(), "cpu": time.process_time() - cpu, "late": began - start_at}
     for t in takes:
         for name, fn in (("loop", one), ("job", job)):
             start, cpu = time.perf_counter(), time.process_time()
@@ -148,7 +148,8 @@ def _parallel_loops(k: int, profile: str, out: Path, warm: Path, takes: list[Pat
     with ThreadPoolExecutor(k) as pool:
         parts = list(pool.map(lambda i: _in_child("parallel_loop_main", repr(start_at), profile, str(out), str(warm),
                                                    *map(str, takes[i::k])), range(k)))
-    return {"wall": max(p["ended"] for p in parts) - start_at, "cpu": sum(p["cpu"] for p in parts)}
+    return {"wall": max(p["ended"] for p in parts) - start_at, "cpu": sum(p["cpu"] for p in parts),
+            "late_s": max(p["late"] for p in parts), "ended_s": sorted(p["ended"] - start_at for p in parts)}
 
 
 def nested(dotted: dict) -> dict:
@@ -293,8 +294,17 @@ def _end_to_end(workers: int, profile: str, out: Path, takes: list[Path]) -> dic
     load0 = _load()
     t0 = time.perf_counter()
     with runner.dask_client(workers, warm=jobs) as client:
+        pids = client.run(os.getpid)
+        count, ends = [0], {}
+
+        def done(row: dict) -> None:  # the CPU of every process when the last result is in (the summary aside)
+            count[0] += 1
+            if count[0] == len(jobs):
+                ends.update(cpu=_cpu_now(pids.values()), at=time.time())
+
+        cpu0 = _cpu_now(pids.values())
         t1, c1, sent = time.perf_counter(), time.process_time(), time.time()
-        rows, meta = runner.run_batch(jobs, out, client, force=True)
+        rows, meta = runner.run_batch(jobs, out, client, force=True, on_done=done)
         t2, client_cpu = time.perf_counter(), time.process_time() - c1
     t3 = time.perf_counter()
     failed = [r["error"] for r in rows if r["status"] != "ok"]
@@ -326,7 +336,44 @@ def _end_to_end(workers: int, profile: str, out: Path, takes: list[Path]) -> dic
             "kernels_compiled": sum(r["kernels_compiled"] for r in rows),
             "busy_max_over_mean": max(busy.values()) / (sum(busy.values()) / len(busy)),
             "busy_s": sorted(busy.values(), reverse=True) + [0.0] * (workers - len(busy)),
+            **_wall_parts(spans, sent, ends["at"], solve, {k: ends["cpu"][k] - cpu0[k] for k in cpu0}),
             "load_start": load0, "load_end": _load()}
+
+
+def _cpu_now(worker_pids) -> dict:
+    """CPU seconds so far of this process's threads by role (the client, the LocalCluster's event loop running
+    the scheduler and the nannies, Dask's other threads), of each worker process, and of the other children
+    (the forkserver): where the wall beyond the workers' CPU may go."""
+    import threading
+
+    import psutil
+
+    me = psutil.Process()
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    out = {"client_main": 0.0, "cluster_loop": 0.0, "other_threads": 0.0}
+    for t in me.threads():
+        name = names.get(t.id, "")
+        role = "client_main" if t.id == threading.main_thread().native_id else (
+            "cluster_loop" if "IO loop" in name or "IOLoop" in name else "other_threads")
+        out[role] += t.user_time + t.system_time
+    workers = set(worker_pids)
+    for i, pid in enumerate(sorted(workers)):
+        c = psutil.Process(pid).cpu_times()
+        out[f"worker{i}"] = c.user + c.system
+    out["other_children"] = sum(sum(p.cpu_times()[:2]) for p in me.children(recursive=True) if p.pid not in workers)
+    return out
+
+
+def _wall_parts(spans: dict, sent: float, last_in: float, solve: float, cpu: dict) -> dict:
+    """The solving wall split per worker: from the tasks sent to its first take begun, its takes' own seconds,
+    its idle gaps between takes, and its idle tail (its last take ended to the last result in); with every
+    process's CPU over the same span (``_cpu_now``)."""
+    parts = []
+    for worker_spans in spans.values():
+        s = sorted(worker_spans)
+        parts.append({"takes": len(s), "to_first_s": s[0][0] - sent, "busy_s": sum(b - a for a, b in s),
+                      "gaps_s": sum(b[0] - a[1] for a, b in pairwise(s)), "tail_s": last_in - s[-1][1]})
+    return {"per_worker": parts, "process_cpu_s": cpu, "last_result_s": last_in - sent, "solve_wall_s": solve}
 
 
 def end_to_end_main(workers: str, profile: str, out: str, *takes: str) -> dict:
@@ -490,6 +537,25 @@ def _print_scale(res: dict) -> None:
               f"(CPU {b['two_loops_cpu_per_take_s']:.3f}, run {'before' if b['two_loops_first'] else 'after'} the "
               f"batch), batch {e['per_take_s']:.3f} (CPU {e['cpu_per_take_s']:.3f}): overhead wall "
               f"{e['overhead_vs_two_loops']:+.1%}, CPU {e['cpu_overhead_vs_two_loops']:+.1%} (goal <= 10%)")
+    print("the solving wall per worker (s): tasks sent to its first take begun / its takes' own wall / "
+          "idle between its takes / idle after its last take; CPU s per take of the livecap batch process")
+    for run in res["runs"]:
+        e = run["batch"]
+        if "per_worker" not in e:
+            continue
+        workers = sorted(e["per_worker"], key=lambda p: -p["takes"])
+        cpu = e["process_cpu_s"]
+        own = sum(v for k, v in cpu.items() if k.startswith("worker"))
+        print(f"{e['takes']:>5} takes, solving {e['solve_s']:.3f} s: " + "; ".join(
+            f"{p['takes']} takes: {p['to_first_s']:.3f} / {p['busy_s']:.3f} / {p['gaps_s']:.3f} / {p['tail_s']:.3f}"
+            for p in workers) + f"; workers' CPU {own:.2f} s; livecap batch process "
+            f"{(cpu['client_main'] + cpu['cluster_loop'] + cpu['other_threads']) / e['takes'] * 1000:.1f} ms/take")
+        two = run["loop"]["two_loops_per_take_s"] * e["takes"] / 2  # the two loops' wall: each loop's share of takes
+        idle = sum(p["to_first_s"] + p["gaps_s"] + p["tail_s"] for p in workers) / len(workers)
+        busy = sum(p["busy_s"] for p in workers) / len(workers)
+        print(f"{'':>6}wall over two loops {e['overhead_vs_two_loops']:+.1%} = workers idle {idle / two:+.1%} "
+              f"(first task, gaps, tail) + takes' own wall {busy / two - 1:+.1%} "
+              f"(their CPU {e['cpu_overhead_vs_two_loops']:+.1%})")
     print("fixed costs against the take count N: c = a + b N, and c ~ N^p")
     fits = dict(res["fits"])
     ratio = fits.pop("per_take_cpu_ratio")

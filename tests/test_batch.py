@@ -91,6 +91,31 @@ def test_local_cluster_equals_solve_and_reports_bad_takes(library, client, tmp_p
     assert "data:image/png;base64," in (out / "summary.html").read_text()
 
 
+def test_solved_rows_are_read_from_their_records_not_fetched_from_the_workers(library, client, tmp_path, monkeypatch):
+    """A solved take's row comes from the record its worker wrote, not through a gather (client, scheduler, worker
+    and back, per take: docs/batch.md "the wall beyond CPU"); a failed take has no record and its row is fetched."""
+    from distributed import Future
+
+    fetched, result = [], Future.result
+
+    def counted(self, *args, **kwargs):
+        fetched.append(self.key)
+        return result(self, *args, **kwargs)
+
+    monkeypatch.setattr(Future, "result", counted)
+    out = tmp_path / "out"
+    jobs = plan_jobs([str(library["takes"])], [], rig=RIG, out_dir=str(out), mode="robust", fmt="csv",
+                     profile=library["profile"])
+    rows, _ = run_batch(jobs, out, client)
+    assert {r["stem"]: r["status"] for r in rows} == {"broken": "failed", "take0": "ok", "take1": "ok", "take2": "ok",
+                                                      "wrong_labels": "failed"}
+    assert sorted(key.rsplit("-", 1)[1] for key in fetched) == ["broken", "wrong_labels"]
+    for r in rows:
+        if r["status"] == "ok":
+            assert r == json.loads((out / ".batch" / f"{r['stem']}.json").read_text())
+            assert r["frames"] == FRAMES and r["cpu_seconds"] > 0
+
+
 def _worker_settings(dask_worker) -> dict:
     return {"trim": os.environ.get("MALLOC_TRIM_THRESHOLD_"), "blas": os.environ.get("OPENBLAS_NUM_THREADS"),
             "tick": dask_worker.periodic_callbacks["tick"].callback_time,

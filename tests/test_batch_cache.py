@@ -199,3 +199,24 @@ def test_a_worker_keeps_its_heap_between_takes(lib, tmp_path):
         assert out.returncode == 0, out.stderr[-2000:]
         faults[how] = int(out.stdout.split()[-1])
     assert faults["keep"] * 4 < faults["default"], faults
+
+
+def test_kernels_are_looked_for_again_only_after_an_import():
+    """``solve_job`` counts the kernels compiled during a take, twice a take: the modules are walked again only when
+    one was imported (or dropped) since, which still finds a kernel module imported mid-take."""
+    import types
+
+    from numba import njit
+
+    from livecap.batch.worker import kernels
+
+    first = kernels()
+    assert kernels() is first
+    mod = types.ModuleType("solvers._kernel_probe")
+    mod.probe = njit(lambda x: x + 1)
+    sys.modules[mod.__name__] = mod
+    try:
+        assert mod.probe in kernels() and mod.probe not in first
+    finally:
+        del sys.modules[mod.__name__]
+    assert mod.probe not in kernels()

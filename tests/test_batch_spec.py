@@ -108,3 +108,14 @@ def test_a_spec_is_checked_when_made():
     spec = SolveSpec("rig.npz", "qp", settings=SolveSettings(ridge=1.0, marker_weights=(("lip*", 2.0),)))
     assert hash(spec) == hash(SolveSpec("rig.npz", "qp", settings=SolveSettings(ridge=1.0,
                                                                                   marker_weights=(("lip*", 2.0),))))
+
+
+def test_the_progress_bar_redraws_twice_a_second_not_ten_times():
+    """rich's default of 10 redraws a second costs the `livecap batch` process ~11 ms CPU a second in a terminal, on
+    the cores the workers solve on (docs/batch.md "the wall beyond CPU")."""
+    from livecap.cli.batch import _progress
+
+    prog, done = _progress(3)
+    assert prog.live.refresh_per_second == 2 and prog.live.auto_refresh
+    done({"status": "ok", "frames": 10, "take": "a"})
+    assert prog.tasks[0].completed == 1

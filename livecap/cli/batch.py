@@ -20,6 +20,11 @@ JOB_FLAGS = {"--rig": "--rig / rig", "--markers": "--markers / markers", "--prof
              "--help": "livecap solve --help", "-h": "livecap solve --help"}
 
 
+# rich redraws its bar 10 times a second by default, in this process beside the LocalCluster's scheduler, on the
+# cores the workers solve on: ~1.3 ms CPU a redraw in a terminal (docs/batch.md "the wall beyond CPU")
+PROGRESS_REFRESH_PER_S = 2
+
+
 def register(sub) -> None:
     p = sub.add_parser("batch", help="solve many takes on Dask (local worker processes or a cluster)",
                        description="Solve a library of takes, one output per take equal to what 'livecap solve' "
@@ -80,7 +85,7 @@ def _progress(total: int):
 
     prog = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                     TextColumn("{task.fields[fps]:>8.0f} frames/s"), TextColumn("{task.fields[failed]} failed"),
-                    TimeRemainingColumn())
+                    TimeRemainingColumn(), refresh_per_second=PROGRESS_REFRESH_PER_S)
     task = prog.add_task("takes", total=total, fps=0.0, failed=0)
     state = {"frames": 0, "failed": 0, "start": time.perf_counter()}
 
