@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import multiprocessing
 import os
@@ -17,7 +16,7 @@ from pathlib import Path
 
 from livecap.batch.jobs import Job
 from livecap.batch.summary import LiveSummary, write_summary
-from livecap.batch.worker import SolverCache, load_record, solve_job
+from livecap.batch.worker import SolverCache, load_record, read_record, solve_job
 from livecap.core.take import Take
 
 log = logging.getLogger(__name__)
@@ -151,7 +150,7 @@ def _written_row(job: Job) -> dict | None:
     of fetched from the worker: no gather round trip (client, scheduler, worker and back) per take; None if there
     is no record (a failed take), and the row is then fetched."""
     try:
-        return json.loads(job.record.read_text())
+        return read_record(job)
     except (OSError, ValueError):
         return None
 

@@ -261,10 +261,14 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     return row
 
 
+def read_record(job: Job) -> dict:
+    """The row a solve of ``job`` wrote (``_write_record``)."""
+    return json.loads(Path(job.record).read_text())
+
+
 def load_record(job: Job) -> dict:
-    row = json.loads(Path(job.record).read_text())
-    row["status"] = "skipped"
-    return row
+    """An up-to-date take's row from its record, as skipped in this run."""
+    return {**read_record(job), "status": "skipped"}
 
 
 def _write_record(record: Path, row: dict) -> None:
