@@ -173,24 +173,29 @@ class MarkerKalmanSolver:
         thread (its notes worded there), so that the step only swaps references (the rest is built here)."""
         self.support = s
         unchanged, notes = self._notes(s, frames) if built is None else built[-1]
-        for level, text in notes:
-            log.log(level, text)
-        if unchanged and self.precision is self._precision0 and self.mean is self._mean0:
-            return
-        self.mean = s.mean
+        kept = unchanged and self.precision is self._precision0 and self.mean is self._mean0
         if built is None:
-            self.precision = s.precision
+            _say(notes)
+            if kept:
+                return
+            self.mean, self.precision = s.mean, s.precision
             self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
             self._fits, self._spreads, self._along = {}, {}, {}
             old, self.selector = self.selector, self._selector(self.selector.decay)
             self.selector.carry(old)
-        else:
-            old_fits, old_selector = self._fits, self.selector
+            self._noise_key = None
+            return
+        old = []
+        if not kept:
+            old = [self._fits, self.selector]
+            self.mean = s.mean
             self.joint, self._fits, self._spreads, self.selector, self._along, self.precision = built[:6]
-            self.selector.carry(old_selector)
-            # the old fits and selector freed in the check's thread: on this frame they cost ~0.4 ms (issue 39)
-            self._pool_here().submit([old_fits, old_selector].clear)
-        self._noise_key = None
+            self.selector.carry(old[1])
+            self._noise_key = None
+        # the log's lines and the old fits and selector's release on the check's thread, right after this frame: on
+        # a back-to-back stream's swap frame, its caches cold after waiting for the check, they cost ~0.12-0.14 ms and
+        # ~0.4 ms (issue 39)
+        self._pool_here().submit(_say, notes, old)
 
     def _notes(self, s: Support, frames: int) -> tuple[bool, list[tuple[int, str]]]:
         """Whether the check left the prior as it was, and what to log of it (streamed: worded in the check's
@@ -467,6 +472,14 @@ class MarkerKalmanSolver:
         fit = self._fit(best)
         fit.reset()
         return fit.step_take(smoothed, ok)
+
+
+def _say(notes: list[tuple[int, str]], old: list | None = None) -> None:
+    """A check's log lines; streamed, in the check's thread, which also drops the replaced fits (``old``)."""
+    for level, text in notes:
+        log.log(level, text)
+    if old:
+        old.clear()
 
 
 def _selector(joint: tuple, decay: float) -> HeldOutStrength:
