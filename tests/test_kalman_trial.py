@@ -204,7 +204,7 @@ def test_workspaces_built_ahead_for_a_changed_strength_keep_the_weights_bit_for_
     ahead, trials_ahead = run()
     assert any(built)  # the strength changed with its next pattern unknown to the new fit at least once
 
-    def only_ahead(self, fit, ahead, swapped):  # the rule before: the next pattern built for the same fit only
+    def only_ahead(self, fit, ahead):  # the rule before: the next pattern built for the same fit only
         if ahead is not None:
             self._fit(self.selector.best).prepare(ahead)
 

@@ -204,7 +204,7 @@ def test_a_swap_logs_and_frees_the_old_fits_in_the_checks_thread(caplog):
     swaps = []
     with caplog.at_level(logging.INFO, logger=marker_kalman.__name__):
         for t in range(len(X)):
-            due = solver._checking is not None and solver._frame + 1 >= solver._checking[1]
+            due = solver._swap_due()  # at this step's start
             solver.step(X[t], np.ones(40, bool))
             if due:
                 swaps.append(t)
@@ -428,15 +428,16 @@ def test_a_prior_not_yet_checked_is_fitted_at_the_weakest_strength():
 
     p, W, X = _tight_prior_take(T=150)
     solver = kalman_mode(p, {"rate": 60.0})
-    used, chosen = [], []
+    used, best, chosen = [], [], []
     for t in range(len(X)):
         solver.step(X[t], np.ones(40, bool))
         used.append(solver._fit_k)
+        best.append(solver.selector.best)
         chosen.append(solver.selector.best if solver.support is not None else -1)
-    first = int(np.argmax(np.array(chosen) >= 0))  # the step that swapped in the checked prior
+    first = int(np.argmax(np.array(chosen) >= 0))  # the step that swapped in the checked prior (at its start)
     assert 0 < first < len(X) - 10
-    assert set(used[:first + 1]) == {0}  # (the swap comes at the end of its step)
-    assert used[first + 1:] == chosen[first:-1]
+    assert set(used[:first]) == {0}
+    assert used[first:] == best[first - 1:-1]  # the choice so far, from the swap's frame on
     assert max(chosen[first:]) > 0  # the held-out choice is not the weakest here: the test sees the switch
     p.prior = None
     ridge = kalman_mode(p, {"rate": 60.0})

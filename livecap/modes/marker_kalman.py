@@ -271,9 +271,12 @@ class MarkerKalmanSolver:
         return [s, self._build(s, decay, len(pick), imm)]
 
     def _swap(self) -> None:
-        """At the end of the step before the frame a check's prior is due (the same weights as swapping it at the
-        start of that frame): it is used, its thread joined if not done. A check begun by the process this one was
-        forked from never finishes here (its thread is not here): it counts as failed."""
+        """At the start of the frame a check's prior is due: it is used, its thread joined if not done. Where the
+        frames come faster than the check (a back-to-back benchmark) the thread waits here and the frame after the
+        wait runs with its caches cold; swapped at the end of the step before (so that its next workspace was built
+        on the new fits), two frames paid for it, each in kalman's top 1 % (issue 39, docs/performance.md). A check
+        begun by the process this one was forked from never finishes here (its thread is not here): it counts as
+        failed."""
         job, _ = self._checking
         self._checking = None
         try:
@@ -323,6 +326,8 @@ class MarkerKalmanSolver:
         self._fresh: FrameQP | None = None  # the fit whose next workspace was built ahead where it would not have been
 
     def step(self, target: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        if self._swap_due():
+            self._swap()
         x, ok = self.filter.step(target, valid)
         if self.prior_cov is not None and self._next_check < float("inf"):
             self._stream_support(x, ok)
@@ -361,24 +366,26 @@ class MarkerKalmanSolver:
         # (in place, np.clip's numbers at a third of its cost)
         out = self._imm.step(w)
         out = np.minimum(np.maximum(out, self.lower, out=out), self.upper, out=out)
-        swapped = self._checking is not None and self._frame >= self._checking[1]
-        if swapped:
-            self._swap()
-        self._at_leisure(fit, ahead, swapped)
+        if not self._swap_due():  # (else the next frame's fit is another: it builds its workspace itself)
+            self._at_leisure(fit, ahead)
         return out
+
+    def _swap_due(self) -> bool:
+        """A check's prior is due on the next frame, i.e. after ``self._frame`` frames."""
+        return self._checking is not None and self._frame >= self._checking[1]
 
     def _strength(self) -> int:
         """The fit's strength: the held-out choice, but the grid's weakest while the prior is not yet checked against
         this actor (issue 41: docs/robustness.md, "the blink with a prior, S88-001's first seconds")."""
         return 0 if self.prior_cov is not None and self.support is None else self.selector.best
 
-    def _at_leisure(self, fit: FrameQP, ahead: np.ndarray | None, swapped: bool) -> None:
-        """After the frame's weights: the next frame's workspace (``ahead``), also where a swap or this frame's trial
-        changed the fit the next frame steps on (issue 39: those frames built it and paid ~100 µs over a known one).
-        The trials come on the same frames as without these workspaces (``_fresh``)."""
+    def _at_leisure(self, fit: FrameQP, ahead: np.ndarray | None) -> None:
+        """After the frame's weights: the next frame's workspace (``ahead``), also where this frame's trial changed
+        the fit the next frame steps on (issue 39: those frames built it and paid ~100 µs over a known one). The
+        trials come on the same frames as without these workspaces (``_fresh``)."""
         best = self._fit(self._strength())
         nxt = self.filter.prev
-        if swapped or (ahead is None and best is not fit):  # (before a swap, ``ahead`` went to the old fits)
+        if ahead is None and best is not fit:
             if not best.marker_space and nxt is not None and not best.knows(nxt):
                 best.prepare(nxt)
                 self._fresh = best
