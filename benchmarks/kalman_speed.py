@@ -138,7 +138,7 @@ def frame_profile(profile, targets, valid, options, top: float = 1.0, raw: dict 
     RotatedIMM.set_noise = clocked("IMM noise (along, set)", RotatedIMM.set_noise)
     solver.filter.step = clocked("marker filter", solver.filter.step)
     solver._stream_support = clocked("prior check (frames, start, swap)", solver._stream_support)
-    if hasattr(solver, "_swap"):  # the swap at the end of the step before its frame (main: in _stream_support)
+    if hasattr(solver, "_swap"):  # the swap, at the start of the frame its prior is due on (older trees: elsewhere)
         solver._swap = clocked("prior check (frames, start, swap)", solver._swap)
     solver._use_support = use_support
     labels = ["marker filter", "prior check (frames, start, swap)", "fit, known pattern", "fit, new pattern",
