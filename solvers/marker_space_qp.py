@@ -45,9 +45,11 @@ one block-pivoting pass a frame"); the qp mode and every offline solve stay exac
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import scipy.linalg as sl
-from scipy.linalg.blas import dsyrk
+from scipy.linalg.blas import dsymm, dsyr2k, dsyrk
 from scipy.linalg.lapack import dpotrf, dpotrs
 
 from solvers.marker_space_kernels import repartition, rhs, x_and_gradient
@@ -85,6 +87,8 @@ class MarkerSpaceQP:
                 raise np.linalg.LinAlgError("the unpenalised columns are not fixed by the seen rows")
             self._A = sl.cho_solve(self._C, JP.T @ JG)
             JG = JG - JP @ self._A
+        # range(J_P), orthonormal: projected off a peer's S (``near``)
+        self._Q = np.asfortranarray(np.linalg.qr(JP)[0]) if len(self.P) else None
         self.J = np.ascontiguousarray(JG)
         self.d = d[self.G]
         self.dinv = 1.0 / self.d
@@ -101,6 +105,8 @@ class MarkerSpaceQP:
         self._updates = 0
         # the last solve's x, the partition it stopped at, its f and its count of wrong sides (best, budget)
         self._carry: tuple | None = None
+        self._near: tuple | None = None  # a peer whose kept S this solve may start from, and our rows in its rows
+        self._ratio: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # peer -> d_peer / d, or None
 
     def _solve_S(self, F: np.ndarray, b: np.ndarray) -> np.ndarray:
         """S^-1 b for free set F. Within WOODBURY columns of the kept factor's free set, through that factor and a
@@ -126,6 +132,8 @@ class MarkerSpaceQP:
         formed from all columns' S less the bounded ones' (or the free ones' alone), and its Cholesky factor."""
         n_free = int(np.count_nonzero(F))
         n_bound = len(F) - n_free
+        if self._near is not None and self._from_peer(F, min(len(changed), n_bound, n_free)):
+            return
         if len(changed) <= min(n_bound, n_free) and self._updates < REFRESH:
             S = self._S.copy(order="F")
             for idx, sign in ((changed[F[changed]], 1.0), (changed[~F[changed]], -1.0)):
@@ -143,29 +151,88 @@ class MarkerSpaceQP:
             raise np.linalg.LinAlgError(f"marker-space matrix not positive definite (dpotrf info {info})")
         self._S, self._F, self._L, self._wood = S, F.copy(), L, None
 
+    def ratio(self, peer: MarkerSpaceQP) -> float | None:
+        """c = d_peer / d where ``peer`` is this QP on more rows at another scale of D (a prior's strength, no
+        floor): the same columns, pose (d = 0) columns and limits, d proportional to rounding. Else None."""
+        if peer not in self._ratio:
+            c = None
+            if (np.array_equal(peer.G, self.G) and np.array_equal(peer.P, self.P) and peer.r >= self.r
+                    and np.array_equal(peer.lo, self.lo) and np.array_equal(peer.hi, self.hi) and len(self.G)):
+                c = float(np.median(peer.d / self.d))
+                c = c if np.allclose(peer.d, c * self.d, rtol=1e-12, atol=0.0) else None
+            self._ratio[peer] = c
+        return self._ratio[peer]
+
+    def _from_peer(self, F: np.ndarray, own: int) -> bool:
+        """S of free set F from the peer's kept S (``near``) where fewer columns separate F from the peer's free set
+        than from our own (+ the r^2 work of taking it over): with W = (I - Pi) J D^-1/2 (Pi onto the pose columns'
+        range), our rows R of the peer's J and d = d_peer / c, (I - Pi) [(I - Pi_peer) J]_R = (I - Pi) J_R, so
+
+            S_F - I = c (I - Pi) [S_peer,F - I]_RR (I - Pi),
+
+        the peer's block scaled, the pose projected off by a rank-2p update (Pi = Q Q'), then the columns between the
+        two free sets by symmetric rank-k products and one Cholesky at our r -- instead of forming S over every free
+        column (kalman's held-out trial at 72 x 1000: its own S 90 frames stale, the fit's from this very start)."""
+        peer, idx = self._near
+        c = self.ratio(peer)
+        if c is None or peer._L is None:
+            return False
+        changed = np.flatnonzero(F != peer._F)
+        if len(changed) + len(self.P) >= own:
+            return False
+        S = np.take(peer._S.T[idx], idx, axis=1).T  # Fortran order; its lower triangle the peer's (LAPACK's)
+        if self._Q is None:
+            S *= c
+        else:  # c (P S P - P) + I = c S - c (Q V' + V Q') + (1 - c) I, V = S Q - Q (Q'S Q) / 2 - Q / 2
+            Y = dsymm(1.0, S, self._Q, lower=1)
+            S = dsyr2k(-c, self._Q, Y - 0.5 * self._Q @ (self._Q.T @ Y + np.eye(len(self.P))), beta=c, c=S,
+                       lower=1, overwrite_c=1)
+        S.T.flat[:: self.r + 1] += 1.0 - c
+        for cols, sign in ((changed[F[changed]], 1.0), (changed[~F[changed]], -1.0)):
+            if len(cols):
+                S = dsyrk(sign, self._Wt[cols].T, beta=1.0, c=S, lower=1, overwrite_c=1)
+        L, info = dpotrf(S, lower=1, clean=0)
+        if info:
+            return False
+        self._S, self._F, self._L, self._wood = S, F.copy(), L, None
+        self._updates = min(peer._updates + 1, REFRESH)
+        return True
+
     def _subproblem(self, fG: np.ndarray, at_lo: np.ndarray, at_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The minimiser with the bounded weights held at their limits (x) and the gradient there (0 on F)."""
         y = self._solve_S(~(at_lo | at_hi), self.J @ rhs(fG, self.dinv, self.lo, self.hi, at_lo, at_hi))
         return x_and_gradient(self.J.T @ y, fG, self.d, self.dinv, self.lo, self.hi, at_lo, at_hi)
 
-    def begin(self, f: np.ndarray, x0: np.ndarray, passes: int, frame_passes: int = 0) -> None:
+    def begin(self, f: np.ndarray, x0: np.ndarray, passes: int, frame_passes: int = 0,
+              near: tuple[MarkerSpaceQP, np.ndarray] | None = None) -> None:
         """The first ``passes`` passes of ``solve(f, x0, frame_passes)`` now; that solve next continues where they
-        stopped (the same passes in the same order, so the same x): one solve spread over two frames."""
+        stopped (the same passes in the same order, so the same x): one solve spread over two frames. ``near``: a
+        peer (this QP on a superset of its rows, D scaled: ``ratio``) and the indices of our rows in its rows,
+        whose kept S a refactor here may start from (``_from_peer``; the same x up to rounding)."""
         f, x0 = np.array(f, dtype=np.float64), np.array(x0, dtype=np.float64)
         self._begun = None
-        self._begun = (f, x0, self._pivot(f, x0, min(int(passes), self.max_iter), frame_passes=frame_passes))
+        self._near = near
+        try:
+            self._begun = (f, x0, self._pivot(f, x0, min(int(passes), self.max_iter), frame_passes=frame_passes))
+        finally:
+            self._near = None
 
-    def solve(self, f: np.ndarray, x0: np.ndarray, frame_passes: int = 0) -> np.ndarray | None:
+    def solve(self, f: np.ndarray, x0: np.ndarray, frame_passes: int = 0,
+              near: tuple[MarkerSpaceQP, np.ndarray] | None = None) -> np.ndarray | None:
         """The optimum from ``x0`` (None where ``max_iter`` passes did not settle); with ``frame_passes`` > 0 at most
         that many passes, the clipped point where they did not settle, the next solve from it going on (the
-        real-time iteration above)."""
+        real-time iteration above). ``near``: as for ``begin``."""
         f, x0 = np.asarray(f, dtype=np.float64), np.asarray(x0, dtype=np.float64)
         begun, self._begun = self._begun, None
         state = None
         if begun is not None and np.array_equal(begun[0], f) and np.array_equal(begun[1], x0):
             state = begun[2]
         if state is None or not isinstance(state[0], str):
-            state = self._pivot(f, x0, self.max_iter, state, frame_passes)
+            self._near = near
+            try:
+                state = self._pivot(f, x0, self.max_iter, state, frame_passes)
+            finally:
+                self._near = None
         return state[1]
 
     def _pivot(self, f: np.ndarray, x0: np.ndarray, stop: int, state: tuple | None = None,

@@ -25,6 +25,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+import threading
 from collections import OrderedDict
 
 import numpy as np
@@ -39,6 +40,8 @@ log = logging.getLogger(__name__)
 # the marker-space path when the shapes number at least this many times the marker coordinates (72 x 1000: 4.7;
 # 72 x 150 and ICT's ~53 shapes stay in weight space)
 MARKER_SPACE_RATIO = 2.0
+# the last marker-space solve of this thread: (basis, row weights, rows, its MarkerSpaceQP), a trial's peer (``_near``)
+_STOP = threading.local()
 _LAMBDA_MIN_SIZE = 256
 _LAMBDA_MIN: dict[bytes, float] = {}  # smallest eigenvalue per matrix content: FrameQPs at several strengths share one
 
@@ -437,9 +440,30 @@ class FrameQP:
             f = self._linear_term(ws, self._BtD @ (s if ws.rows is None else np.where(ws.rows, s, 0.0)))
         if ws.marker_space is False:
             return None, f
-        x = ws.marker_space.solve(f, self._prev, self.frame_passes)
+        x = ws.marker_space.solve(f, self._prev, self.frame_passes, self._near(ws))
         self.iterations = ws.marker_space.iterations
+        if x is not None:
+            _STOP.last = (self.basis, self._row_w, ws.rows, ws.marker_space)
         return x, f
+
+    def _near(self, ws: _Workspace) -> tuple | None:
+        """Where this solve starts at the very point another FrameQP's last marker-space solve on this thread stopped
+        at, on the same basis and marker weights and a superset of this pattern's rows (kalman's held-out trial warm
+        from the fit of that frame, at another prior strength and without a fold's markers): that solver and our
+        rows' indices in its rows, so that a refactor takes the peer's kept S instead of forming our own from a stale
+        free set (solvers.marker_space_qp ``_from_peer``; issue 39 item 1)."""
+        last = getattr(_STOP, "last", None)
+        if last is None or last[0] is not self.basis or last[3] is ws.marker_space:
+            return None
+        _, row_w, rows, peer = last
+        carry = peer._carry
+        if carry is None or not np.array_equal(carry[0], self._prev) or not np.array_equal(row_w, self._row_w):
+            return None
+        mine = self._all_rows if ws.rows is None else ws.rows
+        theirs = self._all_rows if rows is None else rows
+        if np.any(mine & ~theirs):
+            return None
+        return peer, np.flatnonzero(mine[theirs])
 
     def begin(self, target: np.ndarray, valid: np.ndarray, passes: int) -> bool:
         """The first ``passes`` passes of the marker-space solve that ``step(target, valid)`` would run next (from
@@ -458,7 +482,7 @@ class FrameQP:
         if ws.marker_space is False:
             return False
         f = self._linear_term(ws, self._BtD @ (s if ws.rows is None else np.where(ws.rows, s, 0.0)))
-        ws.marker_space.begin(f, self._prev, passes, self.frame_passes)
+        ws.marker_space.begin(f, self._prev, passes, self.frame_passes, self._near(ws))
         return True
 
     def _build_marker_space(self, ws: _Workspace) -> None:
