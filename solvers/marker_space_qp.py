@@ -95,7 +95,8 @@ class MarkerSpaceQP:
         self.lo, self.hi = lower[self.G], upper[self.G]
         self.max_iter = int(max_iter)
         self.iterations = 0
-        self._Wt = self.J.T * np.sqrt(self.dinv)[:, None]  # rows: the columns of J D^-1/2 (W[:, idx] = _Wt[idx].T)
+        # rows: the columns of J D^-1/2 (W[:, idx] = _Wt[idx].T), each contiguous: a refactor gathers k of them
+        self._Wt = np.ascontiguousarray(self.J.T * np.sqrt(self.dinv)[:, None])
         self._S_all = np.asfortranarray(self._Wt.T @ self._Wt)  # every column free
         self._S_all.flat[:: self.r + 1] += 1.0
         # S of the free set _F (its lower triangle: what LAPACK reads) and its Cholesky factor _L

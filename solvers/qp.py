@@ -40,8 +40,10 @@ log = logging.getLogger(__name__)
 # the marker-space path when the shapes number at least this many times the marker coordinates (72 x 1000: 4.7;
 # 72 x 150 and ICT's ~53 shapes stay in weight space)
 MARKER_SPACE_RATIO = 2.0
-# the last marker-space solve of this thread: (basis, row weights, rows, its MarkerSpaceQP), a trial's peer (``_near``)
-_STOP = threading.local()
+# this thread's last marker-space solves, newest first: (basis, row weights, rows, its MarkerSpaceQP), the peers a
+# solve from one's stop may start its refactor from (``FrameQP._near``)
+_STOPS = threading.local()
+_STOPS_KEPT = 4
 _LAMBDA_MIN_SIZE = 256
 _LAMBDA_MIN: dict[bytes, float] = {}  # smallest eigenvalue per matrix content: FrameQPs at several strengths share one
 
@@ -443,27 +445,26 @@ class FrameQP:
         x = ws.marker_space.solve(f, self._prev, self.frame_passes, self._near(ws))
         self.iterations = ws.marker_space.iterations
         if x is not None:
-            _STOP.last = (self.basis, self._row_w, ws.rows, ws.marker_space)
+            stops = [s for s in getattr(_STOPS, "last", ()) if s[3] is not ws.marker_space]
+            _STOPS.last = [(self.basis, self._row_w, ws.rows, ws.marker_space)] + stops[:_STOPS_KEPT - 1]
         return x, f
 
     def _near(self, ws: _Workspace) -> tuple | None:
-        """Where this solve starts at the very point another FrameQP's last marker-space solve on this thread stopped
-        at, on the same basis and marker weights and a superset of this pattern's rows (kalman's held-out trial warm
-        from the fit of that frame, at another prior strength and without a fold's markers): that solver and our
-        rows' indices in its rows, so that a refactor takes the peer's kept S instead of forming our own from a stale
-        free set (solvers.marker_space_qp ``_from_peer``; issue 39 item 1)."""
-        last = getattr(_STOP, "last", None)
-        if last is None or last[0] is not self.basis or last[3] is ws.marker_space:
-            return None
-        _, row_w, rows, peer = last
-        carry = peer._carry
-        if carry is None or not np.array_equal(carry[0], self._prev) or not np.array_equal(row_w, self._row_w):
-            return None
+        """Where this solve starts at the very point where one of this thread's last marker-space solves stopped, on
+        the same basis and marker weights and a superset of this pattern's rows (kalman's held-out trial warm from
+        that frame's fit, at another prior strength and without a fold's markers; kalman's fit at a new strength warm
+        from the last frame's): that solver and our rows' indices in its rows, so that a refactor may take the peer's
+        kept S instead of forming ours over a stale free set (solvers.marker_space_qp ``_from_peer``; issue 39)."""
         mine = self._all_rows if ws.rows is None else ws.rows
-        theirs = self._all_rows if rows is None else rows
-        if np.any(mine & ~theirs):
-            return None
-        return peer, np.flatnonzero(mine[theirs])
+        for basis, row_w, rows, peer in getattr(_STOPS, "last", ()):
+            carry = peer._carry
+            if (basis is not self.basis or peer is ws.marker_space or carry is None
+                    or not np.array_equal(carry[0], self._prev) or not np.array_equal(row_w, self._row_w)):
+                continue
+            theirs = self._all_rows if rows is None else rows
+            if not np.any(mine & ~theirs):
+                return peer, np.flatnonzero(mine[theirs])
+        return None
 
     def begin(self, target: np.ndarray, valid: np.ndarray, passes: int) -> bool:
         """The first ``passes`` passes of the marker-space solve that ``step(target, valid)`` would run next (from
