@@ -113,20 +113,27 @@ class MarkerSpaceQP:
         """S^-1 b for free set F. Within WOODBURY columns of the kept factor's free set, through that factor and a
         k x k capacitance (Woodbury; the last passes of a solve change 0-3 columns, and a 216 x 216 refactor costs
         ~0.2 ms); otherwise the kept S updated by the changed columns (or formed) and refactored."""
+        if self._factor(F):
+            return dpotrs(self._L, b, lower=1)[0]
+        _, U, Z, M = self._wood
+        y = dpotrs(self._L, b, lower=1)[0]
+        return y - Z @ sl.lu_solve(M, U.T @ y, check_finite=False)
+
+    def _factor(self, F: np.ndarray) -> bool:
+        """Make S of free set F solvable: True where the kept factor is its own (unchanged or refactored), False
+        where ``_wood`` holds the Woodbury terms for it."""
         changed = np.flatnonzero(F != self._F)
         if not len(changed) and self._L is not None:
-            return dpotrs(self._L, b, lower=1)[0]
+            return True
         if len(changed) > WOODBURY or self._L is None:
             self._refactor(F, changed)
-            return dpotrs(self._L, b, lower=1)[0]
+            return True
         if self._wood is None or not np.array_equal(self._wood[0], F):
             U = self._Wt[changed].T  # S_F = S + U C U', C = diag(+1 freed, -1 bounded) = C^-1
             Z = dpotrs(self._L, U, lower=1)[0]
             self._wood = (F.copy(), U, Z, sl.lu_factor(np.diag(np.where(F[changed], 1.0, -1.0)) + U.T @ Z,
                                                       check_finite=False))
-        _, U, Z, M = self._wood
-        y = dpotrs(self._L, b, lower=1)[0]
-        return y - Z @ sl.lu_solve(M, U.T @ y, check_finite=False)
+        return False
 
     def _refactor(self, F: np.ndarray, changed: np.ndarray) -> None:
         """S of free set F from the kept one by the changed columns (symmetric rank-k products, lower triangle), or
@@ -205,18 +212,25 @@ class MarkerSpaceQP:
         return x_and_gradient(self.J.T @ y, fG, self.d, self.dinv, self.lo, self.hi, at_lo, at_hi)
 
     def begin(self, f: np.ndarray, x0: np.ndarray, passes: int, frame_passes: int = 0,
-              near: tuple[MarkerSpaceQP, np.ndarray] | None = None) -> None:
+              near: tuple[MarkerSpaceQP, np.ndarray] | None = None, now: int | None = None) -> None:
         """The first ``passes`` passes of ``solve(f, x0, frame_passes)`` now; that solve next continues where they
-        stopped (the same passes in the same order, so the same x): one solve spread over two frames. ``near``: a
-        peer (this QP on a superset of its rows, D scaled: ``ratio``) and the indices of our rows in its rows,
-        whose kept S a refactor here may start from (``_from_peer``; the same x up to rounding)."""
+        stopped (the same passes in the same order, so the same x): one solve spread over two frames. ``now``: of
+        those passes only this many here, and the S of the next one factored (its first step); the solve then runs
+        the rest as well (the same x, the work shared more evenly between the frames). ``near``: a peer (this QP on
+        a superset of its rows, D scaled: ``ratio``) and the indices of our rows in its rows, whose kept S a
+        refactor here may start from (``_from_peer``; the same x up to rounding)."""
         f, x0 = np.array(f, dtype=np.float64), np.array(x0, dtype=np.float64)
+        passes = min(int(passes), self.max_iter)
+        now = passes if now is None else min(int(now), passes)
         self._begun = None
         self._near = near
         try:
-            self._begun = (f, x0, self._pivot(f, x0, min(int(passes), self.max_iter), frame_passes=frame_passes))
+            state = self._pivot(f, x0, now, frame_passes=frame_passes)
+            if not isinstance(state[0], str):
+                self._factor(~(state[0] | state[1]))
         finally:
             self._near = None
+        self._begun = (f, x0, state, passes - now if frame_passes else 0)
 
     def solve(self, f: np.ndarray, x0: np.ndarray, frame_passes: int = 0,
               near: tuple[MarkerSpaceQP, np.ndarray] | None = None) -> np.ndarray | None:
@@ -231,7 +245,7 @@ class MarkerSpaceQP:
         if state is None or not isinstance(state[0], str):
             self._near = near
             try:
-                state = self._pivot(f, x0, self.max_iter, state, frame_passes)
+                state = self._pivot(f, x0, self.max_iter, state, frame_passes + (begun[3] if state else 0))
             finally:
                 self._near = None
         return state[1]

@@ -466,10 +466,12 @@ class FrameQP:
                 return peer, np.flatnonzero(mine[theirs])
         return None
 
-    def begin(self, target: np.ndarray, valid: np.ndarray, passes: int) -> bool:
+    def begin(self, target: np.ndarray, valid: np.ndarray, passes: int, now: int | None = None) -> bool:
         """The first ``passes`` passes of the marker-space solve that ``step(target, valid)`` would run next (from
         the start ``warm`` set), now; that step continues from them. False where the step would not take that
-        path. A caller so spreads one solve over two frames (kalman's held-out trial at 72 x 1000, issue 39)."""
+        path. A caller so spreads one solve over two frames (kalman's held-out trial at 72 x 1000, issue 39).
+        ``now``: only this many of them now, and the next one's factor (MarkerSpaceQP.begin); the step runs the
+        rest."""
         s = np.asarray(target, dtype=np.float64).reshape(-1)
         seen = np.asarray(valid, dtype=bool).reshape(-1)
         if (not self.marker_space or s.shape[0] != 3 * self.n or seen.shape[0] != self.n
@@ -483,7 +485,7 @@ class FrameQP:
         if ws.marker_space is False:
             return False
         f = self._linear_term(ws, self._BtD @ (s if ws.rows is None else np.where(ws.rows, s, 0.0)))
-        ws.marker_space.begin(f, self._prev, passes, self.frame_passes, self._near(ws))
+        ws.marker_space.begin(f, self._prev, passes, self.frame_passes, self._near(ws), now)
         return True
 
     def _build_marker_space(self, ws: _Workspace) -> None:
