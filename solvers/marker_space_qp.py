@@ -189,7 +189,7 @@ class MarkerSpaceQP:
         if len(changed) + len(self.P) >= own:
             return False
         S = np.take(peer._S.T[idx], idx, axis=1).T  # Fortran order; its lower triangle the peer's (LAPACK's)
-        if self._Q is None:
+        if self._Q is None or len(idx) == peer.r:  # (the peer's rows: its S already projected off our pose's range)
             S *= c
         else:  # c (P S P - P) + I = c S - c (Q V' + V Q') + (1 - c) I, V = S Q - Q (Q'S Q) / 2 - Q / 2
             Y = dsymm(1.0, S, self._Q, lower=1)
