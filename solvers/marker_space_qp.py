@@ -41,6 +41,14 @@ Optim. 43(5)): inexact on a frame, it tracks the optimum over frames, and on a Q
 exact optimum (tests/test_marker_space_qp.py). kalman's stream asks for one pass (at 72 x 1000 its step a quarter
 cheaper, the weights' RMSE against the synthetic takes' truth no worse: docs/performance.md, "`kalman` at 72 x 1000:
 one block-pivoting pass a frame"); the qp mode and every offline solve stay exact.
+
+A solve that starts where a peer stopped -- the same basis on a superset of its rows, D a scalar multiple of its own
+(kalman's held-out trial warm from the frame's fit: a fold's markers out, another prior strength; the fit at a new
+strength warm from the last frame's) -- may take its first S from the peer's kept one instead of its own, which was
+factored for a free set frames ago: the peer's block of our rows, scaled, the pose's range projected off (a rank-2p
+update), the few columns between the two free sets added or removed, one Cholesky at our r (``_from_peer``; exact up
+to rounding). ``begin`` may also run fewer of its passes now and factor the next pass's S, so that a solve spread
+over two frames costs them about the same (docs/performance.md, "the trial from the fit's factor").
 """
 
 from __future__ import annotations
