@@ -26,6 +26,7 @@ import hashlib
 import logging
 import math
 import threading
+import weakref
 from collections import OrderedDict
 
 import numpy as np
@@ -40,8 +41,8 @@ log = logging.getLogger(__name__)
 # the marker-space path when the shapes number at least this many times the marker coordinates (72 x 1000: 4.7;
 # 72 x 150 and ICT's ~53 shapes stay in weight space)
 MARKER_SPACE_RATIO = 2.0
-# this thread's last marker-space solves, newest first: (basis, row weights, rows, its MarkerSpaceQP), the peers a
-# solve from one's stop may start its refactor from (``FrameQP._near``)
+# this thread's last marker-space solves, newest first: (basis, row weights, rows, its MarkerSpaceQP; basis and solver
+# by weak reference), the peers a solve from one's stop may start its refactor from (``FrameQP._near``)
 _STOPS = threading.local()
 _STOPS_KEPT = 4
 _LAMBDA_MIN_SIZE = 256
@@ -450,8 +451,10 @@ class FrameQP:
         x = ws.marker_space.solve(f, self._prev, self.frame_passes, self._near(ws))
         self.iterations = ws.marker_space.iterations
         if x is not None:
-            stops = [s for s in getattr(_STOPS, "last", ()) if s[3] is not ws.marker_space]
-            _STOPS.last = [(self.basis, self._row_w, ws.rows, ws.marker_space)] + stops[:_STOPS_KEPT - 1]
+            stops = [s for s in getattr(_STOPS, "last", ()) if s[3]() is not ws.marker_space]
+            # (weak: a finished take's solvers are not kept alive by a worker thread's record)
+            _STOPS.last = [(weakref.ref(self.basis), self._row_w, ws.rows, weakref.ref(ws.marker_space))] + \
+                stops[:_STOPS_KEPT - 1]
         return x, f
 
     def _near(self, ws: _Workspace) -> tuple | None:
@@ -463,8 +466,9 @@ class FrameQP:
         mine = self._all_rows if ws.rows is None else ws.rows
         start = self._prev
         for basis, row_w, rows, peer in getattr(_STOPS, "last", ()):
-            carry = peer._carry
-            if (basis is not self.basis or peer is ws.marker_space or carry is None or carry[0][0] != start[0]
+            peer = peer()
+            carry = None if peer is None else peer._carry
+            if (basis() is not self.basis or peer is ws.marker_space or carry is None or carry[0][0] != start[0]
                     or not np.array_equal(carry[0], start) or not np.array_equal(row_w, self._row_w)):
                 continue
             theirs = self._all_rows if rows is None else rows

@@ -342,3 +342,24 @@ def test_a_trial_warm_from_the_fits_stop_takes_its_s_and_its_weights(monkeypatch
             w = qp.step(s, train)
         np.testing.assert_allclose(trial._prev, w, rtol=0, atol=1e-9)
     assert begun > 20 and any(taken)
+
+
+def test_the_threads_record_of_stops_keeps_no_solver_alive():
+    """A worker thread's record of its last marker-space stops does not keep a finished take's solvers (and their
+    S and J) alive; a later solve on another basis takes no peer from it."""
+    import gc
+    import weakref
+
+    (B, lo, hi, mean, P), rng = _rig(8, 80)
+    fit = FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1e-2, frame_passes=1)
+    for s, seen in _moving_frames(B, rng, 10, 0.2):
+        fit.step(s, seen)
+    solvers = [weakref.ref(ws.marker_space) for ws in fit._models.values() if ws.marker_space]
+    assert solvers and qp_module._STOPS.last
+    del fit
+    gc.collect()
+    assert all(ref() is None for ref in solvers)
+    (B2, lo, hi, mean, P), rng = _rig(8, 80, seed=1)
+    other = FrameQP(B2, lo, hi, prior=(mean, P), prior_weight=1e-2, frame_passes=1)
+    other.step(*next(_moving_frames(B2, rng, 1, 0.2)))
+    assert all(other._near(ws) is None for ws in other._models.values() if ws.marker_space)
