@@ -151,7 +151,7 @@ class MarkerSpaceQP:
         if self._near is not None and self._from_peer(F, min(len(changed), n_bound, n_free)):
             return
         if len(changed) <= min(n_bound, n_free) and self._updates < REFRESH:
-            S = self._S.copy(order="F")
+            S = self._S.copy(order="F") if self._S is self._S_all else self._S  # updated in place: its last use
             for idx, sign in ((changed[F[changed]], 1.0), (changed[~F[changed]], -1.0)):
                 if len(idx):
                     S = dsyrk(sign, self._Wt[idx].T, beta=1.0, c=S, lower=1, overwrite_c=1)
@@ -164,6 +164,7 @@ class MarkerSpaceQP:
             self._updates = 0
         L, info = dpotrf(S, lower=1, clean=0)
         if info:
+            self._S, self._F, self._L, self._wood = self._S_all, np.ones(len(self.G), bool), None, None
             raise np.linalg.LinAlgError(f"marker-space matrix not positive definite (dpotrf info {info})")
         self._S, self._F, self._L, self._wood = S, F.copy(), L, None
 
