@@ -5,7 +5,9 @@
 and whether the fit or a held-out trial made it, saved to an .npz. ``replay``: the same calls in the same order on
 solvers built by the tree on PYTHONPATH (thread CPU per call and per frame, passes and refactors counted, the
 solutions beside the recorded ones): the solver's own cost, without the rest of kalman's step, so that variants of
-solvers/marker_space_qp.py can be alternated with main's in one process-free loop.
+solvers/marker_space_qp.py can be alternated with main's in one process-free loop. A solve's peer (``near``: the
+QP whose kept S it may start from) and a begin's ``now`` are recorded and replayed where the recording has them (a
+recording by a tree without them replays on any tree; one with them only on a tree whose solver takes them).
 
     PYTHONPATH=$PWD python benchmarks/marker_space_fit.py record /tmp/ms.npz
     PYTHONPATH=<tree> python benchmarks/marker_space_fit.py replay /tmp/ms.npz [--json out.json]
