@@ -77,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     names = list(rig.names)
     Solver = marker_kalman.MarkerKalmanSolver
     strength, chosen = Solver._strength, marker_kalman.take_strength
+    evidence_pick = getattr(Solver, "_evidence_pick", None)  # (a tree before branch prior11 has none)
     out = []
     for noise in args.noise:
         for f in files:
@@ -100,6 +101,7 @@ def main(argv: list[str] | None = None) -> int:
                 if k is not None:
                     Solver._strength = held
                     marker_kalman.take_strength = take_strength
+                    Solver._evidence_pick = lambda self, *a: len(marker_kalman.STRENGTHS)  # held: no other choice
                 try:
                     t0 = time.perf_counter()
                     runs = [] if args.no_stream else [("stream", stream_take(ct.take, profile, "kalman", opts).weights)]
@@ -107,6 +109,8 @@ def main(argv: list[str] | None = None) -> int:
                     runs.append(("offline", solve_take(ct.take, profile, solver).weights))
                 finally:
                     Solver._strength, marker_kalman.take_strength = strength, chosen
+                    if evidence_pick is not None:
+                        Solver._evidence_pick = evidence_pick
                 for path, W in runs:
                     rec = {"noise_mm": noise, "file": f.stem, "path": path, "strength": k, "oracle": oracle,
                            **{key: v / oracle for key, v in parts(W, ct.weights, names, ct.take.rate,
