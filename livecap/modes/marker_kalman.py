@@ -473,13 +473,15 @@ class MarkerKalmanSolver:
 
     def _evidence_pick(self, B: np.ndarray, mean: np.ndarray, precision: np.ndarray, smoothed: np.ndarray,
                        ok: np.ndarray) -> int:
-        """An animation prior's strength by the take's evidence (solvers.prior_support.evidence_strength), which
-        :meth:`_solve_once` takes where it is weaker than the held-out markers' choice. Both criteria score the
-        markers, so neither sees the weights' error along the directions the markers see weakly, where this actor's
-        mean is least known; issue 41 (docs/robustness.md, "the ICT gap with a prior, decomposed") measured the
-        weight error's best strength at or below the held-out choice on all 12 ICT takes, and the weaker of the two
-        lowered realeval's offline means at both noises, no take worse."""
-        return int(np.argmax(evidence_strength(B, mean, precision, STRENGTHS, smoothed, ok, self.m)))
+        """An animation prior's strength by the evidence (solvers.prior_support.evidence_strength) of the check's
+        frames (SUPPORT_TAKE_FRAMES, evenly spread: the evidence counts each frame as an independent draw, which
+        neighbouring smoothed frames are not), which :meth:`_solve_once` takes where it is weaker than the held-out
+        markers' choice. Both criteria score the markers, so neither sees the weights' error along the directions
+        the markers see weakly, where this actor's mean is least known; issue 41 (docs/robustness.md, "the ICT gap
+        with a prior, decomposed") measured the weight error's best strength at or below the held-out choice on all
+        12 ICT takes, and the weaker of the two lowered realeval's offline means at both noises, no take worse."""
+        pick = _spread(len(smoothed), SUPPORT_TAKE_FRAMES)
+        return int(np.argmax(evidence_strength(B, mean, precision, STRENGTHS, smoothed[pick], ok[pick], self.m)))
 
 
 def _selector(joint: tuple, decay: float) -> HeldOutStrength:
