@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from solvers.prior_support import evidence_strength  # noqa: F401 (--evidence; moved there by branch prior11)
+from solvers.prior_support import evidence_strength
 
 PERFORMERS = {"alex_rom_3": "anim", "alex_rom_4": "anim", "S07-001": "anim", "S88-001": "anim",
               "apfel": "csv", "MySlate_3_Jason_Millers_iPhone": "jmtechart"}

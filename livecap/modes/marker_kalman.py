@@ -451,7 +451,8 @@ class MarkerKalmanSolver:
         """Weights and pose (T x (m + 6)) of the RTS-smoothed take. After the ``first`` pass, the marker noise r
         is the first's: it is the take's, and a rigid correction does not move it (issue 39: its likelihood margin
         on the ICT takes is > 1e4; the realeval rows are equal to every digit). The prior's strength by the same
-        held-out markers as streamed, every strength on every frame in closed form (unbounded fits: one
+        held-out markers as streamed (with an animation prior, the weaker of it and the evidence's:
+        :meth:`_evidence_pick`), every strength on every frame in closed form (unbounded fits: one
         eigendecomposition per fold, solvers.prior_strength.take_strength) instead of a bounded trial QP per frame
         (issue 39 item 2: the trials were half of a 30 s take's solve; realeval's offline rows in
         docs/performance.md)."""
@@ -469,7 +470,6 @@ class MarkerKalmanSolver:
         fit = self._fit(best)
         fit.reset()
         return fit.step_take(smoothed, ok)
-
 
     def _evidence_pick(self, B: np.ndarray, mean: np.ndarray, precision: np.ndarray, smoothed: np.ndarray,
                        ok: np.ndarray) -> int:
