@@ -160,3 +160,36 @@ def _independent_share(y: np.ndarray) -> np.ndarray:
     rho = (d[1:] * d[:-1]).sum(0) / np.maximum((d**2).sum(0), 1e-300)
     rho = np.clip(rho, 0.0, 1.0 - 1e-6)
     return (1 - rho) / (1 + rho)
+
+
+def evidence_strength(basis: np.ndarray, mean: np.ndarray, precision: np.ndarray, grid: np.ndarray,
+                      targets: np.ndarray, valid: np.ndarray, m: int) -> np.ndarray:
+    """Log marginal likelihood of the frames per prior strength a in ``grid``, up to a constant (type-II ML, the
+    evidence: Bishop 2006 §3.5): w ~ N(mean, s2 / a P^-1) on the first m columns of ``basis``, the rest (the head
+    pose) flat, x_t = B w_t + e_t, e_t ~ N(0, s2 I) on each frame's visible markers, s2 at its maximum for each a.
+    Frames with fewer than 3 markers seen are left out; each frame counts as an independent draw. The frames of one
+    visibility pattern share their Hessian B'B + a P: one factorisation per pattern and strength (occlusion comes in
+    bursts, so a take has few patterns)."""
+    B = np.asarray(basis, float)
+    n3, k = B.shape
+    ok = np.asarray(valid, bool).reshape(len(valid), n3 // 3)
+    Z = np.where(np.repeat(ok, 3, axis=1), np.asarray(targets, float).reshape(len(ok), n3) - B @ mean, 0.0)
+    keep = ok.sum(1) >= 3
+    Z, ok = Z[keep], ok[keep]
+    b, c = Z @ B, (Z**2).sum(1)
+    dof = 3 * ok.sum() - (k - m) * len(Z)
+    logdet_p = np.linalg.slogdet(precision[:m, :m])[1]
+    grid = np.asarray(grid, float)
+    quad, logdet = np.zeros(len(grid)), np.zeros(len(grid))
+    patterns, which = np.unique(ok, axis=0, return_inverse=True)
+    Bm = B.reshape(n3 // 3, 3, k)
+    for j, seen in enumerate(patterns):
+        frames = np.flatnonzero(which.ravel() == j)
+        Bv = Bm[seen].reshape(-1, k)
+        G = Bv.T @ Bv
+        for g, a in enumerate(grid):
+            H = G + a * precision
+            quad[g] += (b[frames] * np.linalg.solve(H, b[frames].T).T).sum()
+            logdet[g] += len(frames) * np.linalg.slogdet(H)[1]
+    q = c.sum() - quad
+    return -0.5 * (dof * np.log(q / dof) + logdet - len(Z) * (m * np.log(grid) + logdet_p))
