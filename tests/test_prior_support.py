@@ -481,3 +481,42 @@ def test_a_ridge_keeps_the_held_out_markers_strength(monkeypatch):
     solver = marker_kalman.kalman_mode(p, {"rate": 60.0})
     solver.solve(X, np.ones((len(X), 40), bool))
     assert solver.chosen["prior_weight"] in marker_kalman.STRENGTHS
+
+
+def _evidence_by_frame(B, mean, P, grid, X, ok, m):
+    """The evidence as its formula reads: each kept frame's Hessian over its seen markers factored on its own."""
+    kept = [(x - B @ mean, np.repeat(o, 3)) for x, o in zip(X, ok, strict=True) if o.sum() >= 3]
+    dof = sum(r.sum() for _, r in kept) - (B.shape[1] - m) * len(kept)
+    out = []
+    for a in grid:
+        q = ld = 0.0
+        for z, r in kept:
+            Bv, zv = B[r], z[r]
+            H = Bv.T @ Bv + a * P
+            q += zv @ zv - (Bv.T @ zv) @ np.linalg.solve(H, Bv.T @ zv)
+            ld += np.linalg.slogdet(H)[1]
+        out.append(-0.5 * (dof * np.log(q / dof) + ld - len(kept) * (m * np.log(a) + np.linalg.slogdet(P[:m, :m])[1])))
+    return np.array(out)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), hide=st.floats(0.0, 0.5))
+def test_evidence_downdated_per_frame_equals_each_frame_factored_alone(seed, hide):
+    """evidence_strength factors the all-seen Hessian once per strength and downdates each frame's hidden markers
+    (Woodbury, the determinant lemma); the same numbers as factoring every frame's own Hessian, whatever is hidden
+    (frames with fewer than 3 markers seen left out in both)."""
+    from solvers.prior_support import evidence_strength
+
+    rng = np.random.default_rng(seed)
+    n, m, T = 8, 5, 12
+    grid = np.logspace(-3, 1, 5)
+    B = np.hstack([rng.normal(size=(3 * n, m)), np.tile(np.eye(3), (n, 1))[:, :2]])
+    P = np.zeros((m + 2, m + 2))
+    A = rng.normal(size=(m, m))
+    P[:m, :m] = A @ A.T + np.eye(m)
+    mean = np.r_[rng.normal(size=m), 0.0, 0.0]
+    X = rng.normal(size=(T, 3 * n))
+    ok = rng.random((T, n)) > hide
+    ok[0] = True
+    got = evidence_strength(B, mean, P, grid, X, ok, m)
+    np.testing.assert_allclose(got, _evidence_by_frame(B, mean, P, grid, X, ok, m), rtol=1e-9, atol=1e-7)
