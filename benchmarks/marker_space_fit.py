@@ -5,7 +5,9 @@
 and whether the fit or a held-out trial made it, saved to an .npz. ``replay``: the same calls in the same order on
 solvers built by the tree on PYTHONPATH (thread CPU per call and per frame, passes and refactors counted, the
 solutions beside the recorded ones): the solver's own cost, without the rest of kalman's step, so that variants of
-solvers/marker_space_qp.py can be alternated with main's in one process-free loop.
+solvers/marker_space_qp.py can be alternated with main's in one process-free loop. A solve's peer (``near``: the
+QP whose kept S it may start from) and a begin's ``now`` are recorded and replayed where the recording has them (a
+recording by a tree without them replays on any tree; one with them only on a tree whose solver takes them).
 
     PYTHONPATH=$PWD python benchmarks/marker_space_fit.py record /tmp/ms.npz
     PYTHONPATH=<tree> python benchmarks/marker_space_fit.py replay /tmp/ms.npz [--json out.json]
@@ -56,15 +58,22 @@ def record(path: str, frames: int = 400, size: tuple[int, int] = (72, 1000)) -> 
         built.append((np.array(J, float), np.array(d, float), np.array(lower, float), np.array(upper, float)))
         init(self, J, d, lower, upper, max_iter)
 
-    def w_begin(self, f, x0, passes, frame_passes=0):
-        calls.append((state["frame"], ids[id(self)], 1, int(state["trial"]), int(passes), np.array(f), np.array(x0),
-                      frame_passes))
-        return begin(self, f, x0, passes, frame_passes)
+    def peer(near):  # the peer a solve may take its S from (MarkerSpaceQP ``near``): its index, our rows in its rows
+        rows = np.full(3 * profile.n_markers, -1)
+        if near is None:
+            return -1, rows
+        rows[:len(near[1])] = near[1]
+        return ids[id(near[0])], rows
 
-    def w_solve(self, f, x0, frame_passes=0):
+    def w_begin(self, f, x0, passes, frame_passes=0, near=None, now=None):
+        calls.append((state["frame"], ids[id(self)], 1, int(state["trial"]), int(passes), np.array(f), np.array(x0),
+                      frame_passes, -1 if now is None else int(now), *peer(near)))
+        return begin(self, f, x0, passes, frame_passes, near, now)
+
+    def w_solve(self, f, x0, frame_passes=0, near=None):
         calls.append((state["frame"], ids[id(self)], 0, int(state["trial"]), 0, np.array(f), np.array(x0),
-                      frame_passes))
-        return solve(self, f, x0, frame_passes)
+                      frame_passes, -1, *peer(near)))
+        return solve(self, f, x0, frame_passes, near)
 
     observe, hs_begin = HeldOutStrength.observe, HeldOutStrength.begin
 
@@ -93,7 +102,9 @@ def record(path: str, frames: int = 400, size: tuple[int, int] = (72, 1000)) -> 
              built=len(built), frame=np.array([c[0] for c in calls]), qp=np.array([c[1] for c in calls]),
              begin=np.array([c[2] for c in calls]), trial=np.array([c[3] for c in calls]),
              passes=np.array([c[4] for c in calls]), f=np.array([c[5] for c in calls]),
-             x0=np.array([c[6] for c in calls]), frame_passes=np.array([c[7] for c in calls]))
+             x0=np.array([c[6] for c in calls]), frame_passes=np.array([c[7] for c in calls]),
+             now=np.array([c[8] for c in calls]), peer=np.array([c[9] for c in calls]),
+             peer_rows=np.array([c[10] for c in calls]))
     return {"qps": len(built), "calls": len(calls), "frames": len(targets)}
 
 
@@ -124,10 +135,15 @@ def replay(path: str) -> dict:
             q, fr, kind = qps[z["qp"][c]], z["frame"][c], "trial" if z["trial"][c] else "fit"
             counts["refactor"] = 0
             c0 = thread()
+            extra = {}  # a recording by a tree whose solves take a peer's S / begin fewer passes now
+            if "peer" in z and z["peer"][c] >= 0:
+                extra["near"] = (qps[z["peer"][c]], z["peer_rows"][c][z["peer_rows"][c] >= 0])
             if z["begin"][c]:
-                q.begin(z["f"][c], z["x0"][c], int(z["passes"][c]), int(z["frame_passes"][c]))
+                if "now" in z and z["now"][c] >= 0:
+                    extra["now"] = int(z["now"][c])
+                q.begin(z["f"][c], z["x0"][c], int(z["passes"][c]), int(z["frame_passes"][c]), **extra)
             else:
-                x = q.solve(z["f"][c], z["x0"][c], int(z["frame_passes"][c]))
+                x = q.solve(z["f"][c], z["x0"][c], int(z["frame_passes"][c]), **extra)
             cost[kind][fr] += (thread() - c0) / 1e3
             refactors[kind][fr] += counts["refactor"]
             if not z["begin"][c]:
@@ -192,19 +208,21 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=1, help="stream: the take's noise seed (default 1)")
     p.add_argument("--noise", type=float, default=0.3, help="stream: marker noise, mm (default 0.3)")
     p.add_argument("--set", nargs="*", default=[], metavar="NAME=INT",
-                   help="constants of solvers.marker_space_qp or livecap.modes.marker_kalman for this run (e.g. "
-                        "STREAM_PASSES=0: the exact solve)")
+                   help="constants of solvers.marker_space_qp, solvers.prior_strength or livecap.modes.marker_kalman "
+                        "for this run (e.g. STREAM_PASSES=0: the exact solve)")
     p.add_argument("--hidden", type=int, default=0, help="stream: markers hidden at a time, moved every 20 frames")
     p.add_argument("--no-trial", action="store_true", help="stream: kalman with its strength trial switched off")
     a = p.parse_args()
     import livecap.modes.marker_kalman as mk
     import solvers.marker_space_qp as msq
+    import solvers.prior_strength as ps
 
     for item in a.set:
         name, value = item.split("=")
-        module = msq if hasattr(msq, name) else mk
-        if not hasattr(module, name):
-            p.error(f"--set: no constant {name} in solvers.marker_space_qp or livecap.modes.marker_kalman")
+        module = next((m for m in (msq, ps, mk) if hasattr(m, name)), None)
+        if module is None:
+            p.error(f"--set: no constant {name} in solvers.marker_space_qp, solvers.prior_strength or "
+                    "livecap.modes.marker_kalman")
         setattr(module, name, int(value))
     meta = {"utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()), "load": os.getloadavg()}
     if a.what == "record":

@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from solvers.prior_support import evidence_strength
+
 PERFORMERS = {"alex_rom_3": "anim", "alex_rom_4": "anim", "S07-001": "anim", "S88-001": "anim",
               "apfel": "csv", "MySlate_3_Jason_Millers_iPhone": "jmtechart"}
 
@@ -87,30 +89,6 @@ def _no_mean_spread(solver, targets, valid, noise_mm, tol=1e-2):
     return type(s)(s.axes, s.before, s.after, s.noise_var, s.iterations, s.mean, None)
 
 
-def evidence_strength(basis: np.ndarray, mean: np.ndarray, precision: np.ndarray, grid: np.ndarray,
-                      targets: np.ndarray, valid: np.ndarray, m: int) -> np.ndarray:
-    """Log marginal likelihood of the frames per strength a, up to a constant (type-II ML, Bishop 2006 §3.5):
-    w ~ N(mean, s2 / a P^-1) on the first m columns, the rest (the pose) flat, x_t = B w_t + e_t, e_t ~ N(0, s2 I)
-    on each frame's visible markers, s2 at its maximum for each a."""
-    B = np.asarray(basis, float)
-    n3 = B.shape[0]
-    ok = np.asarray(valid, bool).reshape(len(valid), n3 // 3)
-    Z = np.where(np.repeat(ok, 3, axis=1), np.asarray(targets, float).reshape(len(ok), n3) - B @ mean, 0.0)
-    keep = ok.sum(1) >= 3
-    Z, ok = Z[keep], ok[keep]
-    Bm = B.reshape(n3 // 3, 3, -1)
-    G = np.einsum("tn,nik,nil->tkl", ok.astype(float), Bm, Bm, optimize=True)
-    b, c = Z @ B, (Z**2).sum(1)
-    dof = 3 * ok.sum() - (B.shape[1] - m) * len(Z)
-    logdet_p = np.linalg.slogdet(precision[:m, :m])[1]
-    out = []
-    for a in grid:
-        H = G + a * precision[None]
-        q = (c - (b * np.linalg.solve(H, b[..., None])[..., 0]).sum(1)).sum()
-        out.append(-0.5 * (dof * np.log(q / dof) + np.linalg.slogdet(H)[1].sum() - len(Z) * (m * np.log(a) + logdet_p)))
-    return np.array(out)
-
-
 def _offline_rows(rig, layout, ct, prior, opts, strength: int | None, evidence: bool, true_mean: list[str]) -> list:
     """The oracle and ``kalman``'s offline row; a prior's strength held (``strength``) or by the evidence, the checked
     mean of the ``true_mean`` shapes set to the take's (the held-out markers' choice and the one used in
@@ -144,12 +122,16 @@ def _offline_rows(rig, layout, ct, prior, opts, strength: int | None, evidence: 
     profile.prior = prior
     marker_kalman.take_strength = take_strength
     marker_kalman.MarkerKalmanSolver._support = truth_in
+    pick = marker_kalman.MarkerKalmanSolver._evidence_pick
+    if prior is not None and (strength is not None or evidence):  # the strength given: not the weaker of two
+        marker_kalman.MarkerKalmanSolver._evidence_pick = lambda self, *a: len(marker_kalman.STRENGTHS)
     try:
         t0 = time.perf_counter()
         solved = solve_take(ct.take, profile, marker_kalman.kalman_mode(profile, opts["kalman"]))
         row = score("kalman offline", rig, ct, solved.weights, time.perf_counter() - t0)
     finally:
         marker_kalman.take_strength, marker_kalman.MarkerKalmanSolver._support = chosen, support
+        marker_kalman.MarkerKalmanSolver._evidence_pick = pick
     row.picks = dict(picks)
     return [score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), 0.0), row]
 

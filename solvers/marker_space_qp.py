@@ -41,13 +41,23 @@ Optim. 43(5)): inexact on a frame, it tracks the optimum over frames, and on a Q
 exact optimum (tests/test_marker_space_qp.py). kalman's stream asks for one pass (at 72 x 1000 its step a quarter
 cheaper, the weights' RMSE against the synthetic takes' truth no worse: docs/performance.md, "`kalman` at 72 x 1000:
 one block-pivoting pass a frame"); the qp mode and every offline solve stay exact.
+
+A solve that starts where a peer stopped -- the same basis on a superset of its rows, D a scalar multiple of its own
+(kalman's held-out trial warm from the frame's fit: a fold's markers out, another prior strength; the fit at a new
+strength warm from the last frame's) -- may take its first S from the peer's kept one instead of its own, which was
+factored for a free set frames ago: the peer's block of our rows, scaled, the pose's range projected off (a rank-2p
+update), the few columns between the two free sets added or removed, one Cholesky at our r (``_from_peer``; exact up
+to rounding). ``begin`` may also run fewer of its passes now and factor the next pass's S, so that a solve spread
+over two frames costs them about the same (docs/performance.md, "the trial from the fit's factor").
 """
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import scipy.linalg as sl
-from scipy.linalg.blas import dsyrk
+from scipy.linalg.blas import dsymm, dsyr2k, dsyrk
 from scipy.linalg.lapack import dpotrf, dpotrs
 
 from solvers.marker_space_kernels import repartition, rhs, x_and_gradient
@@ -85,13 +95,16 @@ class MarkerSpaceQP:
                 raise np.linalg.LinAlgError("the unpenalised columns are not fixed by the seen rows")
             self._A = sl.cho_solve(self._C, JP.T @ JG)
             JG = JG - JP @ self._A
+        # range(J_P), orthonormal: projected off a peer's S (``near``)
+        self._Q = np.asfortranarray(np.linalg.qr(JP)[0]) if len(self.P) else None
         self.J = np.ascontiguousarray(JG)
         self.d = d[self.G]
         self.dinv = 1.0 / self.d
         self.lo, self.hi = lower[self.G], upper[self.G]
         self.max_iter = int(max_iter)
         self.iterations = 0
-        self._Wt = self.J.T * np.sqrt(self.dinv)[:, None]  # rows: the columns of J D^-1/2 (W[:, idx] = _Wt[idx].T)
+        # rows: the columns of J D^-1/2 (W[:, idx] = _Wt[idx].T), each contiguous: a refactor gathers k of them
+        self._Wt = np.ascontiguousarray(self.J.T * np.sqrt(self.dinv)[:, None])
         self._S_all = np.asfortranarray(self._Wt.T @ self._Wt)  # every column free
         self._S_all.flat[:: self.r + 1] += 1.0
         # S of the free set _F (its lower triangle: what LAPACK reads) and its Cholesky factor _L
@@ -101,33 +114,44 @@ class MarkerSpaceQP:
         self._updates = 0
         # the last solve's x, the partition it stopped at, its f and its count of wrong sides (best, budget)
         self._carry: tuple | None = None
+        self._near: tuple | None = None  # a peer whose kept S this solve may start from, and our rows in its rows
+        self._ratio: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # peer -> d_peer / d, or None
 
     def _solve_S(self, F: np.ndarray, b: np.ndarray) -> np.ndarray:
         """S^-1 b for free set F. Within WOODBURY columns of the kept factor's free set, through that factor and a
         k x k capacitance (Woodbury; the last passes of a solve change 0-3 columns, and a 216 x 216 refactor costs
         ~0.2 ms); otherwise the kept S updated by the changed columns (or formed) and refactored."""
+        if self._factor(F):
+            return dpotrs(self._L, b, lower=1)[0]
+        _, U, Z, M = self._wood
+        y = dpotrs(self._L, b, lower=1)[0]
+        return y - Z @ sl.lu_solve(M, U.T @ y, check_finite=False)
+
+    def _factor(self, F: np.ndarray) -> bool:
+        """Make S of free set F solvable: True where the kept factor is its own (unchanged or refactored), False
+        where ``_wood`` holds the Woodbury terms for it."""
         changed = np.flatnonzero(F != self._F)
         if not len(changed) and self._L is not None:
-            return dpotrs(self._L, b, lower=1)[0]
+            return True
         if len(changed) > WOODBURY or self._L is None:
             self._refactor(F, changed)
-            return dpotrs(self._L, b, lower=1)[0]
+            return True
         if self._wood is None or not np.array_equal(self._wood[0], F):
             U = self._Wt[changed].T  # S_F = S + U C U', C = diag(+1 freed, -1 bounded) = C^-1
             Z = dpotrs(self._L, U, lower=1)[0]
             self._wood = (F.copy(), U, Z, sl.lu_factor(np.diag(np.where(F[changed], 1.0, -1.0)) + U.T @ Z,
                                                       check_finite=False))
-        _, U, Z, M = self._wood
-        y = dpotrs(self._L, b, lower=1)[0]
-        return y - Z @ sl.lu_solve(M, U.T @ y, check_finite=False)
+        return False
 
     def _refactor(self, F: np.ndarray, changed: np.ndarray) -> None:
         """S of free set F from the kept one by the changed columns (symmetric rank-k products, lower triangle), or
         formed from all columns' S less the bounded ones' (or the free ones' alone), and its Cholesky factor."""
         n_free = int(np.count_nonzero(F))
         n_bound = len(F) - n_free
+        if self._near is not None and self._from_peer(F, min(len(changed), n_bound, n_free)):
+            return
         if len(changed) <= min(n_bound, n_free) and self._updates < REFRESH:
-            S = self._S.copy(order="F")
+            S = self._S.copy(order="F") if self._S is self._S_all else self._S  # updated in place: its last use
             for idx, sign in ((changed[F[changed]], 1.0), (changed[~F[changed]], -1.0)):
                 if len(idx):
                     S = dsyrk(sign, self._Wt[idx].T, beta=1.0, c=S, lower=1, overwrite_c=1)
@@ -140,32 +164,99 @@ class MarkerSpaceQP:
             self._updates = 0
         L, info = dpotrf(S, lower=1, clean=0)
         if info:
+            self._S, self._F, self._L, self._wood = self._S_all, np.ones(len(self.G), bool), None, None
             raise np.linalg.LinAlgError(f"marker-space matrix not positive definite (dpotrf info {info})")
         self._S, self._F, self._L, self._wood = S, F.copy(), L, None
+
+    def ratio(self, peer: MarkerSpaceQP) -> float | None:
+        """c = d_peer / d where ``peer`` is this QP on more rows at another scale of D (a prior's strength, no
+        floor): the same columns, pose (d = 0) columns and limits, d proportional to rounding. Else None."""
+        if peer not in self._ratio:
+            c = None
+            if (np.array_equal(peer.G, self.G) and np.array_equal(peer.P, self.P) and peer.r >= self.r
+                    and np.array_equal(peer.lo, self.lo) and np.array_equal(peer.hi, self.hi) and len(self.G)):
+                c = float(np.median(peer.d / self.d))
+                c = c if np.allclose(peer.d, c * self.d, rtol=1e-12, atol=0.0) else None
+            self._ratio[peer] = c
+        return self._ratio[peer]
+
+    def _from_peer(self, F: np.ndarray, own: int) -> bool:
+        """S of free set F from the peer's kept S (``near``) where fewer columns separate F from the peer's free set
+        than from our own (+ the r^2 work of taking it over): with W = (I - Pi) J D^-1/2 (Pi onto the pose columns'
+        range), our rows R of the peer's J and d = d_peer / c, (I - Pi) [(I - Pi_peer) J]_R = (I - Pi) J_R, so
+
+            S_F - I = c (I - Pi) [S_peer,F - I]_RR (I - Pi),
+
+        the peer's block scaled, the pose projected off by a rank-2p update (Pi = Q Q'), then the columns between the
+        two free sets by symmetric rank-k products and one Cholesky at our r -- instead of forming S over every free
+        column (kalman's held-out trial at 72 x 1000: its own S 90 frames stale, the fit's from this very start)."""
+        peer, idx = self._near
+        c = self.ratio(peer)
+        if c is None or peer._L is None:
+            return False
+        changed = np.flatnonzero(F != peer._F)
+        if len(changed) + len(self.P) >= own:
+            return False
+        S = np.take(peer._S.T[idx], idx, axis=1).T  # Fortran order; its lower triangle the peer's (LAPACK's)
+        if self._Q is None or len(idx) == peer.r:  # (the peer's rows: its S already projected off our pose's range)
+            S *= c
+        else:  # c (P S P - P) + I = c S - c (Q V' + V Q') + (1 - c) I, V = S Q - Q (Q'S Q) / 2 - Q / 2
+            Y = dsymm(1.0, S, self._Q, lower=1)
+            S = dsyr2k(-c, self._Q, Y - 0.5 * self._Q @ (self._Q.T @ Y + np.eye(len(self.P))), beta=c, c=S,
+                       lower=1, overwrite_c=1)
+        S.T.flat[:: self.r + 1] += 1.0 - c
+        for cols, sign in ((changed[F[changed]], 1.0), (changed[~F[changed]], -1.0)):
+            if len(cols):
+                S = dsyrk(sign, self._Wt[cols].T, beta=1.0, c=S, lower=1, overwrite_c=1)
+        L, info = dpotrf(S, lower=1, clean=0)
+        if info:
+            return False
+        self._S, self._F, self._L, self._wood = S, F.copy(), L, None
+        self._updates = min(peer._updates + 1, REFRESH)
+        return True
 
     def _subproblem(self, fG: np.ndarray, at_lo: np.ndarray, at_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The minimiser with the bounded weights held at their limits (x) and the gradient there (0 on F)."""
         y = self._solve_S(~(at_lo | at_hi), self.J @ rhs(fG, self.dinv, self.lo, self.hi, at_lo, at_hi))
         return x_and_gradient(self.J.T @ y, fG, self.d, self.dinv, self.lo, self.hi, at_lo, at_hi)
 
-    def begin(self, f: np.ndarray, x0: np.ndarray, passes: int, frame_passes: int = 0) -> None:
+    def begin(self, f: np.ndarray, x0: np.ndarray, passes: int, frame_passes: int = 0,
+              near: tuple[MarkerSpaceQP, np.ndarray] | None = None, now: int | None = None) -> None:
         """The first ``passes`` passes of ``solve(f, x0, frame_passes)`` now; that solve next continues where they
-        stopped (the same passes in the same order, so the same x): one solve spread over two frames."""
+        stopped (the same passes in the same order, so the same x): one solve spread over two frames. ``now``: of
+        those passes only this many here, and the S of the next one factored (its first step); the solve then runs
+        the rest as well (the same x, the work shared more evenly between the frames). ``near``: a peer (this QP on
+        a superset of its rows, D scaled: ``ratio``) and the indices of our rows in its rows, whose kept S a
+        refactor here may start from (``_from_peer``; the same x up to rounding)."""
         f, x0 = np.array(f, dtype=np.float64), np.array(x0, dtype=np.float64)
+        passes = min(int(passes), self.max_iter)
+        now = passes if now is None else min(int(now), passes)
         self._begun = None
-        self._begun = (f, x0, self._pivot(f, x0, min(int(passes), self.max_iter), frame_passes=frame_passes))
+        self._near = near
+        try:
+            state = self._pivot(f, x0, now, frame_passes=frame_passes)
+            if not isinstance(state[0], str):
+                self._factor(~(state[0] | state[1]))
+        finally:
+            self._near = None
+        self._begun = (f, x0, state, passes - now if frame_passes else 0)
 
-    def solve(self, f: np.ndarray, x0: np.ndarray, frame_passes: int = 0) -> np.ndarray | None:
+    def solve(self, f: np.ndarray, x0: np.ndarray, frame_passes: int = 0,
+              near: tuple[MarkerSpaceQP, np.ndarray] | None = None) -> np.ndarray | None:
         """The optimum from ``x0`` (None where ``max_iter`` passes did not settle); with ``frame_passes`` > 0 at most
         that many passes, the clipped point where they did not settle, the next solve from it going on (the
-        real-time iteration above)."""
+        real-time iteration above). ``near``: as for ``begin``."""
         f, x0 = np.asarray(f, dtype=np.float64), np.asarray(x0, dtype=np.float64)
         begun, self._begun = self._begun, None
         state = None
         if begun is not None and np.array_equal(begun[0], f) and np.array_equal(begun[1], x0):
             state = begun[2]
         if state is None or not isinstance(state[0], str):
-            state = self._pivot(f, x0, self.max_iter, state, frame_passes)
+            self._near = near
+            try:
+                state = self._pivot(f, x0, self.max_iter, state, frame_passes + (begun[3] if state else 0))
+            finally:
+                self._near = None
         return state[1]
 
     def _pivot(self, f: np.ndarray, x0: np.ndarray, stop: int, state: tuple | None = None,

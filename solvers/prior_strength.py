@@ -16,7 +16,8 @@ import numpy as np
 from solvers.prior_strength_kernels import held_out_error, score, unbounded_trial
 from solvers.qp import FrameQP
 
-BEGIN_PASSES = 2  # marker-space trials: passes run on the frame the trial is due, the rest on the next
+BEGIN_PASSES = 2  # marker-space trials: passes owed to the frame the trial is due, the rest on the next
+BEGIN_NOW = 1  # of them run there, with the next one's factor; the finishing frame runs the others (the same passes)
 
 
 class HeldOutStrength:
@@ -84,7 +85,7 @@ class HeldOutStrength:
         if not qp.marker_space or not seen.any() or np.count_nonzero(train) < 3:
             return False
         qp.warm(start)
-        return qp.begin(target, train, BEGIN_PASSES)
+        return qp.begin(target, train, BEGIN_PASSES, BEGIN_NOW)
 
     def observe(self, target: np.ndarray, valid: np.ndarray, start: np.ndarray | None = None,
                 elapsed: float = 1.0) -> None:

@@ -25,6 +25,8 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+import threading
+import weakref
 from collections import OrderedDict
 
 import numpy as np
@@ -39,6 +41,10 @@ log = logging.getLogger(__name__)
 # the marker-space path when the shapes number at least this many times the marker coordinates (72 x 1000: 4.7;
 # 72 x 150 and ICT's ~53 shapes stay in weight space)
 MARKER_SPACE_RATIO = 2.0
+# this thread's last marker-space solves, newest first: (basis, row weights, rows, its MarkerSpaceQP; basis and solver
+# by weak reference), the peers a solve from one's stop may start its refactor from (``FrameQP._near``)
+_STOPS = threading.local()
+_STOPS_KEPT = 4
 _LAMBDA_MIN_SIZE = 256
 _LAMBDA_MIN: dict[bytes, float] = {}  # smallest eigenvalue per matrix content: FrameQPs at several strengths share one
 
@@ -182,6 +188,7 @@ class FrameQP:
         self.linear = np.zeros(self.m)  # a linear term callers may change per frame (e.g. an L1 penalty)
         self.cache_size = int(cache_size)
         self.frame_passes = int(frame_passes)
+        self._begun_f: tuple | None = None  # ``begin``'s workspace, coordinates, linear term and f
         self._models: OrderedDict[bytes, _Workspace] = OrderedDict()
         self._all_seen = np.ones(self.n, bool).tobytes()
         self._all_rows = np.ones(3 * self.n, bool)
@@ -433,18 +440,48 @@ class FrameQP:
                             s: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray]:
         """The frame on this pattern's MarkerSpaceQP (built on first use), or None: the weight-space path then."""
         self._build_marker_space(ws)
+        begun, self._begun_f = self._begun_f, None
+        if f is None and begun is not None and begun[0] is ws and self.temporal + ws.floor == 0 \
+                and np.array_equal(begun[1], s) and np.array_equal(begun[2], self.linear):
+            f = begun[3]  # the begun solve's own: its B'M^2 s not formed twice (a 1006 x 216 product at 72 x 1000)
         if f is None:
             f = self._linear_term(ws, self._BtD @ (s if ws.rows is None else np.where(ws.rows, s, 0.0)))
         if ws.marker_space is False:
             return None, f
-        x = ws.marker_space.solve(f, self._prev, self.frame_passes)
+        x = ws.marker_space.solve(f, self._prev, self.frame_passes, self._near(ws))
         self.iterations = ws.marker_space.iterations
+        if x is not None:
+            stops = [s for s in getattr(_STOPS, "last", ()) if s[3]() is not ws.marker_space]
+            # (weak: a finished take's solvers are not kept alive by a worker thread's record)
+            _STOPS.last = [(weakref.ref(self.basis), self._row_w, ws.rows, weakref.ref(ws.marker_space))] + \
+                stops[:_STOPS_KEPT - 1]
         return x, f
 
-    def begin(self, target: np.ndarray, valid: np.ndarray, passes: int) -> bool:
+    def _near(self, ws: _Workspace) -> tuple | None:
+        """Where this solve starts at the very point where one of this thread's last marker-space solves stopped, on
+        the same basis and marker weights and a superset of this pattern's rows (kalman's held-out trial warm from
+        that frame's fit, at another prior strength and without a fold's markers; kalman's fit at a new strength warm
+        from the last frame's): that solver and our rows' indices in its rows, so that a refactor may take the peer's
+        kept S instead of forming ours over a stale free set (solvers.marker_space_qp ``_from_peer``; issue 39)."""
+        mine = self._all_rows if ws.rows is None else ws.rows
+        start = self._prev
+        for basis, row_w, rows, peer in getattr(_STOPS, "last", ()):
+            peer = peer()
+            carry = None if peer is None else peer._carry
+            if (basis() is not self.basis or peer is ws.marker_space or carry is None or carry[0][0] != start[0]
+                    or not np.array_equal(carry[0], start) or not np.array_equal(row_w, self._row_w)):
+                continue
+            theirs = self._all_rows if rows is None else rows
+            if not np.any(mine & ~theirs):
+                return peer, np.flatnonzero(mine[theirs])
+        return None
+
+    def begin(self, target: np.ndarray, valid: np.ndarray, passes: int, now: int | None = None) -> bool:
         """The first ``passes`` passes of the marker-space solve that ``step(target, valid)`` would run next (from
         the start ``warm`` set), now; that step continues from them. False where the step would not take that
-        path. A caller so spreads one solve over two frames (kalman's held-out trial at 72 x 1000, issue 39)."""
+        path. A caller so spreads one solve over two frames (kalman's held-out trial at 72 x 1000, issue 39).
+        ``now``: only this many of them now, and the next one's factor (MarkerSpaceQP.begin); the step runs the
+        rest."""
         s = np.asarray(target, dtype=np.float64).reshape(-1)
         seen = np.asarray(valid, dtype=bool).reshape(-1)
         if (not self.marker_space or s.shape[0] != 3 * self.n or seen.shape[0] != self.n
@@ -458,7 +495,8 @@ class FrameQP:
         if ws.marker_space is False:
             return False
         f = self._linear_term(ws, self._BtD @ (s if ws.rows is None else np.where(ws.rows, s, 0.0)))
-        ws.marker_space.begin(f, self._prev, passes, self.frame_passes)
+        ws.marker_space.begin(f, self._prev, passes, self.frame_passes, self._near(ws), now)
+        self._begun_f = (ws, s.copy(), np.array(self.linear, dtype=np.float64), f)
         return True
 
     def _build_marker_space(self, ws: _Workspace) -> None:

@@ -174,3 +174,29 @@ def test_prior_blink_records_a_stream_and_puts_the_solver_back():
     assert len(_lagged(rec["move"])) == len(X)
     after = (marker_kalman.MarkerKalmanSolver.step, tracking.RotatedIMM.step, HeldOutStrength.__dict__.get("best"))
     assert after == before
+
+
+def test_prior_gap_parts_take_out_each_part_of_the_error():
+    """benchmarks.prior_gap: a constant bias on every shape is all that ``no bias`` removes, the issue's mouth shapes'
+    bias only theirs, the eye pair and the first seconds set to truth take exactly their share of the squared error."""
+    from benchmarks.prior_gap import EYES, MOUTH, parts
+
+    rng = np.random.default_rng(0)
+    names = [*MOUTH, *EYES, "jawOpen", "browDown_L"]
+    T, rate = 600, 60.0
+    truth = rng.random((T, len(names)))
+    noise = rng.normal(0, 0.01, truth.shape)
+    noise -= noise.mean(0)
+    bias = np.linspace(0.02, 0.1, len(names))
+    W = truth + bias + noise
+    p = parts(W, truth, names, rate, streamed=True)
+    np.testing.assert_allclose(p["rmse"] ** 2, np.mean((bias + noise) ** 2))
+    np.testing.assert_allclose(p["no bias"], np.sqrt(np.mean(noise**2)))
+    mouth = np.isin(names, MOUTH)
+    np.testing.assert_allclose(p["no mouth bias"] ** 2, np.mean((np.where(mouth, 0, bias) + noise) ** 2))
+    eyes = np.isin(names, EYES)
+    np.testing.assert_allclose(p["eye pair true"] ** 2, np.mean(np.where(eyes, 0, bias + noise) ** 2))
+    err = bias + noise
+    err[: int(1.5 * rate)] = 0
+    np.testing.assert_allclose(p["first 1.5 s true"], np.sqrt(np.mean(err**2)))
+    assert "first 3 s true" not in parts(W, truth, names, rate, streamed=False)

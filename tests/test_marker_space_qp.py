@@ -267,3 +267,99 @@ def test_a_bounded_solve_runs_fresh_passes_from_another_start_and_frame_passes_f
     assert q.iterations == 1 and q._carry is not None and q._carry[0] is y
     xG = x[q.G]
     assert not (np.array_equal(calls[0][0], xG <= lo) and np.array_equal(calls[0][1], xG >= hi))  # the stop's own
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), r=st.integers(6, 30), n=st.integers(4, 70), p=st.integers(0, 3),
+       scale=st.sampled_from([1e-3, 0.1, 1.0, 31.6, 100.0]), drop=st.floats(0.0, 0.5))
+def test_s_from_a_peers_kept_s_is_the_fresh_one(seed, r, n, p, scale, drop):
+    """A QP on some of a peer's rows with D scaled (kalman's held-out trial against the fit: a fold's markers out,
+    another prior strength): its S for a free set, taken from the peer's kept S (block, scale, the pose projected
+    off, the columns between the two free sets), is the S formed from its own columns; its solve from the peer's
+    stop is the optimum (KKT, the dense solve)."""
+    rng = np.random.default_rng(seed)
+    J, d, lo, hi, f = _problem(rng, r, n, p, dmin=1.0)  # d / scale >= 1e-2
+    rows = np.flatnonzero(rng.random(r) >= drop)
+    try:
+        peer = MarkerSpaceQP(J, d, lo, hi, max_iter=5000)
+        q = MarkerSpaceQP(J[rows], d / scale, lo, hi, max_iter=5000)
+    except np.linalg.LinAlgError:
+        return
+    assert q.ratio(peer) == pytest.approx(scale, rel=1e-12)
+    x0 = peer.solve(f, np.clip(np.zeros(n + p), lo, hi), 1)
+    if peer._L is None:
+        return
+    F = peer._F.copy()
+    F[rng.random(n) < 0.2] ^= True
+    q._near = (peer, rows)
+    assert q._from_peer(F, n + 10)
+    q._near = None
+    W = q._Wt[F].T
+    np.testing.assert_allclose(np.tril(q._S), np.tril(np.eye(len(rows)) + W @ W.T), rtol=0,
+                               atol=1e-10 * (1 + np.abs(W).max() ** 2 * n))
+    H = np.diag(d / scale) + J[rows].T @ J[rows]
+    fresh, taken = (MarkerSpaceQP(J[rows], d / scale, lo, hi, max_iter=5000) for _ in range(2))
+    x = taken.solve(f, x0, near=(peer, rows))
+    assert x is not None
+    _kkt(H, f, lo, hi, x, 1e-9)
+    np.testing.assert_allclose(x, fresh.solve(f, x0), rtol=0, atol=1e-7)  # (rounding: 1.3e-9 seen at d / 100)
+    np.testing.assert_allclose(x, BoxQP(H, lo, hi).solve(f), atol=1e-7)
+
+
+def test_a_peer_at_a_disproportionate_d_or_other_limits_is_not_taken():
+    rng = np.random.default_rng(2)
+    J, d, lo, hi, _ = _problem(rng, 12, 40, 2, dmin=0.1)
+    peer = MarkerSpaceQP(J, d, lo, hi)
+    assert MarkerSpaceQP(J[:9], d * np.r_[np.full(20, 2.0), np.ones(22)], lo, hi).ratio(peer) is None  # a floor
+    assert MarkerSpaceQP(J[:9], d, lo, hi + 1.0).ratio(peer) is None
+    assert MarkerSpaceQP(J[:9], 3.0 * d, lo, hi).ratio(peer) == pytest.approx(1 / 3)
+
+
+def test_a_trial_warm_from_the_fits_stop_takes_its_s_and_its_weights(monkeypatch):
+    """kalman's pattern: a fit at one strength steps, a held-out trial at another strength on the frame's markers but
+    a fold's is warmed from the fit's weights, begun and stepped: it takes the fit's kept S (no S over every free
+    column) and returns the weights of a trial whose peers are forgotten (to rounding)."""
+    import solvers.marker_space_qp as msq
+
+    (B, lo, hi, mean, P), rng = _rig(8, 80)
+    fit = FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1e-2, frame_passes=1)
+    trial, alone = (FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1e-1, frame_passes=1) for _ in range(2))
+    taken = []
+    from_peer = msq.MarkerSpaceQP._from_peer
+    monkeypatch.setattr(msq.MarkerSpaceQP, "_from_peer", lambda self, F, own: taken.append(
+        from_peer(self, F, own)) or taken[-1])
+    fold = np.ones(8, bool)
+    fold[[1, 5]] = False
+    begun = 0
+    for s, seen in _moving_frames(B, rng, 40, 0.2):
+        z = fit.step(s, seen)
+        train = seen & fold
+        for qp in (trial, alone):
+            qp.warm(z)
+            if qp is alone:
+                qp_module._STOPS.last = []
+            begun += qp.begin(s, train, 1)
+            w = qp.step(s, train)
+        np.testing.assert_allclose(trial._prev, w, rtol=0, atol=1e-9)
+    assert begun > 20 and any(taken)
+
+
+def test_the_threads_record_of_stops_keeps_no_solver_alive():
+    """A worker thread's record of its last marker-space stops does not keep a finished take's solvers (and their
+    S and J) alive; a later solve on another basis takes no peer from it."""
+    import gc
+    import weakref
+
+    (B, lo, hi, mean, P), rng = _rig(8, 80)
+    fit = FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1e-2, frame_passes=1)
+    for s, seen in _moving_frames(B, rng, 10, 0.2):
+        fit.step(s, seen)
+    solvers = [weakref.ref(ws.marker_space) for ws in fit._models.values() if ws.marker_space]
+    assert solvers and qp_module._STOPS.last
+    del fit
+    gc.collect()
+    assert all(ref() is None for ref in solvers)
+    (B2, lo, hi, mean, P), rng = _rig(8, 80, seed=1)
+    other = FrameQP(B2, lo, hi, prior=(mean, P), prior_weight=1e-2, frame_passes=1)
+    other.step(*next(_moving_frames(B2, rng, 1, 0.2)))
+    assert all(other._near(ws) is None for ws in other._models.values() if ws.marker_space)

@@ -446,3 +446,107 @@ def test_a_prior_not_yet_checked_is_fitted_at_the_weakest_strength():
         ridge.step(X[t], np.ones(40, bool))
         assert ridge._fit_k == before  # a ridge is never checked: the held-out choice throughout
     assert marker_kalman.STRENGTHS[0] == marker_kalman.STRENGTHS.min()
+
+
+def _offset_take(told_apart: bool, sd: float, var: float, noise: float, T: int = 240):
+    """An actor resting at 0.5 about whom a prior says 0.3 with variance ``var``; shape 0 moves the markers nearly as
+    shape 1 does unless ``told_apart``."""
+    from livecap.calibration.animation_prior import AnimationPrior
+    from tests.test_marker_kalman import _face
+
+    p = _face(4)
+    rng = np.random.default_rng(4)
+    if not told_apart:
+        p.basis[:, 0] = 0.95 * p.basis[:, 1] + 0.3 * rng.normal(0, 2.0, len(p.basis))
+    t = np.arange(T)[:, None]
+    W = np.clip(0.5 + sd * np.sin(t * rng.uniform(0.02, 0.08, 8) + rng.uniform(0, 6, 8)), 0, 1)
+    p.prior = AnimationPrior(tuple(p.names), np.full(8, 0.3), np.eye(8) * var, 1000, ("other performer",))
+    X = (W @ p.basis.T).reshape(T, -1, 3) + rng.normal(0, noise, (T, 40, 3))
+    return p, X
+
+
+def test_offline_prior_strength_is_the_weaker_of_the_held_out_markers_and_the_evidence(monkeypatch):
+    """Issue 41 (docs/robustness.md, "the ICT gap with a prior, decomposed"): offline, an animation prior's strength
+    is the weaker of the held-out markers' choice and the take's evidence's, whichever that is: where two shapes are
+    barely told apart the held-out markers pick a stronger prior than the evidence (the code before used theirs),
+    where they are told apart here the evidence picks the stronger one."""
+    from livecap.modes import marker_kalman
+
+    picks = []
+    held, evidence = marker_kalman.take_strength, marker_kalman.evidence_strength
+
+    def take_strength(*a, **kw):
+        out = held(*a, **kw)
+        picks.append(("held", out[0]))
+        return out
+
+    def evidence_strength(*a, **kw):
+        out = evidence(*a, **kw)
+        picks.append(("evidence", int(np.argmax(out))))
+        return out
+
+    monkeypatch.setattr(marker_kalman, "take_strength", take_strength)
+    monkeypatch.setattr(marker_kalman, "evidence_strength", evidence_strength)
+    seen = set()
+    for told_apart, sd, var, noise in ((False, 0.1, 0.01, 1.0), (True, 0.25, 0.04, 0.3)):
+        p, X = _offset_take(told_apart, sd, var, noise)
+        solver = marker_kalman.kalman_mode(p, {"rate": 60.0})
+        picks.clear()
+        solver.solve(X, np.ones((len(X), 40), bool))
+        (_, h), (_, e) = picks[-2:]  # the last pose pass's
+        assert h != e
+        seen.add(h < e)
+        assert solver.chosen["prior_weight"] == marker_kalman.STRENGTHS[min(h, e)]
+    assert seen == {True, False}
+
+
+def test_a_ridge_keeps_the_held_out_markers_strength(monkeypatch):
+    """The weaker-of-two rule is the animation prior's (its mean unverified for this actor): without one the offline
+    strength is the held-out markers' alone and the evidence is not computed."""
+    from livecap.modes import marker_kalman
+
+    monkeypatch.setattr(marker_kalman, "evidence_strength", lambda *a, **kw: (_ for _ in ()).throw(AssertionError))
+    p, X = _offset_take(False, 0.1, 0.01, 1.0)
+    p.prior = None
+    solver = marker_kalman.kalman_mode(p, {"rate": 60.0})
+    solver.solve(X, np.ones((len(X), 40), bool))
+    assert solver.chosen["prior_weight"] in marker_kalman.STRENGTHS
+
+
+def _evidence_by_frame(B, mean, P, grid, X, ok, m):
+    """The evidence as its formula reads: each kept frame's Hessian over its seen markers factored on its own."""
+    kept = [(x - B @ mean, np.repeat(o, 3)) for x, o in zip(X, ok, strict=True) if o.sum() >= 3]
+    dof = sum(r.sum() for _, r in kept) - (B.shape[1] - m) * len(kept)
+    out = []
+    for a in grid:
+        q = ld = 0.0
+        for z, r in kept:
+            Bv, zv = B[r], z[r]
+            H = Bv.T @ Bv + a * P
+            q += zv @ zv - (Bv.T @ zv) @ np.linalg.solve(H, Bv.T @ zv)
+            ld += np.linalg.slogdet(H)[1]
+        out.append(-0.5 * (dof * np.log(q / dof) + ld - len(kept) * (m * np.log(a) + np.linalg.slogdet(P[:m, :m])[1])))
+    return np.array(out)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), hide=st.floats(0.0, 0.5))
+def test_evidence_downdated_per_frame_equals_each_frame_factored_alone(seed, hide):
+    """evidence_strength factors the all-seen Hessian once per strength and downdates each frame's hidden markers
+    (Woodbury, the determinant lemma); the same numbers as factoring every frame's own Hessian, whatever is hidden
+    (frames with fewer than 3 markers seen left out in both)."""
+    from solvers.prior_support import evidence_strength
+
+    rng = np.random.default_rng(seed)
+    n, m, T = 8, 5, 12
+    grid = np.logspace(-3, 1, 5)
+    B = np.hstack([rng.normal(size=(3 * n, m)), np.tile(np.eye(3), (n, 1))[:, :2]])
+    P = np.zeros((m + 2, m + 2))
+    A = rng.normal(size=(m, m))
+    P[:m, :m] = A @ A.T + np.eye(m)
+    mean = np.r_[rng.normal(size=m), 0.0, 0.0]
+    X = rng.normal(size=(T, 3 * n))
+    ok = rng.random((T, n)) > hide
+    ok[0] = True
+    got = evidence_strength(B, mean, P, grid, X, ok, m)
+    np.testing.assert_allclose(got, _evidence_by_frame(B, mean, P, grid, X, ok, m), rtol=1e-9, atol=1e-7)
