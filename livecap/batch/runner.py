@@ -16,7 +16,7 @@ from pathlib import Path
 
 from livecap.batch.jobs import Job
 from livecap.batch.summary import LiveSummary, write_summary
-from livecap.batch.worker import SolverCache, load_record, read_record, solve_task
+from livecap.batch.worker import SolverCache, load_record, read_record, solve_job
 from livecap.core.take import Take
 
 log = logging.getLogger(__name__)
@@ -188,14 +188,14 @@ def run_batch(jobs: list[Job], out_dir: str | Path, client, force: bool = False,
         order = sorted(pending, key=lambda i: -sizes[i])
         # one map, one message to the scheduler: both workers get their first take at once (a submit per take
         # is a message each, which the client sends at most every 10 ms), in this order (map's own priority)
-        futures = dict(zip(client.map(solve_task, [jobs[i] for i in order], pure=False,
+        futures = dict(zip(client.map(solve_job, [jobs[i] for i in order], pure=False,
                                       key=[f"livecap-batch-{run_id}-{i}-{jobs[i].stem}" for i in order]), order,
                            strict=True)) if order else {}
         for fut in as_completed(list(futures)):
             i = futures[fut]
             try:
                 row = _written_row(jobs[i]) if fut.status == "finished" else None
-                row = row or fut.result() or _failed(jobs[i], "solved, but its record could not be read")
+                row = row or fut.result()
             except Exception as exc:  # the worker died or the task could not run: the take failed
                 from livecap.batch.worker import one_line
 

@@ -261,15 +261,6 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     return row
 
 
-def solve_task(job: Job) -> dict | None:
-    """``solve_job`` as ``run_batch``'s task: None for a solved take, whose row is in its record (the client reads
-    it there), the row for a failed one. The worker keeps the result until the batch ends and walks it to size it
-    as the task ends (``dask.sizeof``, on its event loop beside the next take); a solved row, with a value per
-    shape, costs that walk for nothing (docs/batch.md "Batch: the last percent")."""
-    row = solve_job(job)
-    return None if row["status"] == "ok" else row
-
-
 def read_record(job: Job) -> dict:
     """The row a solve of ``job`` wrote (``_write_record``)."""
     return json.loads(Path(job.record).read_text())
