@@ -116,6 +116,35 @@ def test_solved_rows_are_read_from_their_records_not_fetched_from_the_workers(li
             assert r["frames"] == FRAMES and r["cpu_seconds"] > 0
 
 
+def test_a_batch_reaches_the_scheduler_in_one_message(library, client, tmp_path):
+    """Every task of a batch goes to the scheduler in one graph: a submit per take is a message each, which the
+    client sends at most every 10 ms, so the second worker's first take waited for the second message
+    (docs/batch.md "Batch: the last percent")."""
+    from distributed.diagnostics.plugin import SchedulerPlugin
+
+    class Graphs(SchedulerPlugin):
+        name = "count-graphs"
+
+        def __init__(self) -> None:
+            self.graphs: list[set] = []
+
+        def update_graph(self, scheduler, *, keys, **kwargs) -> None:
+            self.graphs.append({k for k in keys if str(k).startswith("livecap-batch-")})
+
+    plugin = Graphs()
+    client.cluster.scheduler.add_plugin(plugin)  # the LocalCluster's scheduler runs in this process
+    try:
+        out = tmp_path / "out"
+        jobs = plan_jobs([str(library["takes"])], [], rig=RIG, out_dir=str(out), mode="robust", fmt="csv",
+                         profile=library["profile"])
+        rows, _ = run_batch(jobs, out, client)
+    finally:
+        client.cluster.scheduler.remove_plugin(name=Graphs.name)
+    batch = [g for g in plugin.graphs if g]
+    assert len(batch) == 1 and len(batch[0]) == len(jobs) == 5, plugin.graphs
+    assert [r["status"] for r in rows].count("ok") == 3
+
+
 def _worker_settings(dask_worker) -> dict:
     return {"trim": os.environ.get("MALLOC_TRIM_THRESHOLD_"), "blas": os.environ.get("OPENBLAS_NUM_THREADS"),
             "tick": dask_worker.periodic_callbacks["tick"].callback_time,

@@ -155,6 +155,11 @@ def _written_row(job: Job) -> dict | None:
         return None
 
 
+def _failed(job: Job, error: str) -> dict:
+    return {"take": job.take, "stem": job.stem, "actor": job.actor, "mode": job.spec.mode, "status": "failed",
+            "error": error, "output": str(job.output)}
+
+
 def run_batch(jobs: list[Job], out_dir: str | Path, client, force: bool = False,
               on_done: Callable[[dict], None] | None = None) -> tuple[list[dict], dict]:
     """Solve every job not already up to date on ``client``'s workers, largest take first (Dask hands the
@@ -180,10 +185,12 @@ def run_batch(jobs: list[Job], out_dir: str | Path, client, force: bool = False,
             pending.append(i)
         start, run_id = time.perf_counter(), time.time_ns()
         sizes = {i: _size(jobs[i]) for i in pending}
-        futures = {}
-        for rank, i in enumerate(sorted(pending, key=lambda i: -sizes[i])):
-            futures[client.submit(solve_job, jobs[i], pure=False, priority=len(pending) - rank,
-                                  key=f"livecap-batch-{run_id}-{i}-{jobs[i].stem}")] = i
+        order = sorted(pending, key=lambda i: -sizes[i])
+        # one map, one message to the scheduler: both workers get their first take at once (a submit per take
+        # is a message each, which the client sends at most every 10 ms), in this order (map's own priority)
+        futures = dict(zip(client.map(solve_job, [jobs[i] for i in order], pure=False,
+                                      key=[f"livecap-batch-{run_id}-{i}-{jobs[i].stem}" for i in order]), order,
+                           strict=True)) if order else {}
         for fut in as_completed(list(futures)):
             i = futures[fut]
             try:
@@ -192,8 +199,7 @@ def run_batch(jobs: list[Job], out_dir: str | Path, client, force: bool = False,
             except Exception as exc:  # the worker died or the task could not run: the take failed
                 from livecap.batch.worker import one_line
 
-                row = {"take": jobs[i].take, "stem": jobs[i].stem, "actor": jobs[i].actor, "mode": jobs[i].spec.mode,
-                       "status": "failed", "error": f"worker: {one_line(exc)}", "output": str(jobs[i].output)}
+                row = _failed(jobs[i], f"worker: {one_line(exc)}")
             rows[i] = row
             live.add(row)
             if on_done:
