@@ -215,6 +215,17 @@ class MarkerSpaceQP:
         self._updates = min(peer._updates + 1, REFRESH)
         return True
 
+    def _same_rows_stop(self, x0: np.ndarray) -> tuple | None:
+        """The peer's last stop (``_carry``) where the peer (``near``) is this QP on the same rows at another scale of
+        D and stopped at ``x0``; else None."""
+        if self._near is None:
+            return None
+        peer, idx = self._near
+        c = peer._carry
+        if len(idx) != peer.r or c is None or not np.array_equal(c[0], x0) or self.ratio(peer) is None:
+            return None
+        return c
+
     def _subproblem(self, fG: np.ndarray, at_lo: np.ndarray, at_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The minimiser with the bounded weights held at their limits (x) and the gradient there (0 on F)."""
         y = self._solve_S(~(at_lo | at_hi), self.J @ rhs(fG, self.dinv, self.lo, self.hi, at_lo, at_hi))
@@ -274,6 +285,11 @@ class MarkerSpaceQP:
                 # cycle is handed to the primal method as in one solve; new data: counted afresh
                 same = np.array_equal(c[3], f)
                 state = (c[1], c[2], c[4] if same else len(x) + 1, c[5] if same else PIVOT_BUDGET, 0)
+            elif passes and (peer := self._same_rows_stop(x0)) is not None:
+                # this QP at another strength where it stopped (kalman's fit on a strength switch): the peer's last
+                # partition is as near this optimum as our own would be after a frame, so one pass (the real-time
+                # iteration) as on any frame, its S the peer's scaled (``_from_peer``)
+                state = (peer[1].copy(), peer[2].copy(), len(x) + 1, PIVOT_BUDGET, 0)
             elif passes:
                 # another start (another visibility pattern's or strength's x): its clipped point holds the weights
                 # its last pass freed at their limits; one more pass frees them again, so they are not lost
