@@ -62,7 +62,8 @@ from scipy.linalg.lapack import dpotrf, dpotrs
 
 from solvers.marker_space_kernels import repartition, rhs, x_and_gradient
 
-REFRESH = 64  # updates of the kept marker-space matrix before it is formed afresh
+REFRESH = 1024  # updates of the kept marker-space matrix before it is formed afresh (64: ~1 ms each, the fit's every
+# 64th frame, the stream's p99 at 72 x 1000; the weights over 1200 frames the same to 3e-11: docs/performance.md)
 WOODBURY = 8  # at most this many columns changed from the kept factor's free set: solved through it, no refactor
 FRESH_PASSES = 2  # a bounded solve's passes (frame_passes > 0) from a start that is not this QP's own last stop
 PIVOT_BUDGET = 3  # block-pivoting passes without fewer wrong sides before the primal active-set method takes over
