@@ -356,5 +356,6 @@ class MarkerSpaceQP:
         out = np.empty(len(self.G) + len(self.P))
         out[self.G] = xG
         if self._C is not None:
-            out[self.P] = -(self._A @ xG + sl.cho_solve(self._C, f[self.P]))
+            # (LAPACK's own call: scipy's cho_solve checks finiteness, ~13 of its ~14 µs; the same numbers)
+            out[self.P] = -(self._A @ xG + dpotrs(self._C[0], f[self.P], lower=self._C[1])[0])
         return out
