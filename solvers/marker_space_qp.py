@@ -62,7 +62,8 @@ from scipy.linalg.lapack import dpotrf, dpotrs
 
 from solvers.marker_space_kernels import repartition, rhs, x_and_gradient
 
-REFRESH = 64  # updates of the kept marker-space matrix before it is formed afresh
+REFRESH = 1024  # updates of the kept marker-space matrix before it is formed afresh (64: ~1 ms each, the fit's every
+# 64th frame, the stream's p99 at 72 x 1000; the weights over 1200 frames the same to 3e-11: docs/performance.md)
 WOODBURY = 8  # at most this many columns changed from the kept factor's free set: solved through it, no refactor
 FRESH_PASSES = 2  # a bounded solve's passes (frame_passes > 0) from a start that is not this QP's own last stop
 PIVOT_BUDGET = 3  # block-pivoting passes without fewer wrong sides before the primal active-set method takes over
@@ -215,6 +216,17 @@ class MarkerSpaceQP:
         self._updates = min(peer._updates + 1, REFRESH)
         return True
 
+    def _same_rows_stop(self, x0: np.ndarray) -> tuple | None:
+        """The peer's last stop (``_carry``) where the peer (``near``) is this QP on the same rows at another scale of
+        D and stopped at ``x0``; else None."""
+        if self._near is None:
+            return None
+        peer, idx = self._near
+        c = peer._carry
+        if len(idx) != peer.r or c is None or not np.array_equal(c[0], x0) or self.ratio(peer) is None:
+            return None
+        return c
+
     def _subproblem(self, fG: np.ndarray, at_lo: np.ndarray, at_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The minimiser with the bounded weights held at their limits (x) and the gradient there (0 on F)."""
         y = self._solve_S(~(at_lo | at_hi), self.J @ rhs(fG, self.dinv, self.lo, self.hi, at_lo, at_hi))
@@ -274,6 +286,11 @@ class MarkerSpaceQP:
                 # cycle is handed to the primal method as in one solve; new data: counted afresh
                 same = np.array_equal(c[3], f)
                 state = (c[1], c[2], c[4] if same else len(x) + 1, c[5] if same else PIVOT_BUDGET, 0)
+            elif passes and (peer := self._same_rows_stop(x0)) is not None:
+                # this QP at another strength where it stopped (kalman's fit on a strength switch): the peer's last
+                # partition is as near this optimum as our own would be after a frame, so one pass (the real-time
+                # iteration) as on any frame, its S the peer's scaled (``_from_peer``)
+                state = (peer[1].copy(), peer[2].copy(), len(x) + 1, PIVOT_BUDGET, 0)
             elif passes:
                 # another start (another visibility pattern's or strength's x): its clipped point holds the weights
                 # its last pass freed at their limits; one more pass frees them again, so they are not lost
@@ -339,5 +356,6 @@ class MarkerSpaceQP:
         out = np.empty(len(self.G) + len(self.P))
         out[self.G] = xG
         if self._C is not None:
-            out[self.P] = -(self._A @ xG + sl.cho_solve(self._C, f[self.P]))
+            # (LAPACK's own call: scipy's cho_solve checks finiteness, ~13 of its ~14 µs; the same numbers)
+            out[self.P] = -(self._A @ xG + dpotrs(self._C[0], f[self.P], lower=self._C[1])[0])
         return out

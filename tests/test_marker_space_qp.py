@@ -53,9 +53,12 @@ def test_kkt_and_the_dense_optimum(seed, r, n, p, warm):
     np.testing.assert_allclose(x, BoxQP(H, lo, hi).solve(f), atol=1e-7)
 
 
-def test_kept_factor_over_a_sequence_of_solves():
+def test_kept_factor_over_a_sequence_of_solves(monkeypatch):
     """Many frames on one pattern: the marker-space matrix updated by the changed columns, refreshed every REFRESH
     updates, gives each frame's optimum."""
+    import solvers.marker_space_qp as msq
+
+    monkeypatch.setattr(msq, "REFRESH", 16)  # refreshed several times in these frames
     rng = np.random.default_rng(7)
     J, d, lo, hi, f = _problem(rng, 18, 90, 6, dmin=0.1)  # a ridge: a weak one lets block pivoting cycle longer
     lo[:90], hi[:90] = 0.0, 1.0
@@ -269,6 +272,47 @@ def test_a_bounded_solve_runs_fresh_passes_from_another_start_and_frame_passes_f
     assert not (np.array_equal(calls[0][0], xG <= lo) and np.array_equal(calls[0][1], xG >= hi))  # the stop's own
 
 
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(10, 70), p=st.integers(0, 3),
+       scale=st.sampled_from([1e-2, 0.3, 3.0, 100.0]))
+def test_a_switch_starts_from_the_peers_stop_and_partition_in_one_pass(seed, n, p, scale):
+    """kalman's strength switch: this QP at another scale of D on the very rows of a peer, from the peer's stop,
+    runs one pass from the partition that stop chose (not FRESH_PASSES from its clipped point), its S the peer's;
+    bounded solves from its own stops then reach the optimum. A peer on more rows (a held-out trial) is not so
+    taken: FRESH_PASSES from the clipped point."""
+    import solvers.marker_space_qp as msq
+
+    rng = np.random.default_rng(seed)
+    r = 12
+    J, d, lo, hi, f = _problem(rng, r, n, p, dmin=1.0)
+    try:
+        peer = MarkerSpaceQP(J, d, lo, hi, max_iter=5000)
+        q = MarkerSpaceQP(J, d / scale, lo, hi, max_iter=5000)
+        trial = MarkerSpaceQP(J[:9], d / scale, lo, hi, max_iter=5000)
+    except np.linalg.LinAlgError:
+        return
+    x = peer.solve(f, np.clip(np.zeros(n + p), lo, hi), 1)
+    x = peer.solve(f + rng.normal(0, 1, n + p), x, 1)
+    carry = peer._carry
+    calls = []
+    for qp in (q, trial):
+        sub = qp._subproblem
+        qp._subproblem = lambda fG, a, b, sub=sub, qp=qp: calls.append((qp, a.copy(), b.copy())) or sub(fG, a, b)
+    g = f + rng.normal(0, 1, n + p)
+    y = q.solve(g, x, 1, near=(peer, np.arange(r)))
+    assert q.iterations == 1 or q._carry is None  # (None: settled into the primal method, to the optimum)
+    assert np.array_equal(calls[0][1], carry[1]) and np.array_equal(calls[0][2], carry[2])
+    trial.solve(g, x, 1, near=(peer, np.arange(9)))
+    first = next(c for c in calls if c[0] is trial)
+    xG = x[trial.G]
+    assert np.array_equal(first[1], xG <= trial.lo) and np.array_equal(first[2], xG >= trial.hi)
+    assert trial.iterations in (msq.FRESH_PASSES, 1) or trial._carry is None
+    q._subproblem = q.__class__._subproblem.__get__(q)
+    q.limits = (lo, hi)
+    H = np.diag(d / scale) + J.T @ J
+    np.testing.assert_allclose(_settle(q, H, g, y, 1), BoxQP(H, lo, hi).solve(g), atol=1e-7)
+
+
 @settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), r=st.integers(6, 30), n=st.integers(4, 70), p=st.integers(0, 3),
        scale=st.sampled_from([1e-3, 0.1, 1.0, 31.6, 100.0]), drop=st.floats(0.0, 0.5))
@@ -334,6 +378,8 @@ def test_a_trial_warm_from_the_fits_stop_takes_its_s_and_its_weights(monkeypatch
     for s, seen in _moving_frames(B, rng, 40, 0.2):
         z = fit.step(s, seen)
         train = seen & fold
+        if np.array_equal(train, seen):  # no held-out marker seen: no trial (HeldOutStrength)
+            continue
         for qp in (trial, alone):
             qp.warm(z)
             if qp is alone:
