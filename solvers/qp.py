@@ -270,10 +270,10 @@ class FrameQP:
             H = self._H_all
         elif n_miss <= len(rows) // 2 and self._cond.span is not None:  # marker space, a few markers missing
             trace, s2 = self._pattern_bounds(rows)
-            if not trace > 1e12 * self._cond.from_block(s2):  # no floor: H (m x m) formed only if a solve reads it
+            bound = self._cond.from_block(s2)
+            if not trace > 1e12 * bound:  # no floor: H (m x m) formed only if a solve reads it
                 return self._cached(key, _Workspace(None, 0.0, rows, self._limits, lambda: self._pattern_H(seen)))
             H = self._pattern_H(seen)
-            trace, bound = np.trace(H), self._cond.lambda_min(H)
         elif n_miss <= len(rows) // 2:
             miss = ~rows
             Bm = self.basis[miss]
