@@ -169,6 +169,19 @@ def test_a_record_has_the_mode_a_plain_write_gives(tmp_path):
     assert (tmp_path / "take.json").stat().st_mode & 0o777 == (tmp_path / "plain").stat().st_mode & 0o777
 
 
+
+def test_a_job_failed_before_solving_leaves_no_old_record(tmp_path):
+    """The runner reads a finished take's row from its record: a job that failed before solving (its actor did not
+    calibrate) must not leave an earlier run's success there to be read as this run's row."""
+    from livecap.batch.worker import _write_record
+
+    job = Job(str(tmp_path / "take.c3d"), SolveSpec(str(tmp_path / "rig.npz"), "robust"), str(tmp_path),
+              error="actor neutral.c3d: calibration failed")
+    _write_record(job.record, {"status": "ok"})
+    row = solve_job(job)
+    assert row["status"] == "failed" and row["error"] == job.error
+    assert not job.record.exists()
+
 KEEP_HEAP_THEN_SOLVE = """
 import sys
 from livecap.batch.jobs import Job

@@ -236,6 +236,7 @@ def solve_job(job: Job, cache: SolverCache | None = None) -> dict:
     if job.error:
         row["error"] = job.error
         row["seconds"] = 0.0
+        job.record.unlink(missing_ok=True)  # the runner reads a finished take's record: no old success for this
         return row
     handler = _Warnings()
     logging.getLogger().addHandler(handler)
