@@ -223,8 +223,10 @@ def offline(name: str, seconds: float) -> dict:
 PARTS = {"targets (stabilise, fill)": ("livecap.offline.solve", "prepare_targets"),
          "marker smoother": ("livecap.modes.marker_kalman", "smooth_take"),
          "prior support check": ("livecap.modes.marker_kalman", "widen_prior"),
+         "checked prior swapped in": ("livecap.modes.marker_kalman", "MarkerKalmanSolver._use_support"),
          "held-out strength trials": ("solvers.prior_strength", "HeldOutStrength.observe"),
          "strength in closed form": ("livecap.modes.marker_kalman", "take_strength"),
+         "evidence pick": ("livecap.modes.marker_kalman", "MarkerKalmanSolver._evidence_pick"),
          "fit": ("solvers.qp", "FrameQP.step_take"),
          "rigid pose undone": ("solvers.pose_refine", "RigidColumns.remove"),
          "weight IMM": ("solvers.tracking", "IMMFilter.filter")}
@@ -233,13 +235,14 @@ PARTS = {"targets (stabilise, fill)": ("livecap.offline.solve", "prepare_targets
 def offline_parts(take, profile) -> dict:
     """kalman's ``solve_take`` (one more warm run) with each stage's function wrapped in a process-time clock: CPU
     seconds per stage (not cProfile: its per-call cost swamped the trials, ~2 calls a frame, two thirds of
-    its total on a 30 s take where they are about a third)."""
+    its total on a 30 s take where they are about a third), and per call (``"calls"``: a stage run once a pose pass
+    is one number per pass; the weight IMM's are forwards, backwards). ``"rest"``: the whole less the stages."""
     import importlib
 
     from livecap.modes.registry import build_solver
     from livecap.offline.solve import solve_take
 
-    spent = dict.fromkeys(PARTS, 0.0)
+    calls: dict[str, list[float]] = {label: [] for label in PARTS}
     saved = []
 
     def clocked(label, fn):
@@ -248,7 +251,7 @@ def offline_parts(take, profile) -> dict:
             try:
                 return fn(*a, **k)
             finally:
-                spent[label] += time.process_time() - c0
+                calls[label].append(time.process_time() - c0)
         return run
 
     for label, (module, name) in PARTS.items():
@@ -262,10 +265,14 @@ def offline_parts(take, profile) -> dict:
         solver = build_solver("kalman", profile, {"rate": take.rate})
         c0 = time.process_time()
         solve_take(take, profile, solver)
-        spent["total"] = time.process_time() - c0
+        total = time.process_time() - c0
     finally:
         for owner, attr, fn in saved:
             setattr(owner, attr, fn)
+    spent = {label: float(sum(v)) for label, v in calls.items()}
+    spent["rest"] = total - sum(spent.values())
+    spent["total"] = total
+    spent["calls"] = {label: v for label, v in calls.items() if len(v) > 1}
     return spent
 
 
