@@ -74,7 +74,8 @@ def smooth_take(targets: np.ndarray, valid: np.ndarray, settings: KalmanSettings
     T, n, _ = targets.shape
     z = np.ascontiguousarray(targets, dtype=np.float64)
     seen = np.ascontiguousarray(valid, dtype=bool)
-    none = np.zeros((0, 0, 0))
+    none, no_best = np.zeros((0, 0, 0)), np.zeros((0, 0), np.int64)
+    h = int(s.local_frames)
     if r is None:
         rk, qk = _grid(s)
         pick = _spread(n, s.noise_markers)
@@ -82,20 +83,18 @@ def smooth_take(targets: np.ndarray, valid: np.ndarray, settings: KalmanSettings
         ll = np.zeros((len(rk), k, 3))
         span = slice(0, max(1, s.noise_frames))
         bank_take(np.ascontiguousarray(z[span, pick]), np.ascontiguousarray(seen[span, pick]),
-                  np.repeat(rk[:, None], k, 1), np.repeat(qk[None, :, None], k, 2), 1e2, ll, none, none, none, none,
-                  none)
+                  np.repeat(rk[:, None], k, 1), np.repeat(qk[None, :, None], k, 2), 1e2, ll, h, no_best, none, none,
+                  none, none)
         r = s.r_grid[_choose(ll, k, len(s.r_grid))[0]]
     qg, r0 = np.asarray(s.q_grid, float), float(r)
-    cum = np.zeros((T + 1, len(qg), n))
-    bank_take(z, seen, np.full((len(qg), n), r0), np.repeat(qg[None, :, None], n, 2), 1e2, none, cum, none, none,
+    best = np.empty((T, n), np.int64)  # per frame and marker: the q of the best likelihood over +- h frames
+    bank_take(z, seen, np.full((len(qg), n), r0), np.repeat(qg[None, :, None], n, 2), 1e2, none, h, best, none, none,
               none, none)
-    h = int(s.local_frames)
-    frames = np.arange(T)
-    local = cum[np.minimum(frames + h + 1, T)] - cum[np.maximum(frames - h, 0)]  # T x q x n
-    qt = qg[local.argmax(1)]  # T x n
+    qt = qg[best]  # T x n
     xs, xp = np.zeros((T, 2, 3 * n)), np.zeros((T, 2, 3 * n))
     ps, pp = np.zeros((T, 3, n)), np.zeros((T, 3, n))
-    bank_take(z, seen, np.full((1, n), r0), np.ascontiguousarray(qt[:, None, :]), 1e2, none, none, xs, ps, xp, pp)
+    bank_take(z, seen, np.full((1, n), r0), np.ascontiguousarray(qt[:, None, :]), 1e2, none, h, no_best, xs, ps, xp,
+              pp)
     out = np.empty((T, 3 * n))
     rts(xs, ps, xp, pp, out)
     return out.reshape(T, n, 3), bridged(valid, s.max_gap_frames), {
