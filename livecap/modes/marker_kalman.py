@@ -161,7 +161,8 @@ class MarkerKalmanSolver:
 
     def _check_support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> None:
         """Re-centre the prior where the frames' marginal likelihood says the actor rests elsewhere, and say so (a
-        whole take: to SUPPORT_TAKE_TOL)."""
+        whole take: to SUPPORT_TAKE_TOL; the streamed selector is left as it was, a stream after :meth:`solve` starts
+        with ``reset``)."""
         self._use_support(self._support(targets, valid, noise_mm, SUPPORT_TAKE_TOL), len(targets))
 
     def _support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float, tol: float = 1e-2) -> Support:
@@ -180,9 +181,9 @@ class MarkerKalmanSolver:
                 return
             self.mean, self.precision = s.mean, s.precision
             self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
+            # (a whole take's check, :meth:`_check_support`: the streamed selector is not rebuilt, the offline solve's
+            # strength is take_strength's; ``reset`` builds it for a stream; issue 39 item 2: ~20 ms of a 30 s take)
             self._fits, self._spreads, self._along = {}, {}, {}
-            old, self.selector = self.selector, self._selector(self.selector.decay)
-            self.selector.carry(old)
             self._noise_key = None
             return
         old = []
