@@ -58,8 +58,14 @@ def test_offline_parts_split_kalmans_cpu_by_stage():
     S, V, _ = synthetic_stream(profile, 90)
     take = Take(list(profile.labels), np.asarray(S, float) + profile.source_neutral, V, 60.0)
     out = kalman_speed.offline_parts(take, profile)
-    assert set(out) == {"total", *kalman_speed.PARTS}
+    assert set(out) == {"total", "rest", "calls", *kalman_speed.PARTS}
     assert 0 < out["marker smoother"] < out["total"] and out["fit"] > 0 and out["strength in closed form"] > 0
+    # per pose pass: the stages run once a pass are told apart, and the stages and the rest make the whole
+    from livecap.modes.marker_kalman import POSE_PASSES
+
+    assert len(out["calls"]["marker smoother"]) == len(out["calls"]["fit"]) == POSE_PASSES
+    assert sum(out["calls"]["fit"]) == out["fit"]
+    assert abs(sum(out[k] for k in kalman_speed.PARTS) + out["rest"] - out["total"]) < 1e-9
     assert out["held-out strength trials"] == 0  # a whole take runs no trial QP (issue 39 item 2)
 
 
