@@ -550,3 +550,30 @@ def test_evidence_downdated_per_frame_equals_each_frame_factored_alone(seed, hid
     ok[0] = True
     got = evidence_strength(B, mean, P, grid, X, ok, m)
     np.testing.assert_allclose(got, _evidence_by_frame(B, mean, P, grid, X, ok, m), rtol=1e-9, atol=1e-7)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), hide=st.floats(0.0, 0.6))
+def test_the_checks_frames_downdated_equal_each_frame_inverted_alone(seed, hide):
+    """widen_prior inverts the all-seen matrix once an iteration and takes each frame's hidden markers out by
+    Woodbury: per frame C_t b_t, C_t's diagonal, the sum of the C_t and y_t' P_t'P_t y_t as from each frame's own
+    (P_t'P_t / s2 + V^-1)^-1, whatever is hidden."""
+    from solvers.prior_support import _frame_inverses, _hidden_rows, _seen_quadratic
+
+    rng = np.random.default_rng(seed)
+    n, k, T = 9, 7, 15
+    D = rng.normal(size=(3 * n, k))
+    ok = rng.random((T, n)) > hide
+    rows = np.repeat(ok, 3, axis=1)
+    b = np.where(rows, rng.normal(size=(T, 3 * n)), 0.0) @ D
+    y = rng.normal(size=(T, k))
+    s2, v = rng.uniform(0.05, 2.0), rng.uniform(0.1, 3.0, k)
+    hidden = _hidden_rows(D, ok)
+    Cb, diag, Csum = _frame_inverses(D.T @ D / s2 + np.diag(1 / v), hidden, s2, b)
+    P = [D[r].T @ D[r] for r in rows]
+    C = [np.linalg.inv(p / s2 + np.diag(1 / v)) for p in P]
+    np.testing.assert_allclose(Cb, [c @ bt for c, bt in zip(C, b, strict=True)], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(diag, [np.diag(c) for c in C], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(Csum, sum(C), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(_seen_quadratic(y, D.T @ D, hidden), [yt @ p @ yt for yt, p in zip(y, P, strict=True)],
+                               rtol=1e-9, atol=1e-9)
