@@ -44,7 +44,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
 
 POSE_VARIANCE = 1e2  # mm^2: the pose columns' prior, broad (the stabiliser's residual is ~1 mm)
 
@@ -203,42 +202,52 @@ def _independent_share(y: np.ndarray) -> np.ndarray:
 
 
 def evidence_strength(basis: np.ndarray, mean: np.ndarray, precision: np.ndarray, grid: np.ndarray,
-                      targets: np.ndarray, valid: np.ndarray, m: int) -> np.ndarray:
+                      targets: np.ndarray, valid: np.ndarray, m: int, factors: dict | None = None) -> np.ndarray:
     """Log marginal likelihood of the frames per prior strength a in ``grid``, up to a constant (type-II ML, the
     evidence: Bishop 2006 §3.5): w ~ N(mean, s2 / a P^-1) on the first m columns of ``basis``, the rest (the head
     pose) flat, x_t = B w_t + e_t, e_t ~ N(0, s2 I) on each frame's visible markers, s2 at its maximum for each a.
     Frames with fewer than 3 markers seen are left out; each frame counts as an independent draw. Every frame's Hessian
-    B_v'B_v + a P is the all-seen one less its hidden markers' rows: one factorisation per strength, and per frame the
-    hidden rows' small downdate (Woodbury; the determinant lemma): a frame of its own visibility pattern costs a
-    3q x 3q system, not a k x k one (the check's 60 frames held 57 patterns on the ICT takes: 4.5x faster, issue 39)."""
+    B_v'B_v + a P is the all-seen one less its hidden markers' rows: per frame the hidden rows' small downdate
+    (Woodbury; the determinant lemma), a 3q x 3q system, not a k x k one (the check's 60 frames held 57 patterns on
+    the ICT takes: 4.5x faster, issue 39). The all-seen Hessians of every strength from one factorisation: with
+    B'B = LL' and L^-1 P L^-T = Q diag(d) Q', (B'B + aP)^-1 = M diag(1 / (1 + a d)) M' (M = L^-T Q) and
+    log det(B'B + aP) = log det(B'B) + sum log(1 + a d) (the pair's generalised eigenproblem, Golub & Van Loan 2013
+    §8.7; as solvers.prior_strength.take_strength; issue 39 item 2: a Cholesky solve per strength was ~2/3 of it).
+    ``factors``: a dict that keeps (M, d, log det B'B) for the next call on the same basis and prior."""
     B = np.asarray(basis, float)
     n3, k = B.shape
     ok = np.asarray(valid, bool).reshape(len(valid), n3 // 3)
     Z = np.where(np.repeat(ok, 3, axis=1), np.asarray(targets, float).reshape(len(ok), n3) - B @ mean, 0.0)
     keep = ok.sum(1) >= 3
     Z, ok = Z[keep], ok[keep]
-    b, c = Z @ B, (Z**2).sum(1)
+    c = (Z**2).sum(1)
     dof = 3 * ok.sum() - (k - m) * len(Z)
     logdet_p = np.linalg.slogdet(precision[:m, :m])[1]
     grid = np.asarray(grid, float)
-    Bm = B.reshape(n3 // 3, 3, k)
-    hidden = [np.flatnonzero(~row) for row in ok]
-    ends = np.cumsum([0] + [3 * len(h) for h in hidden])
-    U = Bm[np.concatenate([np.zeros(0, int), *hidden])].reshape(-1, k)
-    G = B.T @ B
-    Y = np.empty((len(grid), k, len(Z) + len(U)))
-    logdet = np.empty(len(grid))
-    for g, a in enumerate(grid):
-        f = cho_factor(G + a * precision)
-        Y[g] = cho_solve(f, np.hstack([b.T, U.T]))
-        logdet[g] = 2 * np.log(np.diag(f[0])).sum() * len(Z)
-    Yb = Y[:, :, :len(Z)]
-    quad = np.einsum("tk,gkt->g", b, Yb)
-    for t in np.flatnonzero(np.diff(ends)):
-        Ut = U[ends[t]:ends[t + 1]]
-        S = np.eye(len(Ut)) - Ut @ Y[:, :, len(Z) + ends[t]:len(Z) + ends[t + 1]]
-        u = Ut @ Yb[:, :, t].T
-        logdet += np.linalg.slogdet(S)[1]
-        quad += np.einsum("rg,gr->g", u, np.linalg.solve(S, u.T[..., None])[..., 0])
+    if factors is not None and "evidence" in factors:
+        M, d, logdet_g = factors["evidence"]
+    else:
+        L = np.linalg.cholesky(B.T @ B)
+        Li = np.linalg.solve(L, np.eye(k))
+        d, Q = np.linalg.eigh(Li @ np.asarray(precision, float) @ Li.T)
+        d = np.maximum(d, 0.0)
+        M, logdet_g = Li.T @ Q, 2 * np.log(np.diag(L)).sum()
+        if factors is not None:
+            factors["evidence"] = M, d, logdet_g
+    D = 1.0 / (1.0 + grid[:, None] * d)  # strengths x k: (B'B + aP)^-1 = M diag(D_a) M'
+    bm = Z @ (B @ M)  # frames x k: M'b_t
+    quad = (bm**2).sum(0) @ D.T
+    logdet = (logdet_g - np.log(D).sum(1)) * len(Z)
+    Bm = (B @ M).reshape(n3 // 3, 3, k)
+    missing = ~ok
+    h = missing.sum(1)
+    for j in np.unique(h[h > 0]):  # the frames missing j markers together
+        sel = np.flatnonzero(h == j)
+        Us = Bm[np.nonzero(missing[sel])[1].reshape(len(sel), j)].reshape(len(sel), 3 * j, k)  # hidden rows, M'-wise
+        UD = Us[None] * D[:, None, None, :]  # strengths x frames x 3j x k
+        S = np.eye(3 * j) - UD @ np.swapaxes(Us, 1, 2)[None]  # strengths x frames x 3j x 3j
+        u = UD @ bm[sel][None, :, :, None]  # U_t H^-1 b_t
+        logdet += np.linalg.slogdet(S)[1].sum(1)
+        quad += (u[..., 0] * np.linalg.solve(S, u)[..., 0]).sum((1, 2))
     q = c.sum() - quad
     return -0.5 * (dof * np.log(q / dof) + logdet - len(Z) * (m * np.log(grid) + logdet_p))

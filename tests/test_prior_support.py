@@ -550,6 +550,10 @@ def test_evidence_downdated_per_frame_equals_each_frame_factored_alone(seed, hid
     ok[0] = True
     got = evidence_strength(B, mean, P, grid, X, ok, m)
     np.testing.assert_allclose(got, _evidence_by_frame(B, mean, P, grid, X, ok, m), rtol=1e-9, atol=1e-7)
+    kept: dict = {}  # the factors kept for a second pass over other frames: the same numbers
+    evidence_strength(B, mean, P, grid, X[::-1], ok[::-1], m, factors=kept)
+    assert set(kept) == {"evidence"}
+    np.testing.assert_array_equal(evidence_strength(B, mean, P, grid, X, ok, m, factors=kept), got)
 
 
 @settings(max_examples=40, deadline=None)

@@ -474,8 +474,9 @@ class MarkerKalmanSolver:
             pick = _spread(len(targets), SUPPORT_TAKE_FRAMES)
             self._check_support(smoothed[pick].reshape(len(pick), -1), ok[pick], self.chosen["noise_mm"])
         B, _, _, mean, precision = self.joint
-        if first:
-            self._folds: dict = {}  # each fold's factors: the prior is checked by now, the second pass reuses them
+        if first:  # each fold's and the evidence's factors: the prior is checked by now, the second pass reuses them
+            self._folds: dict = {}
+            self._evidence: dict = {}
         best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok, factors=self._folds)[0]
         if self.prior_cov is not None:
             best = min(best, self._evidence_pick(B, mean, precision, smoothed, ok))
@@ -494,7 +495,8 @@ class MarkerKalmanSolver:
         with a prior, decomposed") measured the weight error's best strength at or below the held-out choice on all
         12 ICT takes, and the weaker of the two lowered realeval's offline means at both noises, no take worse."""
         pick = _spread(len(smoothed), SUPPORT_TAKE_FRAMES)
-        return int(np.argmax(evidence_strength(B, mean, precision, STRENGTHS, smoothed[pick], ok[pick], self.m)))
+        return int(np.argmax(evidence_strength(B, mean, precision, STRENGTHS, smoothed[pick], ok[pick], self.m,
+                                               factors=self._evidence)))
 
 
 def _say(notes: list[tuple[int, str]], old: list | None = None) -> None:
