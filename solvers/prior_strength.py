@@ -154,7 +154,9 @@ def take_strength(basis: np.ndarray, mean: np.ndarray, precision: np.ndarray, gr
     So the trials are matrix products over the take instead of a bounded QP per frame. The fits are unbounded:
     clipped to the bounds they chose worse, and solved within them they cost that QP per frame (issue 39,
     docs/performance.md). ``factors``: a dict that keeps each fold's (M, d) for the next call on the same basis
-    and prior (a second pass over the take)."""
+    and prior (a second pass over the take), and, for a next call on the same validity and grid, each fold's frames
+    and their Woodbury systems, which depend on the markers' validity and not on where they are (issue 39 item 2: the
+    second pose pass moves the markers rigidly, the validity stays)."""
     B = np.asarray(basis, float)
     n3, m = B.shape
     n = n3 // 3
@@ -164,51 +166,70 @@ def take_strength(basis: np.ndarray, mean: np.ndarray, precision: np.ndarray, gr
                  0.0)
     grid = np.asarray(grid, float)
     fold_of = np.random.default_rng(seed).permutation(n) % folds
+    kept = {} if factors is None else factors
+    if "valid" not in kept or not (np.array_equal(kept["valid"], ok) and np.array_equal(kept["grid"], grid)):
+        for f in range(folds):
+            kept.pop(("plan", f), None)
+        kept["valid"], kept["grid"] = ok.copy(), grid.copy()
     err, count, used = np.zeros(len(grid)), 0.0, 0
     for f in range(folds):
         held = fold_of == f
-        frames = np.arange(f, T, folds)
-        frames = frames[ok[frames][:, held].any(1)]
-        missing = ~ok[frames][:, ~held]
-        k = missing.sum(1)
-        order = np.argsort(k, kind="stable")
-        keep = max(int(np.count_nonzero(k <= FEW_MISSING)), len(frames) // 3)
-        frames, missing, k = frames[order[:keep]], missing[order[:keep]], k[order[:keep]]
-        if not len(frames):
-            continue
         train = np.repeat(~held, 3)
-        Bt, Bh = B[train], B[~train]
-        if factors is not None and f in factors:
-            M, d = factors[f]
-        else:
+        if f not in kept:
+            Bt = B[train]
             G = Bt.T @ Bt
             L = np.linalg.cholesky(G + 1e-12 * np.trace(G) / m * np.eye(m))
             Li = np.linalg.solve(L, np.eye(m))
             d, Q = np.linalg.eigh(Li @ np.asarray(precision, float) @ Li.T)
-            M = Li.T @ Q
-            if factors is not None:
-                factors[f] = M, d
+            kept[f] = Li.T @ Q, d
+        M, d = kept[f]
         D = 1.0 / (1.0 + grid[:, None] * np.maximum(d, 0.0))  # strengths x m
-        BtM = Bt @ M
+        if ("plan", f) not in kept:
+            kept["plan", f] = _fold_plan(B, M, D, ok, held, f, folds)
+        frames, BtM, systems, good, seen = kept["plan", f]
+        if not len(frames):
+            continue
         Y = D[:, None, :] * (Z[frames][:, train] @ BtM)[None]  # strengths x frames x m: H^-1 B'(s - B mean), M'-wise
-        good = np.ones(len(frames), bool)
-        for j in np.unique(k[k > 0]):
-            sel = np.flatnonzero(k == j)
-            rows = (3 * np.nonzero(missing[sel])[1].reshape(len(sel), j, 1) + np.arange(3)).reshape(len(sel), 3 * j)
-            U = BtM[rows]  # frames x 3k x m: the unseen rows, M'-wise
-            S = np.eye(3 * j) - (U[None] * D[:, None, None, :]) @ np.swapaxes(U, 1, 2)[None]
-            sign, logdet = np.linalg.slogdet(S[0])  # the weakest strength's: every S is at least as definite
-            fine = (sign > 0) & (logdet > -25.0)  # the seen markers fix every column
-            X = np.linalg.solve(S[:, fine], (U[fine][None] @ Y[:, sel[fine], :, None]))
-            Y[:, sel[fine]] += D[:, None, :] * (np.swapaxes(U[fine], 1, 2)[None] @ X)[..., 0]
-            good[sel[~fine]] = False
+        for sel, U, S in systems:
+            X = np.linalg.solve(S, (U[None] @ Y[:, sel, :, None]))
+            Y[:, sel] += D[:, None, :] * (np.swapaxes(U, 1, 2)[None] @ X)[..., 0]
         frames, Y = frames[good], Y[:, good]
-        seen = np.repeat(ok[frames][:, held], 3, axis=1)
-        E = np.where(seen[None], Y @ (Bh @ M).T - Z[frames][:, ~train][None], 0.0)
+        E = np.where(seen[None], Y @ (B[~train] @ M).T - Z[frames][:, ~train][None], 0.0)
         err += (E**2).sum((1, 2))
         count += float(seen.sum()) / 3
         used += len(frames)
+    if factors is None:
+        kept.clear()
     if not count:
         return len(grid) // 2, err, 0
     err /= count
     return int(np.argmin(err)), err, used
+
+
+def _fold_plan(B: np.ndarray, M: np.ndarray, D: np.ndarray, ok: np.ndarray, held: np.ndarray, f: int,
+               folds: int) -> tuple:
+    """What fold ``f``'s trials need of the validity ``ok`` alone (:func:`take_strength`): its frames, the training
+    rows M'-wise, per count of unseen training markers the frames' indices, unseen rows U and Woodbury matrices
+    S = I - U diag(D_a) U' (strengths x frames x 3k x 3k, the frames whose seen markers fix every column), the
+    frames kept, and their held-out markers seen."""
+    T = len(ok)
+    frames = np.arange(f, T, folds)
+    frames = frames[ok[frames][:, held].any(1)]
+    missing = ~ok[frames][:, ~held]
+    k = missing.sum(1)
+    order = np.argsort(k, kind="stable")
+    keep = max(int(np.count_nonzero(k <= FEW_MISSING)), len(frames) // 3)
+    frames, missing, k = frames[order[:keep]], missing[order[:keep]], k[order[:keep]]
+    BtM = B[np.repeat(~held, 3)] @ M
+    systems = []
+    good = np.ones(len(frames), bool)
+    for j in np.unique(k[k > 0]):
+        sel = np.flatnonzero(k == j)
+        rows = (3 * np.nonzero(missing[sel])[1].reshape(len(sel), j, 1) + np.arange(3)).reshape(len(sel), 3 * j)
+        U = BtM[rows]  # frames x 3k x m: the unseen rows, M'-wise
+        S = np.eye(3 * j) - (U[None] * D[:, None, None, :]) @ np.swapaxes(U, 1, 2)[None]
+        sign, logdet = np.linalg.slogdet(S[0])  # the weakest strength's: every S is at least as definite
+        fine = (sign > 0) & (logdet > -25.0)  # the seen markers fix every column
+        systems.append((sel[fine], U[fine], np.ascontiguousarray(S[:, fine])))
+        good[sel[~fine]] = False
+    return frames, BtM, systems, good, np.repeat(ok[frames[good]][:, held], 3, axis=1)

@@ -58,6 +58,19 @@ def test_closed_form_trials_equal_a_fit_per_frame(seed, n, m, missing):
     np.testing.assert_array_equal(again[0], err)
     np.testing.assert_array_equal(again[1], err)
     assert best == int(np.argmin(want))
+    # the kept frames and Woodbury systems serve other markers of the same validity (a second pose pass), not others
+    rng = np.random.default_rng(seed)
+    X2 = X + rng.normal(size=X.shape)
+    ok2 = ok.copy()
+    ok2[rng.integers(len(ok))] = False
+    for x, v in ((X2, ok), (X2, ok2), (X, ok)):
+        ps.FEW_MISSING = n
+        try:
+            fresh, reused = ps.take_strength(B, mean, P, grid, x, v)[1], ps.take_strength(B, mean, P, grid, x, v,
+                                                                                         factors=kept)[1]
+        finally:
+            ps.FEW_MISSING = old
+        np.testing.assert_array_equal(reused, fresh)
 
 
 def test_frames_missing_many_markers_are_left_out_where_enough_miss_few():
