@@ -57,6 +57,57 @@ def true_in_profile(ct, profile) -> tuple[np.ndarray, np.ndarray]:
     return neutral, basis
 
 
+class TruePose:
+    """A stabiliser that returns the generator's head pose, expressed in the profile's frame."""
+
+    def __init__(self, ct, profile) -> None:
+        from scipy.spatial.transform import Rotation
+
+        from solvers.rigid import kabsch
+
+        Rk, tk = kabsch(ct.actor_neutral, profile.source_neutral)  # head frame -> profile frame
+        Rh = Rotation.from_quat(ct.head_rotation).as_matrix()
+        self.R = Rh @ Rk.T  # raw = R local + t
+        self.t = ct.head_translation - np.einsum("tij,j->ti", self.R, tk)
+
+    def stabilise(self, positions: np.ndarray, valid: np.ndarray):
+        local = (np.asarray(positions, np.float64) - self.t[:, None, :]) @ self.R
+        return np.where(np.asarray(valid, bool)[..., None], local, 0.0), self.R, self.t
+
+
+class PolyharmonicWarp:
+    """Prototype (not calibration's): ``sum_i w_i |x - c_i|^power + q(x)``, ``q`` affine or quadratic, interpolating
+    exactly. ``power`` 3 is the smoother triharmonic kernel; a quadratic ``q`` reproduces any quadratic warp exactly,
+    which is the generator's actor family (``performance.actor_warp``), so it favours that actor by construction."""
+
+    def __init__(self, centres: np.ndarray, targets: np.ndarray, power: int = 1, quadratic: bool = False) -> None:
+        self.mu = centres.mean(0)
+        self.s = float(np.sqrt(np.mean(np.sum((centres - self.mu) ** 2, 1))))
+        self.cn, self.power, self.quadratic = (centres - self.mu) / self.s, power, quadratic
+        n, P = len(centres), self._poly(self.cn)
+        M = np.zeros((n + P.shape[1], n + P.shape[1]))
+        M[:n, :n], M[:n, n:], M[n:, :n] = self._kernel(self.cn), P, P.T
+        sol = np.linalg.solve(M, np.vstack([targets, np.zeros((P.shape[1], 3))]))
+        self.w, self.a = sol[:n], sol[n:]
+
+    def _poly(self, x: np.ndarray) -> np.ndarray:
+        cols = [x, np.ones(x.shape[:-1] + (1,))]
+        if self.quadratic:
+            i, j = np.triu_indices(3)
+            cols.append(x[..., i] * x[..., j])
+        return np.concatenate(cols, -1)
+
+    def _kernel(self, x: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(x[..., None, :] - self.cn, axis=-1) ** self.power
+
+    def __call__(self, p: np.ndarray) -> np.ndarray:
+        x = (np.asarray(p, np.float64) - self.mu) / self.s
+        return self._kernel(x) @ self.w + self._poly(x) @ self.a
+
+
+KERNELS = {"warp r^3": (3, False), "warp |r| + quadratic": (1, True), "warp r^3 + quadratic": (3, True)}
+
+
 def warp_variants(rig, layout, ct, profile) -> dict[str, np.ndarray]:
     """The basis each calibration step gives when one input is replaced by the truth (see the module doc)."""
     from livecap.calibration.profile import fit_warp
@@ -105,6 +156,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pairs", nargs="*", default=list(EYE_PAIRS), help="shape pairs (_L/_R) set true one at a time")
     p.add_argument("--seed", type=int, default=1, help="the takes' noise seed (1: realeval's)")
     p.add_argument("--neutral-seconds", type=float, default=2.0, help="the neutral take's length (2: realeval's)")
+    p.add_argument("--kernels", action="store_true", help="the basis from other interpolating warps of the "
+                   "estimated neutral too (PolyharmonicWarp)")
     p.add_argument("--json")
     args = p.parse_args(argv)
     rig, layout = _rig("ict")
@@ -133,6 +186,15 @@ def main(argv: list[str] | None = None) -> int:
                         "rbf@true neutral": replace(profile, basis=bases["rbf@true neutral"]),
                         "true neutral, rbf@true neutral": replace(profile, basis=bases["rbf@true neutral"],
                                                                   source_neutral=true_neutral)}
+            if args.kernels:
+                from livecap.calibration.warp import warp_rig
+
+                sites_rig = layout.marker_rig(rig)
+                for label, (power, quad) in KERNELS.items():
+                    d = PolyharmonicWarp(sites_rig.neutral, profile.source_neutral, power, quad)
+                    bases[label] = warp_rig(sites_rig, d).deltas.reshape(rig.n_shapes, -1).T
+                    variants[label] = replace(profile, basis=bases[label])
+                cols = {k: column_errors(B, true_basis, names) for k, B in bases.items()}
             for pair in args.pairs:
                 idx = [names.index(n) for n in (f"{pair}_L", f"{pair}_R", pair) if n in names]
                 B = profile.basis.copy()
@@ -142,12 +204,14 @@ def main(argv: list[str] | None = None) -> int:
             rec = {"noise_mm": noise, "file": f.stem, "oracle": oracle, "columns": cols,
                    "neutral_err_mm": float(np.sqrt(np.mean(np.sum((profile.source_neutral - true_neutral) ** 2, 1)))),
                    "solves": {}}
-            variants["true neutral, pose from calibrated"] = (replace(profile, source_neutral=true_neutral),
-                                                         profile.stabiliser())
-            variants["pose from true neutral"] = (profile, replace(profile, source_neutral=true_neutral)
-                                                         .stabiliser())
+            variants["true neutral, pose from calibrated"] = (replace(profile, source_neutral=true_neutral), profile)
+            variants["pose from true neutral"] = (profile, replace(profile, source_neutral=true_neutral))
+            variants["true pose"] = (profile, TruePose(ct, profile))
+            variants["true pose, neutral, basis"] = (replace(profile, basis=true_basis, source_neutral=true_neutral),
+                                                     TruePose(ct, profile))
             for label, prof in variants.items():
                 prof, stab = prof if isinstance(prof, tuple) else (prof, None)
+                stab = stab.stabiliser() if hasattr(stab, "stabiliser") else stab
                 for path, W in solve(ct, prof, opts, args.stream, stab).items():
                     bias = (W - ct.weights).mean(0)
                     rec["solves"][f"{label} {path}"] = {
