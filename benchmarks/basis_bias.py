@@ -105,6 +105,18 @@ class PolyharmonicWarp:
         return self._kernel(x) @ self.w + self._poly(x) @ self.a
 
 
+def linearised_basis(sites_rig, warp) -> np.ndarray:
+    """The sculpts' deltas through the RBF warp's Jacobian at each site (3n x m), the centre's own cone (its kernel
+    has no derivative there) left out: the linearised transfer, against calibration's ``warp(x + delta) - warp(x)``."""
+    cn = (warp.centres - warp.mu) / warp.scale
+    diff = cn[:, None, :] - cn[None, :, :]  # site i minus centre j
+    dist = np.linalg.norm(diff, axis=2)
+    np.fill_diagonal(dist, np.inf)
+    J = (np.einsum("ija,jc->ica", diff / dist[..., None], warp.weights)
+         + warp.affine[:3].T[None]) / warp.scale  # n x 3 x 3: d(out c) / d(in a) as [i, c, a]
+    return np.einsum("ica,kia->kic", J, sites_rig.deltas).reshape(len(sites_rig.deltas), -1).T
+
+
 KERNELS = {"warp r^3": (3, False), "warp |r| + quadratic": (1, True), "warp r^3 + quadratic": (3, True)}
 
 
@@ -194,6 +206,8 @@ def main(argv: list[str] | None = None) -> int:
                     d = PolyharmonicWarp(sites_rig.neutral, profile.source_neutral, power, quad)
                     bases[label] = warp_rig(sites_rig, d).deltas.reshape(rig.n_shapes, -1).T
                     variants[label] = replace(profile, basis=bases[label])
+                bases["rbf, linearised"] = linearised_basis(sites_rig, profile.warp)
+                variants["rbf, linearised"] = replace(profile, basis=bases["rbf, linearised"])
                 cols = {k: column_errors(B, true_basis, names) for k, B in bases.items()}
             for pair in args.pairs:
                 idx = [names.index(n) for n in (f"{pair}_L", f"{pair}_R", pair) if n in names]

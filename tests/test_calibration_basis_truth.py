@@ -41,3 +41,22 @@ def test_the_neutrals_noise_is_about_half_of_the_eye_columns_angle(ict):
             ref = column_errors(warp_variants(rig, layout, ct, profile)["rbf@true neutral"], true, list(rig.names))
             assert abs(angle[0.0] - np.mean([ref[n]["angle"] for n in eyes])) < 1e-6
     assert 0.05 < angle[0.0] < 0.6 and angle[0.5] > 1.3 * angle[0.0], angle
+
+
+def test_the_linearised_transfer_is_the_warps_derivative_but_the_centres_cone(ict):
+    """benchmarks.basis_bias.linearised_basis: for small deltas, the exact transfer less each centre's own cone term
+    (w_i |delta| / scale, the kernel's only non-differentiable part) is the Jacobian's."""
+    from dataclasses import replace as dc_replace
+
+    from benchmarks.basis_bias import linearised_basis
+    from livecap.calibration.warp import warp_rig
+
+    rig, layout, ct, profile = _take(ict, 0.5)
+    sites = layout.marker_rig(rig)
+    small = dc_replace(sites, deltas=sites.deltas * 1e-4)
+    w = profile.warp
+    exact = warp_rig(small, w).deltas  # m x n x 3
+    cone = np.linalg.norm(small.deltas, axis=2)[..., None] * w.weights[None] / w.scale
+    lin = linearised_basis(small, w).T.reshape(exact.shape)
+    assert np.abs(exact - cone - lin).max() < 1e-3 * np.abs(exact).max()
+    assert np.abs(exact - lin).max() > 3e-3 * np.abs(exact).max()  # the cone is not negligible (1.5 %)
