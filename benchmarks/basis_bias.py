@@ -12,10 +12,15 @@ oracle uses:
   warp fitted to the noise-free actor neutral: what the neutral's noise costs the warp), ``true warp`` (the
   generator's warp, sculpts warped as calibration does: equals the truth to rounding);
 - **counterfactual solves** (``auto`` as ``realeval`` resolves it, offline as ``livecap solve`` and with ``--stream``
-  streamed as ``livecap run``): the calibrated profile, the true basis, the true neutral, both, and the calibrated
-  basis with one shape pair's columns set to the true ones, as weight RMSE over the oracle's.
+  streamed as ``livecap run``): the calibrated profile, the true basis, the true neutral, both, the true head pose
+  (offline), and the calibrated basis with one shape pair's columns set to the true ones, as weight RMSE over the
+  oracle's; with ``--kernels`` also the basis from other interpolants of the estimated neutral (``PolyharmonicWarp``)
+  and from the RBF warp's Jacobian (``linearised_basis``), prototypes of calibration changes.
 
-    python -m benchmarks.basis_bias --noise 0.5 0.2 [--no-prior] [--stream] [--json out.json]
+``--seed`` draws other noise, occlusion and neutral noise (realeval's takes all use seed 1, so five of its six files
+share one draw); ``--neutral-seconds`` lengthens the neutral take.
+
+    python -m benchmarks.basis_bias --noise 0.5 0.2 [--no-prior] [--stream] [--seed S] [--kernels] [--json out.json]
 """
 
 from __future__ import annotations
