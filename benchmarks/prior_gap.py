@@ -70,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--files", nargs="+")
     p.add_argument("--no-stream", action="store_true")
     p.add_argument("--no-prior", action="store_true", help="the ridge instead (whose biases are not the prior's)")
+    p.add_argument("--seed", type=int, default=1, help="the takes' noise, occlusion and neutral draw (1: realeval's)")
     p.add_argument("--json")
     args = p.parse_args(argv)
     rig, layout = _rig("ict")
@@ -84,7 +85,8 @@ def main(argv: list[str] | None = None) -> int:
             if args.files and f.stem not in args.files:
                 continue
             start = max(0.0, min(10.0, read_llf_csv(f).times[-1] - args.seconds))
-            ct = curves_take(rig, layout, f, CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise))
+            ct = curves_take(rig, layout, f, CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise,
+                                                                      seed=args.seed))
             prior = build_prior([o for o in files if o != f], rig.names, rig.lower, rig.upper)
             profile = plain_profile(rig, layout, ct)
             profile.prior = None if args.no_prior else prior
