@@ -532,8 +532,14 @@ class FrameQP:
         if ws.marker_space is None:
             rows = self._all_rows if ws.rows is None else ws.rows
             J = self.basis[rows] * np.sqrt(self._row_w[rows])[:, None]
+            whole = None  # a pattern with markers hidden: its S from the all-seen pattern's (MarkerSpaceQP ``whole``)
+            full = self._models.get(self._all_seen)
+            if ws.rows is not None and full is not None and isinstance(full.marker_space, MarkerSpaceQP) \
+                    and full.floor == ws.floor:
+                whole = (full.marker_space, np.flatnonzero(rows))
             try:
-                ws.marker_space = MarkerSpaceQP(J, np.diagonal(self._const) + ws.floor, self.lower, self.upper)
+                ws.marker_space = MarkerSpaceQP(J, np.diagonal(self._const) + ws.floor, self.lower, self.upper,
+                                                whole=whole)
             except (np.linalg.LinAlgError, ValueError) as exc:  # e.g. too few markers seen to fix the pose
                 log.debug("marker-space QP not built: %s", exc)
                 ws.marker_space = False
