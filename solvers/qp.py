@@ -532,11 +532,15 @@ class FrameQP:
         if ws.marker_space is None:
             rows = self._all_rows if ws.rows is None else ws.rows
             J = self.basis[rows] * np.sqrt(self._row_w[rows])[:, None]
-            whole = None  # a pattern with markers hidden: its S from the all-seen pattern's (MarkerSpaceQP ``whole``)
-            full = self._models.get(self._all_seen)
-            if ws.rows is not None and full is not None and isinstance(full.marker_space, MarkerSpaceQP) \
-                    and full.floor == ws.floor:
-                whole = (full.marker_space, np.flatnonzero(rows))
+            # a pattern with markers hidden: its S from the nearest pattern built on more rows (the all-seen one; a
+            # held-out trial's fold pattern), as MarkerSpaceQP ``whole``
+            whole = None
+            for other in self._models.values() if ws.rows is not None else ():
+                theirs = self._all_rows if other.rows is None else other.rows
+                if (isinstance(other.marker_space, MarkerSpaceQP) and other.floor == ws.floor
+                        and (whole is None or other.marker_space.r < whole[0].r) and not np.any(rows & ~theirs)):
+                    whole = (other.marker_space, theirs)
+            whole = None if whole is None else (whole[0], np.flatnonzero(rows[whole[1]]))
             try:
                 ws.marker_space = MarkerSpaceQP(J, np.diagonal(self._const) + ws.floor, self.lower, self.upper,
                                                 whole=whole)
