@@ -9,8 +9,7 @@
   benchmark steps ~200x faster than real time and the frame thread waits for every check at its swap);
 * 72x1000: the synthetic rig of ``benchmarks.synthetic`` (every marker seen, a ridge), robust, kalman and kalman
   without its trial (``--only 72x1000`` runs it alone; kalman's fit there is solved in marker space,
-  solvers/marker_space_qp.py, its strength trials on a thread of their own: the wall and every thread's CPU per
-  frame beside the frame thread's; ``--pace 60`` feeds it as a 60 Hz source would);
+  solvers/marker_space_qp.py; ``--pace 60`` feeds it as a 60 Hz source would);
 * offline: ``solve_take`` of the first 30 s of each performance (with the prior), x real time (wall);
 * marker-space primitives at 72x1000 (:func:`marker_space`): why a factorisation that survives visibility changes
   belongs in the 216-dim marker space;
