@@ -449,7 +449,7 @@ def test_a_begun_pass_leaves_the_next_factor_to_the_solve():
     for now, factored in ((0, 1), (1, 1), (2, 2)):
         qp, calls = MarkerSpaceQP(J, d, lo, hi), []
         factor = qp._factor
-        qp._factor = lambda F, _f=factor, _c=calls: _c.append(F.copy()) or _f(F)
+        qp._factor = lambda F, _f=factor: calls.append(F.copy()) or _f(F)
         qp.begin(f, x0, 3, now=now)
         assert len(calls) == factored
         assert len({c.tobytes() for c in calls}) == factored
