@@ -241,9 +241,8 @@ class MarkerSpaceQP:
               near: tuple[MarkerSpaceQP, np.ndarray] | None = None, now: int | None = None) -> None:
         """The first ``passes`` passes of ``solve(f, x0, frame_passes)`` now; that solve next continues where they
         stopped (the same passes in the same order, so the same x): one solve spread over two frames. ``now``: of
-        those passes only this many here (0: only the first one's S factored); the solve then runs the rest as well
-        (the same x). The next pass's factor is left to the solve: with it here a trial's first frame carried ~60 %
-        of the trial at 72 x 1000, without it ~47 % (issue 39, docs/performance.md). ``near``: a peer (this QP on
+        those passes only this many here, and the S of the next one factored (its first step); the solve then runs
+        the rest as well (the same x, the work shared more evenly between the frames). ``near``: a peer (this QP on
         a superset of its rows, D scaled: ``ratio``) and the indices of our rows in its rows, whose kept S a
         refactor here may start from (``_from_peer``; the same x up to rounding)."""
         f, x0 = np.array(f, dtype=np.float64), np.array(x0, dtype=np.float64)
@@ -253,7 +252,7 @@ class MarkerSpaceQP:
         self._near = near
         try:
             state = self._pivot(f, x0, now, frame_passes=frame_passes)
-            if not isinstance(state[0], str) and not now:
+            if not isinstance(state[0], str):
                 self._factor(~(state[0] | state[1]))
         finally:
             self._near = None

@@ -17,7 +17,7 @@ from solvers.prior_strength_kernels import held_out_error, score, unbounded_tria
 from solvers.qp import FrameQP
 
 BEGIN_PASSES = 2  # marker-space trials: passes owed to the frame the trial is due, the rest on the next
-BEGIN_NOW = 1  # of them run there; the finishing frame factors the next and runs the others (the same passes)
+BEGIN_NOW = 1  # of them run there, with the next one's factor; the finishing frame runs the others (the same passes)
 
 
 class HeldOutStrength:

@@ -509,7 +509,7 @@ class FrameQP:
         """The first ``passes`` passes of the marker-space solve that ``step(target, valid)`` would run next (from
         the start ``warm`` set), now; that step continues from them. False where the step would not take that
         path. A caller so spreads one solve over two frames (kalman's held-out trial at 72 x 1000, issue 39).
-        ``now``: only this many of them now (0: the first one's factor; MarkerSpaceQP.begin); the step runs the
+        ``now``: only this many of them now, and the next one's factor (MarkerSpaceQP.begin); the step runs the
         rest."""
         s = np.asarray(target, dtype=np.float64).reshape(-1)
         seen = np.asarray(valid, dtype=bool).reshape(-1)
