@@ -74,12 +74,15 @@ class MarkerSpaceQP:
     partition is the first guess), or None where ``max_iter`` passes did not settle (the caller falls back)."""
 
     def __init__(self, J: np.ndarray, d: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                 max_iter: int = 200, whole: tuple[MarkerSpaceQP, np.ndarray] | None = None) -> None:
+                 max_iter: int = 200, whole: tuple[MarkerSpaceQP, np.ndarray] | None = None,
+                 same: MarkerSpaceQP | None = None) -> None:
         """Raises ``np.linalg.LinAlgError`` where the columns with d = 0 are not fixed by J (e.g. too few markers
         seen for the pose) and ``ValueError`` for a d = 0 column with a limit. ``whole``: this QP on a superset of
         J's rows with the same d (the pattern with every marker seen) and our rows' indices in its rows: S of every
         column free is then its block with the pose projected off (``_from_peer``'s identity) instead of an r x r x n
-        product (a pattern with markers hidden, issue 39)."""
+        product (a pattern with markers hidden, issue 39). ``same``: this QP on the same J at another d with the
+        same d = 0 columns (another prior strength): its arrays that do not depend on d are read, not copies made
+        (one J in the caches for every strength's trial on a fold, issue 39)."""
         J = np.asarray(J, dtype=np.float64)
         d = np.asarray(d, dtype=np.float64).reshape(-1)
         self.r, n = J.shape
@@ -90,18 +93,23 @@ class MarkerSpaceQP:
         self.P, self.G = np.flatnonzero(d == 0), np.flatnonzero(d > 0)
         if np.isfinite(lower[self.P]).any() or np.isfinite(upper[self.P]).any():
             raise ValueError("a variable without curvature of its own (d = 0) must be unbounded")
-        JG = J[:, self.G]
-        self._C = None
-        if len(self.P):  # x_P = -C^-1 (J_P'J_G x_G + f_P), C = J_P'J_P
-            JP = J[:, self.P]
-            self._C = sl.cho_factor(JP.T @ JP)
-            if np.diagonal(self._C[0]).min() <= 1e-9 * np.sqrt(np.abs(np.diagonal(JP.T @ JP)).max()):
-                raise np.linalg.LinAlgError("the unpenalised columns are not fixed by the seen rows")
-            self._A = sl.cho_solve(self._C, JP.T @ JG)
-            JG = JG - JP @ self._A
-        # range(J_P), orthonormal: projected off a peer's S (``near``)
-        self._Q = np.asfortranarray(np.linalg.qr(JP)[0]) if len(self.P) else None
-        self.J = np.ascontiguousarray(JG)
+        if same is not None and np.array_equal(same.P, self.P) and np.array_equal(same.G, self.G) \
+                and np.array_equal(same._J_given, J):
+            self._J_given, self._C, self._A, self._Q, self.J = same._J_given, same._C, same._A, same._Q, same.J
+        else:
+            self._J_given = J
+            JG = J[:, self.G]
+            self._C = self._A = None
+            if len(self.P):  # x_P = -C^-1 (J_P'J_G x_G + f_P), C = J_P'J_P
+                JP = J[:, self.P]
+                self._C = sl.cho_factor(JP.T @ JP)
+                if np.diagonal(self._C[0]).min() <= 1e-9 * np.sqrt(np.abs(np.diagonal(JP.T @ JP)).max()):
+                    raise np.linalg.LinAlgError("the unpenalised columns are not fixed by the seen rows")
+                self._A = sl.cho_solve(self._C, JP.T @ JG)
+                JG = JG - JP @ self._A
+            # range(J_P), orthonormal: projected off a peer's S (``near``)
+            self._Q = np.asfortranarray(np.linalg.qr(JP)[0]) if len(self.P) else None
+            self.J = np.ascontiguousarray(JG)
         self.d = d[self.G]
         self.dinv = 1.0 / self.d
         self.lo, self.hi = lower[self.G], upper[self.G]

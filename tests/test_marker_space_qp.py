@@ -435,3 +435,37 @@ def test_a_pattern_with_rows_hidden_takes_its_s_from_the_whole_patterns(seed, r,
     assert x is not None
     _kkt(np.diag(d) + J[rows].T @ J[rows], f, lo, hi, x, 1e-9)
     np.testing.assert_allclose(x, fresh.solve(f, x0), rtol=0, atol=1e-7)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), p=st.integers(0, 3), c=st.floats(0.1, 10.0))
+def test_a_qp_at_another_strength_reads_the_same_js_arrays(seed, p, c):
+    """``same``: a QP on the same J at another d (a prior strength) reads the peer's projected J and pose factor
+    instead of forming copies (issue 39: one J in the caches for every strength's trial on a fold), and solves as a
+    fresh one, bit for bit; another J is not taken."""
+    rng = np.random.default_rng(seed)
+    J, d, lo, hi, f = _problem(rng, 12, 40, p)
+    first = MarkerSpaceQP(J, d, lo, hi)
+    d2 = np.where(d > 0, c * d, 0.0)
+    taken, fresh = MarkerSpaceQP(J.copy(), d2, lo, hi, same=first), MarkerSpaceQP(J, d2, lo, hi)
+    assert taken.J is first.J
+    x0 = np.clip(rng.normal(0, 1, 40 + p), lo, hi)
+    np.testing.assert_array_equal(taken.solve(f, x0), fresh.solve(f, x0))
+    other = MarkerSpaceQP(J + 1e-3, d2, lo, hi, same=first)
+    assert other.J is not first.J
+
+
+def test_frameqps_alike_share_each_patterns_j_and_step_as_alone():
+    """FrameQPs built ``like`` one another (kalman's fits and trials at each strength) give each visibility pattern's
+    marker-space solvers one projected J between them; the weights are those of a FrameQP built alone."""
+    (B, lo, hi, mean, P), rng = _rig(8, 80)
+    a = FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1e-2)
+    b = FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1e-1, like=a)
+    alone = FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1e-1)
+    for s, seen in _moving_frames(B, rng, 30, 0.2):
+        a.step(s, seen)
+        np.testing.assert_array_equal(b.step(s, seen), alone.step(s, seen))
+    shared = [key for key, ws in b._models.items() if ws.marker_space and key in a._models
+              and a._models[key].marker_space]
+    assert shared
+    assert all(b._models[key].marker_space.J is a._models[key].marker_space.J for key in shared)
