@@ -53,10 +53,10 @@ def record(path: str, frames: int = 400, size: tuple[int, int] = (72, 1000)) -> 
     cls = msq.MarkerSpaceQP
     init, begin, solve = cls.__init__, cls.begin, cls.solve
 
-    def w_init(self, J, d, lower, upper, max_iter=200, whole=None):  # (replayed without ``whole``: S to rounding)
-        ids[id(self)] = len(built)
+    def w_init(self, J, d, lower, upper, max_iter=200, whole=None, same=None):  # (replayed without them: the same
+        ids[id(self)] = len(built)  # x, S to rounding)
         built.append((np.array(J, float), np.array(d, float), np.array(lower, float), np.array(upper, float)))
-        init(self, J, d, lower, upper, max_iter, whole)
+        init(self, J, d, lower, upper, max_iter, whole, same)
 
     def peer(near):  # the peer a solve may take its S from (MarkerSpaceQP ``near``): its index, our rows in its rows
         rows = np.full(3 * profile.n_markers, -1)
