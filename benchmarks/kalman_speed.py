@@ -9,7 +9,7 @@
   benchmark steps ~200x faster than real time and the frame thread waits for every check at its swap);
 * 72x1000: the synthetic rig of ``benchmarks.synthetic`` (every marker seen, a ridge), robust, kalman and kalman
   without its trial (``--only 72x1000`` runs it alone; kalman's fit there is solved in marker space,
-  solvers/marker_space_qp.py);
+  solvers/marker_space_qp.py; ``--pace 60`` feeds it as a 60 Hz source would);
 * offline: ``solve_take`` of the first 30 s of each performance (with the prior), x real time (wall);
 * marker-space primitives at 72x1000 (:func:`marker_space`): why a factorisation that survives visibility changes
   belongs in the 216-dim marker space;
@@ -366,6 +366,8 @@ def main() -> int:
     p.add_argument("--skip", nargs="*", default=[], choices=parts)
     p.add_argument("--only", nargs="*", default=[], choices=parts, help="run these parts alone (e.g. 72x1000)")
     p.add_argument("--frames", type=int, default=400, help="frames of the 72x1000 take (default 400)")
+    p.add_argument("--pace", type=float, default=0.0, metavar="HZ",
+                   help="72x1000: each frame handed over at its time in a stream of this rate (as paced, below)")
     p.add_argument("--weights", help="save kalman's streamed weights per case (.npz)")
     p.add_argument("--compare", help="weights saved by another tree: report the largest difference")
     p.add_argument("--json", help="write the result as JSON")
@@ -389,7 +391,8 @@ def main() -> int:
             res[f"profile ict {name}"] = frame_profile(*real_case(name, 20.0 if a.quick else 0.0))
     if "72x1000" not in a.skip:
         res["synthetic 72x1000"], saved["synthetic 72x1000"] = streamed(
-            *synthetic_case(72, 1000, 60 + WARMUP if a.quick else a.frames))
+            *synthetic_case(72, 1000, 60 + WARMUP if a.quick else a.frames), pace_hz=a.pace)
+        res["synthetic 72x1000"]["pace_hz"] = a.pace
     if "offline" not in a.skip:
         res["offline 30 s"] = {name: offline(name, 30.0) for name in REAL}
     if "marker-space" not in a.skip:

@@ -53,10 +53,10 @@ def record(path: str, frames: int = 400, size: tuple[int, int] = (72, 1000)) -> 
     cls = msq.MarkerSpaceQP
     init, begin, solve = cls.__init__, cls.begin, cls.solve
 
-    def w_init(self, J, d, lower, upper, max_iter=200):
-        ids[id(self)] = len(built)
+    def w_init(self, J, d, lower, upper, max_iter=200, whole=None, same=None):  # (replayed without them: the same
+        ids[id(self)] = len(built)  # x, S to rounding)
         built.append((np.array(J, float), np.array(d, float), np.array(lower, float), np.array(upper, float)))
-        init(self, J, d, lower, upper, max_iter)
+        init(self, J, d, lower, upper, max_iter, whole, same)
 
     def peer(near):  # the peer a solve may take its S from (MarkerSpaceQP ``near``): its index, our rows in its rows
         rows = np.full(3 * profile.n_markers, -1)
@@ -172,9 +172,9 @@ def replay(path: str) -> dict:
 def stream(frames: int = 400, no_trial: bool = False, seed: int = 1, noise_mm: float = 0.3,
            size: tuple[int, int] = (72, 1000), hidden: int = 0) -> dict:
     """kalman streamed over the synthetic take (``size``: markers, shapes; its noise ``seed`` and level): thread CPU
-    per ``step`` after WARMUP frames and the weights' RMSE against the take's truth (the same frames); the weights
-    under ``_W``. ``hidden``: that many markers hidden at a time, another set every 20 frames (the visibility
-    pattern changes and comes back: a fit on a pattern new to its QP, or on one it left frames ago)."""
+    (and wall) per ``step`` after WARMUP frames and the weights' RMSE against the take's truth (the same frames);
+    the weights under ``_W``. ``hidden``: that many markers hidden at a time, another set every 20 frames (the
+    visibility pattern changes and comes back: a fit on a pattern new to its QP, or on one it left frames ago)."""
     from benchmarks.kalman_step import _build
     from benchmarks.synthetic import synthetic_profile, synthetic_stream
 
@@ -187,14 +187,16 @@ def stream(frames: int = 400, no_trial: bool = False, seed: int = 1, noise_mm: f
     solver = _build(profile, {}, "kalman")
     if no_trial:
         solver._trial = lambda *a, **k: None
-    W, cpu = np.empty((frames, truth.shape[1])), np.empty(frames)
-    thread = time.thread_time_ns
+    W, cpu, wall = np.empty((frames, truth.shape[1])), np.empty(frames), np.empty(frames)
+    thread, clock = time.thread_time_ns, time.perf_counter_ns
     for i in range(frames):
-        c0 = thread()
+        c0, t0 = thread(), clock()
         W[i] = solver.step(targets[i], valid[i])
-        cpu[i] = (thread() - c0) / 1e3
-    c = cpu[WARMUP:]
+        t1, c1 = clock(), thread()
+        cpu[i], wall[i] = (c1 - c0) / 1e3, (t1 - t0) / 1e3
+    c, w = cpu[WARMUP:], wall[WARMUP:]
     return {"p50": float(np.median(c)), "p99": float(np.percentile(c, 99)), "mean": float(c.mean()),
+            "wall p50": float(np.median(w)), "wall p99": float(np.percentile(w, 99)), "wall mean": float(w.mean()),
             "rmse": float(np.sqrt(np.mean((W[WARMUP:] - truth[WARMUP:]) ** 2))), "_W": W}
 
 

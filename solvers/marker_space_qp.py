@@ -74,9 +74,15 @@ class MarkerSpaceQP:
     partition is the first guess), or None where ``max_iter`` passes did not settle (the caller falls back)."""
 
     def __init__(self, J: np.ndarray, d: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                 max_iter: int = 200) -> None:
+                 max_iter: int = 200, whole: tuple[MarkerSpaceQP, np.ndarray] | None = None,
+                 same: MarkerSpaceQP | None = None) -> None:
         """Raises ``np.linalg.LinAlgError`` where the columns with d = 0 are not fixed by J (e.g. too few markers
-        seen for the pose) and ``ValueError`` for a d = 0 column with a limit."""
+        seen for the pose) and ``ValueError`` for a d = 0 column with a limit. ``whole``: this QP on a superset of
+        J's rows with the same d (the pattern with every marker seen) and our rows' indices in its rows: S of every
+        column free is then its block with the pose projected off (``_from_peer``'s identity) instead of an r x r x n
+        product (a pattern with markers hidden, issue 39). ``same``: this QP on the same J at another d with the
+        same d = 0 columns (another prior strength): its arrays that do not depend on d are read, not copies made
+        (one J in the caches for every strength's trial on a fold, issue 39)."""
         J = np.asarray(J, dtype=np.float64)
         d = np.asarray(d, dtype=np.float64).reshape(-1)
         self.r, n = J.shape
@@ -87,18 +93,23 @@ class MarkerSpaceQP:
         self.P, self.G = np.flatnonzero(d == 0), np.flatnonzero(d > 0)
         if np.isfinite(lower[self.P]).any() or np.isfinite(upper[self.P]).any():
             raise ValueError("a variable without curvature of its own (d = 0) must be unbounded")
-        JG = J[:, self.G]
-        self._C = None
-        if len(self.P):  # x_P = -C^-1 (J_P'J_G x_G + f_P), C = J_P'J_P
-            JP = J[:, self.P]
-            self._C = sl.cho_factor(JP.T @ JP)
-            if np.diagonal(self._C[0]).min() <= 1e-9 * np.sqrt(np.abs(np.diagonal(JP.T @ JP)).max()):
-                raise np.linalg.LinAlgError("the unpenalised columns are not fixed by the seen rows")
-            self._A = sl.cho_solve(self._C, JP.T @ JG)
-            JG = JG - JP @ self._A
-        # range(J_P), orthonormal: projected off a peer's S (``near``)
-        self._Q = np.asfortranarray(np.linalg.qr(JP)[0]) if len(self.P) else None
-        self.J = np.ascontiguousarray(JG)
+        if same is not None and np.array_equal(same.P, self.P) and np.array_equal(same.G, self.G) \
+                and np.array_equal(same._J_given, J):
+            self._J_given, self._C, self._A, self._Q, self.J = same._J_given, same._C, same._A, same._Q, same.J
+        else:
+            self._J_given = J
+            JG = J[:, self.G]
+            self._C = self._A = None
+            if len(self.P):  # x_P = -C^-1 (J_P'J_G x_G + f_P), C = J_P'J_P
+                JP = J[:, self.P]
+                self._C = sl.cho_factor(JP.T @ JP)
+                if np.diagonal(self._C[0]).min() <= 1e-9 * np.sqrt(np.abs(np.diagonal(JP.T @ JP)).max()):
+                    raise np.linalg.LinAlgError("the unpenalised columns are not fixed by the seen rows")
+                self._A = sl.cho_solve(self._C, JP.T @ JG)
+                JG = JG - JP @ self._A
+            # range(J_P), orthonormal: projected off a peer's S (``near``)
+            self._Q = np.asfortranarray(np.linalg.qr(JP)[0]) if len(self.P) else None
+            self.J = np.ascontiguousarray(JG)
         self.d = d[self.G]
         self.dinv = 1.0 / self.d
         self.lo, self.hi = lower[self.G], upper[self.G]
@@ -106,8 +117,12 @@ class MarkerSpaceQP:
         self.iterations = 0
         # rows: the columns of J D^-1/2 (W[:, idx] = _Wt[idx].T), each contiguous: a refactor gathers k of them
         self._Wt = np.ascontiguousarray(self.J.T * np.sqrt(self.dinv)[:, None])
-        self._S_all = np.asfortranarray(self._Wt.T @ self._Wt)  # every column free
-        self._S_all.flat[:: self.r + 1] += 1.0
+        if whole is not None and self._Q is not None and np.array_equal(whole[0].G, self.G) \
+                and np.array_equal(whole[0].d, self.d):
+            self._S_all = _projected(whole[0]._S_all, whole[1], self._Q, 1.0)  # (its lower triangle)
+        else:
+            self._S_all = np.asfortranarray(self._Wt.T @ self._Wt)  # every column free
+            self._S_all.flat[:: self.r + 1] += 1.0
         # S of the free set _F (its lower triangle: what LAPACK reads) and its Cholesky factor _L
         self._S, self._F, self._L = self._S_all, np.ones(len(self.G), bool), None
         self._begun: tuple | None = None  # f, x0 and the state of a solve begun (``begin``)
@@ -198,14 +213,12 @@ class MarkerSpaceQP:
         changed = np.flatnonzero(F != peer._F)
         if len(changed) + len(self.P) >= own:
             return False
-        S = np.take(peer._S.T[idx], idx, axis=1).T  # Fortran order; its lower triangle the peer's (LAPACK's)
         if self._Q is None or len(idx) == peer.r:  # (the peer's rows: its S already projected off our pose's range)
+            S = np.take(peer._S.T[idx], idx, axis=1).T  # Fortran order; its lower triangle the peer's (LAPACK's)
             S *= c
-        else:  # c (P S P - P) + I = c S - c (Q V' + V Q') + (1 - c) I, V = S Q - Q (Q'S Q) / 2 - Q / 2
-            Y = dsymm(1.0, S, self._Q, lower=1)
-            S = dsyr2k(-c, self._Q, Y - 0.5 * self._Q @ (self._Q.T @ Y + np.eye(len(self.P))), beta=c, c=S,
-                       lower=1, overwrite_c=1)
-        S.T.flat[:: self.r + 1] += 1.0 - c
+            S.T.flat[:: self.r + 1] += 1.0 - c
+        else:
+            S = _projected(peer._S, idx, self._Q, c)
         for cols, sign in ((changed[F[changed]], 1.0), (changed[~F[changed]], -1.0)):
             if len(cols):
                 S = dsyrk(sign, self._Wt[cols].T, beta=1.0, c=S, lower=1, overwrite_c=1)
@@ -359,3 +372,14 @@ class MarkerSpaceQP:
             # (LAPACK's own call: scipy's cho_solve checks finiteness, ~13 of its ~14 µs; the same numbers)
             out[self.P] = -(self._A @ xG + dpotrs(self._C[0], f[self.P], lower=self._C[1])[0])
         return out
+
+
+def _projected(S: np.ndarray, idx: np.ndarray, Q: np.ndarray, c: float) -> np.ndarray:
+    """c (P S_RR P - P) + I, P = I - Q Q' (Q orthonormal), from the lower triangle of S (``idx``: the rows R), into the
+    lower triangle of a new Fortran-order matrix: c S - c (Q V' + V Q') + (1 - c) I, V = S Q - Q (Q'S Q) / 2 - Q / 2
+    (a symmetric rank-2p update)."""
+    S = np.take(S.T[idx], idx, axis=1).T  # Fortran order; its lower triangle S's (LAPACK's)
+    Y = dsymm(1.0, S, Q, lower=1)
+    S = dsyr2k(-c, Q, Y - 0.5 * Q @ (Q.T @ Y + np.eye(Q.shape[1])), beta=c, c=S, lower=1, overwrite_c=1)
+    S.T.flat[:: len(idx) + 1] += 1.0 - c
+    return S

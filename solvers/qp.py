@@ -178,8 +178,11 @@ class FrameQP:
         self._row_w = np.repeat(mw**2, 3)  # M^2 on the rows x0 y0 z0 x1 ...
         if like is not None and like.basis is self.basis and np.array_equal(like._row_w, self._row_w):
             self._BtD = like._BtD
+            self._marker_J = like._marker_J
         else:
             self._BtD = (self.basis * self._row_w[:, None]).T.copy()  # m x 3n, B'M^2
+            # rows -> a marker-space solver on them (any strength): its d-free arrays shared (MarkerSpaceQP ``same``)
+            self._marker_J: weakref.WeakValueDictionary = weakref.WeakValueDictionary()
         self._const = (self.ridge + self.temporal) * np.eye(self.m)
         self._prior_f = None
         if prior is not None and prior_weight > 0:
@@ -532,8 +535,20 @@ class FrameQP:
         if ws.marker_space is None:
             rows = self._all_rows if ws.rows is None else ws.rows
             J = self.basis[rows] * np.sqrt(self._row_w[rows])[:, None]
+            # a pattern with markers hidden: its S from the nearest pattern built on more rows (the all-seen one; a
+            # held-out trial's fold pattern), as MarkerSpaceQP ``whole``
+            whole = None
+            for other in self._models.values() if ws.rows is not None else ():
+                theirs = self._all_rows if other.rows is None else other.rows
+                if (isinstance(other.marker_space, MarkerSpaceQP) and other.floor == ws.floor
+                        and (whole is None or other.marker_space.r < whole[0].r) and not np.any(rows & ~theirs)):
+                    whole = (other.marker_space, theirs)
+            whole = None if whole is None else (whole[0], np.flatnonzero(rows[whole[1]]))
+            key = rows.tobytes()
             try:
-                ws.marker_space = MarkerSpaceQP(J, np.diagonal(self._const) + ws.floor, self.lower, self.upper)
+                ws.marker_space = MarkerSpaceQP(J, np.diagonal(self._const) + ws.floor, self.lower, self.upper,
+                                                whole=whole, same=self._marker_J.get(key))
+                self._marker_J.setdefault(key, ws.marker_space)
             except (np.linalg.LinAlgError, ValueError) as exc:  # e.g. too few markers seen to fix the pose
                 log.debug("marker-space QP not built: %s", exc)
                 ws.marker_space = False

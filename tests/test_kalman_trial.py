@@ -247,12 +247,14 @@ def test_the_compiled_trial_scores_as_the_numpy_fit_and_score_it_replaced():
 
 
 def test_every_strengths_fit_reads_one_data_term():
-    """The fits at each prior strength share B'M^2 (issue 39: a frame reads all of it, and a fit taking over from
-    another found its own copy out of the caches), as built at reset and as built on first use."""
+    """The fits at each prior strength and the trials share B'M^2 (issue 39: a frame reads all of it, and a fit
+    taking over from another found its own copy out of the caches), as built at reset and as built on first use."""
     from livecap.modes import marker_kalman as mk
 
     solver = mk.kalman_mode(_face(), {"rate": 60.0})
     assert len({id(fit._BtD) for fit in solver._fits.values()}) == 1
+    # the trials' QPs too (issue 39, 72 x 1000: one 1.7 MB copy in the caches for the fit and the trial, not six)
+    assert {id(qp._BtD) for qp in solver.selector.qps} == {id(solver._fits[0]._BtD)}
     first = solver._fits[0]
     solver._fits = {0: first}
     assert solver._fit(3)._BtD is first._BtD

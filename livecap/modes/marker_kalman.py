@@ -228,9 +228,10 @@ class MarkerKalmanSolver:
         axes another ~0.2 ms, issue 39)."""
         precision = s.precision
         joint = self.pose.augment(self.profile.basis, self.lower, self.upper, s.mean, precision)
-        fits, spreads = _warmed_fits(joint, self.profile.n_markers, self.m)
+        selector = _selector(joint, decay)
+        fits, spreads = _warmed_fits(joint, self.profile.n_markers, self.m, selector.qps[0])
         along = {} if imm is None else {k: imm.along(c) for k, c in spreads.items()}
-        return joint, fits, spreads, _selector(joint, decay), along, precision, self._notes(s, frames)
+        return joint, fits, spreads, selector, along, precision, self._notes(s, frames)
 
     def _stream_support(self, x: np.ndarray, ok: np.ndarray) -> None:
         """Keep the take's frames (at most 2 x SUPPORT_FRAMES, thinned evenly as it grows), check them in a thread
@@ -319,7 +320,7 @@ class MarkerKalmanSolver:
         self._begun: tuple | None = None  # a marker-space trial begun: its markers, pattern, start and frame
         self._z: np.ndarray | None = None  # the last frame's weights and pose: where the fit's warm start comes from
         # every workspace (and the IMM's spread) built now, not on the first frames
-        self._fits, self._spreads = _warmed_fits(self.joint, self.profile.n_markers, self.m)
+        self._fits, self._spreads = _warmed_fits(self.joint, self.profile.n_markers, self.m, self.selector.qps[0])
         self._along: dict[int, np.ndarray] = {}  # the spreads along the IMM's axes
         self._imm: RotatedIMM | None = None
         self._noise_key: tuple | None = None  # (noise, strength) the IMM's noise was last set for
@@ -522,13 +523,15 @@ def _weight_cov(B: np.ndarray, P: np.ndarray, strength: float, m: int) -> np.nda
     return np.linalg.inv(B.T @ B + strength * P)[:m, :m]
 
 
-def _warmed_fits(joint: tuple, n_markers: int, m: int) -> tuple[dict[int, FrameQP], dict[int, np.ndarray]]:
+def _warmed_fits(joint: tuple, n_markers: int, m: int,
+                 like: FrameQP | None = None) -> tuple[dict[int, FrameQP], dict[int, np.ndarray]]:
     """Every strength's fit with its all-seen workspace built (and its marker-space solver), and each one's weight
-    covariance: what the first frames would otherwise build."""
+    covariance: what the first frames would otherwise build. ``like``: a QP whose B'M^2 the fits read too (the
+    selector's trials': one copy in the caches for the fit and the trial)."""
     B, lower, upper, mean, precision = joint
     fits, spreads = {}, {}
     for k, a in enumerate(STRENGTHS):
-        fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(a), like=fits.get(0),
+        fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(a), like=fits.get(0, like),
                           frame_passes=STREAM_PASSES)
         fits[k].step(np.zeros(3 * n_markers), np.ones(n_markers, bool))
         fits[k].reset()
