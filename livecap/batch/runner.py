@@ -10,6 +10,7 @@ import queue
 import shutil
 import tempfile
 import time
+import weakref
 from collections import Counter
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
@@ -47,6 +48,7 @@ START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_met
 WARM_FRAMES = 120  # frames of a take solved per spec and format to load (or, on a cold cache, compile) its kernels
 WARM_TRIES = 3  # takes of a spec and format tried before its kernels are left to the workers (they may all be bad)
 _forkserver: dict = {}  # the forkserver outlives a cluster: it is started, and loads kernels, once a process
+_THREADS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # client -> its workers' threads (_threads)
 
 
 def default_workers() -> int:
@@ -133,6 +135,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, warm: 
         client = Client(cluster)
     try:
         client.register_plugin(SolverCache(), name=SolverCache.name)
+        _threads(client)
         yield client
     finally:
         client.close()
@@ -207,7 +210,11 @@ def run_batch(jobs: list[Job], out_dir: str | Path, client, force: bool = False,
 
 
 def _threads(client) -> int:
-    return sum(w.get("nthreads", 1) for w in client.scheduler_info().get("workers", {}).values()) or 1
+    """The worker threads of ``client``'s cluster, read when ``dask_client`` made it: ``scheduler_info`` is a round
+    trip to the scheduler (on the workers' cores), which the batch's first take waited for."""
+    if client not in _THREADS:
+        _THREADS[client] = sum(w.get("nthreads", 1) for w in client.scheduler_info().get("workers", {}).values()) or 1
+    return _THREADS[client]
 
 
 def _pull(jobs: list[Job], order: list[int], out_dir: Path, client, run_id: int,
@@ -230,8 +237,8 @@ def _pull(jobs: list[Job], order: list[int], out_dir: Path, client, run_id: int,
             add(order[k], row)
 
     rows_seen: set[int] = set()
+    client.subscribe_topic(topic, lambda event: inbox.put(("take", event[1])))  # sent before the tasks
     try:
-        client.subscribe_topic(topic, lambda event: inbox.put(("take", event[1])))  # sent before the tasks
         n = min(_threads(client), len(order))
         # one map, one message to the scheduler: every worker gets its task at once
         tasks = client.map(solve_queue, range(n), jobs=queued, claims=str(claims), topic=topic, pure=False,
