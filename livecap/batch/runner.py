@@ -6,15 +6,18 @@ import logging
 import multiprocessing
 import os
 import pickle
+import queue
+import shutil
 import tempfile
 import time
+import weakref
 from collections import Counter
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
-from livecap.batch.jobs import Job
+from livecap.batch.jobs import RECORDS, Job
 from livecap.batch.summary import LiveSummary, write_summary
 from livecap.batch.worker import SolverCache, load_record, read_record, solve_job
 from livecap.core.take import Take
@@ -45,6 +48,7 @@ START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_met
 WARM_FRAMES = 120  # frames of a take solved per spec and format to load (or, on a cold cache, compile) its kernels
 WARM_TRIES = 3  # takes of a spec and format tried before its kernels are left to the workers (they may all be bad)
 _forkserver: dict = {}  # the forkserver outlives a cluster: it is started, and loads kernels, once a process
+_THREADS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # client -> its workers' threads (_threads)
 
 
 def default_workers() -> int:
@@ -131,6 +135,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None, warm: 
         client = Client(cluster)
     try:
         client.register_plugin(SolverCache(), name=SolverCache.name)
+        _threads(client)
         yield client
     finally:
         client.close()
@@ -162,23 +167,26 @@ def _failed(job: Job, error: str) -> dict:
 
 def run_batch(jobs: list[Job], out_dir: str | Path, client, force: bool = False,
               on_done: Callable[[dict], None] | None = None) -> tuple[list[dict], dict]:
-    """Solve every job not already up to date on ``client``'s workers, largest take first (Dask hands the
-    queued tasks out by priority as workers free up, so long takes do not end the batch on one worker);
-    each row goes to DIR/summary.csv as it comes in; rows in job order, and meta."""
-    from distributed import as_completed
-
+    """Solve every job not already up to date on ``client``'s workers, largest take first, one task per worker
+    thread that pulls takes until none is left (``worker.solve_queue``); each row goes to DIR/summary.csv as it
+    comes in. Takes a dead worker had claimed and not finished are solved again, one task each, as Dask retries
+    them. Rows in job order, and meta."""
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     rows: dict[int, dict] = {}
     pending = []
     live = LiveSummary(out_dir)
+
+    def add(i: int, row: dict) -> None:
+        rows[i] = row
+        live.add(row)
+        if on_done:
+            on_done(row)
+
     try:
         for i, job in enumerate(jobs):
             if not force and not job.error and job.up_to_date():
                 try:
-                    rows[i] = load_record(job)
-                    live.add(rows[i])
-                    if on_done:
-                        on_done(rows[i])
+                    add(i, load_record(job))
                     continue
                 except (OSError, ValueError):
                     pass  # an unreadable record: solve again
@@ -186,24 +194,10 @@ def run_batch(jobs: list[Job], out_dir: str | Path, client, force: bool = False,
         start, run_id = time.perf_counter(), time.time_ns()
         sizes = {i: _size(jobs[i]) for i in pending}
         order = sorted(pending, key=lambda i: -sizes[i])
-        # one map, one message to the scheduler: both workers get their first take at once (a submit per take
-        # is a message each, which the client sends at most every 10 ms), in this order (map's own priority)
-        futures = dict(zip(client.map(solve_job, [jobs[i] for i in order], pure=False,
-                                      key=[f"livecap-batch-{run_id}-{i}-{jobs[i].stem}" for i in order]), order,
-                           strict=True)) if order else {}
-        for fut in as_completed(list(futures)):
-            i = futures[fut]
-            try:
-                row = _written_row(jobs[i]) if fut.status == "finished" else None
-                row = row or fut.result()
-            except Exception as exc:  # the worker died or the task could not run: the take failed
-                from livecap.batch.worker import one_line
-
-                row = _failed(jobs[i], f"worker: {one_line(exc)}")
-            rows[i] = row
-            live.add(row)
-            if on_done:
-                on_done(row)
+        left = _pull(jobs, order, Path(out_dir), client, run_id, add) if order else []
+        if left:
+            log.warning("%d take(s) left unsolved by a lost worker: solved again", len(left))
+            _each(jobs, left, client, run_id, add)
     finally:
         live.close()
     wall = time.perf_counter() - start
@@ -213,6 +207,80 @@ def run_batch(jobs: list[Job], out_dir: str | Path, client, force: bool = False,
             "workers": len(client.scheduler_info().get("workers", {})), "scheduler": client.scheduler.address}
     write_summary(ordered, out_dir, meta)
     return ordered, meta
+
+
+def _threads(client) -> int:
+    """The worker threads of ``client``'s cluster, read when ``dask_client`` made it: ``scheduler_info`` is a round
+    trip to the scheduler (on the workers' cores), which the batch's first take waited for."""
+    if client not in _THREADS:
+        _THREADS[client] = sum(w.get("nthreads", 1) for w in client.scheduler_info().get("workers", {}).values()) or 1
+    return _THREADS[client]
+
+
+def _pull(jobs: list[Job], order: list[int], out_dir: Path, client, run_id: int,
+          add: Callable[[int, dict], None]) -> list[int]:
+    """``order``'s jobs solved by one ``solve_queue`` task per worker thread (fewer tasks than takes: the
+    scheduler's hand-over, its per-task messages and the worker's task state machine once per worker, not per
+    take); each take's row added as its worker reports it. The takes no worker reported (a worker died holding
+    one), in ``order``."""
+    from livecap.batch.worker import solve_queue
+
+    topic, claims = f"livecap-batch-{run_id}", out_dir / RECORDS / f"claims-{run_id}"
+    claims.mkdir(parents=True)
+    inbox: queue.SimpleQueue = queue.SimpleQueue()
+    queued = [jobs[i] for i in order]
+
+    def take_in(item: list) -> None:
+        k, row = item
+        if order[k] not in rows_seen and (row := row or _written_row(queued[k])):  # no record: the task's result
+            rows_seen.add(order[k])
+            add(order[k], row)
+
+    rows_seen: set[int] = set()
+    client.subscribe_topic(topic, lambda event: inbox.put(("take", event[1])))  # sent before the tasks
+    try:
+        n = min(_threads(client), len(order))
+        # one map, one message to the scheduler: every worker gets its task at once
+        tasks = client.map(solve_queue, range(n), jobs=queued, claims=str(claims), topic=topic, pure=False,
+                           key=[f"{topic}-queue-{k}" for k in range(n)])
+        for task in tasks:
+            task.add_done_callback(lambda fut: inbox.put(("task", fut)))
+        running = set(tasks)
+        while running:
+            kind, item = inbox.get()
+            if kind == "take":
+                take_in(item)
+                continue
+            running.discard(item)
+            try:
+                for done in item.result():  # what the events brought, unless one was lost: one fetch per worker
+                    take_in(done)
+            except Exception as exc:  # the task was lost with its workers (Dask's retries spent): rows it sent stand
+                log.warning("batch worker task lost: %s", exc)
+    finally:
+        client.unsubscribe_topic(topic)
+        shutil.rmtree(claims, ignore_errors=True)
+    return [i for i in order if i not in rows_seen]
+
+
+def _each(jobs: list[Job], order: list[int], client, run_id: int, add: Callable[[int, dict], None]) -> None:
+    """``order``'s jobs as one task each, which Dask retries on another worker if theirs dies (and reports lost
+    after ``distributed.scheduler.allowed-failures`` deaths: a take that kills its worker fails alone)."""
+    from distributed import as_completed
+
+    from livecap.batch.worker import one_line
+
+    futures = dict(zip(client.map(solve_job, [jobs[i] for i in order], pure=False,
+                                  key=[f"livecap-batch-{run_id}-{i}-{jobs[i].stem}" for i in order]), order,
+                       strict=True))
+    for fut in as_completed(list(futures)):
+        i = futures[fut]
+        try:
+            row = _written_row(jobs[i]) if fut.status == "finished" else None
+            row = row or fut.result()
+        except Exception as exc:  # the worker died or the task could not run: the take failed
+            row = _failed(jobs[i], f"worker: {one_line(exc)}")
+        add(i, row)
 
 
 def exit_code(rows: list[dict]) -> int:
