@@ -235,17 +235,13 @@ def evidence_strength(basis: np.ndarray, mean: np.ndarray, precision: np.ndarray
         if factors is not None:
             factors["evidence"] = M, d, logdet_g
     D = 1.0 / (1.0 + grid[:, None] * d)  # strengths x k: (B'B + aP)^-1 = M diag(D_a) M'
-    bm = Z @ (B @ M)  # frames x k: M'b_t
+    BM = B @ M
+    bm = Z @ BM  # frames x k: M'b_t
     quad = (bm**2).sum(0) @ D.T
     logdet = (logdet_g - np.log(D).sum(1)) * len(Z)
-    Bm = (B @ M).reshape(n3 // 3, 3, k)
-    missing = ~ok
-    h = missing.sum(1)
-    for j in np.unique(h[h > 0]):  # the frames missing j markers together
-        sel = np.flatnonzero(h == j)
-        Us = Bm[np.nonzero(missing[sel])[1].reshape(len(sel), j)].reshape(len(sel), 3 * j, k)  # hidden rows, M'-wise
+    for sel, Us in _hidden_rows(BM, ok):  # the frames missing the same number of markers; their hidden rows, M'-wise
         UD = Us[None] * D[:, None, None, :]  # strengths x frames x 3j x k
-        S = np.eye(3 * j) - UD @ np.swapaxes(Us, 1, 2)[None]  # strengths x frames x 3j x 3j
+        S = np.eye(Us.shape[1]) - UD @ np.swapaxes(Us, 1, 2)[None]  # strengths x frames x 3j x 3j
         u = UD @ bm[sel][None, :, :, None]  # U_t H^-1 b_t
         logdet += np.linalg.slogdet(S)[1].sum(1)
         quad += (u[..., 0] * np.linalg.solve(S, u)[..., 0]).sum((1, 2))
