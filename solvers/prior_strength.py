@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from solvers.prior_strength_kernels import held_out_error, score, unbounded_trial
+from solvers.prior_support import hidden_rows
 from solvers.qp import FrameQP
 
 BEGIN_PASSES = 2  # marker-space trials: passes owed to the frame the trial is due, the rest on the next
@@ -221,15 +222,12 @@ def _fold_plan(B: np.ndarray, M: np.ndarray, D: np.ndarray, ok: np.ndarray, held
     k = missing.sum(1)
     order = np.argsort(k, kind="stable")
     keep = max(int(np.count_nonzero(k <= FEW_MISSING)), len(frames) // 3)
-    frames, missing, k = frames[order[:keep]], missing[order[:keep]], k[order[:keep]]
+    frames, missing = frames[order[:keep]], missing[order[:keep]]
     BtM = B[np.repeat(~held, 3)] @ M
     systems = []
     good = np.ones(len(frames), bool)
-    for j in np.unique(k[k > 0]):
-        sel = np.flatnonzero(k == j)
-        rows = (3 * np.nonzero(missing[sel])[1].reshape(len(sel), j, 1) + np.arange(3)).reshape(len(sel), 3 * j)
-        U = BtM[rows]  # frames x 3k x m: the unseen rows, M'-wise
-        S = np.eye(3 * j) - (U[None] * D[:, None, None, :]) @ np.swapaxes(U, 1, 2)[None]
+    for sel, U in hidden_rows(BtM, ~missing):  # U: frames x 3k x m, the unseen rows, M'-wise
+        S = np.eye(U.shape[1]) - (U[None] * D[:, None, None, :]) @ np.swapaxes(U, 1, 2)[None]
         sign, logdet = np.linalg.slogdet(S[0])  # the weakest strength's: every S is at least as definite
         fine = (sign > 0) & (logdet > -25.0)  # the seen markers fix every column
         systems.append((sel[fine], U[fine], np.ascontiguousarray(S[:, fine])))

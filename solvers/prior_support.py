@@ -115,7 +115,7 @@ def widen_prior(basis: np.ndarray, mean: np.ndarray, cov: np.ndarray, targets: n
     if not len(X):
         return Support(U, lam, lam.copy(), float(noise_var), 0, mu0.copy())
     G = D.T @ D
-    hidden = _hidden_rows(D, ok)
+    hidden = hidden_rows(D, ok)
     b = X @ D  # T x k (invalid rows are 0)
     c = (X**2).sum(1)
     count = rows.sum(1).astype(float)
@@ -155,9 +155,10 @@ def widen_prior(basis: np.ndarray, mean: np.ndarray, cov: np.ndarray, targets: n
     return Support(U, lam, np.where(v[:m] > outside * lam, v[:m], lam), s2, done, mu0 + U @ a, mean_cov)
 
 
-def _hidden_rows(D: np.ndarray, ok: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+def hidden_rows(D: np.ndarray, ok: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """The frames grouped by how many markers they miss (h > 0): each group's frame indices and its frames' hidden
-    rows of ``D`` (frames x 3h x k)."""
+    rows of ``D`` (frames x 3h x k), for a Woodbury downdate per group (the prior check, the evidence, and
+    solvers.prior_strength.take_strength's folds)."""
     out = []
     missing = ~ok
     h = missing.sum(1)
@@ -170,7 +171,7 @@ def _hidden_rows(D: np.ndarray, ok: np.ndarray) -> list[tuple[np.ndarray, np.nda
 
 def _frame_inverses(A: np.ndarray, hidden: list, s2: float, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """With ``A`` every marker seen's matrix (k x k) and each frame's C_t = (A - U_t'U_t / s2)^-1 (U_t its hidden
-    rows, ``hidden`` as :func:`_hidden_rows`): per frame C_t b_t and C_t's diagonal (T x k), and the sum of the C_t."""
+    rows, ``hidden`` as :func:`hidden_rows`): per frame C_t b_t and C_t's diagonal (T x k), and the sum of the C_t."""
     C = np.linalg.inv(A)
     T, k = b.shape
     Cb, diag, Csum = b @ C, np.tile(np.diag(C), (T, 1)), T * C
@@ -239,7 +240,7 @@ def evidence_strength(basis: np.ndarray, mean: np.ndarray, precision: np.ndarray
     bm = Z @ BM  # frames x k: M'b_t
     quad = (bm**2).sum(0) @ D.T
     logdet = (logdet_g - np.log(D).sum(1)) * len(Z)
-    for sel, Us in _hidden_rows(BM, ok):  # the frames missing the same number of markers; their hidden rows, M'-wise
+    for sel, Us in hidden_rows(BM, ok):  # the frames missing the same number of markers; their hidden rows, M'-wise
         UD = Us[None] * D[:, None, None, :]  # strengths x frames x 3j x k
         S = np.eye(Us.shape[1]) - UD @ np.swapaxes(Us, 1, 2)[None]  # strengths x frames x 3j x 3j
         u = UD @ bm[sel][None, :, :, None]  # U_t H^-1 b_t

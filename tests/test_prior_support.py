@@ -562,7 +562,7 @@ def test_the_checks_frames_downdated_equal_each_frame_inverted_alone(seed, hide)
     """widen_prior inverts the all-seen matrix once an iteration and takes each frame's hidden markers out by
     Woodbury: per frame C_t b_t, C_t's diagonal, the sum of the C_t and y_t' P_t'P_t y_t as from each frame's own
     (P_t'P_t / s2 + V^-1)^-1, whatever is hidden."""
-    from solvers.prior_support import _frame_inverses, _hidden_rows, _seen_quadratic
+    from solvers.prior_support import _frame_inverses, _seen_quadratic, hidden_rows
 
     rng = np.random.default_rng(seed)
     n, k, T = 9, 7, 15
@@ -572,7 +572,7 @@ def test_the_checks_frames_downdated_equal_each_frame_inverted_alone(seed, hide)
     b = np.where(rows, rng.normal(size=(T, 3 * n)), 0.0) @ D
     y = rng.normal(size=(T, k))
     s2, v = rng.uniform(0.05, 2.0), rng.uniform(0.1, 3.0, k)
-    hidden = _hidden_rows(D, ok)
+    hidden = hidden_rows(D, ok)
     Cb, diag, Csum = _frame_inverses(D.T @ D / s2 + np.diag(1 / v), hidden, s2, b)
     P = [D[r].T @ D[r] for r in rows]
     C = [np.linalg.inv(p / s2 + np.diag(1 / v)) for p in P]
