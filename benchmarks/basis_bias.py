@@ -190,8 +190,9 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             t0 = time.perf_counter()
             start = max(0.0, min(10.0, read_llf_csv(f).times[-1] - args.seconds))
+            seed = take_seed(f, args.seed, args.draw)
             ct = curves_take(rig, layout, f, CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise,
-                                                                      seed=take_seed(f, args.seed, args.draw),
+                                                                      seed=seed,
                                                                       neutral_seconds=args.neutral_seconds))
             profile = plain_profile(rig, layout, ct)
             profile.prior = None if args.no_prior else build_prior([o for o in files if o != f], rig.names,
@@ -223,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
                 B[:, idx] = true_basis[:, idx]
                 variants[f"true {pair}"] = replace(profile, basis=B)
             opts = {"rate": ct.take.rate}
-            rec = {"noise_mm": noise, "file": f.stem, "oracle": oracle, "columns": cols,
+            rec = {"noise_mm": noise, "file": f.stem, "seed": seed, "oracle": oracle, "columns": cols,
                    "neutral_err_mm": float(np.sqrt(np.mean(np.sum((profile.source_neutral - true_neutral) ** 2, 1)))),
                    "solves": {}}
             variants["true neutral, pose from calibrated"] = (replace(profile, source_neutral=true_neutral), profile)
