@@ -139,6 +139,25 @@ def _offline_rows(rig, layout, ct, prior, opts, strength: int | None, evidence: 
     return [score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), 0.0), row]
 
 
+def never_worse(rows: list[dict], base: str = "no prior") -> list[str]:
+    """Per noise, path and prior variant: in how many (file, draw) its weight RMSE is not above ``base``'s (issue 41:
+    a prior from other performers never worse than none), and by how much where it is."""
+    runs: dict[tuple, dict[str, float]] = {}
+    for r in rows:
+        path = r["mode"].rsplit(" ", 1)[-1]
+        runs.setdefault((r["noise_mm"], path, r["file"], r.get("draw", 0)), {})[r["prior"]] = r["rmse"]
+    lines = []
+    for noise, path in dict.fromkeys(k[:2] for k in runs):
+        sel = {k: v for k, v in runs.items() if k[:2] == (noise, path) and base in v}
+        for variant in dict.fromkeys(n for v in sel.values() for n in v if n != base):
+            rel = {k[2:]: v[variant] / v[base] - 1 for k, v in sel.items() if variant in v}
+            worse = {k: x for k, x in rel.items() if x > 0}
+            lines.append(f"{noise:g} mm {path}: {variant} never worse than {base} in {len(rel) - len(worse)} of "
+                         f"{len(rel)} (file, draw)" + "".join(f"; {f} draw {d} {100 * x:+.1f} %"
+                                                              for (f, d), x in worse.items()))
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     from livecap.calibration.animation_prior import build_prior
     from livecap.cli.realeval import _realdata, _rig
@@ -213,6 +232,8 @@ def main(argv: list[str] | None = None) -> int:
     marker_kalman.MarkerKalmanSolver._use_support = check
     marker_kalman.MarkerKalmanSolver._support = support
     marker_kalman.SUPPORT_GROWTH, marker_kalman.UNCHECKED_SPREAD = growth, spread
+    for line in never_worse(out):
+        print(line)
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": platform.node(), "date": time.strftime("%Y-%m-%d %H:%M"),
                                                "load": Path("/proc/loadavg").read_text().split()[:3],

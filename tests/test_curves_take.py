@@ -162,3 +162,24 @@ def test_realeval_draws_report_each_row_and_the_spread(tmp_path, short_csv, caps
     assert "per draw min-max" in text
     lo, hi = sorted(r["rmse_x"] for r in rows if r["mode"] == "robust offline")
     assert f"{lo:.2f}-{hi:.2f} /" in text
+
+
+def test_ahead_of_and_never_worse_count_per_file_and_draw():
+    """The acceptance counts issue 41 states per held-out file: one loss on one figure is a loss."""
+    from benchmarks.prior_lopo import never_worse
+    from livecap.cli.realeval import ahead_of
+
+    def row(mode, file, draw, rmse, p95=1.0, jitter=1.0):
+        return {"rig": "ict", "noise_mm": 0.5, "file": file, "draw": draw, "mode": mode, "rmse": rmse,
+                "p95_mm": p95, "jitter_x": jitter}
+
+    rows = [row("auto=kalman stream", "a", 0, 0.1), row("a2f stream", "a", 0, 0.2, 2.0, 2.0),
+            row("auto=kalman stream", "a", 1, 0.1, jitter=3.0), row("a2f stream", "a", 1, 0.2, 2.0, 2.0),
+            row("oracle", "a", 0, 0.3)]
+    [line] = ahead_of(rows)
+    assert "in 1 of 2" in line and "a draw 1 stream (jitter_x)" in line
+    lopo = [{"noise_mm": 0.5, "file": f, "draw": d, "mode": "kalman offline", "prior": p, "rmse": x}
+            for f, d, p, x in [("a", 0, "no prior", 0.1), ("a", 0, "prior re-centred", 0.09),
+                               ("a", 1, "no prior", 0.1), ("a", 1, "prior re-centred", 0.11)]]
+    [line] = never_worse(lopo)
+    assert "in 1 of 2" in line and "a draw 1 +10.0 %" in line

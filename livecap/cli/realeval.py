@@ -144,6 +144,8 @@ def run(args: argparse.Namespace) -> int:
                         print(f"    active kept {r.active_kept:.1f} of {r.active_true:.1f}; bias "
                               + "  ".join(f"{n} {b:+.3f}" for n, b in worst))
     print(summary_table(out, args.bias))
+    for line in ahead_of(out):
+        print(line)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"machine": platform.node(), "date": time.strftime("%Y-%m-%d"),
@@ -213,3 +215,23 @@ def spread(rows: list[dict], field: str) -> tuple[float, float]:
         if np.isfinite(vals).any():
             means.append(float(np.mean(vals[np.isfinite(vals)])))
     return (min(means), max(means)) if means else (float("nan"), float("nan"))
+
+
+def ahead_of(rows: list[dict], mode: str = "auto", peer: str = "a2f") -> list[str]:
+    """Per rig and noise, in how many (file, draw, path) ``mode`` beats ``peer`` on weight RMSE, vertex p95 *and*
+    jitter (issue 41: the default ahead of the Audio2Face-3D baseline on every held-out file), and where it does not."""
+    pairs: dict[tuple, dict[str, dict]] = {}
+    for r in rows:
+        label, path = r["mode"].rsplit(" ", 1) if " " in r["mode"] else (r["mode"], "offline")
+        key = (r["rig"], r["noise_mm"], r["file"], r.get("draw", 0), path)
+        pairs.setdefault(key, {})[label.split("=")[0]] = r
+    lines = []
+    for rig, noise in dict.fromkeys(k[:2] for k in pairs):
+        both = {k: v for k, v in pairs.items() if k[:2] == (rig, noise) and mode in v and peer in v}
+        if not both:
+            continue
+        lost = {k: [f for f in ("rmse", "p95_mm", "jitter_x") if not v[mode][f] < v[peer][f]] for k, v in both.items()}
+        lines.append(f"{rig} {noise:g} mm: {mode} ahead of {peer} on RMSE, p95 and jitter in "
+                     f"{sum(not v for v in lost.values())} of {len(both)} (file, draw, path)"
+                     + "".join(f"; not {k[2]} draw {k[3]} {k[4]} ({', '.join(v)})" for k, v in lost.items() if v))
+    return lines
