@@ -17,10 +17,12 @@ oracle uses:
   oracle's; with ``--kernels`` also the basis from other interpolants of the estimated neutral (``PolyharmonicWarp``)
   and from the RBF warp's Jacobian (``linearised_basis``), prototypes of calibration changes.
 
-``--seed`` draws other noise, occlusion and neutral noise (realeval's takes all use seed 1, so five of its six files
-share one draw); ``--neutral-seconds`` lengthens the neutral take.
+``--seed`` / ``--draw``: the base seed and draw index of the takes' noise, occlusion and neutral noise, one draw per
+file as ``livecap realeval`` draws it (``curves_take.take_seed``; before 2026-12-06 every take used seed 1, so five
+of the six files shared one draw); ``--neutral-seconds`` lengthens the neutral take.
 
-    python -m benchmarks.basis_bias --noise 0.5 0.2 [--no-prior] [--stream] [--seed S] [--kernels] [--json out.json]
+    python -m benchmarks.basis_bias --noise 0.5 0.2 [--no-prior] [--stream] [--seed S] [--draw D] [--kernels]
+        [--json out.json]
 """
 
 from __future__ import annotations
@@ -160,7 +162,7 @@ def solve(ct, profile, opts: dict, stream: bool, stabiliser=None) -> dict[str, n
 def main(argv: list[str] | None = None) -> int:
     from livecap.calibration.animation_prior import build_prior
     from livecap.cli.realeval import _realdata, _rig
-    from livecap.demo.curves_take import CurveTakeSettings, curves_take
+    from livecap.demo.curves_take import CurveTakeSettings, curves_take, take_seed
     from livecap.offline.real_eval import oracle_weights, plain_profile
     from transport.llf_csv import read_llf_csv
 
@@ -171,7 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-prior", action="store_true")
     p.add_argument("--stream", action="store_true", help="streamed solves too (slower)")
     p.add_argument("--pairs", nargs="*", default=list(EYE_PAIRS), help="shape pairs (_L/_R) set true one at a time")
-    p.add_argument("--seed", type=int, default=1, help="the takes' noise seed (1: realeval's)")
+    p.add_argument("--seed", type=int, default=1, help="base seed of the takes' draws (1: realeval's)")
+    p.add_argument("--draw", type=int, default=0, help="the draw index (realeval --draws N runs 0..N-1; default 0)")
     p.add_argument("--neutral-seconds", type=float, default=2.0, help="the neutral take's length (2: realeval's)")
     p.add_argument("--kernels", action="store_true", help="the basis from other interpolating warps of the "
                    "estimated neutral too (PolyharmonicWarp)")
@@ -187,8 +190,9 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             t0 = time.perf_counter()
             start = max(0.0, min(10.0, read_llf_csv(f).times[-1] - args.seconds))
+            seed = take_seed(f, args.seed, args.draw)
             ct = curves_take(rig, layout, f, CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise,
-                                                                      seed=args.seed,
+                                                                      seed=seed,
                                                                       neutral_seconds=args.neutral_seconds))
             profile = plain_profile(rig, layout, ct)
             profile.prior = None if args.no_prior else build_prior([o for o in files if o != f], rig.names,
@@ -220,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
                 B[:, idx] = true_basis[:, idx]
                 variants[f"true {pair}"] = replace(profile, basis=B)
             opts = {"rate": ct.take.rate}
-            rec = {"noise_mm": noise, "file": f.stem, "oracle": oracle, "columns": cols,
+            rec = {"noise_mm": noise, "file": f.stem, "seed": seed, "oracle": oracle, "columns": cols,
                    "neutral_err_mm": float(np.sqrt(np.mean(np.sum((profile.source_neutral - true_neutral) ** 2, 1)))),
                    "solves": {}}
             variants["true neutral, pose from calibrated"] = (replace(profile, source_neutral=true_neutral), profile)

@@ -56,7 +56,7 @@ def parts(W: np.ndarray, truth: np.ndarray, names: list[str], rate: float, strea
 def main(argv: list[str] | None = None) -> int:
     from livecap.calibration.animation_prior import build_prior
     from livecap.cli.realeval import _realdata, _rig
-    from livecap.demo.curves_take import CurveTakeSettings, curves_take
+    from livecap.demo.curves_take import CurveTakeSettings, curves_take, take_seed
     from livecap.modes import marker_kalman
     from livecap.offline.real_eval import oracle_weights, plain_profile
     from livecap.offline.solve import solve_take
@@ -70,7 +70,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--files", nargs="+")
     p.add_argument("--no-stream", action="store_true")
     p.add_argument("--no-prior", action="store_true", help="the ridge instead (whose biases are not the prior's)")
-    p.add_argument("--seed", type=int, default=1, help="the takes' noise, occlusion and neutral draw (1: realeval's)")
+    p.add_argument("--seed", type=int, default=1, help="base seed of the takes' noise, occlusion and neutral draw, "
+                   "one per file from it and the file's name (curves_take.take_seed; 1: realeval's)")
+    p.add_argument("--draw", type=int, default=0, help="the draw index (realeval --draws N runs 0..N-1; default 0)")
     p.add_argument("--json")
     args = p.parse_args(argv)
     rig, layout = _rig("ict")
@@ -85,8 +87,9 @@ def main(argv: list[str] | None = None) -> int:
             if args.files and f.stem not in args.files:
                 continue
             start = max(0.0, min(10.0, read_llf_csv(f).times[-1] - args.seconds))
+            seed = take_seed(f, args.seed, args.draw)
             ct = curves_take(rig, layout, f, CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise,
-                                                                      seed=args.seed))
+                                                                      seed=seed))
             prior = build_prior([o for o in files if o != f], rig.names, rig.lower, rig.upper)
             profile = plain_profile(rig, layout, ct)
             profile.prior = None if args.no_prior else prior
@@ -114,7 +117,8 @@ def main(argv: list[str] | None = None) -> int:
                     if evidence_pick is not None:
                         Solver._evidence_pick = evidence_pick
                 for path, W in runs:
-                    rec = {"noise_mm": noise, "file": f.stem, "path": path, "strength": k, "oracle": oracle,
+                    rec = {"noise_mm": noise, "file": f.stem, "seed": seed, "path": path, "strength": k,
+                           "oracle": oracle,
                            **{key: v / oracle for key, v in parts(W, ct.weights, names, ct.take.rate,
                                                                   path == "stream").items()},
                            "bias": dict(sorted(zip(names, (W - ct.weights).mean(0).tolist(), strict=True),

@@ -17,7 +17,10 @@ mean of those shapes to the take's true mean (a ceiling, not a method).
 Performers are the sources' folders (../shared/realdata/performance/README.md): alexdjulin's anim/ (alex_rom_3,
 alex_rom_4, S07-001, S88-001), his csv/ (apfel), JMTechArt (MySlate).
 
-    python -m benchmarks.prior_lopo [--noise 0.5] [--seconds 10] [--json out.json]
+Each file's take has its own noise / occlusion / neutral draw as ``livecap realeval`` draws it
+(``curves_take.take_seed`` of the name, ``--seed``, the draw index); ``--draws N``: N draws per file.
+
+    python -m benchmarks.prior_lopo [--noise 0.5] [--seconds 10] [--seed 1] [--draws 1] [--json out.json]
     python -m benchmarks.prior_lopo --offline --variants "no prior" "prior re-centred" [--strength K | --evidence]
 """
 
@@ -136,10 +139,29 @@ def _offline_rows(rig, layout, ct, prior, opts, strength: int | None, evidence: 
     return [score("oracle", rig, ct, oracle_weights(ct, rig.lower, rig.upper), 0.0), row]
 
 
+def never_worse(rows: list[dict], base: str = "no prior") -> list[str]:
+    """Per noise, path and prior variant: in how many (file, draw) its weight RMSE is not above ``base``'s (issue 41:
+    a prior from other performers never worse than none), and by how much where it is."""
+    runs: dict[tuple, dict[str, float]] = {}
+    for r in rows:
+        path = r["mode"].rsplit(" ", 1)[-1]
+        runs.setdefault((r["noise_mm"], path, r["file"], r.get("draw", 0)), {})[r["prior"]] = r["rmse"]
+    lines = []
+    for noise, path in dict.fromkeys(k[:2] for k in runs):
+        sel = {k: v for k, v in runs.items() if k[:2] == (noise, path) and base in v}
+        for variant in dict.fromkeys(n for v in sel.values() for n in v if n != base):
+            rel = {k[2:]: v[variant] / v[base] - 1 for k, v in sel.items() if variant in v}
+            worse = {k: x for k, x in rel.items() if x > 0}
+            lines.append(f"{noise:g} mm {path}: {variant} never worse than {base} in {len(rel) - len(worse)} of "
+                         f"{len(rel)} (file, draw)" + "".join(f"; {f} draw {d} {100 * x:+.1f} %"
+                                                              for (f, d), x in worse.items()))
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     from livecap.calibration.animation_prior import build_prior
     from livecap.cli.realeval import _realdata, _rig
-    from livecap.demo.curves_take import CurveTakeSettings, curves_take
+    from livecap.demo.curves_take import CurveTakeSettings, curves_take, take_seed
     from livecap.modes import marker_kalman
     from livecap.offline.real_eval import evaluate_curve_take
     from transport.llf_csv import read_llf_csv
@@ -155,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--strength", type=int, help="--offline: a prior's strength held at STRENGTHS[K]")
     p.add_argument("--evidence", action="store_true", help="--offline: a prior's strength by the frames' evidence")
     p.add_argument("--true-mean", nargs="+", default=[], help="--offline: these shapes' checked mean set to the truth")
+    p.add_argument("--seed", type=int, default=1, help="base seed of the takes' draws (1: realeval's)")
+    p.add_argument("--draws", type=int, default=1, help="draws per file (realeval's 0..N-1)")
     p.add_argument("--json")
     args = p.parse_args(argv)
     rig, layout = _rig("ict")
@@ -165,11 +189,13 @@ def main(argv: list[str] | None = None) -> int:
     growth, spread = marker_kalman.SUPPORT_GROWTH, marker_kalman.UNCHECKED_SPREAD
 
     for noise in args.noise:
-        for name in args.files:
+        for name, draw in [(n, d) for n in args.files for d in range(args.draws)]:
             f = folder / f"{name}.csv"
             others = [folder / f"{o}.csv" for o, who in PERFORMERS.items() if who != PERFORMERS[name]]
             start = max(0.0, min(10.0, read_llf_csv(f).times[-1] - args.seconds))
-            ct = curves_take(rig, layout, f, CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise))
+            seed = take_seed(f, args.seed, draw)
+            ct = curves_take(rig, layout, f, CurveTakeSettings(start=start, seconds=args.seconds, noise_mm=noise,
+                                                                      seed=seed))
             prior = build_prior(others, rig.names, rig.lower, rig.upper)
             opts = {"kalman": {"rate": ct.take.rate}}
             for label, pr, how, recheck in (("no prior", None, None, False), ("prior as given", prior, None, False),
@@ -192,18 +218,22 @@ def main(argv: list[str] | None = None) -> int:
                     rows = evaluate_curve_take(rig, layout, ct, ["kalman"], opts, pr)
                 oracle = rows[0]
                 for r in rows[1:]:
-                    rec = {"noise_mm": noise, "file": name, "prior": label, "mode": r.mode, "rmse": r.rmse,
+                    rec = {"noise_mm": noise, "file": name, "draw": draw, "seed": seed, "prior": label,
+                           "mode": r.mode, "rmse": r.rmse,
                            "rmse_x": r.rmse / oracle.rmse, "p95_mm": r.p95_mm, "p95_x": r.p95_mm / oracle.p95_mm,
                            "jitter_x": r.jitter_x, "blink": r.blink, "pull": _pull(r), "bias": _top_bias(r),
                            "strength": getattr(r, "picks", None)}
                     out.append(rec)
-                    print(f"{noise:g} mm {name:32s} {label:15s} {r.mode:15s} RMSE {r.rmse:.4f} ({rec['rmse_x']:.2f}x) "
+                    print(f"{noise:g} mm {name:32s} d{draw} {label:15s} {r.mode:15s} "
+                          f"RMSE {r.rmse:.4f} ({rec['rmse_x']:.2f}x) "
                           f"p95 {r.p95_mm:.2f} ({rec['p95_x']:.2f}x) jitter {r.jitter_x:.2f} blink {r.blink:.2f} "
                           f"pull {rec['pull']:.2f} {rec['strength'] or ''} "
                           f"[{time.perf_counter() - t0:.0f} s]", flush=True)
     marker_kalman.MarkerKalmanSolver._use_support = check
     marker_kalman.MarkerKalmanSolver._support = support
     marker_kalman.SUPPORT_GROWTH, marker_kalman.UNCHECKED_SPREAD = growth, spread
+    for line in never_worse(out):
+        print(line)
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": platform.node(), "date": time.strftime("%Y-%m-%d %H:%M"),
                                                "load": Path("/proc/loadavg").read_text().split()[:3],

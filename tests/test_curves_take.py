@@ -3,6 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,7 +15,7 @@ import pytest
 from livecap.cli import main
 from livecap.core.rig import Rig
 from livecap.demo import truth_path
-from livecap.demo.curves_take import CurveTakeSettings, arkit_to_rig, curves_take
+from livecap.demo.curves_take import CurveTakeSettings, arkit_to_rig, curves_take, take_seed
 from livecap.demo.performance import GroundTruth
 from livecap.offline.real_eval import blink_retention, oracle_weights
 from tests.conftest import SHARED
@@ -109,3 +114,72 @@ def test_realeval_cli_reports_ratios_to_the_oracle(tmp_path, short_csv, capsys):
     assert [r["mode"] for r in rows] == ["oracle", "robust stream", "robust offline"]
     assert rows[0]["rmse_x"] == 1.0 and np.isfinite(rows[1]["rmse_x"]) and rows[1]["p95_mm"] > 0
     assert "| demo | 0.5 | robust stream |" in capsys.readouterr().out
+
+
+def test_take_seed_is_per_file_and_draw_and_not_pythons_salted_hash():
+    """realeval seeded every take with 1, so its files shared one draw (issue 41, 2026-12-06)."""
+    assert len({take_seed(n, 1, d) for n in ("apfel.csv", "S07-001.csv") for d in (0, 1, 2)}) == 6
+    assert take_seed("apfel.csv", 2) != take_seed("apfel.csv", 1)
+    assert take_seed("/a/apfel.csv") == take_seed(Path("b") / "apfel.csv")  # the name, not where it lies
+    code = "from livecap.demo.curves_take import take_seed; print(take_seed('apfel.csv', 1, 0))"
+    printed = {subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONHASHSEED": h}, text=True,
+                              capture_output=True, check=True, cwd=Path(__file__).resolve().parents[1]).stdout
+               for h in ("1", "2")}
+    assert printed == {f"{take_seed('apfel.csv', 1, 0)}\n"}
+
+
+def test_each_file_and_draw_gets_its_own_noise_occlusion_and_neutral(short_csv):
+    from livecap.cli.realeval import _rig
+
+    rig, layout = _rig("demo")
+    other = sorted(p for p in short_csv.parent.glob("*.csv") if p != short_csv)[0]
+
+    def drawn(csv, draw):
+        s = CurveTakeSettings(seconds=1.0, noise_mm=0.5, seed=take_seed(csv, 1, draw))
+        clean, ct = (curves_take(rig, layout, csv, replace(s, noise_mm=n)) for n in (0.0, 0.5))
+        return (ct.take.positions - clean.take.positions, ct.take.valid,
+                ct.neutral.positions - clean.neutral.positions)
+
+    first = drawn(short_csv, 0)
+    for a, b in zip(first, drawn(short_csv, 0), strict=True):
+        assert np.array_equal(a, b)  # the same file and seed: the same take
+    for other_draw in (drawn(short_csv, 1), drawn(other, 0)):
+        noise, valid, neutral = other_draw
+        assert not np.allclose(first[0][:60], noise[:60]) and not np.array_equal(first[1][:60], valid[:60])
+        assert not np.allclose(first[2], neutral)
+
+
+def test_realeval_draws_report_each_row_and_the_spread(tmp_path, short_csv, capsys):
+    out = tmp_path / "r.json"
+    assert main(["realeval", "--rig", "demo", "--noise", "0.5", "--seconds", "1.5", "--curves", str(short_csv),
+                 "--modes", "robust", "--draws", "2", "--seed", "3", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["draw"], r["mode"]) for r in rows] == [(d, m) for d in (0, 1)
+                                                      for m in ("oracle", "robust stream", "robust offline")]
+    assert {r["seed"] for r in rows} == {take_seed(short_csv, 3, 0), take_seed(short_csv, 3, 1)}
+    assert rows[1]["rmse"] != rows[4]["rmse"]  # another draw, another error
+    text = capsys.readouterr().out
+    assert "per draw min-max" in text
+    lo, hi = sorted(r["rmse_x"] for r in rows if r["mode"] == "robust offline")
+    assert f"{lo:.2f}-{hi:.2f} /" in text
+
+
+def test_ahead_of_and_never_worse_count_per_file_and_draw():
+    """The acceptance counts issue 41 states per held-out file: one loss on one figure is a loss."""
+    from benchmarks.prior_lopo import never_worse
+    from livecap.cli.realeval import ahead_of
+
+    def row(mode, file, draw, rmse, p95=1.0, jitter=1.0):
+        return {"rig": "ict", "noise_mm": 0.5, "file": file, "draw": draw, "mode": mode, "rmse": rmse,
+                "p95_mm": p95, "jitter_x": jitter}
+
+    rows = [row("auto=kalman stream", "a", 0, 0.1), row("a2f stream", "a", 0, 0.2, 2.0, 2.0),
+            row("auto=kalman stream", "a", 1, 0.1, jitter=3.0), row("a2f stream", "a", 1, 0.2, 2.0, 2.0),
+            row("oracle", "a", 0, 0.3)]
+    [line] = ahead_of(rows)
+    assert "in 1 of 2" in line and "a draw 1 stream (jitter_x)" in line
+    lopo = [{"noise_mm": 0.5, "file": f, "draw": d, "mode": "kalman offline", "prior": p, "rmse": x}
+            for f, d, p, x in [("a", 0, "no prior", 0.1), ("a", 0, "prior re-centred", 0.09),
+                               ("a", 1, "no prior", 0.1), ("a", 1, "prior re-centred", 0.11)]]
+    [line] = never_worse(lopo)
+    assert "in 1 of 2" in line and "a draw 1 +10.0 %" in line

@@ -10,6 +10,7 @@ the per-frame bounded least-squares *oracle* (true basis, true pose) can be comp
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,8 +37,16 @@ class CurveTakeSettings:
     head_mm: float = 20.0
     neutral_seconds: float = 2.0  # the separate neutral take
     stable_dropout: float = 1.0  # seconds one stable marker is missing mid-take (0: never)
-    seed: int = 1  # head motion, noise, occlusion
+    seed: int = 1  # head motion, noise, occlusion, neutral noise (realeval: take_seed per file)
     actor_seed: int = 7  # the actor's proportions
+
+
+def take_seed(source: str | Path, base: int = 1, draw: int = 0) -> int:
+    """The noise / occlusion / neutral draw of one file's take: a CRC-32 of the file's name (stable across runs and
+    machines, unlike Python's salted ``hash``) mixed with ``base`` and ``draw`` by numpy's ``SeedSequence``. One
+    seed for every file made the files of ``livecap realeval`` share one draw (issue 41, 2026-12-06)."""
+    crc = zlib.crc32(Path(source).name.encode("utf-8"))
+    return int(np.random.SeedSequence([crc, int(base), int(draw)]).generate_state(1)[0])
 
 
 def _centred_warp(seed: int, centre: np.ndarray):

@@ -53,7 +53,7 @@ class MismatchSettings:
     head_degrees: float = 6.0  # AnimFace: head motion up to ~6 degrees and 7-19 mm
     head_mm: float = 15.0
     neutral_seconds: float = 2.0
-    seed: int = 1
+    seed: int = 1  # placement, skin offsets, head motion, noise, occlusion (realeval: curves_take.take_seed per file)
 
 
 @dataclass
