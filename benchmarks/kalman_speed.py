@@ -74,7 +74,6 @@ def streamed(profile, targets, valid, options, floor: bool = True, pace_hz: floa
         solver = _build(profile, options, label.split(",")[0])
         if label.endswith("trial"):
             solver._trial = lambda *a, **k: None  # on the solver: a widened prior replaces its selector
-            solver._due = float("inf")  # (no trial due: none expected, ``FrameQP.expect``)
         W, cpu, wall = _stream(solver, targets, valid, pace_hz)
         out[label] = {**_stats(cpu[WARMUP:]), "wall": _stats(wall[WARMUP:])}
         if label == "kalman":

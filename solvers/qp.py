@@ -45,9 +45,6 @@ MARKER_SPACE_RATIO = 2.0
 # by weak reference), the peers a solve from one's stop may start its refactor from (``FrameQP._near``)
 _STOPS = threading.local()
 _STOPS_KEPT = 4
-# this thread's marker-space data terms of one frame: (B'M^2 by weak reference, s, {rows: B'M^2 s on them}), and the
-# rows a solve on the next frame's s expects to be asked for (``FrameQP.expect``)
-_DATA = threading.local()
 _LAMBDA_MIN_SIZE = 256
 _LAMBDA_MIN: dict[bytes, float] = {}  # smallest eigenvalue per matrix content: FrameQPs at several strengths share one
 
@@ -480,7 +477,7 @@ class FrameQP:
                 and np.array_equal(begun[1], s) and np.array_equal(begun[2], self.linear):
             f = begun[3]  # the begun solve's own: its B'M^2 s not formed twice (a 1006 x 216 product at 72 x 1000)
         if f is None:
-            f = self._linear_term(ws, self._data_term(ws, s))
+            f = self._linear_term(ws, self._BtD @ (s if ws.rows is None else np.where(ws.rows, s, 0.0)))
         if ws.marker_space is False:
             return None, f
         x = ws.marker_space.solve(f, self._prev, self.frame_passes, self._near(ws))
@@ -529,32 +526,10 @@ class FrameQP:
         self._build_marker_space(ws)
         if ws.marker_space is False:
             return False
-        f = self._linear_term(ws, self._data_term(ws, s))
+        f = self._linear_term(ws, self._BtD @ (s if ws.rows is None else np.where(ws.rows, s, 0.0)))
         ws.marker_space.begin(f, self._prev, passes, self.frame_passes, self._near(ws), now)
         self._begun_f = (ws, s.copy(), np.array(self.linear, dtype=np.float64), f)
         return True
-
-    def expect(self, valid: np.ndarray) -> None:
-        """A solve like this QP's (the same B'M^2) on the visibility pattern ``valid`` will follow this QP's next
-        marker-space solve on the same frame: its data term is formed in the same pass over B'M^2 (kalman's held-out
-        trial after its fit; at 72 x 1000 B'M^2 is 1.7 MB, out of the caches by the trial, issue 39)."""
-        _DATA.expected = (weakref.ref(self._BtD), np.repeat(np.asarray(valid, dtype=bool).reshape(-1), 3))
-
-    def _data_term(self, ws: _Workspace, s: np.ndarray) -> np.ndarray:
-        """B'M^2 s on this pattern's rows: this frame's own where one was formed with another's (``expect``)."""
-        mine = self._all_rows if ws.rows is None else ws.rows
-        last = getattr(_DATA, "last", None)
-        if last is not None and last[0]() is self._BtD and np.array_equal(last[1], s):
-            data = last[2].get(mine.tobytes())
-            if data is not None:
-                return data
-        expected, _DATA.expected = getattr(_DATA, "expected", None), None
-        if expected is None or expected[0]() is not self._BtD or np.array_equal(expected[1], mine):
-            return self._BtD @ (s if ws.rows is None else np.where(ws.rows, s, 0.0))
-        both = self._BtD @ np.column_stack([s if ws.rows is None else np.where(ws.rows, s, 0.0),
-                                            np.where(expected[1], s, 0.0)])
-        _DATA.last = (weakref.ref(self._BtD), s.copy(), {expected[1].tobytes(): both[:, 1].copy()})
-        return both[:, 0]
 
     def _build_marker_space(self, ws: _Workspace) -> None:
         if ws.marker_space is None:

@@ -197,31 +197,6 @@ def test_frameqp_begin_then_step_equals_step():
     assert begun > 5
 
 
-def test_a_trial_expected_on_the_fits_frame_takes_its_data_term_from_the_fits_pass():
-    """kalman's held-out trial, a QP ``like`` the fit, on the fit's frame without a fold's markers (``expect``): its
-    data term formed with the fit's in one pass over B'M^2 and taken, not formed again; the fit's and the trial's
-    weights those of QPs that formed their own, to rounding."""
-    (B, lo, hi, mean, P), rng = _rig(8, 80)
-    fit = FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1e-2)
-    trial = FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1.0, like=fit)
-    fit_alone = FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1e-2)  # their own B'M^2: nothing expected
-    trial_alone = FrameQP(B, lo, hi, prior=(mean, P), prior_weight=1.0)
-    taken = 0
-    for s, seen in _moving_frames(B, rng, 30, 0.2):
-        train = seen.copy()
-        train[rng.choice(8, 2, replace=False)] = False
-        fit.expect(train)
-        z = fit.step(s, seen)
-        np.testing.assert_allclose(z, fit_alone.step(s, seen), rtol=0, atol=1e-9)
-        record = getattr(qp_module._DATA, "last", None)
-        trial.warm(z)
-        trial_alone.warm(z)
-        w = trial.step(s, train)
-        taken += record is not None and qp_module._DATA.last is record and np.array_equal(record[1], s.reshape(-1))
-        np.testing.assert_allclose(w, trial_alone.step(s, train), rtol=0, atol=1e-9)
-    assert taken > 20
-
-
 @settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), r=st.integers(3, 24), n=st.integers(1, 60), p=st.integers(0, 3),
        passes=st.integers(1, 3))

@@ -346,8 +346,6 @@ class MarkerKalmanSolver:
         # a workspace built in this step (the first frame, a new strength or prior), or one built for it last frame
         busy = not fit.knows(ok) or fit is self._fresh
         self._fresh = None
-        if fit.marker_space and not self.selector.unbounded and self._frame >= self._due:
-            fit.expect(self.selector._next(ok)[3])  # the trial's data term formed with the fit's (one pass, 72 x 1000)
         z = self._z = fit.step(x, ok)
         # the next frame's pattern, known a frame ahead (the filter's lag): its workspace built now, on a frame
         # without a trial, so that no frame pays a trial and a new workspace, nor a new workspace and a cold solve
