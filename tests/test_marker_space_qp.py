@@ -186,6 +186,25 @@ def test_a_begun_solve_continues_to_the_same_x(seed, passes, p, now):
     np.testing.assert_allclose(split.solve(g, x0), MarkerSpaceQP(J, d, lo, hi).solve(g, x0), rtol=0, atol=1e-10)
 
 
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), r=st.integers(3, 24), n=st.integers(1, 60), p=st.integers(0, 3),
+       same=st.booleans())
+def test_the_data_term_from_the_projected_j_is_j_given_transposed_times_v(seed, r, n, p, same):
+    """MarkerSpaceQP.data_term(v): J'v for J as given, read from the J with the pose projected off (and, built
+    ``same`` as another strength's solver, from that one's arrays)."""
+    rng = np.random.default_rng(seed)
+    J, d, lo, hi, _ = _problem(rng, r, n, p)
+    try:
+        q = MarkerSpaceQP(J, d, lo, hi)
+        if same:
+            q = MarkerSpaceQP(J, 2.0 * d, lo, hi, same=q)
+    except np.linalg.LinAlgError:
+        return
+    v = rng.normal(0, 3, r)
+    want = J.T @ v
+    np.testing.assert_allclose(q.data_term(v), want, rtol=0, atol=1e-9 * (1 + np.abs(J).max() * np.abs(v).sum()))
+
+
 def test_frameqp_begin_then_step_equals_step():
     """A trial begun on one frame (FrameQP.begin) and stepped on the next gives the weights of the step alone."""
     (B, lo, hi, mean, P), rng = _rig(8, 80)
