@@ -11,6 +11,8 @@ form (:func:`take_strength`).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from solvers.prior_strength_kernels import held_out_error, score, unbounded_trial
@@ -141,9 +143,10 @@ def weakest_within(err: np.ndarray, count: np.ndarray, best: int) -> int:
     along the directions the markers see weakly, which held-out markers cannot score (issue 41: the streamed choice
     ran about one grid step stronger than the weight error's best, docs/robustness.md). The standard error is the
     noise model's: a held-out marker's error is three Gaussian coordinates squared, so the mean over n markers has
-    relative standard error sqrt(2 / 3n)."""
-    e = err / count
-    return int(np.flatnonzero(e <= e[best] * (1.0 + np.sqrt(2.0 / (3.0 * count[best]))))[0])
+    relative standard error sqrt(2 / 3n). (In Python floats: nine numbers a streamed trial, 0.5 us; numpy 2.3 us)"""
+    e, n = err.tolist(), count.tolist()
+    bound = e[best] / n[best] * (1.0 + math.sqrt(2.0 / (3.0 * n[best])))
+    return next(k for k in range(best + 1) if e[k] <= bound * n[k])
 
 
 
