@@ -50,3 +50,10 @@ def test_streamed_kalman_with_a_prior_takes_the_weakest_within_and_a_ridge_the_b
             else:
                 assert s.best == least
     assert weaker > 0
+
+
+def test_a_strength_never_scored_is_not_chosen_by_the_rule():
+    count = np.array([0.0, 5.0, 5.0])
+    err = np.array([0.0, 5.0, 4.9])  # strength 0 never scored (0 / 0)
+    assert weakest_within(err, count, 2) == 1
+    assert weakest_within(err, count, 0) == 0  # the kernel's own choice, kept
