@@ -514,7 +514,7 @@ def _selector(joint: tuple, decay: float, prior: bool) -> HeldOutStrength:
     """The streamed held-out strength choice (offline: ``take_strength``); at rig sizes whose fit stays in weight
     space (fewer shapes than MARKER_SPACE_RATIO x the marker coordinates: ICT, 72 x 150), with its trials' unbounded
     maps. Under an animation ``prior``, the weakest strength within a standard error of the best
-    (solvers.prior_strength.weakest_within; issue 41.2: ICT streamed means over three noise draws 0.423 -> 0.410x at
+    (solvers.prior_strength.weakest_within; issue 41.2: ICT streamed means over three noise draws 0.423 -> 0.409x at
     0.5 mm, 0.500 -> 0.491x at 0.2 mm, docs/robustness.md)."""
     B = joint[0]
     return HeldOutStrength(*joint, STRENGTHS, decay=decay, frame_passes=STREAM_PASSES,
