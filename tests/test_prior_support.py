@@ -368,7 +368,9 @@ def test_kalman_recentres_a_prior_on_an_actor_resting_elsewhere_and_says_so(capl
     lines = [r.getMessage() for r in caplog.records if r.name == marker_kalman.__name__]
     assert sum("re-centred" in line and "s0 0.10 ->" in line for line in lines) >= 2, lines  # stream, offline
     before = run(False)
-    assert now[0] < 0.7 * before[0] and now[1] < before[1], (now, before)  # 0.025 / 0.051, 0.0144 / 0.0149
+    # streamed 0.023 / 0.032, offline 0.0136 / 0.0141; streamed 0.025 / 0.051 before issue 41.2's weakest-within
+    # strength, which leans less on a mean left where the other performers rest
+    assert now[0] < 0.8 * before[0] and now[1] < before[1], (now, before)
 
 
 def test_one_slow_expression_counts_as_a_few_frames():
