@@ -86,6 +86,23 @@ def imm_take(st: np.ndarray, Y: np.ndarray, ok: np.ndarray, transition: np.ndarr
             out[t, i] = _channel(st, i, Y[t, i], ok[t, i], s00, s01, s10, s11)
 
 
+NOWHERE = np.zeros((0, 0))  # ``near`` empty: every channel shares the face's largest 'move' probability
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _top(mu: np.ndarray, near: np.ndarray, i: int) -> float:
+    """The largest 'move' probability channel ``i`` shares: over all channels (``near`` empty or ``i`` < 0), else
+    the largest of ``near[i, j] mu[j]`` (``near[i, i]`` = 1)."""
+    top = 0.0
+    if near.shape[0] == 0 or i < 0:
+        for j in range(mu.shape[0]):
+            top = max(top, mu[j])
+        return top
+    for j in range(mu.shape[0]):
+        top = max(top, near[i, j] * mu[j])
+    return top
+
+
 # rows of the NoiseShrink state (``solvers.tracking.NoiseShrink``): running mean, variance, frame-noise variance,
 # last sample
 S_MEAN, S_VAR, S_NOISE, S_LAST = range(4)
@@ -94,19 +111,18 @@ N_SHRINK = 4
 
 @numba.njit(cache=True, nogil=True)
 def shrink_step(st: np.ndarray, u: np.ndarray, x: np.ndarray, move_before: np.ndarray, move_after: np.ndarray,
-                n: int, a: float, b: float, c: float, pull: bool, out: np.ndarray) -> None:
+                n: int, a: float, b: float, c: float, pull: bool, out: np.ndarray, near: np.ndarray) -> None:
     """One frame of ``NoiseShrink``: the statistics updated with sample ``u`` (the frame noise only where the
     direction held, ``move_before`` < 0.5), then, if ``pull``, the IMM's output ``x`` pulled toward the mean by
-    ``g = clip(1 - c noise / var, 0, 1)``, let go by the largest ``move_after``; into ``out``."""
+    ``g = clip(1 - c noise / var, 0, 1)``, let go by the largest ``move_after`` (``near``: by the largest of
+    ``near[i] * move_after``, see ``_top``); into ``out``."""
     C = u.shape[0]
     if n == 1:
         for i in range(C):
             st[S_MEAN, i], st[S_VAR, i], st[S_NOISE, i], st[S_LAST, i] = u[i], 0.0, 0.0, u[i]
             out[i] = x[i]
         return
-    top = 0.0
-    for i in range(C):
-        top = max(top, move_after[i])
+    top = _top(move_after, near, -1)
     for i in range(C):
         d = u[i] - st[S_MEAN, i]
         m = st[S_MEAN, i] + a * d
@@ -118,21 +134,21 @@ def shrink_step(st: np.ndarray, u: np.ndarray, x: np.ndarray, move_before: np.nd
         if pull:
             g = 1.0 - c * st[S_NOISE, i] / max(v, 1e-30)
             g = min(max(g, 0.0), 1.0)
-            g += (1.0 - g) * top
+            g += (1.0 - g) * (top if near.shape[0] == 0 else _top(move_after, near, i))
             out[i] = m + g * (x[i] - m)
         else:
             out[i] = x[i]
 
 
 @numba.njit(cache=True, nogil=True)
-def share_move(st: np.ndarray, share: float, out: np.ndarray) -> None:
-    """After a step: every channel's 'move' probability raised to at least ``share`` x the largest one, and the
-    output ``out`` recombined from the two models' values with it (channels of one face share its regime)."""
-    top = 0.0
+def share_move(st: np.ndarray, share: float, out: np.ndarray, near: np.ndarray) -> None:
+    """After a step: every channel's 'move' probability raised to at least ``share`` x the largest one (``near``:
+    the largest of ``near[i] *`` the others', ``_top``), and the output ``out`` recombined from the two models'
+    values with it (channels of one face share its regime)."""
+    mu_before = st[MU_MOVE].copy() if near.shape[0] else st[MU_MOVE]
+    top = _top(mu_before, near, -1)
     for i in range(st.shape[1]):
-        top = max(top, st[MU_MOVE, i])
-    floor = share * top
-    for i in range(st.shape[1]):
+        floor = share * (top if near.shape[0] == 0 else _top(mu_before, near, i))
         mu = max(st[MU_MOVE, i], floor)
         st[MU_MOVE, i], st[MU_HOLD, i] = mu, 1.0 - mu
         out[i] = (1.0 - mu) * st[XH, i] + mu * st[XM, i]
@@ -141,7 +157,7 @@ def share_move(st: np.ndarray, share: float, out: np.ndarray) -> None:
 @numba.njit(cache=True, nogil=True)
 def shared_shrunk_step(st: np.ndarray, y: np.ndarray, ok: np.ndarray, transition: np.ndarray, share: float,
                        shrink: np.ndarray, n: int, a: float, b: float, c: float, pull: bool, before: np.ndarray,
-                       out: np.ndarray) -> None:
+                       out: np.ndarray, near: np.ndarray) -> None:
     """``imm_step``, then ``share_move`` (if ``share`` > 0), then ``shrink_step`` on its output, in one call: the
     streamed weight stage's three kernels and the 'move' probabilities kept between them, the same numbers as the
     three calls (``before``: scratch of C). One call a frame instead of three and their copies (issue 39)."""
@@ -149,5 +165,5 @@ def shared_shrunk_step(st: np.ndarray, y: np.ndarray, ok: np.ndarray, transition
         before[i] = st[MU_MOVE, i]
     imm_step(st, y, ok, transition, out)
     if share > 0:
-        share_move(st, share, out)
-    shrink_step(shrink, y, out, before, st[MU_MOVE], n, a, b, c, pull, out)
+        share_move(st, share, out, near)
+    shrink_step(shrink, y, out, before, st[MU_MOVE], n, a, b, c, pull, out, near)

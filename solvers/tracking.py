@@ -172,10 +172,12 @@ class IMMFilter:
         if self._state is not None:
             self._state[self._kernels.R] = np.broadcast_to(self.r, self._shape).reshape(-1)
 
-    def share_move(self, share: float, out: np.ndarray) -> None:
-        """After a step: each channel's 'move' probability raised to at least ``share`` x the largest, ``out`` (that
-        step's output) recombined with it (solvers.imm_kernels.share_move)."""
-        self._kernels.share_move(self._state, float(share), out.reshape(-1))
+    def share_move(self, share: float, out: np.ndarray, near: np.ndarray | None = None) -> None:
+        """After a step: each channel's 'move' probability raised to at least ``share`` x the largest (``near``:
+        the largest of ``near[i, j]`` x channel j's), ``out`` (that step's output) recombined with it
+        (solvers.imm_kernels.share_move)."""
+        self._kernels.share_move(self._state, float(share), out.reshape(-1),
+                                 self._kernels.NOWHERE if near is None else near)
 
     def step(self, y: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         y = np.asarray(y, dtype=np.float64)
@@ -242,7 +244,8 @@ class NoiseShrink:
         """Each direction's running mean (what it is pulled toward)."""
         return None if self._state is None else self._state[self._kernels.S_MEAN].copy()
 
-    def step(self, u: np.ndarray, move_before: np.ndarray, x: np.ndarray, move_after: np.ndarray) -> np.ndarray:
+    def step(self, u: np.ndarray, move_before: np.ndarray, x: np.ndarray, move_after: np.ndarray,
+             near: np.ndarray | None = None) -> np.ndarray:
         """Sample ``u`` (the fit along the directions) and the IMM's output ``x`` for it -> the output pulled;
         ``move_before`` / ``move_after``: the IMM's 'move' probabilities before and after its step. One compiled
         call (solvers.imm_kernels): as a dozen numpy calls it cost ~27 us a frame at 53 directions."""
@@ -252,7 +255,8 @@ class NoiseShrink:
             self._kernels = imm_kernels
             self._state = np.zeros((imm_kernels.N_SHRINK, u.size))
         out = np.empty(u.size)
-        self._kernels.shrink_step(self._state, u, x, move_before, move_after, *self._advance(), out)
+        self._kernels.shrink_step(self._state, u, x, move_before, move_after, *self._advance(), out,
+                                  self._kernels.NOWHERE if near is None else near)
         return out
 
     def _advance(self) -> tuple[int, float, float, float, bool]:
@@ -262,6 +266,21 @@ class NoiseShrink:
         a = max(1.0 / self.n, self.floor)
         b = max(1.0 / max(self.n - 1, 1), self.floor)
         return self.n, a, b, self.c, self.n > self.warm
+
+
+def shared_markers(basis: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """How much two directions ``axes[:, i]``, ``axes[:, j]`` of the weights move the same markers: the Bhattacharyya
+    coefficient of their per-marker shares of displacement energy (``basis``: 3n x m, x, y, z per marker), 1 on the
+    diagonal, 0 for directions that move disjoint markers. Why: a 'move' regime is the face's only where the
+    directions share markers; a blink's well-seen and ill-seen parts both move the eyelids, speech moves the mouth
+    and not the eyes' ill-seen directions (issue 41: docs/robustness.md, "the streamed default's jitter against
+    `a2f`")."""
+    D = np.asarray(basis, dtype=np.float64) @ np.asarray(axes, dtype=np.float64)
+    e = (D.reshape(-1, 3, D.shape[1]) ** 2).sum(1)
+    e = e / np.maximum(np.linalg.norm(e, axis=0), 1e-300)
+    near = np.clip(e.T @ e, 0.0, 1.0)
+    np.fill_diagonal(near, 1.0)
+    return near
 
 
 class RotatedIMM:
@@ -277,7 +296,7 @@ class RotatedIMM:
     latency_frames = 0
 
     def __init__(self, axes: np.ndarray | None, imm: IMMFilter, shrink: NoiseShrink | None = None,
-                 share: float = 0.0) -> None:
+                 share: float = 0.0, near: np.ndarray | None = None) -> None:
         """``axes`` None: the shapes' own axes (no rotation), where two m x m products a frame cost more than the
         rotation is worth (1000-shape rigs: ~1 ms of a 2 ms budget, docs/performance.md). ``shrink``: each
         direction's output pulled toward its running mean where the stream shows it carries mostly noise.
@@ -293,6 +312,9 @@ class RotatedIMM:
         self.imm = imm
         self.shrink = shrink
         self.share = float(share)
+        self.near = None if near is None else np.ascontiguousarray(near, dtype=np.float64)
+        if self.near is not None and (self.near.ndim != 2 or self.near.shape[0] != self.near.shape[1]):
+            raise ValueError(f"RotatedIMM near must be directions x directions, got shape {self.near.shape}")
         self._before: np.ndarray | None = None  # the compiled step's scratch: 'move' probabilities before it
 
     def reset(self) -> None:
@@ -325,14 +347,15 @@ class RotatedIMM:
                 self._before = np.empty(u.size)
             x = np.empty(u.size)
             imm._kernels.shared_shrunk_step(imm._state, u, imm._all, imm.transition, self.share, shrink._state,
-                                            *shrink._advance(), self._before, x)
+                                            *shrink._advance(), self._before, x,
+                                            imm._kernels.NOWHERE if self.near is None else self.near)
             return x if self.axes is None else self.axes @ x
         started = imm.move_probability is not None
         before = imm.move_probability.copy() if started and shrink is not None else None
         x = imm.step(u)
         if started and self.share > 0:
-            imm.share_move(self.share, x)
+            imm.share_move(self.share, x, self.near)
         if shrink is not None:  # the first sample starts both
             x = shrink.step(u, np.zeros(u.size) if before is None else before, x,
-                            imm.move_probability if started else np.zeros(u.size))
+                            imm.move_probability if started else np.zeros(u.size), self.near)
         return x if self.axes is None else self.axes @ x

@@ -55,7 +55,7 @@ from solvers.pose_refine import RigidColumns
 from solvers.prior_strength import HeldOutStrength, take_strength
 from solvers.prior_support import Support, evidence_strength, widen_prior
 from solvers.qp import MARKER_SPACE_RATIO, FrameQP
-from solvers.tracking import IMMFilter, NoiseShrink, RotatedIMM, dwna_variance, variances_along
+from solvers.tracking import IMMFilter, NoiseShrink, RotatedIMM, dwna_variance, shared_markers, variances_along
 
 STRENGTHS = np.logspace(-3, 1, 9)  # prior weight, mm^2 (the marker variance it balances)
 STREAM_PASSES = 1  # streaming, marker-space fits and trials (72 x 1000): block-pivoting passes a frame (0: exact;
@@ -83,7 +83,8 @@ SUPPORT_GROWTH = 2.0  # streaming: checked again on the take so far each time it
 MARKER_MEMORY_SECONDS = 0.4
 SHRINK_WARM_SECONDS = 1.0  # streaming: the weight stage's pull toward each direction's mean starts after this much
 SHRINK_MEMORY_SECONDS = 60.0  # ... and reads its mean, spread and noise over about this much (solvers.tracking)
-SHARED_MOVE = 0.3  # streaming: every direction's 'move' probability at least this x the largest (RotatedIMM share)
+SHARED_MOVE = 0.3  # streaming: every direction's 'move' probability at least this x the largest of the directions
+# that move its markers (RotatedIMM share, near: solvers.tracking.shared_markers)
 
 
 log = logging.getLogger(__name__)
@@ -356,7 +357,10 @@ class MarkerKalmanSolver:
         noise = max(self.filter.noise_mm, self.calibrated_noise)
         if self._imm is None:  # the axes: the first frame's fit's; later strengths' noise is read in them
             axes = None if fit.marker_space else np.linalg.eigh(self._spread_of(k))[1]
-            self._imm = RotatedIMM(axes, self.motion.imm(noise, self.norms), self.motion.shrink(), SHARED_MOVE)
+            # the regime shared only between directions that move the same markers (issue 41: a talking mouth let the
+            # eyes' ill-seen directions go; ICT 0.2 mm, MySlate / apfel / S07-001 jitter 2.83 -> 2.42 x truth)
+            near = None if axes is None else shared_markers(self.profile.basis, axes)
+            self._imm = RotatedIMM(axes, self.motion.imm(noise, self.norms), self.motion.shrink(), SHARED_MOVE, near)
             # every strength's, now: on the frame a strength first changed they cost ~30-90 µs (issue 39)
             self._along = {j: self._imm.along(self._spread_of(j)) for j in range(len(STRENGTHS))}
         if (noise, k) != self._noise_key:  # the noise settles in the first frames; the strength changes now and then
