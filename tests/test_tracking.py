@@ -5,7 +5,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from solvers.tracking import IMMFilter, KalmanCV, NoiseShrink, RotatedIMM, alpha_beta_gains, dwna_variance
+from solvers.tracking import (
+    IMMFilter,
+    KalmanCV,
+    NoiseShrink,
+    RotatedIMM,
+    alpha_beta_gains,
+    dwna_variance,
+    shared_markers,
+)
 from tests.imm_reference import NumpyIMMFilter
 
 
@@ -287,8 +295,8 @@ def test_shared_move_lets_an_ill_seen_direction_follow_a_blink_the_well_seen_one
 
 
 @settings(max_examples=25, deadline=None)
-@given(st.integers(0, 10_000), st.sampled_from([0.0, 0.3, 1.0]), st.integers(2, 12))
-def test_the_weight_stage_in_one_call_is_its_three_parts_bit_for_bit(seed, share, warm):
+@given(st.integers(0, 10_000), st.sampled_from([0.0, 0.3, 1.0]), st.integers(2, 12), st.booleans())
+def test_the_weight_stage_in_one_call_is_its_three_parts_bit_for_bit(seed, share, warm, regional):
     """Streamed, RotatedIMM's IMM step, shared regime and pull run as one compiled call (issue 39, the merged main's
     p99); its output is the three parts' (IMMFilter.step, share_move, NoiseShrink.step) composed, bit for bit,
     with the noise changed in mid-stream as kalman does when its strength moves."""
@@ -297,7 +305,12 @@ def test_the_weight_stage_in_one_call_is_its_three_parts_bit_for_bit(seed, share
     Y = rng.normal(size=(T, m)).cumsum(0) * rng.uniform(0.01, 1.0, m) + rng.normal(0, 0.2, (T, m))
     axes = np.linalg.qr(rng.normal(size=(m, m)))[0]
     r = rng.uniform(1e-4, 0.1, m)
-    fused = RotatedIMM(axes, IMMFilter(1e-4, 1e-2, r), NoiseShrink(c=4.0, warm_frames=warm), share)
+    near = None
+    if regional:  # the regime shared by how much the directions share markers (shared_markers)
+        near = rng.uniform(0, 1, (m, m))
+        near = (near + near.T) / 2
+        np.fill_diagonal(near, 1.0)
+    fused = RotatedIMM(axes, IMMFilter(1e-4, 1e-2, r), NoiseShrink(c=4.0, warm_frames=warm), share, near)
     imm, shrink = IMMFilter(1e-4, 1e-2, r), NoiseShrink(c=4.0, warm_frames=warm)
     for t, y in enumerate(Y):
         if t == T // 2:
@@ -307,6 +320,49 @@ def test_the_weight_stage_in_one_call_is_its_three_parts_bit_for_bit(seed, share
         before = np.zeros(m) if imm.move_probability is None else imm.move_probability.copy()
         x = imm.step(u)
         if t and share > 0:
-            imm.share_move(share, x)
-        want = axes @ shrink.step(u, before, x, imm.move_probability if t else np.zeros(m))
+            imm.share_move(share, x, near)
+        want = axes @ shrink.step(u, before, x, imm.move_probability if t else np.zeros(m), near)
         np.testing.assert_array_equal(fused.step(y), want)
+
+
+def test_shared_markers_is_one_for_the_same_markers_and_zero_for_disjoint_ones():
+    """Two shapes moving markers 0-1 and one moving marker 2: the first two directions share all their markers
+    whatever their mix, the third none."""
+    B = np.zeros((9, 3))
+    B[0:6, 0] = [1, 0, 0, 0, 2, 0]
+    B[0:6, 1] = [0, 3, 0, 1, 0, 0]
+    B[6:9, 2] = [0, 0, 1]
+    axes = np.eye(3)
+    near = shared_markers(B, axes)
+    np.testing.assert_allclose(np.diag(near), 1.0)
+    assert near[0, 2] == near[2, 0] == 0.0 and near[1, 2] == 0.0
+    assert 0.0 < near[0, 1] < 1.0 and near[0, 1] == near[1, 0]  # both move markers 0 and 1, in other shares
+    same = np.zeros((9, 2))
+    same[0:6, 0], same[0:6, 1] = [1, 0, 0, 0, 2, 0], [2, 0, 0, 0, 4, 0]  # the same markers in the same shares
+    np.testing.assert_allclose(shared_markers(same, np.eye(2)), 1.0)
+
+
+def test_a_move_on_other_markers_neither_lets_a_direction_go_nor_stops_its_pull():
+    """A well-seen direction jumps while an ill-seen one holds its noise. Shared face-wide (``near`` None), the
+    ill-seen one's 'move' probability is raised to ``share`` x the jump's and its pull is let go, so its noise comes
+    through; with the two on disjoint markers (``near`` the identity) it holds and stays pulled; with ``near`` all
+    ones it is the face-wide sharing bit for bit."""
+    rng = np.random.default_rng(7)
+    T = 400
+    Y = np.zeros((T, 2))
+    truth = np.where(np.arange(T) % 40 < 20, 0.0, 0.5)  # speech: the mouth moves all the time
+    Y[:, 0] = truth
+    Y += rng.normal(0, [0.005, 0.05], (T, 2))
+    q_hold, q_move = dwna_variance(0.5, 60.0), dwna_variance(80.0, 60.0)
+    r = np.array([0.005**2, 0.05**2])
+
+    def run(near):
+        f = RotatedIMM(np.eye(2), IMMFilter(q_hold, q_move, r), NoiseShrink(warm_frames=30), 0.3, near)
+        return np.array([f.step(y) for y in Y])
+
+    face, regional, ones = run(None), run(np.eye(2)), run(np.ones((2, 2)))
+    np.testing.assert_array_equal(face, ones)
+    jit = [np.abs(np.diff(w[100:, 1], 2)).mean() for w in (face, regional)]
+    assert jit[1] < 0.5 * jit[0]
+    err = [np.sqrt(np.mean((w[100:, 0] - truth[100:]) ** 2)) for w in (face, regional)]
+    assert err[1] < 1.1 * err[0]  # the mouth follows as well as before
