@@ -86,13 +86,13 @@ def imm_take(st: np.ndarray, Y: np.ndarray, ok: np.ndarray, transition: np.ndarr
             out[t, i] = _channel(st, i, Y[t, i], ok[t, i], s00, s01, s10, s11)
 
 
-NOWHERE = np.zeros((0, 0))  # ``near`` empty: every channel shares the face's largest 'move' probability
+NOWHERE = np.zeros((0, 0))  # ``near`` empty: every channel's pull let go by the face's largest 'move' probability
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _top(mu: np.ndarray, near: np.ndarray, i: int) -> float:
-    """The largest 'move' probability channel ``i`` shares: over all channels (``near`` empty or ``i`` < 0), else
-    the largest of ``near[i, j] mu[j]`` (``near[i, i]`` = 1)."""
+    """The largest 'move' probability that lets channel ``i``'s pull go: over all channels (``near`` empty or
+    ``i`` < 0), else the largest of ``near[i, j] mu[j]`` (``near[i, i]`` = 1)."""
     top = 0.0
     if near.shape[0] == 0 or i < 0:
         for j in range(mu.shape[0]):
@@ -141,14 +141,14 @@ def shrink_step(st: np.ndarray, u: np.ndarray, x: np.ndarray, move_before: np.nd
 
 
 @numba.njit(cache=True, nogil=True)
-def share_move(st: np.ndarray, share: float, out: np.ndarray, near: np.ndarray) -> None:
-    """After a step: every channel's 'move' probability raised to at least ``share`` x the largest one (``near``:
-    the largest of ``near[i] *`` the others', ``_top``), and the output ``out`` recombined from the two models'
-    values with it (channels of one face share its regime)."""
-    mu_before = st[MU_MOVE].copy() if near.shape[0] else st[MU_MOVE]
-    top = _top(mu_before, near, -1)
+def share_move(st: np.ndarray, share: float, out: np.ndarray) -> None:
+    """After a step: every channel's 'move' probability raised to at least ``share`` x the largest one, and the
+    output ``out`` recombined from the two models' values with it (channels of one face share its regime)."""
+    top = 0.0
     for i in range(st.shape[1]):
-        floor = share * (top if near.shape[0] == 0 else _top(mu_before, near, i))
+        top = max(top, st[MU_MOVE, i])
+    floor = share * top
+    for i in range(st.shape[1]):
         mu = max(st[MU_MOVE, i], floor)
         st[MU_MOVE, i], st[MU_HOLD, i] = mu, 1.0 - mu
         out[i] = (1.0 - mu) * st[XH, i] + mu * st[XM, i]
@@ -165,5 +165,5 @@ def shared_shrunk_step(st: np.ndarray, y: np.ndarray, ok: np.ndarray, transition
         before[i] = st[MU_MOVE, i]
     imm_step(st, y, ok, transition, out)
     if share > 0:
-        share_move(st, share, out, near)
+        share_move(st, share, out)
     shrink_step(shrink, y, out, before, st[MU_MOVE], n, a, b, c, pull, out, near)

@@ -172,12 +172,10 @@ class IMMFilter:
         if self._state is not None:
             self._state[self._kernels.R] = np.broadcast_to(self.r, self._shape).reshape(-1)
 
-    def share_move(self, share: float, out: np.ndarray, near: np.ndarray | None = None) -> None:
-        """After a step: each channel's 'move' probability raised to at least ``share`` x the largest (``near``:
-        the largest of ``near[i, j]`` x channel j's), ``out`` (that step's output) recombined with it
-        (solvers.imm_kernels.share_move)."""
-        self._kernels.share_move(self._state, float(share), out.reshape(-1),
-                                 self._kernels.NOWHERE if near is None else near)
+    def share_move(self, share: float, out: np.ndarray) -> None:
+        """After a step: each channel's 'move' probability raised to at least ``share`` x the largest, ``out`` (that
+        step's output) recombined with it (solvers.imm_kernels.share_move)."""
+        self._kernels.share_move(self._state, float(share), out.reshape(-1))
 
     def step(self, y: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
         y = np.asarray(y, dtype=np.float64)
@@ -225,7 +223,8 @@ class NoiseShrink:
     IMM's hold model keeps it as signal, and the fit's nominal variance (noise^2 V' C V) overstates the fit's
     actual error there 7-80 x, so it cannot tell (issue 41, ICT 0.2 mm: 72 % of the streamed weight MSE lay in the
     quarter of the directions with the largest nominal variance). While any direction moves (the largest
-    'move' probability) the pull is let go, so a blink that the fit spreads over a noisy direction keeps its peak.
+    'move' probability; ``near``: of the directions that move its markers, ``shared_markers``) the pull is let go, so
+    a blink that the fit spreads over a noisy direction keeps its peak.
     Nothing is pulled over the first ``warm_frames`` (the spread is not known yet)."""
 
     def __init__(self, c: float = 4.0, warm_frames: int = 60, half_life_frames: float = 3600.0) -> None:
@@ -269,12 +268,13 @@ class NoiseShrink:
 
 
 def shared_markers(basis: np.ndarray, axes: np.ndarray) -> np.ndarray:
-    """How much two directions ``axes[:, i]``, ``axes[:, j]`` of the weights move the same markers: the Bhattacharyya
-    coefficient of their per-marker shares of displacement energy (``basis``: 3n x m, x, y, z per marker), 1 on the
-    diagonal, 0 for directions that move disjoint markers. Why: a 'move' regime is the face's only where the
-    directions share markers; a blink's well-seen and ill-seen parts both move the eyelids, speech moves the mouth
-    and not the eyes' ill-seen directions (issue 41: docs/robustness.md, "the streamed default's jitter against
-    `a2f`")."""
+    """How much two directions ``axes[:, i]``, ``axes[:, j]`` of the weights move the same markers: the cosine of
+    their per-marker displacement energies (``basis``: 3n x m, x, y, z per marker), 1 on the diagonal, 0 for
+    directions that move disjoint markers. Why: NoiseShrink's pull on a direction is let go while the face moves, but
+    only a move on its own markers says its own part may be signal: a blink's well-seen part lets its ill-seen part
+    go (both move the eyelids), a talking mouth does not let the eyes' ill-seen directions go (issue 41, ICT 0.2 mm:
+    with the face's largest move, apfel's eyeWide / eyeLookUp directions jittered 6 x the truth's; docs/robustness.md,
+    "the streamed default's jitter against `a2f`")."""
     D = np.asarray(basis, dtype=np.float64) @ np.asarray(axes, dtype=np.float64)
     e = (D.reshape(-1, 3, D.shape[1]) ** 2).sum(1)
     e = e / np.maximum(np.linalg.norm(e, axis=0), 1e-300)
@@ -303,7 +303,9 @@ class RotatedIMM:
         ``share``: after each step every direction's 'move' probability is at least this fraction of the largest
         one. Why: the directions are one face's; a blink the fit spreads over a well-seen direction and an ill-seen
         one moves both at once, but the ill-seen one alone cannot tell its part from noise and its hold model flattens
-        the peak (issue 41, MakeHuman 0.5 mm: blink retention 0.89 -> 0.91 at 0.3)."""
+        the peak (issue 41, MakeHuman 0.5 mm: blink retention 0.89 -> 0.91 at 0.3). ``near`` (directions x
+        directions, ``shared_markers``): the pull on direction i let go by the largest ``near[i, j]`` x direction j's
+        'move' probability rather than the face's largest (None: the face's)."""
         self.axes = None if axes is None else np.asarray(axes, dtype=np.float64)
         if self.axes is not None and (self.axes.ndim != 2 or self.axes.shape[0] != self.axes.shape[1]):
             raise ValueError(f"RotatedIMM axes must be a square matrix, got shape {self.axes.shape}")
@@ -354,7 +356,7 @@ class RotatedIMM:
         before = imm.move_probability.copy() if started and shrink is not None else None
         x = imm.step(u)
         if started and self.share > 0:
-            imm.share_move(self.share, x, self.near)
+            imm.share_move(self.share, x)
         if shrink is not None:  # the first sample starts both
             x = shrink.step(u, np.zeros(u.size) if before is None else before, x,
                             imm.move_probability if started else np.zeros(u.size), self.near)

@@ -83,8 +83,7 @@ SUPPORT_GROWTH = 2.0  # streaming: checked again on the take so far each time it
 MARKER_MEMORY_SECONDS = 0.4
 SHRINK_WARM_SECONDS = 1.0  # streaming: the weight stage's pull toward each direction's mean starts after this much
 SHRINK_MEMORY_SECONDS = 60.0  # ... and reads its mean, spread and noise over about this much (solvers.tracking)
-SHARED_MOVE = 0.3  # streaming: every direction's 'move' probability at least this x the largest of the directions
-# that move its markers (RotatedIMM share, near: solvers.tracking.shared_markers)
+SHARED_MOVE = 0.3  # streaming: every direction's 'move' probability at least this x the largest (RotatedIMM share)
 
 
 log = logging.getLogger(__name__)
@@ -357,8 +356,8 @@ class MarkerKalmanSolver:
         noise = max(self.filter.noise_mm, self.calibrated_noise)
         if self._imm is None:  # the axes: the first frame's fit's; later strengths' noise is read in them
             axes = None if fit.marker_space else np.linalg.eigh(self._spread_of(k))[1]
-            # the regime shared only between directions that move the same markers (issue 41: a talking mouth let the
-            # eyes' ill-seen directions go; ICT 0.2 mm, MySlate / apfel / S07-001 jitter 2.83 -> 2.42 x truth)
+            # the pull let go only by a move on the direction's own markers (issue 41: a talking mouth let the eyes'
+            # ill-seen directions go; docs/robustness.md, "the streamed default's jitter against `a2f`")
             near = None if axes is None else shared_markers(self.profile.basis, axes)
             self._imm = RotatedIMM(axes, self.motion.imm(noise, self.norms), self.motion.shrink(), SHARED_MOVE, near)
             # every strength's, now: on the frame a strength first changed they cost ~30-90 µs (issue 39)
