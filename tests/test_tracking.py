@@ -320,7 +320,7 @@ def test_the_weight_stage_in_one_call_is_its_three_parts_bit_for_bit(seed, share
         before = np.zeros(m) if imm.move_probability is None else imm.move_probability.copy()
         x = imm.step(u)
         if t and share > 0:
-            imm.share_move(share, x, near)
+            imm.share_move(share, x)
         want = axes @ shrink.step(u, before, x, imm.move_probability if t else np.zeros(m), near)
         np.testing.assert_array_equal(fused.step(y), want)
 
@@ -342,11 +342,11 @@ def test_shared_markers_is_one_for_the_same_markers_and_zero_for_disjoint_ones()
     np.testing.assert_allclose(shared_markers(same, np.eye(2)), 1.0)
 
 
-def test_a_move_on_other_markers_neither_lets_a_direction_go_nor_stops_its_pull():
-    """A well-seen direction jumps while an ill-seen one holds its noise. Shared face-wide (``near`` None), the
-    ill-seen one's 'move' probability is raised to ``share`` x the jump's and its pull is let go, so its noise comes
-    through; with the two on disjoint markers (``near`` the identity) it holds and stays pulled; with ``near`` all
-    ones it is the face-wide sharing bit for bit."""
+def test_a_move_on_other_markers_does_not_let_a_directions_pull_go():
+    """A well-seen direction jumps while an ill-seen one holds its noise. Let go by the face's largest 'move'
+    probability (``near`` None), the ill-seen one's pull toward its mean is off whenever the other moves, so its noise
+    comes through; with the two on disjoint markers (``near`` the identity) it stays pulled; with ``near`` all ones it
+    is the face-wide let-go bit for bit."""
     rng = np.random.default_rng(7)
     T = 400
     Y = np.zeros((T, 2))
