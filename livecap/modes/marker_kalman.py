@@ -15,9 +15,10 @@ fit's whole weight covariance (noise^2 x the inverse Hessian), the IMM run along
 (solvers.tracking.RotatedIMM; issue 41 measured jitter, weight RMSE and vertex p95 all lower, streamed and
 offline, than with a variance per shape). One IMM a take, its noise changed in place. Streamed, each direction's
 output is then pulled toward its running mean where the stream shows it carries mostly noise (solvers.tracking.
-NoiseShrink; issue 41: ICT 0.2 mm weight RMSE 0.53 -> 0.49 x the oracle, jitter and blinks kept). Issue 15 measured
-where the streamed jitter came from (ICT 0.5 mm, S07-001 and apfel): the filtered markers' residual noise
-through the ill-conditioned basis (jitter 13 x / 6 x the truth's;
+NoiseShrink; issue 41: ICT 0.2 mm weight RMSE 0.53 -> 0.49 x the oracle, jitter and blinks kept), let go while
+a direction that moves the same markers moves (solvers.tracking.shared_markers; issue 41: jitter 4-9 % lower).
+Issue 15 measured where the streamed jitter came from (ICT 0.5 mm, S07-001 and apfel): the filtered markers'
+residual noise through the ill-conditioned basis (jitter 13 x / 6 x the truth's;
 the per-frame strength switching adds about a tenth), not the pose re-fit; the IMM cuts it to 3.3 x /
 2.2 x at no weight RMSE cost and no added lag (it holds while innovations look like noise and follows
 at once when they do not).
