@@ -450,7 +450,10 @@ class MarkerKalmanSolver:
             if i < POSE_PASSES - 1:
                 d = self.pose.remove(d, valid, Z[:, self.m:])
         noise = max(self.chosen["noise_mm"], self.calibrated_noise)
-        spread = self._spread_of(int(np.argmin(np.abs(STRENGTHS - self.chosen["prior_weight"]))))
+        if self._product is None:
+            spread = self._spread_of(int(np.argmin(np.abs(STRENGTHS - self.chosen["prior_weight"]))))
+        else:
+            spread = _weight_cov(self.joint[0], self._product[1], 1.0, self.m)
         axes = np.linalg.eigh(spread)[1]
         U = Z[:, :self.m] @ axes  # the fit's noise independent along these (solvers.tracking.RotatedIMM)
         r = noise**2 * variances_along(axes, spread)
@@ -474,16 +477,26 @@ class MarkerKalmanSolver:
         if self.prior_cov is not None and self.support is None:
             pick = _spread(len(targets), SUPPORT_TAKE_FRAMES)
             self._check_support(smoothed[pick].reshape(len(pick), -1), ok[pick], self.chosen["noise_mm"])
-        B, _, _, mean, precision = self.joint
+        B, lower, upper, mean, precision = self.joint
         if first:  # each fold's and the evidence's factors: the prior is checked by now, the second pass reuses them
             self._folds: dict = {}
             self._evidence: dict = {}
+            self._ridge_folds: dict = {}
+        self._product = None
+        if self.prior_cov is None:
+            best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok, factors=self._folds)[0]
+            self.chosen["prior_weight"] = float(STRENGTHS[best])
+            fit = self._fit(best)
+            fit.reset()
+            return fit.step_take(smoothed, ok)
+        ridge = np.zeros_like(precision)
+        ridge[:self.m, :self.m] = np.eye(self.m)  # the no-prior solve's (kalman_mode), at its own held-out strength
+        r = take_strength(B, np.zeros_like(mean), ridge, STRENGTHS, smoothed, ok, factors=self._ridge_folds)[0]
         best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok, factors=self._folds)[0]
-        if self.prior_cov is not None:
-            best = min(best, self._evidence_pick(B, mean, precision, smoothed, ok))
-        self.chosen["prior_weight"] = float(STRENGTHS[best])
-        fit = self._fit(best)
-        fit.reset()
+        best = min(best, self._evidence_pick(B, mean, precision, smoothed, ok))
+        self.chosen["prior_weight"], self.chosen["ridge_weight"] = float(STRENGTHS[best]), float(STRENGTHS[r])
+        self._product = _product(mean, STRENGTHS[best] * precision, STRENGTHS[r] * ridge, self.m)
+        fit = FrameQP(B, lower, upper, prior=self._product, prior_weight=1.0)
         return fit.step_take(smoothed, ok)
 
     def _evidence_pick(self, B: np.ndarray, mean: np.ndarray, precision: np.ndarray, smoothed: np.ndarray,
@@ -538,6 +551,18 @@ def _warmed_fits(joint: tuple, n_markers: int, m: int,
         fits[k].prepare_marker_space()
         spreads[k] = _weight_cov(B, precision, a, m)
     return fits, spreads
+
+
+def _product(mean: np.ndarray, prior: np.ndarray, ridge: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """The animation prior N(mean, prior^-1) times the no-prior solve's ridge N(0, ridge^-1), each at its own strength
+    (the product of two Gaussians, Bishop 2006 §2.3.3): precision prior + ridge, mean (prior + ridge)^-1 prior mean.
+    Along every direction the fit is held at least as tightly as without the prior; where the markers see a direction
+    weakly and the prior is wide (issue 41.2: the eye shapes' contrasts), the ridge keeps it as the no-prior solve
+    would. Only the weights' block: the head-pose columns stay free."""
+    precision = prior + ridge
+    out = np.array(mean, float)
+    out[:m] = np.linalg.solve(precision[:m, :m], prior[:m, :m] @ out[:m])
+    return out, precision
 
 
 def _spread(n: int, k: int) -> np.ndarray:
