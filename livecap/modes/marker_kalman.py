@@ -485,7 +485,6 @@ class MarkerKalmanSolver:
         if first:  # each fold's and the evidence's factors: the prior is checked by now, the second pass reuses them
             self._folds: dict = {}
             self._evidence: dict = {}
-            self._ridge_folds: dict = {}
         self._product = None
         if self.prior_cov is None:
             best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok, factors=self._folds)[0]
@@ -495,7 +494,9 @@ class MarkerKalmanSolver:
             return fit.step_take(smoothed, ok)
         ridge = np.zeros_like(precision)
         ridge[:self.m, :self.m] = np.eye(self.m)  # the no-prior solve's (kalman_mode), at its own held-out strength
-        r = take_strength(B, np.zeros_like(mean), ridge, STRENGTHS, smoothed, ok, factors=self._ridge_folds)[0]
+        if first:  # the take's, as the marker noise: the second pass keeps it (offline cost within +10 %)
+            self._ridge_strength = take_strength(B, np.zeros_like(mean), ridge, STRENGTHS, smoothed, ok)[0]
+        r = self._ridge_strength
         best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok, factors=self._folds)[0]
         best = min(best, self._evidence_pick(B, mean, precision, smoothed, ok))
         self.chosen["prior_weight"], self.chosen["ridge_weight"] = float(STRENGTHS[best]), float(STRENGTHS[r])
