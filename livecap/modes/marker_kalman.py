@@ -494,8 +494,10 @@ class MarkerKalmanSolver:
             return fit.step_take(smoothed, ok)
         ridge = np.zeros_like(precision)
         ridge[:self.m, :self.m] = np.eye(self.m)  # the no-prior solve's (kalman_mode), at its own held-out strength
-        if first:  # the take's, as the marker noise: the second pass keeps it (offline cost within +10 %)
-            self._ridge_strength = take_strength(B, np.zeros_like(mean), ridge, STRENGTHS, smoothed, ok)[0]
+        if first:  # the take's, as the marker noise: the second pass keeps it
+            pick = _spread(len(smoothed), SUPPORT_TAKE_FRAMES)
+            self._ridge_strength = int(np.argmax(evidence_strength(B, np.zeros_like(mean), ridge, STRENGTHS,
+                                                                   smoothed[pick], ok[pick], self.m)))
         r = self._ridge_strength
         best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok, factors=self._folds)[0]
         best = min(best, self._evidence_pick(B, mean, precision, smoothed, ok))
