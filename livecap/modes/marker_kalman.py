@@ -472,11 +472,11 @@ class MarkerKalmanSolver:
         :meth:`_evidence_pick`), every strength on every frame in closed form (unbounded fits: one
         eigendecomposition per fold, solvers.prior_strength.take_strength) instead of a bounded trial QP per frame
         (issue 39 item 2: the trials were half of a 30 s take's solve; realeval's offline rows in
-        docs/performance.md). With an animation prior the fit's prior is that prior times the no-prior solve's ridge
-        at the ridge's own held-out strength (:func:`_product`): a prior from other performers was worse than none
-        where it is wide along a direction the markers see weakly and its mean is off there (issue 41.2, alex_rom_4:
-        the eye shapes' contrasts); the ridge keeps those as the no-prior solve does (docs/robustness.md, "Issue
-        41.2: offline, a prior that cannot hurt")."""
+        docs/performance.md). With an animation prior the fit's prior is that prior times the no-prior solve's
+        ridge at the ridge's own strength by its evidence (:func:`_product`): a prior from other performers was worse
+        than none where it is wide along a direction the markers see weakly and its mean is off there (issue 41.2,
+        alex_rom_4: the eye shapes' contrasts); the ridge holds those as the no-prior solve does (docs/robustness.md,
+        "Issue 41.2: offline, a prior that cannot hurt")."""
         smoothed, ok, self.chosen = smooth_take(targets, valid, self.settings, None if first else self.chosen["r"])
         if self.prior_cov is not None and self.support is None:
             pick = _spread(len(targets), SUPPORT_TAKE_FRAMES)
@@ -493,8 +493,9 @@ class MarkerKalmanSolver:
             fit.reset()
             return fit.step_take(smoothed, ok)
         ridge = np.zeros_like(precision)
-        ridge[:self.m, :self.m] = np.eye(self.m)  # the no-prior solve's (kalman_mode), at its own held-out strength
-        if first:  # the take's, as the marker noise: the second pass keeps it
+        ridge[:self.m, :self.m] = np.eye(self.m)  # the no-prior solve's (kalman_mode), at its own strength
+        if first:  # by the evidence (type-II ML, MacKay 1992) of the check's frames, as the marker noise: the take's,
+            # the second pass keeps it (the held-out markers' choice measured the same and cost +10 % offline)
             pick = _spread(len(smoothed), SUPPORT_TAKE_FRAMES)
             self._ridge_strength = int(np.argmax(evidence_strength(B, np.zeros_like(mean), ridge, STRENGTHS,
                                                                    smoothed[pick], ok[pick], self.m)))
