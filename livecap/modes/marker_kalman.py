@@ -452,7 +452,10 @@ class MarkerKalmanSolver:
             if i < POSE_PASSES - 1:
                 d = self.pose.remove(d, valid, Z[:, self.m:])
         noise = max(self.chosen["noise_mm"], self.calibrated_noise)
-        spread = self._spread_of(int(np.argmin(np.abs(STRENGTHS - self.chosen["prior_weight"]))))
+        if self._product is None:
+            spread = self._spread_of(int(np.argmin(np.abs(STRENGTHS - self.chosen["prior_weight"]))))
+        else:
+            spread = _weight_cov(self.joint[0], self._product[1], 1.0, self.m)
         axes = np.linalg.eigh(spread)[1]
         U = Z[:, :self.m] @ axes  # the fit's noise independent along these (solvers.tracking.RotatedIMM)
         r = noise**2 * variances_along(axes, spread)
@@ -471,21 +474,39 @@ class MarkerKalmanSolver:
         :meth:`_evidence_pick`), every strength on every frame in closed form (unbounded fits: one
         eigendecomposition per fold, solvers.prior_strength.take_strength) instead of a bounded trial QP per frame
         (issue 39 item 2: the trials were half of a 30 s take's solve; realeval's offline rows in
-        docs/performance.md)."""
+        docs/performance.md). With an animation prior the fit's prior is that prior times the no-prior solve's
+        ridge at the ridge's own strength by its evidence (:func:`_product`): a prior from other performers was worse
+        than none where it is wide along a direction the markers see weakly and its mean is off there (issue 41.2,
+        alex_rom_4: the eye shapes' contrasts); the ridge holds those as the no-prior solve does (docs/robustness.md,
+        "Issue 41.2: offline, a prior that cannot hurt")."""
         smoothed, ok, self.chosen = smooth_take(targets, valid, self.settings, None if first else self.chosen["r"])
         if self.prior_cov is not None and self.support is None:
             pick = _spread(len(targets), SUPPORT_TAKE_FRAMES)
             self._check_support(smoothed[pick].reshape(len(pick), -1), ok[pick], self.chosen["noise_mm"])
-        B, _, _, mean, precision = self.joint
+        B, lower, upper, mean, precision = self.joint
         if first:  # each fold's and the evidence's factors: the prior is checked by now, the second pass reuses them
             self._folds: dict = {}
             self._evidence: dict = {}
+        self._product = None
+        if self.prior_cov is None:
+            best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok, factors=self._folds)[0]
+            self.chosen["prior_weight"] = float(STRENGTHS[best])
+            fit = self._fit(best)
+            fit.reset()
+            return fit.step_take(smoothed, ok)
+        ridge = np.zeros_like(precision)
+        ridge[:self.m, :self.m] = np.eye(self.m)  # the no-prior solve's (kalman_mode), at its own strength
+        if first:  # by the evidence (type-II ML, MacKay 1992) of the check's frames, as the marker noise: the take's,
+            # the second pass keeps it (the held-out markers' choice measured the same and cost +10 % offline)
+            pick = _spread(len(smoothed), SUPPORT_TAKE_FRAMES)
+            self._ridge_strength = int(np.argmax(evidence_strength(B, np.zeros_like(mean), ridge, STRENGTHS,
+                                                                   smoothed[pick], ok[pick], self.m)))
+        r = self._ridge_strength
         best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok, factors=self._folds)[0]
-        if self.prior_cov is not None:
-            best = min(best, self._evidence_pick(B, mean, precision, smoothed, ok))
-        self.chosen["prior_weight"] = float(STRENGTHS[best])
-        fit = self._fit(best)
-        fit.reset()
+        best = min(best, self._evidence_pick(B, mean, precision, smoothed, ok))
+        self.chosen["prior_weight"], self.chosen["ridge_weight"] = float(STRENGTHS[best]), float(STRENGTHS[r])
+        self._product = _product(mean, STRENGTHS[best] * precision, STRENGTHS[r] * ridge, self.m)
+        fit = FrameQP(B, lower, upper, prior=self._product, prior_weight=1.0)
         return fit.step_take(smoothed, ok)
 
     def _evidence_pick(self, B: np.ndarray, mean: np.ndarray, precision: np.ndarray, smoothed: np.ndarray,
@@ -542,6 +563,18 @@ def _warmed_fits(joint: tuple, n_markers: int, m: int,
         fits[k].prepare_marker_space()
         spreads[k] = _weight_cov(B, precision, a, m)
     return fits, spreads
+
+
+def _product(mean: np.ndarray, prior: np.ndarray, ridge: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """The animation prior N(mean, prior^-1) times the no-prior solve's ridge N(0, ridge^-1), each at its own strength
+    (the product of two Gaussians, Bishop 2006 §2.3.3): precision prior + ridge, mean (prior + ridge)^-1 prior mean.
+    Along every direction the fit is held at least as tightly as without the prior; where the markers see a direction
+    weakly and the prior is wide (issue 41.2: the eye shapes' contrasts), the ridge keeps it as the no-prior solve
+    would. Only the weights' block: the head-pose columns stay free."""
+    precision = prior + ridge
+    out = np.array(mean, float)
+    out[:m] = np.linalg.solve(precision[:m, :m], prior[:m, :m] @ out[:m])
+    return out, precision
 
 
 def _spread(n: int, k: int) -> np.ndarray:
