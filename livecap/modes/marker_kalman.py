@@ -603,9 +603,12 @@ def _products(joint: tuple, m: int, ridge: int) -> list[tuple[np.ndarray, np.nda
     """Streamed, under a checked animation prior: at every strength a of the grid, the prior at a times the no-prior
     ridge at its own strength ``ridge`` (:func:`_product`, offline's rule; issue 41.2). Built in the check's thread
     with the fits; a frame solves the same QP as before, its prior term another constant."""
-    R = np.zeros_like(joint[4])
-    R[:m, :m] = STRENGTHS[ridge] * np.eye(m)
-    return [_product(joint[3], a * joint[4], R, m) for a in STRENGTHS]
+    out = []
+    for a in STRENGTHS:
+        R = np.zeros_like(joint[4])
+        R[:m, :m] = min(a, STRENGTHS[ridge]) * np.eye(m)
+        out.append(_product(joint[3], a * joint[4], R, m))
+    return out
 
 
 def _spread(n: int, k: int) -> np.ndarray:
