@@ -28,11 +28,8 @@ class HeldOutStrength:
 
     def __init__(self, basis: np.ndarray, lower: np.ndarray, upper: np.ndarray, mean: np.ndarray,
                  precision: np.ndarray, grid: np.ndarray, folds: int = 5, decay: float = 1.0, seed: int = 0,
-                 unbounded: bool = False, frame_passes: int = 0, weakest_within: bool = False,
-                 priors: list | None = None) -> None:
-        """``priors``: per strength of ``grid`` its own (mean, precision) at weight 1 instead of (``mean``,
-        ``precision``) at that strength (a prior times a ridge, livecap.modes.marker_kalman);
-        ``unbounded``: also build the maps of :meth:`observe_unbounded` (a streamed selector's trials);
+                 unbounded: bool = False, frame_passes: int = 0, weakest_within: bool = False) -> None:
+        """``unbounded``: also build the maps of :meth:`observe_unbounded` (a streamed selector's trials);
         ``frame_passes``: the trial fits' passes a frame in marker space (``solvers.qp.FrameQP``);
         ``weakest_within``: choose by :func:`weakest_within` rather than the least mean error."""
         self.basis = np.asarray(basis, float)
@@ -40,9 +37,8 @@ class HeldOutStrength:
         n = self.basis.shape[0] // 3
         self.grid = np.asarray(grid, float)
         self.qps: list[FrameQP] = []
-        self._priors = [(mean, a * np.asarray(precision, float)) for a in self.grid] if priors is None else priors
-        for mu, P in self._priors:  # one B'M^2 read by every strength's trial (``like``: 1.7 MB at 72 x 1000, not five)
-            self.qps.append(FrameQP(basis, lower, upper, prior=(mu, P), prior_weight=1.0,
+        for a in self.grid:  # one B'M^2 read by every strength's trial (``like``: 1.7 MB at 72 x 1000, not five)
+            self.qps.append(FrameQP(basis, lower, upper, prior=(mean, precision), prior_weight=float(a),
                                     frame_passes=frame_passes, like=self.qps[0] if self.qps else None))
         self.fold_of = np.random.default_rng(seed).permutation(n) % folds
         self.folds, self.decay = folds, decay
@@ -54,7 +50,7 @@ class HeldOutStrength:
         self.t = 0
         self.best = len(self.grid) // 2
         self.unbounded, self.weakest_within = unbounded, weakest_within
-        self._maps = self._unbounded_maps() if unbounded else {}
+        self._maps = self._unbounded_maps(np.asarray(mean, float), np.asarray(precision, float)) if unbounded else {}
         for qp in self.qps:  # expensive preparation once: each fold's workspace, not on the first frames
             for f in range(folds):
                 qp.step(np.zeros(3 * n), self.fold_of != f)
@@ -72,17 +68,16 @@ class HeldOutStrength:
         f = (self.t // len(self.grid)) % self.folds
         return g, f, valid[self._fold_markers[f]], valid & self._outside[f]
 
-    def _unbounded_maps(self) -> dict:
+    def _unbounded_maps(self, mean: np.ndarray, precision: np.ndarray) -> dict:
         """Per strength and fold: the training rows (every marker outside the fold) and the fit without bounds on
         them, w = G x + h (G = H^-1 B_o', h = H^-1 a P mu, H = B_o'B_o + a P): one solve each, here, once; G kept
         transposed (rows x m, the compiled trial's order)."""
         maps = {}
-        for g, (mean, P) in enumerate(self._priors):
-            mean, P = np.asarray(mean, float), np.asarray(P, float)
+        for g, a in enumerate(self.grid):
             for f in range(self.folds):
                 rows = np.flatnonzero(np.repeat(self._outside[f], 3))
                 Bo = self.basis[rows]
-                Gh = np.linalg.solve(Bo.T @ Bo + P, np.column_stack([Bo.T, P @ mean]))
+                Gh = np.linalg.solve(Bo.T @ Bo + a * precision, np.column_stack([Bo.T, a * precision @ mean]))
                 maps[g, f] = (rows, np.ascontiguousarray(Gh[:, :-1].T), np.ascontiguousarray(Gh[:, -1]))
         return maps
 

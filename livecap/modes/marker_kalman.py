@@ -142,13 +142,12 @@ class MarkerKalmanSolver:
         self.reset()
 
     def _selector(self, decay: float) -> HeldOutStrength:
-        return _selector(self.joint, decay, self.prior_cov is not None, self._priors)
+        return _selector(self.joint, decay, self.prior_cov is not None)
 
     def _fit(self, k: int) -> FrameQP:
         if k not in self._fits:
-            B, lower, upper = self.joint[:3]
-            mean, precision, a = _prior_at(self.joint, self._priors, k)
-            self._fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=a,
+            B, lower, upper, mean, precision = self.joint
+            self._fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(STRENGTHS[k]),
                                     like=next(iter(self._fits.values()), None), frame_passes=STREAM_PASSES)
         return self._fits[k]
 
@@ -156,8 +155,8 @@ class MarkerKalmanSolver:
         """The weights' covariance per unit marker variance in the fit at strength ``k`` (m x m): the weights'
         block of the inverse Hessian, the head-pose columns fitted beside them marginalised."""
         if k not in self._spreads:
-            _, P, a = _prior_at(self.joint, self._priors, k)
-            self._spreads[k] = _weight_cov(self.joint[0], P, a, self.m)
+            B, _, _, _, P = self.joint
+            self._spreads[k] = _weight_cov(B, P, STRENGTHS[k], self.m)
         return self._spreads[k]
 
     def _check_support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> None:
@@ -191,7 +190,7 @@ class MarkerKalmanSolver:
         if not kept:
             old = [self._fits, self.selector]
             self.mean = s.mean
-            self.joint, self._fits, self._spreads, self.selector, self._along, self.precision, self._priors = built[:7]
+            self.joint, self._fits, self._spreads, self.selector, self._along, self.precision = built[:6]
             self.selector.carry(old[1])
             self._noise_key = None
         # the log's lines and the old fits and selector's release on the check's thread, right after this frame: on
@@ -221,20 +220,18 @@ class MarkerKalmanSolver:
                 f"{self.profile.names[i]} {self._mean0[i]:.2f} -> {s.mean[i]:.2f}" for i in top)))
         return unchanged, notes
 
-    def _build(self, s: Support, decay: float, frames: int, imm: RotatedIMM | None, ridge: int | None = None) -> tuple:
+    def _build(self, s: Support, decay: float, frames: int, imm: RotatedIMM | None) -> tuple:
         """The joint prior, every strength's fit (its all-seen workspace warmed, as ``reset`` does), the weights'
-        spreads (and along ``imm``'s axes), a fresh selector, the precision, each strength's prior and the log's notes
-        for the checked prior ``s``, built without touching the solver: streamed, the check's thread builds them, so
-        the swap costs the step nothing (built at the swap they took 10-23 ms; the precision, the notes and the
-        spreads along the axes another ~0.2 ms, issue 39). ``ridge``: the no-prior ridge's strength (index) the prior
-        is multiplied by at every strength of the grid (:func:`_products`), as offline."""
+        spreads (and along ``imm``'s axes), a fresh selector, the precision and the log's notes for the checked
+        prior ``s``, built without touching the solver: streamed, the check's thread builds them, so the swap costs
+        the step nothing (built at the swap they took 10-23 ms; the precision, the notes and the spreads along the
+        axes another ~0.2 ms, issue 39)."""
         precision = s.precision
         joint = self.pose.augment(self.profile.basis, self.lower, self.upper, s.mean, precision)
-        priors = None if ridge is None else _products(joint, self.m, ridge)
-        selector = _selector(joint, decay, True, priors)
-        fits, spreads = _warmed_fits(joint, self.profile.n_markers, self.m, selector.qps[0], priors)
+        selector = _selector(joint, decay, True)
+        fits, spreads = _warmed_fits(joint, self.profile.n_markers, self.m, selector.qps[0])
         along = {} if imm is None else {k: imm.along(c) for k, c in spreads.items()}
-        return joint, fits, spreads, selector, along, precision, priors, self._notes(s, frames)
+        return joint, fits, spreads, selector, along, precision, self._notes(s, frames)
 
     def _stream_support(self, x: np.ndarray, ok: np.ndarray) -> None:
         """Keep the take's frames (at most 2 x SUPPORT_FRAMES, thinned evenly as it grows), check them in a thread
@@ -272,15 +269,8 @@ class MarkerKalmanSolver:
         """The check's thread: at most SUPPORT_FRAMES of the frames ``seen``, evenly spread, checked; the checked
         prior and what :meth:`_build` makes of it (its errors reach ``_swap`` through the job)."""
         pick = _spread(len(seen), SUPPORT_FRAMES)
-        x, ok = np.stack([seen[i][0] for i in pick]), np.stack([seen[i][1] for i in pick])
-        s = self._support(x, ok, noise_mm)
-        # the ridge's strength by the evidence of the same frames (type-II ML, MacKay 1992), chosen at each check as
-        # the prior's mean is: offline's rule (:meth:`_solve_once`) on the frames seen so far
-        B = self.joint[0]
-        ridge = np.zeros((B.shape[1], B.shape[1]))
-        ridge[:self.m, :self.m] = np.eye(self.m)
-        r = int(np.argmax(evidence_strength(B, np.zeros(B.shape[1]), ridge, STRENGTHS, x, ok, self.m)))
-        return [s, self._build(s, decay, len(pick), imm, r)]
+        s = self._support(np.stack([seen[i][0] for i in pick]), np.stack([seen[i][1] for i in pick]), noise_mm)
+        return [s, self._build(s, decay, len(pick), imm)]
 
     def _swap(self) -> None:
         """At the start of the frame a check's prior is due: it is used, its thread joined if not done. Where the
@@ -313,11 +303,7 @@ class MarkerKalmanSolver:
             self.joint = self.pose.augment(self.profile.basis, self.lower, self.upper, self.mean, self.precision)
             self._fits, self._spreads, self._along = {}, {}, {}
             self._noise_key = None
-        if getattr(self, "_priors", None) is not None:
-            self._fits, self._spreads, self._along = {}, {}, {}
-            self._noise_key = None
         self.support = None
-        self._priors: list | None = None  # streaming, checked: per strength (mean, precision), times the ridge
         self._seen: list[tuple[np.ndarray, np.ndarray]] = []  # streaming: every ``_stride``-th frame of the take
         self._offered, self._stride = 0, 1
         self._checking: tuple | None = None  # streaming: the check's job and the frame to use its prior
@@ -545,7 +531,7 @@ def _say(notes: list[tuple[int, str]], old: list | None = None) -> None:
         old.clear()
 
 
-def _selector(joint: tuple, decay: float, prior: bool, priors: list | None = None) -> HeldOutStrength:
+def _selector(joint: tuple, decay: float, prior: bool) -> HeldOutStrength:
     """The streamed held-out strength choice (offline: ``take_strength``); at rig sizes whose fit stays in weight
     space (fewer shapes than MARKER_SPACE_RATIO x the marker coordinates: ICT, 72 x 150), with its trials' unbounded
     maps. Under an animation ``prior``, the weakest strength within a standard error of the best
@@ -553,7 +539,7 @@ def _selector(joint: tuple, decay: float, prior: bool, priors: list | None = Non
     0.5 mm, 0.500 -> 0.491x at 0.2 mm, docs/robustness.md)."""
     B = joint[0]
     return HeldOutStrength(*joint, STRENGTHS, decay=decay, frame_passes=STREAM_PASSES,
-                           unbounded=B.shape[1] < MARKER_SPACE_RATIO * B.shape[0], weakest_within=prior, priors=priors)
+                           unbounded=B.shape[1] < MARKER_SPACE_RATIO * B.shape[0], weakest_within=prior)
 
 
 def _weight_cov(B: np.ndarray, P: np.ndarray, strength: float, m: int) -> np.ndarray:
@@ -562,16 +548,15 @@ def _weight_cov(B: np.ndarray, P: np.ndarray, strength: float, m: int) -> np.nda
     return np.linalg.inv(B.T @ B + strength * P)[:m, :m]
 
 
-def _warmed_fits(joint: tuple, n_markers: int, m: int, like: FrameQP | None = None,
-                 priors: list | None = None) -> tuple[dict[int, FrameQP], dict[int, np.ndarray]]:
+def _warmed_fits(joint: tuple, n_markers: int, m: int,
+                 like: FrameQP | None = None) -> tuple[dict[int, FrameQP], dict[int, np.ndarray]]:
     """Every strength's fit with its all-seen workspace built (and its marker-space solver), and each one's weight
     covariance: what the first frames would otherwise build. ``like``: a QP whose B'M^2 the fits read too (the
     selector's trials': one copy in the caches for the fit and the trial)."""
-    B, lower, upper = joint[:3]
+    B, lower, upper, mean, precision = joint
     fits, spreads = {}, {}
-    for k in range(len(STRENGTHS)):
-        mean, precision, a = _prior_at(joint, priors, k)
-        fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=a, like=fits.get(0, like),
+    for k, a in enumerate(STRENGTHS):
+        fits[k] = FrameQP(B, lower, upper, prior=(mean, precision), prior_weight=float(a), like=fits.get(0, like),
                           frame_passes=STREAM_PASSES)
         fits[k].step(np.zeros(3 * n_markers), np.ones(n_markers, bool))
         fits[k].reset()
@@ -590,25 +575,6 @@ def _product(mean: np.ndarray, prior: np.ndarray, ridge: np.ndarray, m: int) -> 
     out = np.array(mean, float)
     out[:m] = np.linalg.solve(precision[:m, :m], prior[:m, :m] @ out[:m])
     return out, precision
-
-
-def _prior_at(joint: tuple, priors: list | None, k: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """The fit's prior at strength ``k``: the joint prior at STRENGTHS[k], or its product with the ridge."""
-    if priors is None:
-        return joint[3], joint[4], float(STRENGTHS[k])
-    return priors[k][0], priors[k][1], 1.0
-
-
-def _products(joint: tuple, m: int, ridge: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Streamed, under a checked animation prior: at every strength a of the grid, the prior at a times the no-prior
-    ridge at its own strength ``ridge`` (:func:`_product`, offline's rule; issue 41.2). Built in the check's thread
-    with the fits; a frame solves the same QP as before, its prior term another constant."""
-    out = []
-    for a in STRENGTHS:
-        R = np.zeros_like(joint[4])
-        R[:m, :m] = min(a, STRENGTHS[ridge]) * np.eye(m)
-        out.append(_product(joint[3], a * joint[4], R, m))
-    return out
 
 
 def _spread(n: int, k: int) -> np.ndarray:
