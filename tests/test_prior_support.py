@@ -364,7 +364,7 @@ def test_kalman_recentres_a_prior_on_an_actor_resting_elsewhere_and_says_so(capl
     def run(recentre: bool):
         solver = kalman_mode(p, {"rate": 60.0})
         if not recentre:
-            solver._support = lambda x, ok, noise, *_: widen_prior(
+            solver._support = lambda x, ok, noise, *_, **__: widen_prior(
                 p.basis, solver.mean, solver.prior_cov, x, ok, solver.lower, solver.upper,
                 extra=solver.pose.matrix, noise_var=noise**2, recentre=False, outside=10.0)
         out = np.array([solver.step(X[t], valid) for t in range(T)])
