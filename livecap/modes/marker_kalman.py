@@ -43,7 +43,7 @@ import logging
 import os
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -160,14 +160,19 @@ class MarkerKalmanSolver:
         return self._spreads[k]
 
     def _check_support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float) -> None:
-        """Re-centre the prior where the frames' marginal likelihood says the actor rests elsewhere, and say so (a
-        whole take: to SUPPORT_TAKE_TOL; the streamed selector is left as it was, a stream after :meth:`solve` starts
-        with ``reset``)."""
-        self._use_support(self._support(targets, valid, noise_mm, SUPPORT_TAKE_TOL), len(targets))
+        """Re-centre the prior where the frames' marginal likelihood says the actor rests elsewhere, widen it where
+        they say the actor moves beyond it, and say so (a whole take: to SUPPORT_TAKE_TOL; the streamed selector is
+        left as it was, a stream after :meth:`solve` starts with ``reset``). Offline only: the widened directions
+        loosen the fit, the strength is still chosen on the prior as re-centred (:meth:`_solve_once`), so a take
+        that sweeps a direction the prior's performers barely used (issue 41.2, alex_rom_4's eye contrasts: 4-11 x
+        the prior's variance) is no longer held to it (docs/robustness.md, "alex_rom_4 and its own performer's
+        prior")."""
+        self._use_support(self._support(targets, valid, noise_mm, SUPPORT_TAKE_TOL, outside=1.0), len(targets))
 
-    def _support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float, tol: float = 1e-2) -> Support:
+    def _support(self, targets: np.ndarray, valid: np.ndarray, noise_mm: float, tol: float = 1e-2,
+                 outside: float = np.inf) -> Support:
         return widen_prior(self.profile.basis, self._mean0, self.prior_cov, targets, valid, self.lower, self.upper,
-                           extra=self.pose.matrix, noise_var=noise_mm**2, tol=tol)
+                           extra=self.pose.matrix, noise_var=noise_mm**2, tol=tol, outside=outside)
 
     def _use_support(self, s: Support, frames: int = 0, built: tuple | None = None) -> None:
         """Use the checked prior ``s`` (of ``frames`` frames); ``built``: what :meth:`_build` made of it in the check's
@@ -502,12 +507,25 @@ class MarkerKalmanSolver:
             self._ridge_strength = int(np.argmax(evidence_strength(B, np.zeros_like(mean), ridge, STRENGTHS,
                                                                    smoothed[pick], ok[pick], self.m)))
         r = self._ridge_strength
-        best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok, factors=self._folds)[0]
-        best = min(best, self._evidence_pick(B, mean, precision, smoothed, ok))
+        chooser = self._unwidened(precision)
+        best = take_strength(B, mean, chooser, STRENGTHS, smoothed, ok, factors=self._folds)[0]
+        best = min(best, self._evidence_pick(B, mean, chooser, smoothed, ok))
         self.chosen["prior_weight"], self.chosen["ridge_weight"] = float(STRENGTHS[best]), float(STRENGTHS[r])
         self._product = _product(mean, STRENGTHS[best] * precision, STRENGTHS[r] * ridge, self.m)
         fit = FrameQP(B, lower, upper, prior=self._product, prior_weight=1.0)
         return fit.step_take(smoothed, ok)
+
+    def _unwidened(self, precision: np.ndarray) -> np.ndarray:
+        """``precision`` with the weights' block of the checked prior before its widening: the strength is chosen on
+        it, since both criteria score the markers, which barely see the widened directions, and would otherwise
+        choose a strength that undoes the widening (issue 41.2, docs/robustness.md "alex_rom_4 and its own
+        performer's prior": one strength step weaker or the true spread each recovered most of its loss)."""
+        s = self.support
+        if s is None or not len(s.widened):
+            return precision
+        out = np.array(precision, float)
+        out[:self.m, :self.m] = replace(s, after=s.before).precision
+        return out
 
     def _evidence_pick(self, B: np.ndarray, mean: np.ndarray, precision: np.ndarray, smoothed: np.ndarray,
                        ok: np.ndarray) -> int:
