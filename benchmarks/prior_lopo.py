@@ -57,8 +57,9 @@ def _top_bias(row, k: int = 4) -> dict[str, float]:
     return dict(sorted(row.bias.items(), key=lambda kv: -abs(kv[1]))[:k])
 
 
-def _widen_only(solver, targets, valid, noise_mm, tol=1e-2):
-    """The check before branch prior3: the variance only (a stand-in for MarkerKalmanSolver._support)."""
+def _widen_only(solver, targets, valid, noise_mm, tol=1e-2, outside=10.0):
+    """The check before branch prior3: the variance only, widened where the frames want 10 x more (a stand-in for
+    MarkerKalmanSolver._support; its ``outside`` is that check's own, whatever the caller asks)."""
     from solvers.prior_support import widen_prior
 
     return widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
@@ -66,29 +67,30 @@ def _widen_only(solver, targets, valid, noise_mm, tol=1e-2):
                        tol=tol)
 
 
-def _recentre_widen(solver, targets, valid, noise_mm, tol=1e-2):
-    """The mean re-centred, the variance widened as before (a stand-in for MarkerKalmanSolver._support)."""
+def _recentre_widen(solver, targets, valid, noise_mm, tol=1e-2, outside=10.0):
+    """The mean re-centred, the variance widened as before (a stand-in for MarkerKalmanSolver._support; ``outside``
+    fixed at that check's 10)."""
     from solvers.prior_support import widen_prior
 
     return widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
                        solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, outside=10.0, tol=tol)
 
 
-def _mean_as_given(solver, targets, valid, noise_mm, tol=1e-2):
+def _mean_as_given(solver, targets, valid, noise_mm, tol=1e-2, outside=np.inf):
     """Checked as today, the prior's own mean kept (the mean's posterior spread kept too)."""
     from solvers.prior_support import widen_prior
 
     s = widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
-                    solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, tol=tol)
+                    solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, tol=tol, outside=outside)
     return type(s)(s.axes, s.before, s.after, s.noise_var, s.iterations, solver._mean0.copy(), s.mean_cov)
 
 
-def _no_mean_spread(solver, targets, valid, noise_mm, tol=1e-2):
+def _no_mean_spread(solver, targets, valid, noise_mm, tol=1e-2, outside=np.inf):
     """Re-centred as today, the precision the prior's own (the mean's posterior covariance left out)."""
     from solvers.prior_support import widen_prior
 
     s = widen_prior(solver.profile.basis, solver._mean0, solver.prior_cov, targets, valid, solver.lower,
-                    solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, tol=tol)
+                    solver.upper, extra=solver.pose.matrix, noise_var=noise_mm**2, tol=tol, outside=outside)
     return type(s)(s.axes, s.before, s.after, s.noise_var, s.iterations, s.mean, None)
 
 
