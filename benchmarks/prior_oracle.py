@@ -252,13 +252,13 @@ def main(argv: list[str] | None = None) -> int:
         lam, axes = np.linalg.eigh(C)
         return type(s)(axes, lam, lam, s.noise_var, s.iterations, s.mean)
 
-    def evidence_support(self, targets, valid, noise_mm, tol=1e-2):
+    def evidence_support(self, targets, valid, noise_mm, tol=1e-2, outside=np.inf):
         if args.cov not in ("mix", "mixem"):
-            s = support(self, targets, valid, noise_mm, tol)
+            s = support(self, targets, valid, noise_mm, tol, outside=outside)
             return with_em(self, s, self.prior_cov, targets, valid) if args.cov == "em" else s
         if "mix" not in evidence:
             x, ok = frames_of(targets, valid)
-            base = support(self, targets, valid, noise_mm, tol)
+            base = support(self, targets, valid, noise_mm, tol, outside=outside)
             logp = np.array([log_evidence(self.profile.basis, c.mean, c.cov, x, ok, self.pose.matrix, base.noise_var)
                              for c in state["components"]])
             evidence["mix"] = mixture([c.mean for c in state["components"]], [c.cov for c in state["components"]],
@@ -268,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
         from solvers.prior_support import widen_prior
 
         s = widen_prior(self.profile.basis, mu, C, targets, valid, self.lower, self.upper, extra=self.pose.matrix,
-                        noise_var=noise_mm**2, tol=tol)
+                        noise_var=noise_mm**2, tol=tol, outside=outside)
         return with_em(self, s, C, targets, valid) if args.cov == "mixem" else s
 
     def fixed_strength(*a, **k):
