@@ -191,8 +191,7 @@ def summary_table(rows: list[dict], kept: bool = False) -> str:
         sel = [r for r in rows if (r["rig"], r["noise_mm"], r["mode"]) == k]
 
         def mean(field: str, sel=sel) -> float:
-            vals = np.array([r[field] for r in sel], dtype=float)
-            return float(np.mean(vals[np.isfinite(vals)])) if np.isfinite(vals).any() else float("nan")
+            return _finite_mean([r[field] for r in sel])
 
         extra = ""
         if draws:
@@ -209,12 +208,15 @@ def summary_table(rows: list[dict], kept: bool = False) -> str:
 
 def spread(rows: list[dict], field: str) -> tuple[float, float]:
     """(min, max) over draws of ``field``'s mean over the files of that draw (non-finite values left out)."""
-    means = []
-    for d in sorted({r.get("draw", 0) for r in rows}):
-        vals = np.array([r[field] for r in rows if r.get("draw", 0) == d], dtype=float)
-        if np.isfinite(vals).any():
-            means.append(float(np.mean(vals[np.isfinite(vals)])))
+    means = [_finite_mean([r[field] for r in rows if r.get("draw", 0) == d]) for d in {r.get("draw", 0) for r in rows}]
+    means = [m for m in means if np.isfinite(m)]
     return (min(means), max(means)) if means else (float("nan"), float("nan"))
+
+
+def _finite_mean(values: list) -> float:
+    """The mean of the finite values (a take without an oracle has NaN ratios), NaN when there are none."""
+    vals = np.array(values, dtype=float)
+    return float(np.mean(vals[np.isfinite(vals)])) if np.isfinite(vals).any() else float("nan")
 
 
 def ahead_of(rows: list[dict], mode: str = "auto", peer: str = "a2f") -> list[str]:
