@@ -493,8 +493,9 @@ class MarkerKalmanSolver:
             self._folds: dict = {}
             self._evidence: dict = {}
         self._product = None
+        chooser = self._unwidened(precision)
+        best = take_strength(B, mean, chooser, STRENGTHS, smoothed, ok, factors=self._folds)[0]
         if self.prior_cov is None:
-            best = take_strength(B, mean, precision, STRENGTHS, smoothed, ok, factors=self._folds)[0]
             self.chosen["prior_weight"] = float(STRENGTHS[best])
             fit = self._fit(best)
             fit.reset()
@@ -507,8 +508,6 @@ class MarkerKalmanSolver:
             self._ridge_strength = int(np.argmax(evidence_strength(B, np.zeros_like(mean), ridge, STRENGTHS,
                                                                    smoothed[pick], ok[pick], self.m)))
         r = self._ridge_strength
-        chooser = self._unwidened(precision)
-        best = take_strength(B, mean, chooser, STRENGTHS, smoothed, ok, factors=self._folds)[0]
         best = min(best, self._evidence_pick(B, mean, chooser, smoothed, ok))
         self.chosen["prior_weight"], self.chosen["ridge_weight"] = float(STRENGTHS[best]), float(STRENGTHS[r])
         self._product = _product(mean, STRENGTHS[best] * precision, STRENGTHS[r] * ridge, self.m)
